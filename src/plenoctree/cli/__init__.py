@@ -1,0 +1,53 @@
+"""The ``plenoctree`` command line: parses arguments and calls the package's ``run`` functions.
+
+Each command group lives in its own module of this package, exposing
+``register(subparsers) -> None``; that function adds its sub-commands, each with
+``set_defaults(func=...)`` where ``func(args) -> int`` does the work. Nothing else in the
+package imports :mod:`plenoctree.cli`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from ..errors import PlenOctreeError
+
+# Command-group modules, in --help order. Each defines register(subparsers).
+_GROUPS = [
+    "info",
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the full argument parser with every command group registered."""
+    parser = argparse.ArgumentParser(
+        prog="plenoctree",
+        description="PlenOctrees: train NeRF-SH, convert to an octree, fine-tune, render, view.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in _GROUPS:
+        importlib.import_module(f"{__name__}.{name}").register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``plenoctree`` console script; returns the process exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except PlenOctreeError as e:
+        print(f"plenoctree {args.command}: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"plenoctree {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
