@@ -1,0 +1,298 @@
+"""Loader for Blender / NeRF-synthetic datasets (``transforms_<split>.json`` + RGBA PNGs).
+
+Layout::
+
+    root/transforms_train.json   {"camera_angle_x": 0.69, "frames": [
+                                    {"file_path": "./train/r_0", "transform_matrix": [[4x4]]}, ...]}
+    root/train/r_0.png           RGBA (RGB, grey or palette images are accepted too)
+
+``transform_matrix`` is the OpenGL camera-to-world matrix. The focal length is
+``0.5 W / tan(0.5 camera_angle_x)`` with the principal point at the image centre; instant-ngp
+style files giving ``fl_x`` / ``fl_y`` / ``cx`` / ``cy`` in pixels are read too. Every problem
+with the files raises :class:`~plenoctree.errors.DatasetError` naming the file; nothing is
+returned half-loaded.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..errors import ConfigError, DatasetError
+from .cameras import Cameras
+from .dataset import Dataset
+
+__all__ = ["load_blender", "read_transforms", "BLENDER_NEAR", "BLENDER_FAR", "BLENDER_BBOX"]
+
+BLENDER_NEAR = 2.0
+BLENDER_FAR = 6.0
+BLENDER_BBOX = np.array([[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]], dtype=np.float32)
+_PNG_END = b"IEND\xaeB`\x82"   # the last 8 bytes of every complete PNG
+_MAX_PIXELS = 1 << 27          # refuse absurd image headers before allocating anything
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _finite_number(v: Any) -> bool:
+    try:
+        return _is_number(v) and math.isfinite(v)
+    except OverflowError:      # int too large for a float
+        return False
+
+
+def _matrix(value: Any, where: str) -> np.ndarray:
+    """A finite 4x4 float64 matrix from nested JSON lists, or DatasetError."""
+    if not (isinstance(value, list) and len(value) == 4
+            and all(isinstance(row, list) and len(row) == 4 for row in value)):
+        raise DatasetError(f"{where}: transform_matrix must be a 4x4 list of numbers")
+    if not all(_is_number(v) for row in value for v in row):
+        raise DatasetError(f"{where}: transform_matrix must contain only numbers")
+    if not all(_finite_number(v) for row in value for v in row):
+        raise DatasetError(f"{where}: transform_matrix contains non-finite values")
+    m = np.array(value, dtype=np.float64)
+    if np.abs(m).max() > 1e30:
+        raise DatasetError(f"{where}: transform_matrix has non-finite (float32 overflowing) values")
+    return m
+
+
+def read_transforms(path: str | os.PathLike) -> tuple[dict, list[tuple[str, np.ndarray]]]:
+    """Parse and validate one ``transforms_<split>.json``.
+
+    Returns:
+        ``(meta, frames)``: ``meta`` holds the top-level intrinsics keys present
+        (``camera_angle_x``, ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h``) as floats;
+        ``frames`` is a list of ``(file_path, c2w [4, 4] float64)``.
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: file not found") from None
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read ({e.strerror or e})") from None
+    try:
+        obj = json.loads(raw)
+    except (ValueError, RecursionError) as e:     # JSONDecodeError, UnicodeDecodeError, ...
+        raise DatasetError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(obj, dict):
+        raise DatasetError(f"{path}: expected a JSON object at the top level, got "
+                           f"{type(obj).__name__}")
+    meta: dict[str, float] = {}
+    for key in ("camera_angle_x", "fl_x", "fl_y", "cx", "cy", "w", "h"):
+        if key in obj:
+            if not _finite_number(obj[key]):
+                raise DatasetError(f"{path}: {key} must be a finite number, got {obj[key]!r}")
+            meta[key] = float(obj[key])
+    if "camera_angle_x" not in meta and "fl_x" not in meta:
+        raise DatasetError(f"{path}: missing key 'camera_angle_x' (or 'fl_x')")
+    if "camera_angle_x" in meta and not 0.0 < meta["camera_angle_x"] < math.pi:
+        raise DatasetError(f"{path}: camera_angle_x must be in (0, pi) radians, got "
+                           f"{meta['camera_angle_x']}")
+    for key in ("fl_x", "fl_y", "w", "h"):
+        if key in meta and not meta[key] > 0:
+            raise DatasetError(f"{path}: {key} must be positive, got {meta[key]}")
+    if "frames" not in obj:
+        raise DatasetError(f"{path}: missing key 'frames'")
+    if not isinstance(obj["frames"], list):
+        raise DatasetError(f"{path}: 'frames' must be a list")
+    if not obj["frames"]:
+        raise DatasetError(f"{path}: 'frames' is empty")
+    frames = []
+    for i, fr in enumerate(obj["frames"]):
+        where = f"{path}: frames[{i}]"
+        if not isinstance(fr, dict):
+            raise DatasetError(f"{where}: expected an object")
+        for key in ("file_path", "transform_matrix"):
+            if key not in fr:
+                raise DatasetError(f"{where}: missing key {key!r}")
+        fp = fr["file_path"]
+        if not isinstance(fp, str) or not fp.strip() or "\x00" in fp:
+            raise DatasetError(f"{where}: file_path must be a non-empty string")
+        frames.append((fp, _matrix(fr["transform_matrix"], where)))
+    return meta, frames
+
+
+def _image_path(root: Path, file_path: str) -> Path:
+    p = root / file_path
+    return p if p.suffix.lower() in (".png", ".jpg", ".jpeg") else p.with_name(p.name + ".png")
+
+
+def _decode(path: Path, expect: tuple[int, int] | None) -> np.ndarray:
+    """Decode one PNG (or JPEG) image to uint8 ``[H, W, 4]`` (alpha 255 when the file has none).
+
+    ``expect`` = (width, height) the image must have; raises DatasetError naming ``path``.
+    """
+    from PIL import Image
+
+    try:
+        raw = path.read_bytes()
+        with Image.open(io.BytesIO(raw), formats=("PNG", "JPEG")) as im:
+            if im.format == "PNG" and not raw.endswith(_PNG_END):
+                raise DatasetError(f"{path}: truncated PNG (no IEND chunk at the end)")
+            w, h = im.size
+            if w * h > _MAX_PIXELS or w <= 0 or h <= 0:
+                raise DatasetError(f"{path}: implausible image size {w}x{h}")
+            if expect is not None and (w, h) != expect:
+                raise DatasetError(f"{path}: image is {w}x{h}, expected {expect[0]}x{expect[1]} "
+                                   "like the other images of the split")
+            im.load()
+            mode = im.mode
+            if mode == "RGBA":
+                arr = np.asarray(im)
+            elif mode == "RGB":
+                arr = np.asarray(im)
+                arr = np.concatenate([arr, np.full(arr.shape[:2] + (1,), 255, np.uint8)], -1)
+            elif mode.startswith("I"):      # 16/32-bit grey
+                g = np.asarray(im).astype(np.float64)
+                scale = 65535.0 if mode.startswith("I;16") or g.max(initial=0) > 255 else 255.0
+                g = np.clip(np.round(g / scale * 255.0), 0, 255).astype(np.uint8)
+                arr = np.stack([g, g, g, np.full_like(g, 255)], -1)
+            else:
+                arr = np.asarray(im.convert("RGBA"))
+    except DatasetError:
+        raise
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: image file not found") from None
+    except Exception as e:  # noqa: BLE001 - any decoder failure means an unreadable file
+        raise DatasetError(f"{path}: unreadable image ({type(e).__name__}: {e})") from None
+    if arr.shape != (h, w, 4):
+        raise DatasetError(f"{path}: decoded to shape {list(arr.shape)}, expected {[h, w, 4]}")
+    return arr
+
+
+def _composite_into(arr: np.ndarray, factor: int, bg: np.ndarray,
+                    out_rgb: np.ndarray, out_alpha: np.ndarray) -> None:
+    """Area-downscale ``arr`` (uint8 RGBA) by ``factor`` and composite it onto ``bg``.
+
+    Premultiplied colour and alpha are averaged over ``factor x factor`` blocks, then
+    ``rgb = premult + (1 - alpha) bg`` is written to ``out_rgb [h, w, 3]``, alpha to
+    ``out_alpha [h, w]``.
+    """
+    a = arr[..., 3:4].astype(np.float32) * np.float32(1.0 / 255.0)
+    pre = arr[..., :3].astype(np.float32) * np.float32(1.0 / 255.0) * a
+    if factor > 1:
+        h, w = out_alpha.shape
+        pre = pre.reshape(h, factor, w, factor, 3).mean(axis=(1, 3), dtype=np.float32)
+        a = a.reshape(h, factor, w, factor, 1).mean(axis=(1, 3), dtype=np.float32)
+    np.add(pre, (1.0 - a) * bg, out=out_rgb)
+    np.clip(out_rgb, 0.0, 1.0, out=out_rgb)
+    out_alpha[...] = a[..., 0]
+
+
+def _check_options(split: Any, downscale: Any, background: Any, limit: Any) -> np.ndarray:
+    if not isinstance(split, str) or not split or any(c in split for c in "/\\\x00"):
+        raise ConfigError(f"split must be a plain name like 'train', got {split!r}")
+    if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
+        raise ConfigError(f"downscale must be a positive integer, got {downscale!r}")
+    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, (int, np.integer))
+                              or limit < 1):
+        raise ConfigError(f"limit must be None or a positive integer, got {limit!r}")
+    try:
+        bg = np.broadcast_to(np.asarray(background, dtype=np.float32), (3,)).copy()
+    except (TypeError, ValueError):
+        raise ConfigError(f"background must be an RGB triple in [0, 1], got {background!r}") from None
+    if not np.all((bg >= 0) & (bg <= 1)):
+        raise ConfigError(f"background must be an RGB triple in [0, 1], got {background!r}")
+    return bg
+
+
+def load_blender(root: str | os.PathLike, split: str = "train", downscale: int = 1,
+                 background: Sequence[float] | float = (1.0, 1.0, 1.0),
+                 limit: int | None = None, num_threads: int | None = None) -> Dataset:
+    """Load one split of a Blender / NeRF-synthetic dataset.
+
+    Args:
+        root: dataset folder holding ``transforms_<split>.json``.
+        split: "train", "val", "test" (any plain name with a matching json file).
+        downscale: integer factor; images are area-averaged over ``downscale^2`` blocks
+            (premultiplied colour and alpha averaged, then composited) and the intrinsics scaled.
+            Must divide the image size.
+        background: RGB (or one grey value) in [0, 1] that transparent pixels are composited on.
+        limit: keep only the first ``limit`` frames.
+        num_threads: image decoding threads (default ``min(8, cpu count)``).
+
+    Returns:
+        A :class:`Dataset` with float32 ``images [N, H/downscale, W/downscale, 3]``, ``alphas``,
+        cameras, near 2, far 6, scene box ``[-1.5, 1.5]^3``.
+
+    Raises:
+        DatasetError: missing / malformed json, bad matrices, missing or unreadable images,
+            images of the wrong or mixed sizes, ``downscale`` not dividing the size.
+        ConfigError: bad option values.
+    """
+    bg = _check_options(split, downscale, background, limit)
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: dataset folder does not exist")
+    json_path = root / f"transforms_{split}.json"
+    meta, frames = read_transforms(json_path)
+    if limit is not None:
+        frames = frames[:limit]
+    paths = []
+    for i, (fp, _) in enumerate(frames):
+        try:
+            p = _image_path(root, fp)
+            ok = p.is_file()
+        except (OSError, ValueError) as e:
+            raise DatasetError(f"{json_path}: frames[{i}]: bad file_path {fp!r} ({e})") from None
+        if not ok:
+            raise DatasetError(f"{p}: image file not found (listed in {json_path})")
+        paths.append(p)
+
+    first = _decode(paths[0], None)
+    height, width = first.shape[:2]
+    for key, val in (("w", width), ("h", height)):
+        if key in meta and int(meta[key]) != val:
+            raise DatasetError(f"{json_path}: {key} = {meta[key]:g} but {paths[0]} is "
+                               f"{width}x{height}")
+    f = int(downscale)
+    if width % f or height % f:
+        raise DatasetError(f"{paths[0]}: downscale {f} does not divide the image size "
+                           f"{width}x{height}")
+    h, w, n = height // f, width // f, len(paths)
+    images = np.empty((n, h, w, 3), dtype=np.float32)
+    alphas = np.empty((n, h, w), dtype=np.float32)
+
+    def work(i: int) -> None:
+        arr = first if i == 0 else _decode(paths[i], (width, height))
+        _composite_into(arr, f, bg, images[i], alphas[i])
+
+    threads = num_threads or min(8, os.cpu_count() or 1)
+    if threads <= 1 or n == 1:
+        for i in range(n):
+            work(i)
+    else:
+        with ThreadPoolExecutor(max_workers=threads) as pool:
+            futures = [pool.submit(work, i) for i in range(n)]
+            try:
+                for fut in futures:
+                    fut.result()
+            except BaseException:
+                for fut in futures:
+                    fut.cancel()
+                raise
+
+    if "fl_x" in meta:
+        fx = meta["fl_x"]
+        fy = meta.get("fl_y", fx)
+    else:
+        fx = fy = 0.5 * width / math.tan(0.5 * meta["camera_angle_x"])
+    cx, cy = meta.get("cx", width / 2.0), meta.get("cy", height / 2.0)
+    c2w = np.stack([m for _, m in frames]).astype(np.float32)
+    try:
+        cams = Cameras(c2w, fx, fy, cx, cy, width, height).scaled(f)
+    except ConfigError as e:
+        raise DatasetError(f"{json_path}: {e}") from None
+    return Dataset(images=images, cameras=cams, near=BLENDER_NEAR, far=BLENDER_FAR,
+                   scene_bbox=BLENDER_BBOX.copy(), split=split, root=root,
+                   background=tuple(float(v) for v in bg),
+                   names=[Path(fp).stem for fp, _ in frames], alphas=alphas)

@@ -1,0 +1,148 @@
+"""Validation of an :class:`~plenoctree.octree.tree.Octree` (``Octree.check_integrity``).
+
+Every problem raises :class:`~plenoctree.errors.TreeFormatError` with the message
+``"<name>: <problem>"`` naming the first offending entry, so the same checker serves in-memory
+trees (``name="tree"``) and loaded files (``name=<path>``).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..errors import TreeFormatError
+from .tree import parse_data_format
+
+if TYPE_CHECKING:
+    from .tree import Octree
+
+__all__ = ["check_tree", "expected_data_dim"]
+
+_CHUNK_NODES = 1 << 16     # data is checked in blocks of this many nodes (bounded temporaries)
+
+
+def expected_data_dim(data_format: str) -> int:
+    """Values per cell implied by ``data_format``: ``3 * basis_dim + 1`` (RGBA: 4)."""
+    kind, n = parse_data_format(data_format)
+    return 4 if kind == "RGBA" else 3 * n + 1
+
+
+def _fail(name: str, problem: str) -> None:
+    raise TreeFormatError(f"{name}: {problem}")
+
+
+def _cell(flat_index: int) -> str:
+    node, c = divmod(int(flat_index), 8)
+    return f"[{node}, {c >> 2}, {(c >> 1) & 1}, {c & 1}]"
+
+
+def _check_arrays(tree: Octree, name: str) -> int:
+    """Types, shapes and format fields; returns n_nodes."""
+    child, data = tree.child, tree.data
+    if not isinstance(child, np.ndarray) or child.dtype != np.int32:
+        _fail(name, f"child must be an int32 array, got {getattr(child, 'dtype', type(child))}")
+    if child.ndim != 4 or child.shape[1:] != (2, 2, 2):
+        _fail(name, f"child must have shape [n_nodes, 2, 2, 2], got {list(child.shape)}")
+    n = child.shape[0]
+    if n < 1:
+        _fail(name, "tree has no nodes (child has 0 rows; the root node is required)")
+    if not isinstance(data, np.ndarray) or data.dtype not in (np.float16, np.float32, np.float64):
+        _fail(name, f"data must be a float16/32/64 array, got {getattr(data, 'dtype', type(data))}")
+    if data.ndim != 5 or data.shape[:4] != (n, 2, 2, 2):
+        _fail(name, f"data must have shape [n_nodes={n}, 2, 2, 2, data_dim], "
+                    f"got {list(data.shape)}")
+    try:
+        want = expected_data_dim(tree.data_format)
+    except TreeFormatError as e:
+        _fail(name, str(e))
+    if data.shape[4] != want:
+        _fail(name, f"data_dim {data.shape[4]} does not match data_format {tree.data_format!r} "
+                    f"(expects {want})")
+    for key in ("offset", "invradius"):
+        v = getattr(tree, key)
+        if not isinstance(v, np.ndarray) or v.shape != (3,) or v.dtype.kind != "f":
+            _fail(name, f"{key} must be a float array of shape [3], got "
+                        f"{getattr(v, 'dtype', type(v))} {list(getattr(v, 'shape', ()))}")
+        if not np.isfinite(v).all():
+            _fail(name, f"{key} has non-finite values {v.tolist()}")
+    if not (tree.invradius > 0).all():
+        _fail(name, f"invradius must be > 0 on every axis, got {tree.invradius.tolist()}")
+    kind, b = parse_data_format(tree.data_format)
+    extra = tree.extra_data
+    if kind == "SG":
+        if not isinstance(extra, np.ndarray) or extra.shape != (b, 4):
+            _fail(name, f"data_format {tree.data_format!r} needs extra_data of shape [{b}, 4] "
+                        f"(sharpness, mu_x, mu_y, mu_z), got "
+                        f"{None if extra is None else list(np.shape(extra))}")
+        if not np.isfinite(extra).all():
+            _fail(name, "extra_data has non-finite values")
+    elif extra is not None:
+        _fail(name, f"extra_data must be None for data_format {tree.data_format!r}, got shape "
+                    f"{list(np.shape(extra))}")
+    if isinstance(tree.depth_limit, bool) or not isinstance(tree.depth_limit, (int, np.integer)) \
+            or tree.depth_limit < 0:
+        _fail(name, f"depth_limit must be an integer >= 0, got {tree.depth_limit!r}")
+    return n
+
+
+def _check_topology(tree: Octree, name: str, n: int) -> None:
+    """Offsets positive and in range, exactly one parent per non-root node, depth limit."""
+    flat = tree.child.reshape(-1)
+    neg = np.flatnonzero(flat < 0)
+    if neg.size:
+        f = neg[0]
+        _fail(name, f"child{_cell(f)} = {flat[f]} is negative ({neg.size} negative offsets; "
+                    "child nodes must come after their parent, offset > 0, or 0 for a leaf)")
+    cells = np.flatnonzero(flat)
+    targets = cells // 8 + flat[cells].astype(np.int64)
+    bad = np.flatnonzero(targets >= n)
+    if bad.size:
+        f = cells[bad[0]]
+        _fail(name, f"child{_cell(f)} = {flat[f]} points to node {targets[bad[0]]}, past the last "
+                    f"node {n - 1} ({bad.size} out-of-range offsets)")
+    parents = np.bincount(targets, minlength=n)
+    shared = np.flatnonzero(parents > 1)
+    if shared.size:
+        _fail(name, f"node {shared[0]} has {parents[shared[0]]} parents ({shared.size} shared "
+                    "nodes; every non-root node must have exactly one parent)")
+    orphans = np.flatnonzero(parents[1:] == 0) + 1
+    if orphans.size:
+        _fail(name, f"node {orphans[0]} has no parent ({orphans.size} orphan nodes; every "
+                    "non-root node must have exactly one parent)")
+    # Offsets > 0 and one parent each: every node is reachable from the root, no cycles.
+    depth = tree.node_depths()
+    if depth.max() > tree.depth_limit:
+        deep = int(np.argmax(depth))
+        _fail(name, f"node {deep} has depth {depth[deep]} > depth_limit {tree.depth_limit}")
+
+
+def _check_values(tree: Octree, name: str, n: int) -> None:
+    """Finite data and σ >= 0 in every cell (checked in blocks of nodes)."""
+    for start in range(0, n, _CHUNK_NODES):
+        block = tree.data[start:start + _CHUNK_NODES]
+        finite = np.isfinite(block)
+        if not finite.all():
+            f = np.argwhere(~finite)[0]
+            _fail(name, f"data[{start + f[0]}, {f[1]}, {f[2]}, {f[3]}, {f[4]}] = "
+                        f"{block[tuple(f)]} is not finite")
+        sig = block[..., -1]
+        if (sig < 0).any():
+            f = np.argwhere(sig < 0)[0]
+            _fail(name, f"sigma (data[..., -1]) at cell [{start + f[0]}, {f[1]}, {f[2]}, {f[3]}] "
+                        f"= {sig[tuple(f)]} is negative (sigma must be >= 0)")
+
+
+def check_tree(tree: Octree, name: str = "tree") -> None:
+    """Raise ``TreeFormatError("<name>: <problem>")`` unless ``tree`` is a valid octree.
+
+    Checks, in order: ``child`` int32 ``[n, 2, 2, 2]`` with n >= 1; ``data`` float
+    ``[n, 2, 2, 2, D]`` with D matching ``data_format``; ``offset``/``invradius`` finite ``[3]``,
+    ``invradius > 0``; SG ``extra_data [B, 4]`` finite (None otherwise); ``depth_limit >= 0``;
+    child offsets >= 0 and pointing inside the array; every non-root node has exactly one
+    parent (which, with positive offsets, rules out cycles and orphans); node depth <=
+    ``depth_limit``; data finite; σ >= 0.
+    """
+    n = _check_arrays(tree, name)
+    _check_topology(tree, name, n)
+    _check_values(tree, name, n)
