@@ -126,7 +126,10 @@ def test_cameras_bad_intrinsics(kw, what):
         generate_rays(np.eye(4), **args)
 
 
-def test_ndc_not_supported_yet():
-    cams = Cameras(np.eye(4)[None], 10.0, 10.0, 1.0, 1.0, 2, 2, ndc=True)
+def test_ndc_needs_forward_facing_rays():
+    # NDC rays are tested in tests/test_datasets_ndc.py; a camera looking up +z has no NDC rays
+    cams = Cameras(_c2w(_rot_y(math.pi))[None], 10.0, 10.0, 1.0, 1.0, 2, 2, ndc=True)
     with pytest.raises(ConfigError, match="NDC"):
         cams.rays(0)
+    o, d = Cameras(np.eye(4)[None], 10.0, 10.0, 1.0, 1.0, 2, 2, ndc=True).rays(0)
+    np.testing.assert_allclose(o[..., 2], -1.0, atol=1e-6)

@@ -14,6 +14,7 @@ from .sh import eval_sg_bases, eval_sh_bases, num_sh_bases, sh_degree_from_bases
 from .datasets import Cameras, Dataset, generate_rays, load_blender, load_dataset
 from .datasets.procedural import procedural_grid, procedural_tree, write_procedural_dataset
 from .metrics import lpips, lpips_available, psnr, ssim
+from .render import RenderOptions, RenderOutput, available_backends, render_image, render_rays
 
 __all__ = [
     "__version__",
@@ -47,4 +48,10 @@ __all__ = [
     "load_tree",
     "export_svox",
     "import_svox",
+    # render
+    "RenderOptions",
+    "RenderOutput",
+    "render_rays",
+    "render_image",
+    "available_backends",
 ]

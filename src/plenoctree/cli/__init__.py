@@ -10,14 +10,30 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import pkgutil
 import sys
 
 from ..errors import PlenOctreeError
 
-# Command-group modules, in --help order. Each defines register(subparsers).
+# Preferred --help order of the command-group modules. Every module of this package that
+# defines register(subparsers) is registered; the ones not listed here come after, by name.
 _GROUPS = [
     "info",
+    "demo",
+    "train",
+    "extract",
+    "finetune",
+    "render",
+    "compress",
+    "viewer",
 ]
+
+
+def _group_modules() -> list[str]:
+    """Names of this package's command-group modules, in --help order."""
+    found = [m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")]
+    rank = {name: i for i, name in enumerate(_GROUPS)}
+    return sorted(found, key=lambda n: (rank.get(n, len(rank)), n))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -27,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="PlenOctrees: train NeRF-SH, convert to an octree, fine-tune, render, view.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in _GROUPS:
+    for name in _group_modules():
         importlib.import_module(f"{__name__}.{name}").register(sub)
     return parser
 

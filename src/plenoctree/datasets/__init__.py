@@ -1,13 +1,21 @@
-"""Posed-image datasets: cameras and ray generation, the Blender loader, the procedural scene.
+"""Posed-image datasets: cameras and ray generation (incl. NDC), the Blender, LLFF, NSVF and
+nerfstudio loaders, format detection, the procedural scene.
 
-``from plenoctree.datasets import Cameras, generate_rays, Dataset, load_blender, load_dataset``.
-The procedural scene lives in :mod:`plenoctree.datasets.procedural`.
+``from plenoctree.datasets import Cameras, generate_rays, Dataset, load_dataset, ...``.
+The procedural scene lives in :mod:`plenoctree.datasets.procedural`, its forward-facing (LLFF)
+variant in :mod:`plenoctree.datasets.forward_facing`.
 """
 
 from __future__ import annotations
 
 from .blender import load_blender
 from .cameras import Cameras, generate_rays
-from .dataset import Dataset, detect_format, load_dataset
+from .dataset import FORMATS, Dataset, detect_format, load_dataset
+from .llff import llff_render_cameras, load_llff
+from .ndc import to_ndc_rays
+from .nerfstudio import load_nerfstudio
+from .nsvf import load_nsvf
 
-__all__ = ["Cameras", "generate_rays", "Dataset", "load_blender", "load_dataset", "detect_format"]
+__all__ = ["Cameras", "generate_rays", "Dataset", "load_blender", "load_dataset", "detect_format",
+           "FORMATS", "load_llff", "load_nsvf", "load_nerfstudio", "llff_render_cameras",
+           "to_ndc_rays"]

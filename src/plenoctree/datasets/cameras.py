@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -76,36 +76,81 @@ def generate_rays(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float,
     return origins, dirs.astype(np.float32)
 
 
+def _intrinsic(name: str, val: Any, n: int, positive: bool) -> float | np.ndarray:
+    """One intrinsic: a float, or a float64 ``[n]`` array when the cameras' values differ."""
+    arr = None
+    if not isinstance(val, (int, float, np.floating, np.integer)) or isinstance(val, bool):
+        try:
+            arr = np.asarray(val, dtype=np.float64)
+        except (TypeError, ValueError):
+            arr = None
+        if arr is None or arr.ndim > 1 or (arr.ndim == 1 and arr.shape != (n,)):
+            raise ConfigError(f"camera {name} must be a number or an array of {n} numbers "
+                              f"(one per camera), got {val!r}")
+        if arr.ndim == 0:
+            val, arr = float(arr), None
+    vals = np.atleast_1d(np.asarray(val if arr is None else arr, dtype=np.float64))
+    what = "a finite positive number of pixels" if positive else "a finite number of pixels"
+    if not np.all(np.isfinite(vals)) or (positive and not np.all(vals > 0)):
+        raise ConfigError(f"camera {name} must be {what}, got {val!r}")
+    if arr is None or bool(np.all(arr == arr[0])):
+        return float(vals[0])
+    out = arr.copy()
+    out.flags.writeable = False
+    return out
+
+
+def _pick(v: float | np.ndarray, i: Any) -> float | np.ndarray:
+    return v if isinstance(v, float) else v[i]
+
+
 @dataclass
 class Cameras:
-    """A set of ``N`` pinhole cameras sharing intrinsics (OpenGL / Blender convention).
+    """A set of ``N`` pinhole cameras of one image size (OpenGL / Blender convention).
 
     Attributes:
         c2w: float32 ``[N, 4, 4]`` camera-to-world matrices (world units).
-        fx, fy, cx, cy: focal lengths and principal point, pixels.
-        width, height: image size, pixels.
-        ndc: forward-facing scene in normalised device coordinates (not supported yet:
-            :meth:`rays` raises :class:`ConfigError` for NDC cameras).
+        fx, fy, cx, cy: focal lengths and principal point, pixels: a float shared by all
+            cameras, or a read-only float64 ``[N]`` array when the cameras differ (per-frame
+            intrinsics, e.g. nerfstudio files). Arrays whose values are all equal are stored
+            as a float, so code reading ``cameras.fx`` keeps working for shared intrinsics;
+            :meth:`intrinsics` gives camera ``i``'s four values in every case.
+        width, height: image size, pixels (shared).
+        ndc: forward-facing scene: :meth:`rays` returns rays in normalised device coordinates
+            (:mod:`plenoctree.datasets.ndc`) of the reference camera at the world origin with
+            the focal lengths :attr:`ndc_focal` and this image size, near plane ``z = -ndc_near``.
+        ndc_near: world distance of the NDC near plane (NeRF: 1).
 
     Invalid values raise :class:`~plenoctree.errors.ConfigError`.
     """
 
     c2w: np.ndarray
-    fx: float
-    fy: float
-    cx: float
-    cy: float
+    fx: float | np.ndarray
+    fy: float | np.ndarray
+    cx: float | np.ndarray
+    cy: float | np.ndarray
     width: int
     height: int
     ndc: bool = False
+    ndc_near: float = 1.0
 
     def __post_init__(self) -> None:
-        _check_intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+        for name, val in (("width", self.width), ("height", self.height)):
+            if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val <= 0:
+                raise ConfigError(f"camera {name} must be a positive integer, got {val!r}")
         self.c2w = _check_c2w(self.c2w, batched=True).astype(np.float32)
-        self.fx, self.fy, self.cx, self.cy = (float(self.fx), float(self.fy),
-                                              float(self.cx), float(self.cy))
+        n = len(self)
+        self.fx = _intrinsic("fx", self.fx, n, True)
+        self.fy = _intrinsic("fy", self.fy, n, True)
+        self.cx = _intrinsic("cx", self.cx, n, False)
+        self.cy = _intrinsic("cy", self.cy, n, False)
         self.width, self.height = int(self.width), int(self.height)
         self.ndc = bool(self.ndc)
+        near = self.ndc_near
+        if isinstance(near, bool) or not isinstance(near, (int, float, np.floating, np.integer)) \
+                or not math.isfinite(near) or near <= 0:
+            raise ConfigError(f"camera ndc_near must be a finite positive number, got {near!r}")
+        self.ndc_near = float(near)
 
     def __len__(self) -> int:
         return int(self.c2w.shape[0])
@@ -114,8 +159,34 @@ class Cameras:
         if not isinstance(other, Cameras):
             return NotImplemented
         return (np.array_equal(self.c2w, other.c2w)
-                and (self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.ndc)
-                == (other.fx, other.fy, other.cx, other.cy, other.width, other.height, other.ndc))
+                and all(np.array_equal(a, b) for a, b in zip(self._intr(), other._intr()))
+                and (self.width, self.height, self.ndc, self.ndc_near)
+                == (other.width, other.height, other.ndc, other.ndc_near))
+
+    def _intr(self) -> tuple:
+        return (self.fx, self.fy, self.cx, self.cy)
+
+    @property
+    def per_camera_intrinsics(self) -> bool:
+        """True when at least one of fx, fy, cx, cy differs between cameras (is an array)."""
+        return any(not isinstance(v, float) for v in self._intr())
+
+    def intrinsics(self, index: int) -> tuple[float, float, float, float]:
+        """``(fx, fy, cx, cy)`` of camera ``index``, pixels."""
+        i = self._index(index)
+        return tuple(float(_pick(v, i)) for v in self._intr())  # type: ignore[return-value]
+
+    def intrinsics_array(self) -> np.ndarray:
+        """float64 ``[N, 4]``: ``(fx, fy, cx, cy)`` of every camera."""
+        n = len(self)
+        return np.stack([np.broadcast_to(np.asarray(v, dtype=np.float64), (n,))
+                         for v in self._intr()], -1).copy()
+
+    @property
+    def ndc_focal(self) -> tuple[float, float]:
+        """``(fx, fy)`` of the NDC reference camera: the shared focal lengths (their mean over
+        the cameras when they differ)."""
+        return float(np.mean(self.fx)), float(np.mean(self.fy))
 
     def _index(self, index: int) -> int:
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)):
@@ -128,12 +199,69 @@ class Cameras:
     def rays(self, index: int) -> tuple[np.ndarray, np.ndarray]:
         """Rays of camera ``index``: ``origins [H, W, 3]``, unit ``dirs [H, W, 3]`` (float32).
 
-        See :func:`generate_rays` for the pixel convention.
+        See :func:`generate_rays` for the pixel convention. With ``ndc=True`` the rays are in
+        NDC space (:func:`~plenoctree.datasets.ndc.to_ndc_rays`): origins on ``z' = -1``,
+        unit NDC directions, so distances along them are NDC lengths.
         """
         i = self._index(index)
+        fx, fy, cx, cy = self.intrinsics(i)
+        o, d = generate_rays(self.c2w[i], fx, fy, cx, cy, self.width, self.height)
         if self.ndc:
-            raise ConfigError("NDC (forward-facing) cameras are not supported yet")
-        return generate_rays(self.c2w[i], self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+            from .ndc import to_ndc_rays
+
+            nfx, nfy = self.ndc_focal
+            o, d = to_ndc_rays(o, d, nfx, nfy, self.width, self.height, self.ndc_near)
+        return o, d
+
+    def pixel_rays(self, image: Any, col: Any, row: Any) -> tuple[Any, Any]:
+        """Rays through individual pixels, vectorised (the training ray sampler's path).
+
+        Args:
+            image: int ``[B]`` camera indices. col, row: ``[B]`` pixel column / row indices
+                (the ray goes through the pixel centre ``(col + 0.5, row + 0.5)``; fractional
+                values give sub-pixel rays). numpy arrays or torch tensors (all three of one
+                kind; torch results are float32 on the tensors' device).
+
+        Returns:
+            ``(origins [B, 3], unit dirs [B, 3])``, identical to ``rays(image[b])[row[b],
+            col[b]]`` (NDC rays when ``ndc``).
+        """
+        torch_in = type(image).__module__.startswith("torch")
+        if torch_in:
+            import torch
+
+            dev = image.device
+            idx = image.long()
+            c2w = torch.as_tensor(self.c2w, device=dev, dtype=torch.float64)[idx]
+            k = torch.as_tensor(self.intrinsics_array(), device=dev)[idx]
+            u, v = col.to(torch.float64), row.to(torch.float64)
+            d_cam = torch.stack([(u + 0.5 - k[:, 2]) / k[:, 0], -(v + 0.5 - k[:, 3]) / k[:, 1],
+                                 -torch.ones_like(u)], -1)
+            dirs = (c2w[:, :3, :3] @ d_cam[:, :, None])[:, :, 0]
+            dirs = dirs / torch.linalg.vector_norm(dirs, dim=-1, keepdim=True)
+            origins = c2w[:, :3, 3]
+        else:
+            idx = np.asarray(image, dtype=np.int64)
+            if idx.size and (idx.min() < 0 or idx.max() >= len(self)):
+                raise ConfigError(f"camera index out of range for {len(self)} cameras")
+            c2w = self.c2w[idx].astype(np.float64)
+            k = self.intrinsics_array()[idx]
+            u = np.asarray(col, dtype=np.float64)
+            v = np.asarray(row, dtype=np.float64)
+            d_cam = np.stack([(u + 0.5 - k[:, 2]) / k[:, 0], -(v + 0.5 - k[:, 3]) / k[:, 1],
+                              -np.ones_like(u)], -1)
+            dirs = np.einsum("bij,bj->bi", c2w[:, :3, :3], d_cam)
+            dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+            origins = c2w[:, :3, 3]
+        if self.ndc:
+            from .ndc import to_ndc_rays
+
+            nfx, nfy = self.ndc_focal
+            origins, dirs = to_ndc_rays(origins, dirs, nfx, nfy, self.width, self.height,
+                                        self.ndc_near)
+        if torch_in:
+            return origins.float().contiguous(), dirs.float().contiguous()
+        return origins.astype(np.float32), dirs.astype(np.float32)
 
     def all_rays(self) -> tuple[np.ndarray, np.ndarray]:
         """Rays of every camera: ``origins [N, H, W, 3]``, unit ``dirs [N, H, W, 3]`` (float32)."""
@@ -150,7 +278,7 @@ class Cameras:
         Focal lengths and principal point are divided by ``factor``; the size must be divisible
         by ``factor`` (otherwise :class:`ConfigError`). Pixel ``u'`` of the result covers pixels
         ``[u' f, (u'+1) f)`` of the original, and its centre ray is the original ray through
-        ``(u' + 0.5) f``.
+        ``(u' + 0.5) f``. The NDC space (if any) is unchanged.
         """
         if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or factor < 1:
             raise ConfigError(f"downscale factor must be a positive integer, got {factor!r}")
@@ -159,15 +287,22 @@ class Cameras:
                               f"{self.width}x{self.height}")
         f = float(factor)
         return Cameras(self.c2w.copy(), self.fx / f, self.fy / f, self.cx / f, self.cy / f,
-                       self.width // factor, self.height // factor, self.ndc)
+                       self.width // factor, self.height // factor, self.ndc, self.ndc_near)
 
     def select(self, indices: Sequence[int] | np.ndarray | slice) -> "Cameras":
-        """A new :class:`Cameras` holding the cameras ``c2w[indices]`` with the same intrinsics."""
+        """A new :class:`Cameras` holding the cameras ``c2w[indices]`` (and their intrinsics)."""
         c2w = self.c2w[indices]
-        if c2w.ndim == 2:
+        single = c2w.ndim == 2
+        if single:
             c2w = c2w[None]
-        return Cameras(c2w.copy(), self.fx, self.fy, self.cx, self.cy, self.width, self.height,
-                       self.ndc)
+
+        def sub(v: float | np.ndarray) -> float | np.ndarray:
+            if isinstance(v, float):
+                return v
+            return np.atleast_1d(v[indices])
+
+        return Cameras(c2w.copy(), *(sub(v) for v in self._intr()), self.width, self.height,
+                       self.ndc, self.ndc_near)
 
     @property
     def centers(self) -> np.ndarray:

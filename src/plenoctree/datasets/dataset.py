@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import DatasetError
 from .cameras import Cameras
 
-__all__ = ["Dataset", "load_dataset", "detect_format"]
+__all__ = ["Dataset", "load_dataset", "detect_format", "FORMATS"]
 
 
 @dataclass
@@ -28,7 +28,10 @@ class Dataset:
         background: RGB in [0, 1] that transparent pixels were composited onto.
         names: file stems of the ``N`` images (e.g. ``"r_0"``).
         alphas: float32 ``[N, H, W]`` opacity in [0, 1] (1 where the source had no alpha), or
-            ``None`` when the loader did not keep it.
+            ``None`` when the loader did not keep it (or every image was opaque).
+        masks: float32 ``[N, H, W]`` pixel validity in [0, 1] (the fraction of valid source
+            pixels after downscaling; 0 = exclude from training losses), or ``None`` when the
+            dataset has no masks (nerfstudio ``mask_path``).
     """
 
     images: np.ndarray
@@ -41,6 +44,7 @@ class Dataset:
     background: tuple[float, float, float]
     names: list[str] = field(default_factory=list)
     alphas: np.ndarray | None = None
+    masks: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n, h, w = len(self.cameras), self.cameras.height, self.cameras.width
@@ -49,6 +53,9 @@ class Dataset:
                                f"cameras expect {[n, h, w, 3]}")
         if self.alphas is not None and self.alphas.shape != (n, h, w):
             raise DatasetError(f"{self.root}: alphas have shape {list(self.alphas.shape)}, "
+                               f"expected {[n, h, w]}")
+        if self.masks is not None and self.masks.shape != (n, h, w):
+            raise DatasetError(f"{self.root}: masks have shape {list(self.masks.shape)}, "
                                f"expected {[n, h, w]}")
         if len(self.names) != n:
             raise DatasetError(f"{self.root}: {len(self.names)} names for {n} images")
@@ -59,26 +66,84 @@ class Dataset:
         return len(self.cameras)
 
 
+FORMATS = ("blender", "llff", "nsvf", "nerfstudio")
+"""Dataset formats :func:`load_dataset` reads (values of its ``format`` argument)."""
+
+_SIGNATURES = {
+    "blender": "transforms_<split>.json",
+    "nerfstudio": "transforms.json",
+    "llff": "poses_bounds.npy",
+    "nsvf": "intrinsics.txt + pose/",
+}
+
+
+def _matches(root: Path) -> list[str]:
+    found = []
+    if any((root / f"transforms_{s}.json").is_file() for s in ("train", "val", "test")):
+        found.append("blender")
+    if (root / "transforms.json").is_file():
+        found.append("nerfstudio")
+    if (root / "poses_bounds.npy").is_file():
+        found.append("llff")
+    if (root / "intrinsics.txt").is_file() and (root / "pose").is_dir():
+        found.append("nsvf")
+    return found
+
+
 def detect_format(root: str | os.PathLike) -> str:
-    """Name of the dataset format of folder ``root`` ("blender"), or :class:`DatasetError`."""
+    """Name of the dataset format of folder ``root`` (one of :data:`FORMATS`).
+
+    Signatures: Blender ``transforms_<split>.json``; nerfstudio / instant-ngp
+    ``transforms.json``; LLFF ``poses_bounds.npy``; NSVF ``intrinsics.txt`` and ``pose/``.
+    Raises :class:`DatasetError` when none or several match (then pass ``format=``).
+    """
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset folder does not exist")
-    if any((root / f"transforms_{s}.json").is_file() for s in ("train", "val", "test")):
-        return "blender"
-    raise DatasetError(f"{root}: unknown dataset format (expected transforms_<split>.json "
-                       "files of a Blender / NeRF-synthetic dataset)")
+    found = _matches(root)
+    if len(found) == 1:
+        return found[0]
+    expected = "; ".join(f"{k}: {v}" for k, v in _SIGNATURES.items())
+    if not found:
+        raise DatasetError(f"{root}: unknown dataset format (expected one of {expected})")
+    raise DatasetError(f"{root}: ambiguous dataset format, the folder looks like "
+                       f"{' and '.join(found)}; choose one with format= (--format)")
 
 
-def load_dataset(root: str | os.PathLike, split: str = "train", **kw) -> Dataset:
-    """Load split ``split`` of the dataset at ``root``, detecting its format.
+def load_dataset(root: str | os.PathLike, split: str = "train", format: str | None = None,
+                 **kw) -> Dataset:
+    """Load split ``split`` of the dataset at ``root``, detecting its format unless given.
 
-    Keyword arguments go to the format's loader (for Blender: ``downscale``, ``background``,
-    ``limit``; see :func:`plenoctree.datasets.blender.load_blender`).
+    Args:
+        root: dataset folder. split: "train", "val", "test" (LLFF / NSVF / nerfstudio also
+            "all").
+        format: one of :data:`FORMATS` to skip detection (:func:`detect_format`).
+        **kw: options of the format's loader; all take ``downscale``, ``background``,
+            ``limit`` and ``num_threads`` (see :func:`~plenoctree.datasets.blender.load_blender`,
+            :func:`~plenoctree.datasets.llff.load_llff` (``llffhold``, ``ndc``, ``spherify``,
+            ...), :func:`~plenoctree.datasets.nsvf.load_nsvf`,
+            :func:`~plenoctree.datasets.nerfstudio.load_nerfstudio`).
     """
-    fmt = detect_format(root)
-    if fmt == "blender":
-        from .blender import load_blender
+    from ..errors import ConfigError
 
-        return load_blender(root, split, **kw)
-    raise DatasetError(f"{root}: unsupported dataset format {fmt!r}")  # pragma: no cover
+    if format is None:
+        fmt = detect_format(root)
+    elif format in FORMATS:
+        fmt = format
+    else:
+        raise ConfigError(f"unknown dataset format {format!r}; expected one of "
+                          f"{', '.join(FORMATS)}")
+    if fmt == "blender":
+        from .blender import load_blender as loader
+    elif fmt == "llff":
+        from .llff import load_llff as loader
+    elif fmt == "nsvf":
+        from .nsvf import load_nsvf as loader
+    else:
+        from .nerfstudio import load_nerfstudio as loader
+    try:
+        return loader(root, split, **kw)
+    except TypeError as e:
+        if "unexpected keyword argument" in str(e):
+            raise ConfigError(f"{fmt} loader: {e}") from None
+        raise

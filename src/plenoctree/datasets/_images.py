@@ -1,0 +1,189 @@
+"""Shared helpers of the LLFF, NSVF and nerfstudio loaders: threaded image / mask loading,
+image listing, near/far bounds from a box.
+
+Decoding and area downscaling are the Blender loader's (:func:`blender._decode`,
+:func:`blender._composite_into`), so every format treats PNG/JPEG, alpha and downscaling alike.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..errors import DatasetError
+from .blender import _composite_into, _decode
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+def image_files(folder: Path, prefix: str = "") -> list[Path]:
+    """Image files (PNG / JPEG, any case) in ``folder`` whose name starts with ``prefix``, sorted."""
+    try:
+        entries = list(folder.iterdir())
+    except FileNotFoundError:
+        raise DatasetError(f"{folder}: image folder not found") from None
+    except OSError as e:
+        raise DatasetError(f"{folder}: cannot list ({e.strerror or e})") from None
+    return sorted(p for p in entries if p.suffix.lower() in IMAGE_SUFFIXES
+                  and p.name.startswith(prefix) and p.is_file())
+
+
+def _run(n: int, work: Callable[[int], None], num_threads: int | None) -> None:
+    threads = num_threads or min(8, os.cpu_count() or 1)
+    if threads <= 1 or n <= 1:
+        for i in range(n):
+            work(i)
+        return
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        futures = [pool.submit(work, i) for i in range(n)]
+        try:
+            for fut in futures:
+                fut.result()
+        except BaseException:
+            for fut in futures:
+                fut.cancel()
+            raise
+
+
+def probe_size(path: Path) -> tuple[int, int]:
+    """``(width, height)`` of an image file from its header (DatasetError naming it)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: image file not found") from None
+    except Exception as e:  # noqa: BLE001 - any decoder failure means an unreadable file
+        raise DatasetError(f"{path}: unreadable image ({type(e).__name__}: {e})") from None
+
+
+def load_images(paths: Sequence[Path], downscale: int, background: np.ndarray,
+                num_threads: int | None = None
+                ) -> tuple[np.ndarray, np.ndarray | None, tuple[int, int]]:
+    """Decode, area-downscale and composite images of one size.
+
+    Args:
+        paths: image files (at least one). downscale: integer factor dividing the size.
+        background: float32 ``[3]`` RGB for transparent pixels.
+
+    Returns:
+        ``images`` float32 ``[N, H/f, W/f, 3]``, ``alphas`` float32 ``[N, H/f, W/f]`` or ``None``
+        when every image is fully opaque, and the files' size ``(W, H)``.
+
+    Raises:
+        DatasetError naming the file: unreadable / truncated images, mixed sizes, a
+        ``downscale`` not dividing the size.
+    """
+    first = _decode(paths[0], None)
+    height, width = first.shape[:2]
+    f = int(downscale)
+    if width % f or height % f:
+        raise DatasetError(f"{paths[0]}: downscale {f} does not divide the image size "
+                           f"{width}x{height}")
+    h, w, n = height // f, width // f, len(paths)
+    images = np.empty((n, h, w, 3), dtype=np.float32)
+    alphas: list[np.ndarray | None] = [None]
+    lock = threading.Lock()
+    scale = np.float32(1.0 / 255.0)
+
+    def work(i: int) -> None:
+        arr = first if i == 0 else _decode(paths[i], (width, height))
+        if arr[..., 3].min() == 255:     # opaque: same values as compositing, 4x less work
+            rgb = arr[..., :3]
+            if f == 1:
+                np.multiply(rgb, scale, out=images[i])
+            else:
+                np.multiply(rgb.reshape(h, f, w, f, 3).mean(axis=(1, 3), dtype=np.float32),
+                            scale, out=images[i])
+            return
+        a = np.empty((h, w), dtype=np.float32)
+        _composite_into(arr, f, background, images[i], a)
+        with lock:
+            if alphas[0] is None:
+                alphas[0] = np.ones((n, h, w), dtype=np.float32)
+            alphas[0][i] = a
+
+    _run(n, work, num_threads)
+    return images, alphas[0], (width, height)
+
+
+def load_masks(paths: Sequence[Path | None], size: tuple[int, int], downscale: int,
+               num_threads: int | None = None) -> np.ndarray:
+    """Pixel validity masks: float32 ``[N, H/f, W/f]`` in [0, 1] (``None`` paths: all valid).
+
+    A mask file is any grey / RGB(A) image of the same size as its image; a pixel is valid when
+    its (grey) value is non-zero (the nerfstudio rule). Downscaling averages the validity over
+    each block, so a value is the fraction of valid source pixels.
+    """
+    from PIL import Image
+
+    width, height = size
+    f = int(downscale)
+    h, w = height // f, width // f
+    out = np.ones((len(paths), h, w), dtype=np.float32)
+
+    def work(i: int) -> None:
+        p = paths[i]
+        if p is None:
+            return
+        try:
+            with Image.open(p) as im:
+                if im.size != (width, height):
+                    raise DatasetError(f"{p}: mask is {im.size[0]}x{im.size[1]}, its image is "
+                                       f"{width}x{height}")
+                m = np.asarray(im.convert("L")) > 0
+        except DatasetError:
+            raise
+        except FileNotFoundError:
+            raise DatasetError(f"{p}: mask file not found") from None
+        except Exception as e:  # noqa: BLE001 - any decoder failure means an unreadable file
+            raise DatasetError(f"{p}: unreadable mask ({type(e).__name__}: {e})") from None
+        mf = m.astype(np.float32)
+        if f > 1:
+            mf = mf.reshape(h, f, w, f).mean(axis=(1, 3), dtype=np.float32)
+        out[i] = mf
+
+    _run(len(paths), work, num_threads)
+    return out
+
+
+def near_far_from_box(c2w: np.ndarray, bbox: np.ndarray) -> tuple[float, float]:
+    """Ray bounds for cameras ``c2w [N, 4, 4]`` looking at the content box ``bbox [2, 3]``.
+
+    ``near``: the smallest distance from a camera centre to the box (0 when a camera is
+    inside it); ``far``: the largest distance from a camera centre to a box corner. Every ray
+    segment inside the box then lies in ``[near, far]``.
+    """
+    c = np.asarray(c2w, dtype=np.float64)[:, :3, 3]
+    lo, hi = np.asarray(bbox, dtype=np.float64).reshape(2, 3)
+    gap = np.maximum(np.maximum(lo - c, c - hi), 0.0)
+    near = float(np.linalg.norm(gap, axis=1).min())
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])
+    far = float(np.linalg.norm(c[:, None, :] - corners[None], axis=-1).max())
+    return near, far
+
+
+def focus_point(c2w: np.ndarray) -> np.ndarray:
+    """The point nearest (least squares) to every camera's optical axis, float64 ``[3]``.
+
+    Minimises ``Σ_i |P_i (p - o_i)|²`` with ``P_i = I - a_i a_i^T`` the projector orthogonal
+    to axis ``a_i``: ``p = (Σ P_i)^-1 Σ P_i o_i``. Falls back to the mean centre when the axes
+    are (nearly) parallel.
+    """
+    m = np.asarray(c2w, dtype=np.float64)
+    a = m[:, :3, 2]
+    a = a / np.linalg.norm(a, axis=1, keepdims=True)
+    o = m[:, :3, 3]
+    proj = np.eye(3)[None] - a[:, :, None] * a[:, None, :]
+    lhs = proj.sum(0)
+    rhs = np.einsum("nij,nj->i", proj, o)
+    if np.linalg.cond(lhs) > 1e8:
+        return o.mean(0)
+    return np.linalg.solve(lhs, rhs)

@@ -1,0 +1,194 @@
+"""Volume rendering of a PlenOctree: a torch twin (spec, autograd, CUDA) and a numba CPU kernel.
+
+>>> out = render_rays(tree, origins, dirs)                  # doctest: +SKIP
+>>> out.rgb.shape, out.depth.shape, out.alpha.shape         # doctest: +SKIP
+
+Backends: ``"numba"`` (fast CPU kernel, compiled on first use and cached on disk) and
+``"torch"`` (the twin: vectorised torch ops, differentiable, runs on CUDA tensors). ``"auto"``
+picks numba for CPU inputs when it is importable, torch for CUDA tensors. Importing this module
+compiles nothing: the kernel module is imported by the first numba render.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..errors import BackendError, ConfigError
+from .options import FormatInfo, RenderOptions, RenderOutput, parse_data_format
+
+__all__ = ["RenderOptions", "RenderOutput", "available_backends", "has_numba", "render_rays",
+           "render_image"]
+
+_BACKENDS = ("numba", "torch")
+
+
+def has_numba() -> bool:
+    """True when numba is importable (the fast CPU kernel can be used)."""
+    return importlib.util.find_spec("numba") is not None
+
+
+def available_backends() -> list[str]:
+    """Backends usable on this machine, fastest first: ``["numba", "torch"]`` or ``["torch"]``."""
+    return (["numba"] if has_numba() else []) + ["torch"]
+
+
+def _rays_to_numpy_or_torch(name: str, x: Any) -> Any:
+    if isinstance(x, torch.Tensor):
+        if not x.is_floating_point():
+            x = x.to(torch.float32)
+        return x
+    try:
+        arr = np.asarray(x)
+    except Exception:
+        raise ConfigError(f"{name}: expected a numpy array or torch tensor, got "
+                          f"{type(x).__name__}") from None
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise ConfigError(f"{name}: expected a float array, got dtype {arr.dtype}")
+    return arr
+
+
+def _check_rays(origins: Any, dirs: Any) -> None:
+    for name, x in (("origins", origins), ("dirs", dirs)):
+        if x.ndim < 1 or x.shape[-1] != 3:
+            raise ConfigError(f"{name}: expected shape (..., 3), got {tuple(x.shape)}")
+    if tuple(origins.shape) != tuple(dirs.shape):
+        raise ConfigError(f"origins and dirs must have the same shape, got "
+                          f"{tuple(origins.shape)} and {tuple(dirs.shape)}")
+    for name, x in (("origins", origins), ("dirs", dirs)):
+        finite = bool(torch.isfinite(x).all()) if isinstance(x, torch.Tensor) \
+            else bool(np.isfinite(x).all())
+        if not finite:
+            raise ConfigError(f"{name}: contains NaN or infinite values")
+    # Squared norms without a float64 copy (this check runs on every frame).
+    sq = (dirs * dirs).sum(-1) if isinstance(dirs, torch.Tensor) \
+        else np.einsum("...i,...i->...", dirs, dirs)
+    if bool((sq <= 1e-24).any()):
+        raise ConfigError("dirs: contains zero-length directions")
+
+
+def _tree_info(tree: Any) -> FormatInfo:
+    for attr in ("child", "data", "offset", "invradius", "data_format"):
+        if not hasattr(tree, attr):
+            raise ConfigError(f"render: expected an Octree, got {type(tree).__name__} "
+                              f"without {attr!r}")
+    child, data = tree.child, tree.data
+    if child.ndim != 4 or tuple(child.shape[1:]) != (2, 2, 2):
+        raise ConfigError(
+            f"tree.child: expected shape (n_nodes, 2, 2, 2), got {tuple(child.shape)}")
+    if data.ndim != 5 or tuple(data.shape[:4]) != tuple(child.shape):
+        raise ConfigError(f"tree.data: expected shape ({child.shape[0]}, 2, 2, 2, D), got "
+                          f"{tuple(data.shape)}")
+    inv = np.asarray(tree.invradius.detach().cpu() if isinstance(tree.invradius, torch.Tensor)
+                     else tree.invradius, dtype=np.float64).reshape(-1)
+    if inv.shape != (3,) and inv.shape != (1,):
+        raise ConfigError(f"tree.invradius: expected 3 values, got shape {inv.shape}")
+    if not (np.isfinite(inv).all() and (inv > 0).all()):
+        raise ConfigError(f"tree.invradius: must be finite and > 0, got {inv.tolist()}")
+    return parse_data_format(tree.data_format, data.shape[-1], getattr(tree, "extra_data", None))
+
+
+def _vec3(x: Any) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.broadcast_to(np.asarray(x, dtype=np.float64).reshape(-1), (3,)).copy()
+
+
+def _resolve_backend(backend: str, on_cuda: bool) -> str:
+    name = str(backend).lower()
+    if name == "auto":
+        return "torch" if on_cuda or not has_numba() else "numba"
+    if name not in _BACKENDS:
+        raise BackendError(f"unknown render backend {backend!r}; available: "
+                           f"{', '.join(available_backends())}")
+    if name == "numba" and not has_numba():
+        raise BackendError("render backend 'numba' needs the numba package, which is not "
+                           f"installed (pip install numba); available: "
+                           f"{', '.join(available_backends())}")
+    return name
+
+
+def render_rays(tree: Any, origins: Any, dirs: Any, options: RenderOptions | None = None,
+                backend: str = "auto") -> RenderOutput:
+    """Render world-space rays through ``tree``.
+
+    Args:
+        tree: an :class:`~plenoctree.octree.Octree`.
+        origins: ``[..., 3]`` ray origins, world units (numpy array or torch tensor).
+        dirs: ``[..., 3]`` ray directions (any non-zero length; normalised internally).
+        options: :class:`RenderOptions`; defaults when ``None``.
+        backend: ``"auto"`` (numba for CPU inputs, torch for CUDA tensors), ``"numba"`` or
+            ``"torch"``. The numba backend moves CUDA inputs to the CPU and its outputs back.
+
+    Returns:
+        :class:`RenderOutput` of torch tensors ``rgb [..., 3]``, ``depth [...]`` (world units
+        along the unit direction), ``alpha [...]``, on the device of torch inputs (CPU
+        otherwise). The numba backend returns float32; the torch backend the dtype of
+        ``tree.data`` (float16 is computed in float32).
+
+    Raises:
+        ConfigError: mismatched or non-(..., 3) shapes, NaN/inf, zero directions, bad options or
+            a malformed tree. BackendError: an unknown or unavailable backend.
+    """
+    opts = (options if options is not None else RenderOptions())
+    if not isinstance(opts, RenderOptions):
+        raise ConfigError(f"options: expected RenderOptions, got {type(opts).__name__}")
+    opts.validated()
+    origins = _rays_to_numpy_or_torch("origins", origins)
+    dirs = _rays_to_numpy_or_torch("dirs", dirs)
+    _check_rays(origins, dirs)
+    info = _tree_info(tree)
+    device = next((x.device for x in (origins, dirs) if isinstance(x, torch.Tensor)),
+                  torch.device("cpu"))
+    name = _resolve_backend(backend, device.type == "cuda")
+    batch = tuple(origins.shape[:-1])
+    offset, inv = _vec3(tree.offset), _vec3(tree.invradius)
+    extra = getattr(tree, "extra_data", None)
+    if isinstance(extra, torch.Tensor):
+        extra = extra.detach().cpu().numpy()
+
+    if name == "numba":
+        from . import _numba_impl
+
+        def to_np(x: Any) -> np.ndarray:
+            return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x
+
+        child = to_np(tree.child)
+        data = to_np(tree.data)
+        rgb, depth, alpha = _numba_impl.render_rays_numba(
+            child, data, offset, inv, info, extra, to_np(origins).reshape(-1, 3),
+            to_np(dirs).reshape(-1, 3), opts)
+        out = RenderOutput(torch.from_numpy(rgb), torch.from_numpy(depth),
+                           torch.from_numpy(alpha))
+    else:
+        from ._torch_impl import render_rays_torch
+
+        data = tree.data
+        if isinstance(data, torch.Tensor):
+            data = data.to(device)
+        else:
+            data = torch.from_numpy(np.ascontiguousarray(data)).to(device)
+        if data.dtype not in (torch.float32, torch.float64):
+            data = data.float()
+        o = origins if isinstance(origins, torch.Tensor) else torch.from_numpy(origins)
+        d = dirs if isinstance(dirs, torch.Tensor) else torch.from_numpy(dirs)
+        out = render_rays_torch(tree.child, data, offset, inv, info.name, extra,
+                                o.reshape(-1, 3), d.reshape(-1, 3), opts)
+    return RenderOutput(rgb=out.rgb.reshape(*batch, 3).to(device),
+                        depth=out.depth.reshape(batch).to(device),
+                        alpha=out.alpha.reshape(batch).to(device))
+
+
+def render_image(tree: Any, cameras: Any, index: int, options: RenderOptions | None = None,
+                 backend: str = "auto") -> RenderOutput:
+    """Render camera ``index`` of ``cameras`` (a :class:`~plenoctree.datasets.Cameras`).
+
+    Returns a :class:`RenderOutput` with ``rgb [H, W, 3]``, ``depth [H, W]``, ``alpha [H, W]``.
+    """
+    if not hasattr(cameras, "rays"):
+        raise ConfigError(f"cameras: expected a Cameras object, got {type(cameras).__name__}")
+    origins, dirs = cameras.rays(index)
+    return render_rays(tree, origins, dirs, options=options, backend=backend)

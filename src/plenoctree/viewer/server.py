@@ -1,0 +1,233 @@
+"""A local HTTP server for the web viewer: its own static files and one tree, nothing else.
+
+Bound to 127.0.0.1. The URL space is a fixed table built at start-up:
+
+- ``/`` and ``/index.html``: the page; ``/<name>`` for each regular file of ``static/``;
+- ``/config.json``: ``{"tree": "data/<tree file name>", ...}`` (generated);
+- ``/data/<tree file name>``: the tree (raw ``.npz`` or compressed ``.plnz``), streamed.
+
+Any other path, including every path with ``..``, a backslash, a NUL or an encoded slash, is
+answered 404 or 400 without touching the file system; there is no directory listing. Only GET
+and HEAD are allowed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import threading
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from typing import Any
+from urllib.parse import unquote, urlsplit
+
+from ..errors import ConfigError
+from .budget import DEFAULT_MAX_MB
+
+__all__ = ["ViewerServer", "static_dir", "static_files", "viewer_config"]
+
+_SAFE_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
+_TYPES = {
+    ".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
+    ".css": "text/css; charset=utf-8", ".json": "application/json",
+    ".png": "image/png", ".svg": "image/svg+xml", ".ico": "image/x-icon",
+}
+
+
+def static_dir() -> Path:
+    """The folder of the page's files (``plenoctree/viewer/static``)."""
+    return Path(__file__).resolve().parent / "static"
+
+
+def static_files() -> dict[str, Path]:
+    """``{file name: path}`` of the page's files (regular files with safe names only)."""
+    out = {}
+    for p in sorted(static_dir().iterdir()):
+        if p.is_file() and not p.is_symlink() and _SAFE_NAME.match(p.name) \
+                and not p.name.endswith((".pyc", ".tmp")):
+            out[p.name] = p
+    if "index.html" not in out:
+        raise ConfigError(f"{static_dir()}: the viewer's index.html is missing (broken install)")
+    return out
+
+
+def viewer_config(tree_name: str, title: str | None = None,
+                  max_mb: float = DEFAULT_MAX_MB) -> dict[str, Any]:
+    """The ``config.json`` the page reads: tree URL (relative), title, LOD hint, texture
+    budget in MB."""
+    stem = tree_name.rsplit(".", 1)[0]
+    return {
+        "tree": f"data/{tree_name}",
+        "title": title or f"{tree_name} - PlenOctree viewer",
+        "lod_hint": f"plenoctree lod {tree_name} --target-mb 30 --out {stem}_web.plnz",
+        "max_mb": float(max_mb),
+    }
+
+
+def _tree_name(path: Path) -> str:
+    name = path.name
+    if not _SAFE_NAME.match(name):
+        name = "tree" + "".join(path.suffixes[-1:]) if path.suffix in (".npz", ".plnz") else "tree.npz"
+    return name
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server: _Server
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, fmt: str, *args: Any) -> None:      # quiet unless asked
+        if self.server.verbose:
+            super().log_message(fmt, *args)
+
+    def _error(self, status: HTTPStatus, text: str) -> None:
+        body = f"{status.value} {status.phrase}: {text}\n".encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "text/plain; charset=utf-8")
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("X-Content-Type-Options", "nosniff")
+        self.end_headers()
+        if self.command != "HEAD":
+            self.wfile.write(body)
+
+    def _resolve(self) -> tuple[bytes | Path, str] | None:
+        raw = urlsplit(self.path).path
+        if "\\" in raw or "\x00" in raw or "%2f" in raw.lower() or "%5c" in raw.lower():
+            self._error(HTTPStatus.BAD_REQUEST, "bad path")
+            return None
+        path = unquote(raw)
+        parts = path.split("/")
+        if any(p in ("..", ".") for p in parts) or "\x00" in path or "\\" in path:
+            self._error(HTTPStatus.BAD_REQUEST, "bad path")
+            return None
+        entry = self.server.routes.get(path)
+        if entry is None:
+            self._error(HTTPStatus.NOT_FOUND, "no such file")
+            return None
+        return entry
+
+    def _send(self, head_only: bool) -> None:
+        entry = self._resolve()
+        if entry is None:
+            return
+        body, ctype = entry
+        if isinstance(body, Path):
+            try:
+                f = open(body, "rb")
+            except OSError:
+                self._error(HTTPStatus.NOT_FOUND, "file is gone")
+                return
+            with f:
+                size = os.fstat(f.fileno()).st_size
+                self._headers(ctype, size)
+                if not head_only:
+                    try:
+                        shutil.copyfileobj(f, self.wfile, 1 << 20)
+                    except (BrokenPipeError, ConnectionResetError):
+                        pass
+            return
+        self._headers(ctype, len(body))
+        if not head_only:
+            self.wfile.write(body)
+
+    def _headers(self, ctype: str, size: int) -> None:
+        self.send_response(HTTPStatus.OK)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(size))
+        self.send_header("Cache-Control", "no-store")
+        self.send_header("X-Content-Type-Options", "nosniff")
+        self.end_headers()
+
+    def do_GET(self) -> None:  # noqa: N802
+        self._send(head_only=False)
+
+    def do_HEAD(self) -> None:  # noqa: N802
+        self._send(head_only=True)
+
+    def _not_allowed(self) -> None:
+        self._error(HTTPStatus.METHOD_NOT_ALLOWED, "only GET and HEAD")
+
+    do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _not_allowed  # noqa: N815
+
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+    allow_reuse_address = False
+    routes: dict[str, tuple[bytes | Path, str]]
+    verbose: bool
+
+
+class ViewerServer:
+    """Serve the viewer page and one tree on ``http://127.0.0.1:<port>/``.
+
+    Args:
+        tree_path: the tree to show (``.npz`` or ``.plnz``); must exist.
+        port: TCP port; 0 picks a free one.
+        title: page title (default: the tree's file name).
+        max_mb: the page's texture budget in MB (it refuses larger trees with a hint).
+        verbose: log every request to stderr.
+
+    Use :meth:`start` (background thread) / :meth:`stop`, or :meth:`serve_forever`; or as a
+    context manager. :attr:`url` is the page's address.
+    """
+
+    def __init__(self, tree_path: str | os.PathLike, port: int = 8000, title: str | None = None,
+                 max_mb: float = DEFAULT_MAX_MB, verbose: bool = False) -> None:
+        tree = Path(tree_path)
+        if not tree.is_file():
+            raise ConfigError(f"{tree}: no such tree file")
+        if not 0 <= int(port) <= 65535:
+            raise ConfigError(f"port must be in 0..65535, got {port}")
+        self.tree_path = tree.resolve()
+        self.tree_name = _tree_name(tree)
+        routes: dict[str, tuple[bytes | Path, str]] = {}
+        for name, p in static_files().items():
+            routes["/" + name] = (p, _TYPES.get(p.suffix, "application/octet-stream"))
+        routes["/"] = routes["/index.html"]
+        config = json.dumps(viewer_config(self.tree_name, title, max_mb), indent=1).encode()
+        routes["/config.json"] = (config, _TYPES[".json"])
+        routes["/data/" + self.tree_name] = (self.tree_path, "application/octet-stream")
+        try:
+            self.httpd = _Server(("127.0.0.1", int(port)), _Handler)
+        except OSError as e:
+            raise ConfigError(f"cannot listen on 127.0.0.1:{port} ({e.strerror or e}); pass "
+                              "--port 0 to pick a free port") from None
+        self.httpd.routes = routes
+        self.httpd.verbose = verbose
+        self._thread: threading.Thread | None = None
+
+    @property
+    def port(self) -> int:
+        return int(self.httpd.server_address[1])
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}/"
+
+    def start(self) -> ViewerServer:
+        """Serve in a daemon thread; returns self."""
+        self._thread = threading.Thread(target=self.httpd.serve_forever, daemon=True,
+                                        name="plenoctree-viewer")
+        self._thread.start()
+        return self
+
+    def serve_forever(self) -> None:
+        """Serve in this thread until :meth:`stop` or KeyboardInterrupt."""
+        try:
+            self.httpd.serve_forever()
+        finally:
+            self.httpd.server_close()
+
+    def stop(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+
+    def __enter__(self) -> ViewerServer:
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()

@@ -1,0 +1,121 @@
+// Orbit camera (OpenGL convention: x right, y up, looks down -z) with mouse and touch controls:
+// drag = orbit, right/middle drag or shift-drag = pan, wheel = zoom; one finger = orbit,
+// two fingers = pinch zoom + pan.
+
+const UP = { "+z": [0, 0, 1], "+y": [0, 1, 0], "-y": [0, -1, 0], "-z": [0, 0, -1] };
+
+const sub = (a, b) => [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+const add = (a, b) => [a[0] + b[0], a[1] + b[1], a[2] + b[2]];
+const scale = (a, s) => [a[0] * s, a[1] * s, a[2] * s];
+const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+const norm = (a) => { const l = Math.hypot(a[0], a[1], a[2]) || 1; return scale(a, 1 / l); };
+
+// Camera-to-world (row-major 16 numbers) looking from eye at target with the given world up.
+export function lookAt(eye, target, up) {
+  const back = norm(sub(eye, target));
+  let right = cross(up, back);
+  if (Math.hypot(...right) < 1e-8) right = cross([1, 0, 0], back);
+  right = norm(right);
+  const trueUp = cross(back, right);
+  return [right[0], trueUp[0], back[0], eye[0],
+    right[1], trueUp[1], back[1], eye[1],
+    right[2], trueUp[2], back[2], eye[2],
+    0, 0, 0, 1];
+}
+
+export class OrbitCamera {
+  constructor({ target = [0, 0, 0], distance = 4, azimuth = 0.6, elevation = 0.5, fovY = 40, up = "+z" } = {}) {
+    this.target = target.slice();
+    this.distance = distance;
+    this.azimuth = azimuth;
+    this.elevation = elevation;
+    this.fovY = fovY;
+    this.up = up;
+    this.onChange = () => {};
+  }
+
+  // Basis of the orbit frame for the chosen up axis: (a, b, up) right-handed.
+  _frame() {
+    const u = UP[this.up] || UP["+z"];
+    const a = Math.abs(u[0]) < 0.9 ? norm(cross(u, [1, 0, 0])) : norm(cross(u, [0, 1, 0]));
+    const b = cross(u, a);
+    return [a, b, u];
+  }
+
+  eye() {
+    const [a, b, u] = this._frame();
+    const ce = Math.cos(this.elevation), se = Math.sin(this.elevation);
+    const dir = add(add(scale(a, ce * Math.cos(this.azimuth)), scale(b, ce * Math.sin(this.azimuth))), scale(u, se));
+    return add(this.target, scale(dir, this.distance));
+  }
+
+  // {c2w, fx, fy, cx, cy, width, height} for a render target of width x height pixels.
+  view(width, height) {
+    const fy = 0.5 * height / Math.tan(0.5 * this.fovY * Math.PI / 180);
+    return { c2w: lookAt(this.eye(), this.target, UP[this.up] || UP["+z"]), fx: fy, fy, cx: width / 2, cy: height / 2, width, height };
+  }
+
+  orbit(dx, dy) {
+    this.azimuth -= dx * 0.008;
+    this.elevation = Math.max(-1.55, Math.min(1.55, this.elevation + dy * 0.008));
+    this.onChange();
+  }
+
+  pan(dx, dy, viewHeight) {
+    const m = lookAt(this.eye(), this.target, UP[this.up] || UP["+z"]);
+    const right = [m[0], m[4], m[8]], up = [m[1], m[5], m[9]];
+    const perPixel = 2 * this.distance * Math.tan(0.5 * this.fovY * Math.PI / 180) / Math.max(viewHeight, 1);
+    this.target = add(this.target, add(scale(right, -dx * perPixel), scale(up, dy * perPixel)));
+    this.onChange();
+  }
+
+  zoom(factor) {
+    this.distance = Math.max(1e-3, this.distance * factor);
+    this.onChange();
+  }
+
+  // Mouse, wheel and touch handlers on `el`.
+  attach(el) {
+    let last = null, mode = null;
+    el.addEventListener("contextmenu", (e) => e.preventDefault());
+    el.addEventListener("pointerdown", (e) => {
+      if (e.pointerType === "touch") return;
+      el.setPointerCapture(e.pointerId);
+      last = [e.clientX, e.clientY];
+      mode = e.button === 0 && !e.shiftKey ? "orbit" : "pan";
+    });
+    el.addEventListener("pointermove", (e) => {
+      if (!last || e.pointerType === "touch") return;
+      const dx = e.clientX - last[0], dy = e.clientY - last[1];
+      last = [e.clientX, e.clientY];
+      if (mode === "orbit") this.orbit(dx, dy); else this.pan(dx, dy, el.clientHeight);
+    });
+    const end = () => { last = null; mode = null; };
+    el.addEventListener("pointerup", end);
+    el.addEventListener("pointercancel", end);
+    el.addEventListener("wheel", (e) => {
+      e.preventDefault();
+      this.zoom(Math.exp(e.deltaY * 0.001));
+    }, { passive: false });
+    let touches = null;
+    const snapshot = (ev) => [...ev.touches].map((t) => [t.clientX, t.clientY]);
+    el.addEventListener("touchstart", (e) => { e.preventDefault(); touches = snapshot(e); }, { passive: false });
+    el.addEventListener("touchmove", (e) => {
+      e.preventDefault();
+      const now = snapshot(e);
+      if (!touches || now.length !== touches.length) { touches = now; return; }
+      if (now.length === 1) {
+        this.orbit(now[0][0] - touches[0][0], now[0][1] - touches[0][1]);
+      } else if (now.length >= 2) {
+        const dist = (p) => Math.hypot(p[0][0] - p[1][0], p[0][1] - p[1][1]);
+        const mid = (p) => [(p[0][0] + p[1][0]) / 2, (p[0][1] + p[1][1]) / 2];
+        const d0 = dist(touches), d1 = dist(now);
+        if (d0 > 0 && d1 > 0) this.zoom(d0 / d1);
+        const m0 = mid(touches), m1 = mid(now);
+        this.pan(m1[0] - m0[0], m1[1] - m0[1], el.clientHeight);
+      }
+      touches = now;
+    }, { passive: false });
+    el.addEventListener("touchend", (e) => { touches = snapshot(e); });
+  }
+}

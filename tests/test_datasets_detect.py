@@ -1,0 +1,91 @@
+"""Format detection, load_dataset(format=...), per-camera intrinsics, Dataset.masks."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from plenoctree.datasets import FORMATS, Cameras, Dataset, detect_format, load_dataset
+from plenoctree.datasets.forward_facing import write_forward_facing_dataset
+from plenoctree.errors import ConfigError, DatasetError
+
+
+def _touch(root, *names):
+    for n in names:
+        p = root / n
+        if n.endswith("/"):
+            p.mkdir(parents=True, exist_ok=True)
+        else:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            p.write_text("{}")
+
+
+@pytest.mark.parametrize("files, fmt", [
+    (["transforms_train.json"], "blender"),
+    (["transforms_test.json"], "blender"),
+    (["transforms.json"], "nerfstudio"),
+    (["poses_bounds.npy", "images/"], "llff"),
+    (["intrinsics.txt", "pose/", "rgb/"], "nsvf"),
+])
+def test_detect_each_format(tmp_path, files, fmt):
+    _touch(tmp_path, *files)
+    assert detect_format(tmp_path) == fmt and fmt in FORMATS
+
+
+def test_detect_unknown_and_ambiguous(tmp_path):
+    with pytest.raises(DatasetError, match="does not exist"):
+        detect_format(tmp_path / "nope")
+    _touch(tmp_path, "intrinsics.txt")                       # no pose/ folder: not NSVF
+    with pytest.raises(DatasetError, match="unknown dataset format.*poses_bounds.npy"):
+        detect_format(tmp_path)
+    _touch(tmp_path, "transforms.json", "poses_bounds.npy")
+    with pytest.raises(DatasetError, match="ambiguous.*nerfstudio and llff.*format="):
+        load_dataset(tmp_path)
+
+
+def test_format_forces_the_loader(tmp_path):
+    root = write_forward_facing_dataset(tmp_path / "ff", n_images=9, width=8, height=6,
+                                        n_samples=16)
+    (root / "transforms.json").write_text(json.dumps({"frames": []}))   # a decoy
+    with pytest.raises(DatasetError, match="ambiguous"):
+        load_dataset(root, "train")
+    data = load_dataset(root, "train", format="llff", downscale=2)
+    assert len(data) == 7 and data.images.shape[1:3] == (3, 4) and data.cameras.ndc
+    with pytest.raises(DatasetError, match="transforms.json: missing or empty 'frames'"):
+        load_dataset(root, format="nerfstudio")
+    with pytest.raises(ConfigError, match="unknown dataset format 'colmap'"):
+        load_dataset(root, format="colmap")
+    with pytest.raises(ConfigError, match="nsvf loader.*llffhold"):
+        load_dataset(root, format="nsvf", llffhold=8)
+
+
+def test_cameras_per_camera_intrinsics_validation():
+    c2w = np.tile(np.eye(4), (3, 1, 1))
+    cams = Cameras(c2w, [10.0, 11.0, 12.0], 10.0, [4.0, 4.0, 4.0], 3.0, 8, 6)
+    assert cams.cx == 4.0 and isinstance(cams.cx, float)      # equal values collapse
+    assert cams.per_camera_intrinsics and not cams.fx.flags.writeable
+    assert cams == Cameras(c2w, np.array([10.0, 11.0, 12.0]), 10.0, 4.0, 3.0, 8, 6)
+    assert cams != Cameras(c2w, np.array([10.0, 11.0, 12.5]), 10.0, 4.0, 3.0, 8, 6)
+    np.testing.assert_allclose(cams.intrinsics_array()[:, 0], [10, 11, 12])
+    assert cams.scaled(2).fx.tolist() == [5.0, 5.5, 6.0]
+    assert cams.select(1).fx == 11.0 and len(cams.select(1)) == 1
+    with pytest.raises(ConfigError, match="fx must be a number or an array of 3"):
+        Cameras(c2w, [10.0, 11.0], 10.0, 4.0, 3.0, 8, 6)
+    with pytest.raises(ConfigError, match="fy must be a finite positive"):
+        Cameras(c2w, 10.0, [10.0, -1.0, 10.0], 4.0, 3.0, 8, 6)
+    with pytest.raises(ConfigError, match="cy must be a finite number"):
+        Cameras(c2w, 10.0, 10.0, 4.0, [3.0, np.nan, 3.0], 8, 6)
+    with pytest.raises(ConfigError, match="ndc_near"):
+        Cameras(c2w, 10.0, 10.0, 4.0, 3.0, 8, 6, ndc=True, ndc_near=0.0)
+
+
+def test_dataset_masks_shape_checked(tmp_path):
+    cams = Cameras(np.eye(4)[None], 4.0, 4.0, 2.0, 2.0, 4, 4)
+    kw = dict(images=np.zeros((1, 4, 4, 3), np.float32), cameras=cams, near=0.0, far=1.0,
+              scene_bbox=[[-1] * 3, [1] * 3], split="train", root=tmp_path,
+              background=(1.0, 1.0, 1.0), names=["a"])
+    assert Dataset(**kw, masks=np.ones((1, 4, 4), np.float32)).masks.shape == (1, 4, 4)
+    with pytest.raises(DatasetError, match="masks have shape"):
+        Dataset(**kw, masks=np.ones((1, 4, 5), np.float32))
