@@ -14,11 +14,13 @@ import numpy as np
 
 from ._util import atomic_save_json, atomic_write, progress, save_png
 from .datasets import Dataset
+from .metrics import lpips as lpips_score
 from .metrics import psnr, ssim
 from .octree import Octree
 from .render import RenderOptions, render_image
 
-__all__ = ["EvalResult", "depth_to_image", "evaluate_tree", "metrics_markdown"]
+__all__ = ["EvalConfig", "EvalResult", "depth_to_image", "eval_markdown", "eval_tree_file",
+           "evaluate_tree", "metrics_markdown"]
 
 
 @dataclass
@@ -27,6 +29,7 @@ class EvalResult:
 
     ``psnr``/``ssim`` are per view (dB / unitless), ``ms`` the render wall time of each view in
     milliseconds (excluding the first, warm-up render's compilation when ``warmup`` was used).
+    ``lpips`` is per view (lower is better) when it was computed, else empty.
     """
 
     names: list[str]
@@ -37,6 +40,7 @@ class EvalResult:
     height: int
     backend: str
     extra: dict = field(default_factory=dict)
+    lpips: list[float] = field(default_factory=list)
 
     @property
     def mean_psnr(self) -> float:
@@ -45,6 +49,11 @@ class EvalResult:
     @property
     def mean_ssim(self) -> float:
         return float(np.mean(self.ssim)) if self.ssim else float("nan")  # NaN if any is NaN
+
+    @property
+    def mean_lpips(self) -> float:
+        """Mean LPIPS, NaN when it was not computed."""
+        return float(np.mean(self.lpips)) if self.lpips else float("nan")
 
     @property
     def ms_per_frame(self) -> float:
@@ -56,17 +65,24 @@ class EvalResult:
         return 1000.0 / self.ms_per_frame if self.ms else float("nan")
 
     def to_json(self) -> dict:
-        """A JSON-ready dict with per-view rows and the means (NaN written as null)."""
+        """A JSON-ready dict with per-view rows and the means (NaN written as null).
+
+        ``lpips`` appears in the rows and the means only when it was computed.
+        """
+        views = [{"name": n, "psnr": p, "ssim": s, "ms": m}
+                 for n, p, s, m in zip(self.names, self.psnr, self.ssim, self.ms)]
+        mean = {"psnr": self.mean_psnr, "ssim": self.mean_ssim}
+        if self.lpips:
+            for row, value in zip(views, self.lpips):
+                row["lpips"] = value
+            mean["lpips"] = self.mean_lpips
+        mean.update({"ms_per_frame": self.ms_per_frame, "fps": self.fps})
         return _nan_to_none({
             "width": self.width,
             "height": self.height,
             "backend": self.backend,
-            "views": [
-                {"name": n, "psnr": p, "ssim": s, "ms": m}
-                for n, p, s, m in zip(self.names, self.psnr, self.ssim, self.ms)
-            ],
-            "mean": {"psnr": self.mean_psnr, "ssim": self.mean_ssim,
-                     "ms_per_frame": self.ms_per_frame, "fps": self.fps},
+            "views": views,
+            "mean": mean,
             **self.extra,
         })
 
@@ -95,7 +111,8 @@ def depth_to_image(depth: np.ndarray, alpha: np.ndarray, near: float, far: float
 
 def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None,
                   options: RenderOptions | None = None, backend: str = "auto",
-                  warmup: bool = True, show_progress: bool | None = None) -> EvalResult:
+                  warmup: bool = True, show_progress: bool | None = None,
+                  lpips_net: str | None = None) -> EvalResult:
     """Render every view of ``data`` with ``tree`` and score it against the images.
 
     Args:
@@ -107,9 +124,12 @@ def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None
         options: renderer options; default: stop at T < 0.01, the dataset's background.
         backend: ``"auto"``, ``"numba"`` or ``"torch"``.
         warmup: render the first view once untimed first (JIT compilation).
+        lpips_net: also score LPIPS with this backbone (``"vgg"``, ``"alex"``, ``"squeeze"``);
+            raises :class:`~plenoctree.errors.BackendError` when it cannot run offline (check
+            :func:`~plenoctree.metrics.lpips_available` first).
 
     Returns:
-        An :class:`EvalResult` with PSNR/SSIM/ms per view.
+        An :class:`EvalResult` with PSNR/SSIM/ms (and LPIPS) per view.
     """
     if options is None:
         options = RenderOptions(background=tuple(float(b) for b in data.background))
@@ -131,6 +151,8 @@ def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None
         # SSIM's 11x11 window needs images at least that large; smaller ones score NaN.
         res.ssim.append(float(ssim(rgb, gt)) if min(rgb.shape[:2]) >= 11 else float("nan"))
         res.ms.append(ms)
+        if lpips_net is not None:
+            res.lpips.append(float(lpips_score(rgb, gt, lpips_net)))
         if out is not None:
             save_png(out / f"{name}.png", rgb)
             depth = depth_to_image(o.depth.detach().cpu().numpy(), o.alpha.detach().cpu().numpy(),
@@ -144,10 +166,185 @@ def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None
 
 
 def metrics_markdown(res: EvalResult) -> str:
-    """A markdown table of the per-view scores and their mean."""
-    lines = ["| view | PSNR (dB) | SSIM | ms |", "|---|---|---|---|"]
-    for n, p, s, m in zip(res.names, res.psnr, res.ssim, res.ms):
-        lines.append(f"| {n} | {p:.2f} | {s:.4f} | {m:.1f} |")
-    lines.append(f"| **mean** | **{res.mean_psnr:.2f}** | **{res.mean_ssim:.4f}** | "
-                 f"**{res.ms_per_frame:.1f}** (median) |")
+    """A markdown table of the per-view scores and their mean (LPIPS column when computed)."""
+    has_lp = bool(res.lpips)
+    lines = ["| view | PSNR (dB) | SSIM |" + (" LPIPS |" if has_lp else "") + " ms |",
+             "|---|---|---|" + ("---|" if has_lp else "") + "---|"]
+    lp = res.lpips if has_lp else [None] * len(res.names)
+    for n, p, s, q, m in zip(res.names, res.psnr, res.ssim, lp, res.ms):
+        lines.append(f"| {n} | {p:.2f} | {s:.4f} |" + (f" {q:.4f} |" if has_lp else "")
+                     + f" {m:.1f} |")
+    lines.append(f"| **mean** | **{res.mean_psnr:.2f}** | **{res.mean_ssim:.4f}** |"
+                 + (f" **{res.mean_lpips:.4f}** |" if has_lp else "")
+                 + f" **{res.ms_per_frame:.1f}** (median) |")
+    return "\n".join(lines) + "\n"
+
+
+# --- `plenoctree eval`: one tree file scored on one dataset split ---------------------------
+@dataclass
+class EvalConfig:
+    """What :func:`eval_tree_file` scores, and where the report goes (``plenoctree eval``)."""
+
+    tree: str | Path
+    """Tree file: native or svox ``.npz``, ``.plnz`` or svox compressed ``.npz``."""
+    data: str | Path
+    """Dataset folder (format detected unless ``format`` is given)."""
+    split: str = "test"
+    """Dataset split to score."""
+    format: str | None = None
+    """Dataset format (one of ``plenoctree.datasets.FORMATS``); None = detect."""
+    downscale: int = 1
+    """Integer area downscale of the images (FPS is measured at the resulting size)."""
+    limit: int | None = None
+    """Only the first N views."""
+    out: str | Path | None = None
+    """Folder for ``eval.json`` and ``eval.md``; default ``<tree stem>_eval_<split>/`` next to
+    the tree."""
+    json_path: str | Path | None = None
+    """Also write the JSON report to this file."""
+    save_images: bool = False
+    """Also write the renders and depth maps as PNGs under ``<out>/renders/``."""
+    backend: str = "auto"
+    """Renderer backend: auto, numba or torch."""
+    stop_thresh: float = 0.01
+    """Early ray termination when transmittance < this; 0 disables."""
+    background: tuple[float, float, float] | None = None
+    """Background RGB in [0, 1] the images are composited on; None = white."""
+    lpips_net: str = "vgg"
+    """LPIPS backbone; LPIPS is skipped (and reported so) unless it can run offline."""
+    show_progress: bool | None = None
+    """Progress bar: None = only on a terminal."""
+
+
+def _resolved_backend(backend: str) -> str:
+    from .render import has_numba
+
+    return ("numba" if has_numba() else "torch") if str(backend).lower() == "auto" \
+        else str(backend).lower()
+
+
+def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
+    """Score a tree file on a dataset split: PSNR, SSIM, LPIPS (or why it was skipped), render
+    speed at the dataset resolution, tree size. Writes ``eval.json`` and ``eval.md`` (atomic).
+
+    FPS is 1000 / the median per-view render time in ms, after one untimed warm-up render
+    (numba compilation or cache load). MB are 10^6 bytes: ``file_mb`` on disk, ``memory_mb``
+    of the loaded (decompressed, float32) arrays.
+
+    Returns:
+        The report (the content of ``eval.json``): ``tree`` {path, kind, file_bytes, file_mb,
+        memory_mb, data_format, sh_degree, n_nodes, n_leaves, n_occupied_leaves, max_depth},
+        ``dataset`` {root, format, split, n_views, width, height, downscale}, ``render``
+        {backend, stop_thresh, background}, ``width``/``height``/``backend``, ``views`` (per
+        view psnr, ssim, ms, lpips when computed), ``mean`` {psnr, ssim, lpips (float or
+        ``"skipped: <reason>"``), ms_per_frame, fps}, ``lpips`` {net, status}, ``out``.
+
+    Raises:
+        TreeFormatError / DatasetError naming the file; ConfigError for bad option values;
+        BackendError for an unavailable renderer backend.
+    """
+    from .compress import is_compressed_file, load_any_tree
+    from .datasets import FORMATS, load_dataset
+    from .errors import ConfigError, TreeFormatError
+    from .metrics import _lpips_problem
+
+    tree_path = Path(cfg.tree)
+    if not tree_path.is_file():
+        raise TreeFormatError(f"{tree_path}: no such tree file")
+    if cfg.format is not None and cfg.format not in FORMATS:
+        raise ConfigError(f"--format: expected one of {', '.join(FORMATS)}, got {cfg.format!r}")
+    if not (0.0 <= cfg.stop_thresh < 1.0):
+        raise ConfigError(f"--stop-thresh must be in [0, 1), got {cfg.stop_thresh}")
+    if cfg.limit is not None and cfg.limit < 1:
+        raise ConfigError(f"--limit must be a positive integer, got {cfg.limit}")
+    backend = _resolved_backend(cfg.backend)
+    tree = load_any_tree(tree_path)
+    bg = tuple(float(b) for b in cfg.background) if cfg.background is not None else (1.0, 1.0, 1.0)
+    data = load_dataset(cfg.data, split=cfg.split, format=cfg.format, downscale=cfg.downscale,
+                        background=bg, limit=cfg.limit)
+    if len(data.cameras) == 0:
+        raise ConfigError(f"{cfg.data}: split {cfg.split!r} has no views to evaluate")
+    out = Path(cfg.out) if cfg.out is not None else \
+        tree_path.parent / f"{tree_path.stem}_eval_{cfg.split}"
+
+    problem = _lpips_problem(cfg.lpips_net)
+    if problem is not None:
+        log(f"LPIPS skipped: {problem}")
+    options = RenderOptions(stop_thresh=float(cfg.stop_thresh), background=bg)
+    res = evaluate_tree(tree, data, out / "renders" if cfg.save_images else None, options,
+                        backend, show_progress=cfg.show_progress,
+                        lpips_net=None if problem is not None else cfg.lpips_net)
+
+    leaf_sigma = tree.leaf_data()[..., -1]
+    report = res.to_json()
+    if problem is not None:
+        report["mean"]["lpips"] = f"skipped: {problem}"
+    file_bytes = tree_path.stat().st_size
+    report = {
+        "tree": {
+            "path": str(tree_path), "kind": "compressed" if is_compressed_file(tree_path) else "npz",
+            "file_bytes": int(file_bytes), "file_mb": file_bytes / 1e6,
+            "memory_mb": tree.nbytes / 1e6, "data_format": tree.data_format,
+            "sh_degree": tree.sh_degree, "n_nodes": int(tree.n_nodes),
+            "n_leaves": int(tree.n_leaves), "n_occupied_leaves": int((leaf_sigma > 0).sum()),
+            "max_depth": int(tree.max_depth),
+        },
+        "dataset": {"root": str(cfg.data), "format": _data_format(data, cfg.format),
+                    "split": cfg.split, "n_views": len(data.cameras),
+                    "width": data.cameras.width, "height": data.cameras.height,
+                    "downscale": cfg.downscale},
+        "render": {"backend": backend, "stop_thresh": float(cfg.stop_thresh),
+                   "background": list(bg)},
+        "lpips": {"net": cfg.lpips_net,
+                  "status": "computed" if problem is None else f"skipped: {problem}"},
+        **report,
+        "out": str(out),
+    }
+    report = _nan_to_none(report)
+    atomic_save_json(out / "eval.json", report)
+    if cfg.json_path is not None:
+        atomic_save_json(cfg.json_path, report)
+    with atomic_write(out / "eval.md", "w") as f:
+        f.write(eval_markdown(report))
+    return report
+
+
+def _data_format(data: Dataset, given: str | None) -> str:
+    """The dataset format name: ``given`` or the detected one."""
+    if given is not None:
+        return given
+    from .datasets import detect_format
+
+    return detect_format(data.root)
+
+
+def _fmt(v, spec: str) -> str:
+    if isinstance(v, str):
+        return v
+    return "n/a" if v is None else format(v, spec)
+
+
+def eval_markdown(report: dict) -> str:
+    """The summary table of an :func:`eval_tree_file` report, then its per-view table."""
+    t, d, m = report["tree"], report["dataset"], report["mean"]
+    lp = m.get("lpips")
+    skipped = isinstance(lp, str)
+    lines = [
+        f"**{Path(t['path']).name}** on {d['format']} `{d['split']}` "
+        f"({d['n_views']} views, {d['width']}x{d['height']}, backend {report['render']['backend']})",
+        "",
+        "| PSNR (dB) | SSIM | LPIPS | FPS | ms/frame | leaves | nodes | file MB | memory MB |",
+        "|---|---|---|---|---|---|---|---|---|",
+        f"| {_fmt(m['psnr'], '.2f')} | {_fmt(m['ssim'], '.4f')} | "
+        f"{'skipped' if skipped else _fmt(lp, '.4f')} "
+        f"| {_fmt(m['fps'], '.1f')} | {_fmt(m['ms_per_frame'], '.1f')} | {t['n_leaves']:,} "
+        f"| {t['n_nodes']:,} | {t['file_mb']:.2f} | {t['memory_mb']:.2f} |",
+        *(["", f"LPIPS {lp}"] if skipped else []),
+        "",
+        "| view | PSNR (dB) | SSIM | LPIPS | ms |",
+        "|---|---|---|---|---|",
+    ]
+    for v in report["views"]:
+        lines.append(f"| {v['name']} | {_fmt(v['psnr'], '.2f')} | {_fmt(v['ssim'], '.4f')} | "
+                     f"{_fmt(v.get('lpips'), '.4f')} | {_fmt(v['ms'], '.1f')} |")
     return "\n".join(lines) + "\n"

@@ -24,6 +24,8 @@ _GROUPS = [
     "extract",
     "finetune",
     "render",
+    "eval",
+    "video",
     "compress",
     "viewer",
 ]

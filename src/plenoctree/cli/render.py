@@ -72,12 +72,12 @@ def render_options_from_args(args: argparse.Namespace, data_background):
 def _run(args: argparse.Namespace) -> int:
     from ..datasets import load_dataset
     from ..evaluation import evaluate_tree
-    from ..octree import load_tree
+    from ..compress import load_any_tree
 
-    tree = load_tree(args.tree)
+    tree = load_any_tree(args.tree)
     bg = parse_background(args.background) if args.background else (1.0, 1.0, 1.0)
-    data = load_dataset(args.data, split=args.split, downscale=args.downscale, background=bg,
-                        limit=args.limit)
+    data = load_dataset(args.data, split=args.split, format=args.format,
+                        downscale=args.downscale, background=bg, limit=args.limit)
     if (args.width is None) != (args.height is None):
         raise ConfigError("--width and --height must be given together")
     if args.width is not None:
@@ -96,10 +96,14 @@ def _run(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``render`` command."""
+    from ..datasets import FORMATS
+
     p = sub.add_parser("render", help="render a tree over a dataset split (PNGs + metrics.json)")
-    p.add_argument("tree", help="tree file (.npz, native or svox layout)")
+    p.add_argument("tree", help="tree file (.npz native or svox layout, or compressed .plnz)")
     p.add_argument("--data", required=True, help="dataset folder")
     p.add_argument("--split", default="test", help="dataset split (default: test)")
+    p.add_argument("--format", default=None, choices=FORMATS,
+                   help="dataset format (default: detected)")
     p.add_argument("--out", default=None, help="output folder (default: next to the tree)")
     p.add_argument("--downscale", type=int, default=1, help="integer area downscale of the images")
     p.add_argument("--width", type=int, default=None, help="render width (with --height)")

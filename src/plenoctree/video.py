@@ -1,0 +1,493 @@
+"""Videos of a tree: camera paths (orbit, a dataset's own cameras, an LLFF spiral), colour /
+depth / side-by-side frames, MP4 written through imageio + imageio-ffmpeg (``plenoctree[video]``).
+
+>>> cams = orbit_cameras(tree.center, 4.0, 120, 400, 400)     # doctest: +SKIP
+>>> make_video(VideoConfig(tree="tree.npz", out="orbit.mp4"))  # doctest: +SKIP
+
+Orbit convention (the original ``gen_video.py``'s ``pose_spherical``, z up): frame ``i`` of
+``n`` sits at azimuth ``a = 2π i / n`` and elevation ``el`` above the plane through the centre
+normal to the up axis ``u``, at ``eye = c + r (cos(el) (−sin a e1 − cos a e2) + sin(el) u)``
+with ``(e1, e2, u)`` right-handed (``+z`` up: ``e1 = +x``, ``e2 = +y``), looking at ``c`` with
+camera +y as close to ``u`` as possible. Positive elevations look down from above; our ``30``
+is the original's ``--elevation -30``. Same layer as :mod:`plenoctree.evaluation`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import math
+import os
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ._util import progress, to_uint8
+from .datasets import Cameras
+from .errors import BackendError, ConfigError, TreeFormatError
+
+__all__ = ["PATHS", "MODES", "UP_AXES", "VideoConfig", "VideoResult", "axis_vector",
+           "detect_up_axis", "fit_radius", "orbit_poses", "orbit_cameras", "resize_cameras", "depth_bounds",
+           "compose_frame", "pad_even", "write_video", "video_cameras", "make_video"]
+
+PATHS = ("orbit", "dataset", "spiral")
+MODES = ("color", "depth", "both")
+UP_AXES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
+DEFAULT_FOV_X = 0.6911112070083618   # radians: NeRF-synthetic's camera_angle_x
+DEFAULT_SIZE = 800                   # orbit video size without a dataset (as gen_video.py)
+DEFAULT_FRAMES = 120                 # orbit / spiral frames
+VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv")
+
+
+# --- camera paths ---------------------------------------------------------------------------
+def axis_vector(name: str) -> np.ndarray:
+    """``"+x"`` ... ``"-z"`` -> the unit world axis, float64 ``[3]``."""
+    if name not in UP_AXES[1:]:
+        raise ConfigError(f"--up: expected one of {', '.join(UP_AXES)}, got {name!r}")
+    v = np.zeros(3)
+    v["xyz".index(name[1])] = 1.0 if name[0] == "+" else -1.0
+    return v
+
+
+def detect_up_axis(c2w: np.ndarray) -> str:
+    """The signed world axis nearest the mean camera up vector (``c2w[:, :3, 1]``).
+
+    Blender / NeRF-synthetic captures give ``"+z"``, recentred LLFF ones ``"+y"``; no cameras
+    or a zero mean give ``"+z"``.
+    """
+    c2w = np.asarray(c2w, dtype=np.float64).reshape(-1, 4, 4)
+    mean = c2w[:, :3, 1].mean(axis=0) if len(c2w) else np.zeros(3)
+    if not np.linalg.norm(mean) > 1e-6:
+        return "+z"
+    k = int(np.argmax(np.abs(mean)))
+    return ("+" if mean[k] > 0 else "-") + "xyz"[k]
+
+
+def orbit_poses(center: np.ndarray, radius: float, n_frames: int, elevation_deg: float = 30.0,
+                up: str = "+z") -> np.ndarray:
+    """Camera-to-world matrices float32 ``[n_frames, 4, 4]`` of a turntable orbit (module
+    docstring): radius world units from ``center`` [3], elevation degrees in (−90, 90)."""
+    from .datasets.procedural import look_at
+
+    _check_frames(n_frames)
+    if not (np.isfinite(radius) and radius > 0):
+        raise ConfigError(f"--radius must be a positive number, got {radius}")
+    if not -90.0 < elevation_deg < 90.0:
+        raise ConfigError(f"--elevation must be in (-90, 90) degrees, got {elevation_deg}")
+    u = axis_vector(up)
+    k = int(np.argmax(np.abs(u)))
+    e1 = np.zeros(3)
+    e1[(k + 1) % 3] = 1.0
+    e2 = np.cross(u, e1)
+    c = np.asarray(center, dtype=np.float64).reshape(3)
+    el = math.radians(elevation_deg)
+    poses = []
+    for i in range(n_frames):
+        a = 2.0 * math.pi * i / n_frames
+        eye = c + radius * (math.cos(el) * (-math.sin(a) * e1 - math.cos(a) * e2)
+                            + math.sin(el) * u)
+        poses.append(look_at(eye, c, u))
+    return np.stack(poses).astype(np.float32)
+
+
+def fit_radius(half_sides: np.ndarray, fov_x: float, width: int, height: int) -> float:
+    """Orbit radius (world units) at which the sphere around a box of ``half_sides`` [3] just
+    fits the narrower field of view of a ``width`` x ``height`` camera with horizontal field of
+    view ``fov_x`` radians: nothing inside the box is ever cut off."""
+    fov_y = 2.0 * math.atan(math.tan(0.5 * fov_x) * height / width)
+    return float(np.linalg.norm(half_sides)) / math.sin(0.5 * min(fov_x, fov_y))
+
+
+def orbit_cameras(center: np.ndarray, radius: float, n_frames: int, width: int, height: int,
+                  fov_x: float = DEFAULT_FOV_X, elevation_deg: float = 30.0,
+                  up: str = "+z") -> Cameras:
+    """:func:`orbit_poses` as :class:`Cameras`: square pixels, horizontal field of view
+    ``fov_x`` radians, principal point at the image centre."""
+    if not 0.0 < fov_x < math.pi:
+        raise ConfigError(f"--fov must be in (0, 180) degrees, got {math.degrees(fov_x)}")
+    _check_size(width, height)
+    f = 0.5 * width / math.tan(0.5 * fov_x)
+    return Cameras(orbit_poses(center, radius, n_frames, elevation_deg, up), f, f,
+                   width / 2.0, height / 2.0, int(width), int(height))
+
+
+def resize_cameras(cams: Cameras, width: int, height: int) -> Cameras:
+    """``cams`` rendered at ``width`` x ``height``: intrinsics scaled per axis (the field of
+    view is kept)."""
+    _check_size(width, height)
+    sx, sy = width / cams.width, height / cams.height
+    return dataclasses.replace(cams, fx=cams.fx * sx, fy=cams.fy * sy, cx=cams.cx * sx,
+                               cy=cams.cy * sy, width=int(width), height=int(height))
+
+
+def _check_frames(n: object) -> None:
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ConfigError(f"--frames must be a positive integer, got {n!r}")
+
+
+def _check_size(width: object, height: object) -> None:
+    for name, v in (("--width", width), ("--height", height)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ConfigError(f"{name} must be a positive integer, got {v!r}")
+
+
+# --- frames ---------------------------------------------------------------------------------
+def _ray_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    """Slab test: entry/exit distances ``[N]`` of rays ``o + t d`` (``d`` unit) with a box."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        ta, tb = (lo - o) * inv, (hi - o) * inv
+    ta = np.where(np.isnan(ta), -np.inf, ta)
+    tb = np.where(np.isnan(tb), np.inf, tb)
+    return np.minimum(ta, tb).max(axis=1), np.maximum(ta, tb).min(axis=1)
+
+
+def depth_bounds(tree, cams: Cameras, grid: int = 9) -> tuple[float, float]:
+    """A fixed depth range (world units along unit rays, NDC units for NDC cameras) for a whole
+    video: min entry / max exit distance of the tree's box over a ``grid`` x ``grid`` pixel
+    lattice (corners included) of every camera. Rays missing the box are ignored; if all miss,
+    ``(0, 1)``."""
+    n = len(cams)
+    cols = np.linspace(0, cams.width - 1, grid).round().astype(np.int64)
+    rows = np.linspace(0, cams.height - 1, grid).round().astype(np.int64)
+    cc, rr = np.meshgrid(cols, rows)
+    img = np.repeat(np.arange(n), cc.size)
+    o, d = cams.pixel_rays(img, np.tile(cc.ravel(), n), np.tile(rr.ravel(), n))
+    o, d = np.asarray(o, dtype=np.float64), np.asarray(d, dtype=np.float64)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    bbox = np.asarray(tree.bbox, dtype=np.float64)
+    t0, t1 = _ray_box(o, d, bbox[0], bbox[1])
+    t0 = np.maximum(t0, 0.0)
+    hit = t1 > t0
+    if not hit.any():
+        return 0.0, 1.0
+    return float(t0[hit].min()), float(t1[hit].max())
+
+
+def compose_frame(out, mode: str, near: float, far: float) -> np.ndarray:
+    """Frame float32 in [0, 1] from a :class:`~plenoctree.render.RenderOutput` of one image:
+    ``color`` ``[H, W, 3]``, ``depth`` ``[H, W, 3]`` grey (near white, far / empty black, see
+    :func:`~plenoctree.evaluation.depth_to_image`), ``both`` ``[H, 2W, 3]`` side by side."""
+    from .evaluation import depth_to_image
+
+    if mode not in MODES:
+        raise ConfigError(f"--mode: expected one of {', '.join(MODES)}, got {mode!r}")
+    rgb = out.rgb.detach().cpu().numpy().astype(np.float32)
+    if mode == "color":
+        return rgb
+    depth = depth_to_image(out.depth.detach().cpu().numpy(), out.alpha.detach().cpu().numpy(),
+                           near, far).astype(np.float32)
+    depth = np.repeat(depth[..., None], 3, axis=-1)
+    return depth if mode == "depth" else np.concatenate([rgb, depth], axis=1)
+
+
+def pad_even(frame: np.ndarray) -> np.ndarray:
+    """Pad ``[H, W, 3]`` by repeating the last row / column to even sizes (H.264 with yuv420p
+    chroma subsampling needs even dimensions)."""
+    h, w = frame.shape[:2]
+    if h % 2 == 0 and w % 2 == 0:
+        return frame
+    return np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+
+
+# --- writing --------------------------------------------------------------------------------
+def _imageio():
+    for mod in ("imageio", "imageio_ffmpeg"):
+        if importlib.util.find_spec(mod) is None:
+            raise BackendError(f"writing videos needs the `{mod.replace('_', '-')}` package, "
+                               "which is not installed: pip install 'plenoctree[video]'")
+    import imageio.v2 as iio
+    import imageio_ffmpeg
+
+    try:
+        imageio_ffmpeg.get_ffmpeg_exe()
+    except RuntimeError as e:
+        raise BackendError(f"imageio-ffmpeg found no ffmpeg executable ({e}); reinstall "
+                           "'plenoctree[video]' or set IMAGEIO_FFMPEG_EXE") from None
+    return iio
+
+
+def _prep(frame, path: Path, i: int) -> np.ndarray:
+    img = to_uint8(frame)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=-1)
+    if img.ndim != 3 or img.shape[2] not in (1, 3, 4) or min(img.shape[:2]) < 1:
+        raise ConfigError(f"{path}: frame {i} has shape {list(img.shape)}, expected [H, W, 3]")
+    if img.shape[2] == 1:
+        img = np.repeat(img, 3, axis=-1)
+    return pad_even(img[..., :3])
+
+
+def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: float = 30.0,
+                quality: float = 8.0) -> tuple[int, int, int]:
+    """Encode ``frames`` (each ``[H, W, 3]``, uint8 or float in [0, 1], all the same size) as
+    H.264 (yuv420p) into ``path`` (``.mp4``, ``.mov`` or ``.mkv``), atomically: a temporary
+    file next to it is renamed on success and removed on any error. Odd sizes are padded to
+    even ones (:func:`pad_even`). ``quality``: imageio's 0–10 scale (10 = best).
+
+    Frames are consumed one at a time (nothing is held in memory). Returns
+    ``(n_frames, width, height)`` of the written video.
+
+    Raises:
+        BackendError: imageio / imageio-ffmpeg missing (names the ``plenoctree[video]`` extra).
+        ConfigError: no frames, a bad suffix, fps or quality, frames of different sizes.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise ConfigError(f"{path}: video file must end in {', '.join(VIDEO_SUFFIXES)}")
+    if not (np.isfinite(fps) and fps > 0):
+        raise ConfigError(f"--fps must be a positive number, got {fps}")
+    if not 0 <= quality <= 10:
+        raise ConfigError(f"quality must be in [0, 10], got {quality}")
+    iio = _imageio()
+    it: Iterator[np.ndarray] = iter(frames)
+    first = next(it, None)       # rendered before the encoder starts: early errors leave no file
+    if first is None:
+        raise ConfigError(f"{path}: no frames to write")
+    first = _prep(first, path, 0)
+    h, w = first.shape[:2]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    n = 0
+    try:
+        writer = iio.get_writer(str(tmp), format="FFMPEG", mode="I", fps=float(fps),
+                                codec="libx264", pixelformat="yuv420p", quality=quality,
+                                macro_block_size=1, ffmpeg_log_level="error")
+        try:
+            frame = first
+            while frame is not None:
+                if frame.shape[:2] != (h, w):
+                    raise ConfigError(f"{path}: frame {n} is {frame.shape[1]}x{frame.shape[0]}, "
+                                      f"the first was {w}x{h}")
+                writer.append_data(np.ascontiguousarray(frame))
+                n += 1
+                nxt = next(it, None)
+                frame = None if nxt is None else _prep(nxt, path, n)
+        finally:
+            writer.close()
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return n, w, h
+
+
+# --- the command ----------------------------------------------------------------------------
+@dataclass
+class VideoConfig:
+    """What :func:`make_video` renders (``plenoctree video``)."""
+
+    tree: str | Path
+    """Tree file: native or svox ``.npz``, ``.plnz`` or svox compressed ``.npz``."""
+    out: str | Path | None = None
+    """Video file (.mp4/.mov/.mkv); default ``<tree stem>_<path>[_<mode>].mp4`` next to it."""
+    data: str | Path | None = None
+    """Dataset folder: its cameras give the up axis, radius, field of view and size of an
+    orbit; required by the ``dataset`` and ``spiral`` paths."""
+    path: str | None = None
+    """Camera path: orbit, dataset (the split's own cameras) or spiral (LLFF); default spiral
+    for LLFF data, else orbit."""
+    split: str = "test"
+    """Dataset split whose cameras are used."""
+    format: str | None = None
+    """Dataset format (one of ``plenoctree.datasets.FORMATS``); None = detect."""
+    downscale: int = 1
+    """Integer downscale of the dataset's cameras."""
+    frames: int | None = None
+    """Number of frames; default 120 (orbit, spiral) or every camera (dataset path; fewer are
+    picked evenly)."""
+    fps: float = 30.0
+    """Frames per second of the video."""
+    width: int | None = None
+    """Frame width in pixels (with height); default the dataset's, else 800."""
+    height: int | None = None
+    """Frame height in pixels (with width)."""
+    radius: float | None = None
+    """Orbit radius, world units; default the median camera distance of the dataset, else the
+    distance at which the tree box's bounding sphere fits the view (:func:`fit_radius`)."""
+    elevation: float = 30.0
+    """Orbit elevation in degrees above the centre (the original gen_video's -30)."""
+    up: str = "auto"
+    """Orbit up axis: auto (from the dataset's cameras, else +z), or +x, -x, +y, -y, +z, -z."""
+    fov: float | None = None
+    """Orbit horizontal field of view in degrees; default the dataset's, else 39.6 (Blender)."""
+    mode: str = "color"
+    """color, depth, or both (side by side)."""
+    depth_range: tuple[float, float] | None = None
+    """Depth mapped to white..black; default the tree box's extent along the rays."""
+    backend: str = "auto"
+    """Renderer backend: auto, numba or torch."""
+    stop_thresh: float = 0.01
+    """Early ray termination when transmittance < this; 0 disables."""
+    background: tuple[float, float, float] | None = None
+    """Background RGB in [0, 1]; None = white."""
+    quality: float = 8.0
+    """H.264 quality on imageio's 0-10 scale."""
+    show_progress: bool | None = None
+    """Progress bar: None = only on a terminal."""
+
+
+@dataclass
+class VideoResult:
+    """What :func:`make_video` wrote and how fast it rendered."""
+
+    out: Path
+    path: str                 # orbit | dataset | spiral
+    mode: str
+    n_frames: int
+    width: int                # video frame size (side by side and even padding included)
+    height: int
+    render_width: int         # rendered image size
+    render_height: int
+    fps: float                # video frame rate
+    render_seconds: float     # total render time
+    render_fps: float         # 1000 / median ms per frame, the first (warm-up) frame excluded
+    depth_range: tuple[float, float]
+    up: str | None            # orbit up axis used
+    radius: float | None      # orbit radius used
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["out"] = str(self.out)
+        d["depth_range"] = list(self.depth_range)
+        return d
+
+
+def _load_data(cfg: VideoConfig):
+    from .datasets import load_dataset
+
+    bg = tuple(cfg.background) if cfg.background is not None else (1.0, 1.0, 1.0)
+    return load_dataset(cfg.data, split=cfg.split, format=cfg.format, downscale=cfg.downscale,
+                        background=bg)
+
+
+def video_cameras(cfg: VideoConfig, tree) -> tuple[Cameras, dict]:
+    """The cameras of ``cfg``'s path for ``tree`` and what was chosen (``path``, ``up``,
+    ``radius``). Raises :class:`ConfigError` for impossible combinations."""
+    from .datasets import FORMATS, detect_format
+
+    if cfg.format is not None and cfg.format not in FORMATS:
+        raise ConfigError(f"--format: expected one of {', '.join(FORMATS)}, got {cfg.format!r}")
+    if cfg.frames is not None:
+        _check_frames(cfg.frames)
+    if (cfg.width is None) != (cfg.height is None):
+        raise ConfigError("--width and --height must be given together")
+    if cfg.width is not None:
+        _check_size(cfg.width, cfg.height)
+    if cfg.up not in UP_AXES:
+        raise ConfigError(f"--up: expected one of {', '.join(UP_AXES)}, got {cfg.up!r}")
+    fmt = None
+    if cfg.data is not None:
+        fmt = cfg.format or detect_format(cfg.data)
+    kind = cfg.path or ("spiral" if fmt == "llff" else "orbit")
+    if kind not in PATHS:
+        raise ConfigError(f"--path: expected one of {', '.join(PATHS)}, got {kind!r}")
+    if kind != "orbit" and cfg.data is None:
+        raise ConfigError(f"--path {kind} needs --data (the dataset whose cameras to follow)")
+    info: dict = {"path": kind, "up": None, "radius": None}
+    if kind == "spiral":
+        from .datasets import llff_render_cameras
+
+        if fmt != "llff":
+            raise ConfigError(f"--path spiral needs an LLFF dataset; {cfg.data} is {fmt}")
+        cams = llff_render_cameras(cfg.data, cfg.frames or DEFAULT_FRAMES, cfg.downscale)
+    elif kind == "dataset":
+        cams = _load_data(cfg).cameras
+        if len(cams) == 0:
+            raise ConfigError(f"{cfg.data}: split {cfg.split!r} has no cameras")
+        if cfg.frames is not None:
+            if cfg.frames > len(cams):
+                raise ConfigError(f"--frames {cfg.frames}: split {cfg.split!r} of {cfg.data} "
+                                  f"has only {len(cams)} cameras")
+            cams = cams.select(np.round(np.linspace(0, len(cams) - 1, cfg.frames)).astype(int))
+    else:
+        data_cams = _load_data(cfg).cameras if cfg.data is not None else None
+        if data_cams is not None and data_cams.ndc:
+            raise ConfigError(f"{cfg.data}: an orbit needs a 360° scene, this forward-facing "
+                              "dataset uses NDC: use --path spiral or --path dataset")
+        center = np.asarray(tree.center, dtype=np.float64)
+        up = cfg.up if cfg.up != "auto" else (
+            detect_up_axis(data_cams.c2w) if data_cams is not None and len(data_cams) else "+z")
+        if cfg.width is not None:
+            width, height = int(cfg.width), int(cfg.height)
+        elif data_cams is not None:
+            width, height = data_cams.width, data_cams.height
+        else:
+            width = height = DEFAULT_SIZE
+        if cfg.fov is not None:
+            fov = math.radians(cfg.fov)
+        elif data_cams is not None and len(data_cams):
+            fov = 2.0 * math.atan(0.5 * data_cams.width / data_cams.intrinsics(0)[0])
+        else:
+            fov = DEFAULT_FOV_X
+        radius = cfg.radius
+        if radius is None and data_cams is not None and len(data_cams):
+            radius = float(np.median(np.linalg.norm(data_cams.centers - center, axis=1)))
+        elif radius is None:
+            radius = fit_radius(tree.radius, fov, width, height)
+        cams = orbit_cameras(center, float(radius), cfg.frames or DEFAULT_FRAMES, width, height,
+                             fov, cfg.elevation, up)
+        info.update(up=up, radius=float(radius))
+    if cfg.width is not None and (cams.width, cams.height) != (cfg.width, cfg.height):
+        cams = resize_cameras(cams, int(cfg.width), int(cfg.height))
+    return cams, info
+
+
+def make_video(cfg: VideoConfig, log=print) -> VideoResult:
+    """Render ``cfg.tree`` along a camera path and write the video (see :class:`VideoConfig`).
+
+    Frames are rendered and encoded one by one; ``render_fps`` counts rendering only (and the
+    frame composition), not encoding. Raises TreeFormatError / DatasetError naming the file,
+    ConfigError for bad options, BackendError for a missing renderer or video backend (checked
+    before anything is rendered).
+    """
+    from .compress import load_any_tree
+    from .render import RenderOptions, render_image
+
+    if cfg.mode not in MODES:
+        raise ConfigError(f"--mode: expected one of {', '.join(MODES)}, got {cfg.mode!r}")
+    if not 0.0 <= cfg.stop_thresh < 1.0:
+        raise ConfigError(f"--stop-thresh must be in [0, 1), got {cfg.stop_thresh}")
+    if cfg.depth_range is not None and not cfg.depth_range[0] < cfg.depth_range[1]:
+        raise ConfigError(f"--depth-range: need NEAR < FAR, got {cfg.depth_range}")
+    _imageio()
+    tree_path = Path(cfg.tree)
+    if not tree_path.is_file():
+        raise TreeFormatError(f"{tree_path}: no such tree file")
+    tree = load_any_tree(tree_path)
+    cams, info = video_cameras(cfg, tree)
+    kind = info["path"]
+    if cfg.out is not None:
+        out = Path(cfg.out)
+    else:
+        tail = "" if cfg.mode == "color" else f"_{cfg.mode}"
+        out = tree_path.parent / f"{tree_path.stem}_{kind}{tail}.mp4"
+    if out.suffix.lower() not in VIDEO_SUFFIXES:
+        raise ConfigError(f"{out}: video file must end in {', '.join(VIDEO_SUFFIXES)}")
+    near, far = (tuple(float(v) for v in cfg.depth_range) if cfg.depth_range is not None
+                 else depth_bounds(tree, cams))
+    bg = tuple(float(b) for b in cfg.background) if cfg.background is not None else (1.0,) * 3
+    options = RenderOptions(stop_thresh=float(cfg.stop_thresh), background=bg)
+    ms: list[float] = []
+
+    def frames() -> Iterator[np.ndarray]:
+        for i in progress(range(len(cams)), desc="video",
+                          disable=None if cfg.show_progress is None else not cfg.show_progress):
+            t0 = time.perf_counter()
+            img = compose_frame(render_image(tree, cams, i, options, cfg.backend), cfg.mode,
+                                near, far)
+            ms.append((time.perf_counter() - t0) * 1e3)
+            yield img
+
+    n, w, h = write_video(out, frames(), cfg.fps, cfg.quality)
+    timed = ms[1:] if len(ms) > 1 else ms
+    res = VideoResult(out=out, path=kind, mode=cfg.mode, n_frames=n, width=w, height=h,
+                      render_width=cams.width, render_height=cams.height, fps=float(cfg.fps),
+                      render_seconds=sum(ms) / 1e3, render_fps=1000.0 / float(np.median(timed)),
+                      depth_range=(near, far), up=info["up"], radius=info["radius"])
+    if (w, h) != ((2 if cfg.mode == "both" else 1) * cams.width, cams.height):
+        log(f"note: frames padded to even size {w}x{h} for H.264")
+    return res
