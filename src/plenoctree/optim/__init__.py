@@ -1,0 +1,18 @@
+"""Fine-tuning the octree's leaf values on the training photos (paper §4.3, appendix B.3).
+
+- :func:`render_rays_differentiable` / :class:`OctreeRenderFunction` (``autograd.py``):
+  rendering differentiable w.r.t. the cell data; numba forward + analytic backward on CPU,
+  the torch twin with autograd as the oracle and on CUDA.
+- :class:`FinetuneConfig` / :func:`finetune` (``finetune.py``): the optimisation loop.
+
+Importing this package compiles nothing; the numba kernels (``_numba_grad.py``) compile on
+first use and are cached on disk.
+"""
+
+from __future__ import annotations
+
+from .autograd import OctreeRenderFunction, differentiable_backends, render_rays_differentiable
+from .finetune import FinetuneConfig, FinetuneResult, finetune
+
+__all__ = ["OctreeRenderFunction", "render_rays_differentiable", "differentiable_backends",
+           "FinetuneConfig", "FinetuneResult", "finetune"]

@@ -1,0 +1,202 @@
+"""Python side of the numba fine-tuning kernels: argument packing and per-thread gradient slabs.
+
+Nothing here compiles at import; :mod:`._numba_grad` is imported on first use.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..render.options import KIND_SG, FormatInfo, RenderOptions, parse_data_format
+
+_CHUNK_TILES = 2     # dynamic-scheduling chunk of grad_kernel, in tiles of TILE rays
+
+__all__ = ["KernelArgs", "SparseGrad", "kernel_args", "default_chunks", "forward_numba",
+           "backward_numba", "fused_mse_numba"]
+
+
+def _kernels():
+    from . import _numba_grad
+
+    return _numba_grad
+
+
+def default_chunks() -> int:
+    """Gradient slabs = numba worker threads (one dense slab per thread)."""
+    import numba
+
+    return max(1, int(numba.get_num_threads()))
+
+
+@dataclass
+class KernelArgs:
+    """Tree geometry and renderer options, packed as the kernels want them."""
+
+    child: np.ndarray          # int32 [n_cells]
+    offset: np.ndarray         # float64 [3]
+    invr: np.ndarray           # float64 [3]
+    info: FormatInfo
+    sg: np.ndarray             # float64 [B, 4] (SG) or [1, 4]
+    b_lo: int
+    b_hi: int
+    bg: np.ndarray             # float64 [3]
+    stop: float
+    eps: float
+    cap0: int                  # initial per-ray segment record capacity
+
+    @property
+    def n_cells(self) -> int:
+        return int(self.child.shape[0])
+
+
+def _np(x: Any) -> np.ndarray:
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def kernel_args(tree: Any, options: RenderOptions | None = None) -> KernelArgs:
+    """Pack ``tree`` (an :class:`~plenoctree.octree.Octree`, geometry only) and ``options``."""
+    from ._numba_grad import initial_capacity
+
+    opts = (options if options is not None else RenderOptions()).validated()
+    child = _np(tree.child)
+    data_dim = int(tree.data.shape[-1])
+    extra = getattr(tree, "extra_data", None)
+    extra = None if extra is None else _np(extra)
+    info = parse_data_format(tree.data_format, data_dim, extra)
+    if info.kind == KIND_SG:
+        sg = np.ascontiguousarray(extra, dtype=np.float64).reshape(info.basis_dim, 4)
+    else:
+        sg = np.zeros((1, 4), dtype=np.float64)
+    b_lo, b_hi = opts.basis_range(info.basis_dim)
+    off = np.broadcast_to(np.asarray(_np(tree.offset), np.float64).reshape(-1), (3,)).copy()
+    inv = np.broadcast_to(np.asarray(_np(tree.invradius), np.float64).reshape(-1), (3,)).copy()
+    depth = int(getattr(tree, "depth_limit", 10))
+    return KernelArgs(np.ascontiguousarray(child, dtype=np.int32).reshape(-1), off, inv, info, sg,
+                      b_lo, b_hi, np.asarray(opts.background, np.float64), float(opts.stop_thresh),
+                      float(opts.step_eps), initial_capacity(depth))
+
+
+class SparseGrad:
+    """Per-thread gradient slabs with touched-cell lists (see :mod:`._numba_grad`).
+
+    ``grad3 [n_chunks, n_cells, D]`` (``grad3[0]`` is the merged gradient after
+    :meth:`merge`), ``flags`` uint8 ``[n_chunks, n_cells]``, ``touched`` int64
+    ``[n_chunks, n_cells]``, ``n_touched`` int64 ``[n_chunks]``. Allocated with ``np.zeros``
+    (lazily zero-filled pages): memory actually used grows with the cells rays touch.
+    """
+
+    def __init__(self, n_cells: int, dim: int, dtype: Any = np.float32,
+                 n_chunks: int | None = None) -> None:
+        self.n_chunks = int(n_chunks) if n_chunks else default_chunks()
+        self.grad3 = np.zeros((self.n_chunks, n_cells, dim), dtype=dtype)
+        self.flags = np.zeros((self.n_chunks, n_cells), dtype=np.uint8)
+        self.touched = np.zeros((self.n_chunks, n_cells), dtype=np.int64)
+        self.n_touched = np.zeros(self.n_chunks, dtype=np.int64)
+        self.sse = np.zeros(self.n_chunks, dtype=np.float64)
+
+    def merge(self) -> None:
+        """Sum the slabs into ``grad3[0]`` (touched cells only)."""
+        if self.n_chunks > 1:
+            _kernels().merge_chunks(self.grad3, self.flags, self.touched, self.n_touched)
+
+    @property
+    def grad(self) -> np.ndarray:
+        """The merged gradient ``[n_cells, D]`` (valid after :meth:`merge`)."""
+        return self.grad3[0]
+
+    def touched_cells(self) -> np.ndarray:
+        """Cells with a gradient in this batch (after :meth:`merge`), int64 ``[M]``."""
+        return self.touched[0, : int(self.n_touched[0])]
+
+
+def _rays(origins: Any, dirs: Any) -> tuple[np.ndarray, np.ndarray]:
+    o = np.ascontiguousarray(_np(origins), dtype=np.float32).reshape(-1, 3)
+    d = np.ascontiguousarray(_np(dirs), dtype=np.float32).reshape(-1, 3)
+    if o.shape != d.shape:
+        raise ConfigError(f"origins and dirs must have the same shape, got {o.shape} and {d.shape}")
+    return o, d
+
+
+def _call(args: KernelArgs, data2: np.ndarray, o: np.ndarray, d: np.ndarray, aux: np.ndarray,
+          mode: int, scale: float, rgb: np.ndarray, sg_buf: SparseGrad | None,
+          sig: np.ndarray | None = None) -> None:
+    k = _kernels()
+    if sig is None:
+        sig = np.ascontiguousarray(data2[:, -1])
+    if sg_buf is None:  # forward only: zero-row slabs, one per thread
+        nch = default_chunks()
+        grad3 = np.zeros((nch, 0, data2.shape[1]), dtype=data2.dtype)
+        flags = np.zeros((nch, 0), dtype=np.uint8)
+        touched = np.zeros((nch, 0), dtype=np.int64)
+        n_t = np.zeros(nch, dtype=np.int64)
+        sse = np.zeros(nch, dtype=np.float64)
+    else:
+        grad3, flags, touched, n_t, sse = (sg_buf.grad3, sg_buf.flags, sg_buf.touched,
+                                           sg_buf.n_touched, sg_buf.sse)
+    sse[:] = 0.0
+    import numba
+
+    threads = numba.get_num_threads()
+    old_chunk = numba.get_parallel_chunksize()
+    numba.set_parallel_chunksize(_CHUNK_TILES)
+    if threads > grad3.shape[0]:            # one slab per running thread (see grad_kernel)
+        numba.set_num_threads(grad3.shape[0])
+    try:
+        k.grad_kernel(args.child, sig, data2, args.offset, args.invr, o, d, aux, mode,
+                      float(scale), args.info.kind, args.info.basis_dim, args.sg, args.b_lo,
+                      args.b_hi, args.bg, args.stop, args.eps, args.cap0, rgb, grad3, flags,
+                      touched, n_t, sse)
+    finally:
+        numba.set_num_threads(threads)
+        numba.set_parallel_chunksize(old_chunk)
+
+
+def forward_numba(args: KernelArgs, data2: np.ndarray, origins: Any, dirs: Any) -> np.ndarray:
+    """Rendered rgb ``[N, 3]`` (dtype of ``data2 [n_cells, D]``), same values as the renderer."""
+    o, d = _rays(origins, dirs)
+    rgb = np.empty((o.shape[0], 3), dtype=np.float64)
+    if o.shape[0]:
+        _call(args, data2, o, d, np.zeros((1, 3), np.float64), 2, 0.0, rgb, None)
+    return rgb.astype(data2.dtype, copy=False)
+
+
+def backward_numba(args: KernelArgs, data2: np.ndarray, origins: Any, dirs: Any,
+                   grad_rgb: np.ndarray, buffers: SparseGrad | None = None) -> SparseGrad:
+    """``∂L/∂data`` given ``∂L/∂rgb [N, 3]``; returns the merged :class:`SparseGrad`."""
+    o, d = _rays(origins, dirs)
+    g = np.ascontiguousarray(grad_rgb, dtype=np.float64).reshape(-1, 3)
+    buf = buffers if buffers is not None else SparseGrad(data2.shape[0], data2.shape[1],
+                                                         data2.dtype)
+    if o.shape[0]:
+        rgb = np.empty((o.shape[0], 3), dtype=np.float64)
+        _call(args, data2, o, d, g, 0, 0.0, rgb, buf)
+        buf.merge()
+    return buf
+
+
+def fused_mse_numba(args: KernelArgs, data2: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
+                    targets: np.ndarray, scale: float, buffers: SparseGrad,
+                    rgb: np.ndarray | None = None, sig: np.ndarray | None = None,
+                    merge: bool = True) -> float:
+    """One fused forward + backward of ``L = scale · Σ (C - target)²`` into ``buffers``
+    (merged on return unless ``merge=False``: :func:`._numba_grad.step_touched` reads the
+    slabs directly); returns the un-scaled sum of squared errors of the batch.
+
+    ``sig`` is ``data2[:, -1]`` as a contiguous array (made here when not given; a caller that
+    steps many times keeps one and lets the step kernels update it)."""
+    o, d = _rays(origins, dirs)
+    t = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 3)
+    if rgb is None:
+        rgb = np.empty((o.shape[0], 3), dtype=np.float64)
+    if not o.shape[0]:
+        return 0.0
+    _call(args, data2, o, d, t, 1, scale, rgb, buffers, sig)
+    if merge:
+        buffers.merge()
+    return float(buffers.sse.sum())

@@ -1,0 +1,293 @@
+"""The epoch loop of fine-tuning: random ray batches, validation, early stop, divergence, resume.
+
+Used by :func:`plenoctree.optim.finetune.finetune`; works with either stepper of
+:mod:`._steppers`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from .._util import atomic_save_npz, progress
+from ..errors import ConfigError
+
+__all__ = ["ViewSet", "LoopState", "Diverged", "render_views_psnr", "run_loop"]
+
+_EMA = 0.2            # smoothing of the batch MSE for the divergence test
+_DIVERGE_FACTOR = 4.0  # smoothed batch MSE above factor * first-batch MSE + _DIVERGE_ABS ...
+_DIVERGE_ABS = 1e-3    # ... means the learning rate diverged
+_MIN_BATCHES = 5
+
+
+@dataclass
+class ViewSet:
+    """Posed images to train or validate on: ``c2w [N, 4, 4]``, shared intrinsics,
+    ``images`` float32 ``[N, H, W, 3]``, and their names."""
+
+    c2w: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    images: np.ndarray
+    names: list[str]
+
+    @classmethod
+    def from_dataset(cls, data: Any, indices: Any = None) -> ViewSet:
+        cams = data.cameras
+        idx = np.arange(len(cams)) if indices is None else np.asarray(indices, dtype=np.int64)
+        return cls(np.ascontiguousarray(cams.c2w[idx], dtype=np.float32), cams.fx, cams.fy,
+                   cams.cx, cams.cy, cams.width, cams.height,
+                   np.ascontiguousarray(data.images[idx], dtype=np.float32),
+                   [data.names[i] for i in idx] if data.names else [f"view_{i}" for i in idx])
+
+    def __len__(self) -> int:
+        return int(self.c2w.shape[0])
+
+    @property
+    def n_rays(self) -> int:
+        return len(self) * self.width * self.height
+
+    def rays(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``origins, dirs, targets`` float32 ``[M, 3]`` of flat pixel indices ``index [M]``."""
+        from ._numba_grad import pixel_rays
+
+        m = index.shape[0]
+        o = np.empty((m, 3), np.float32)
+        d = np.empty((m, 3), np.float32)
+        t = np.empty((m, 3), np.float32)
+        pixel_rays(self.c2w, float(self.fx), float(self.fy), float(self.cx), float(self.cy),
+                   int(self.width), int(self.height), np.ascontiguousarray(index, np.int64),
+                   self.images, o, d, t)
+        return o, d, t
+
+    def n_tiles(self, k: int) -> int:
+        """Number of ``k × k`` pixel tiles covering every image (partial tiles at the borders)."""
+        return len(self) * (-(-self.height // k)) * (-(-self.width // k))
+
+    def tile_pixels(self, tiles: np.ndarray, k: int) -> np.ndarray:
+        """Flat pixel indices (``img * H * W + v * W + u``) of tiles ``tiles [T]``, tile by tile
+        in raster order within each tile; pixels past the image border are dropped."""
+        nty, ntx = -(-self.height // k), -(-self.width // k)
+        tiles = np.asarray(tiles, dtype=np.int64)
+        img, rem = np.divmod(tiles, nty * ntx)
+        ty, tx = np.divmod(rem, ntx)
+        dy, dx = np.divmod(np.arange(k * k, dtype=np.int64), k)
+        v = ty[:, None] * k + dy
+        u = tx[:, None] * k + dx
+        flat = img[:, None] * (self.height * self.width) + v * self.width + u
+        if self.height % k or self.width % k:
+            return flat[(v < self.height) & (u < self.width)]
+        return flat.reshape(-1)
+
+    def view_rays(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        from ..datasets import generate_rays
+
+        o, d = generate_rays(self.c2w[i], self.fx, self.fy, self.cx, self.cy, self.width,
+                             self.height)
+        return o.reshape(-1, 3), d.reshape(-1, 3)
+
+
+def render_views_psnr(stepper: Any, views: ViewSet) -> float:
+    """Mean over views of the per-view PSNR (dB) of ``stepper``'s current values."""
+    from ..metrics import psnr
+
+    vals = []
+    for i in range(len(views)):
+        o, d = views.view_rays(i)
+        rgb = stepper.render(o, d).reshape(views.height, views.width, 3)
+        vals.append(min(float(psnr(rgb, views.images[i])), 100.0))
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+class Diverged(Exception):
+    """Raised inside the loop when the learning rate diverged (caught by ``run_loop``)."""
+
+
+@dataclass
+class LoopState:
+    """Where the loop stands (also what a checkpoint holds, with the values)."""
+
+    epochs_done: int = 0
+    steps: int = 0
+    best_psnr: float = -math.inf
+    best_epoch: int = 0
+    history: list[dict] = field(default_factory=list)
+    stop_reason: str = ""
+    train_seconds: float = 0.0
+    train_rays: int = 0
+    rng_state: dict | None = None
+
+    def to_json(self) -> str:
+        d = dict(self.__dict__)
+        d["best_psnr"] = None if not math.isfinite(self.best_psnr) else self.best_psnr
+        return json.dumps(d)
+
+    @classmethod
+    def from_json(cls, text: str) -> LoopState:
+        d = json.loads(text)
+        if d.get("best_psnr") is None:
+            d["best_psnr"] = -math.inf
+        return cls(**d)
+
+
+def save_checkpoint(path: Path, stepper: Any, best: np.ndarray, state: LoopState,
+                    fingerprint: dict) -> None:
+    """Write values, best values, optimiser state and loop state atomically to ``path``."""
+    opt = {f"opt_{k}": np.asarray(v) for k, v in stepper.state().items()}
+    atomic_save_npz(path, values=stepper.values(), best=best,
+                    state=np.array(state.to_json()), fingerprint=np.array(json.dumps(fingerprint)),
+                    **opt)
+
+
+def load_checkpoint(path: Path, stepper: Any, best: np.ndarray, fingerprint: dict) -> LoopState:
+    """Restore what :func:`save_checkpoint` wrote; ``ConfigError`` when it belongs to another run."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            fp = json.loads(str(z["fingerprint"]))
+            if fp != fingerprint:
+                diff = {k: (fp.get(k), v) for k, v in fingerprint.items() if fp.get(k) != v}
+                raise ConfigError(f"{path}: checkpoint belongs to a different run "
+                                  f"(checkpoint vs now: {diff}); delete it or drop --resume")
+            values, best_v = z["values"], z["best"]
+            if values.shape != stepper.values().shape or best_v.shape != best.shape:
+                raise ConfigError(f"{path}: checkpoint arrays have shape {values.shape}, the "
+                                  f"tree needs {stepper.values().shape}")
+            stepper.set_values(values)
+            np.copyto(best, best_v)
+            stepper.load_state({k[4:]: z[k] for k in z.files if k.startswith("opt_")})
+            return LoopState.from_json(str(z["state"]))
+    except (OSError, ValueError, KeyError) as e:
+        if isinstance(e, ConfigError):
+            raise
+        raise ConfigError(f"{path}: unreadable checkpoint ({e})") from None
+
+
+def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, batch_rays: int,
+             ray_tile: int, val_every: int, stop_on_decrease: bool, seed: int, checkpoint: Path | None,
+             resume: bool, fingerprint: dict, log: Callable[[dict], None],
+             show_progress: bool | None = None) -> tuple[np.ndarray, LoopState]:
+    """Optimise ``stepper``'s values on ``train``; return ``(best values, final state)``.
+
+    One epoch is one pass over every training pixel in a random order: the images are cut into
+    ``ray_tile × ray_tile`` pixel tiles, the tiles of all images are shuffled, and each batch
+    takes ``batch_rays / ray_tile²`` of them (``ray_tile = 1``: independent random pixels;
+    neighbouring rays of a tile cross the same cells, which makes the kernels 2-3x faster).
+
+    With ``val`` the PSNR is measured before training and every ``val_every`` epochs; the best
+    values are kept and, with ``stop_on_decrease``, the loop stops at the first drop. Without
+    ``val`` the values after the last epoch are returned. A divergence ends the loop with
+    ``state.stop_reason = "diverged: ..."`` and the best (last good) values restored.
+
+    The checkpoint is written after each validation (each ``val_every`` epochs without ``val``)
+    and on ``KeyboardInterrupt``; resuming from an interrupt inside an epoch replays that epoch
+    (same ray order) from the values reached when it was interrupted.
+    """
+    scale = 1.0 / (3.0 * train.width * train.height)
+    best = stepper.values().copy()
+    state = LoopState()
+    if resume and checkpoint is not None and checkpoint.exists():
+        state = load_checkpoint(checkpoint, stepper, best, fingerprint)
+        log({"event": "resume", "checkpoint": str(checkpoint), "epochs_done": state.epochs_done})
+    rng = np.random.default_rng(seed)
+    if state.rng_state is not None:
+        rng.bit_generator.state = state.rng_state
+
+    def validate(epoch: int) -> float | None:
+        if val is None:
+            return None
+        t0 = time.perf_counter()
+        p = render_views_psnr(stepper, val)
+        state.history.append({"epoch": epoch, "val_psnr": p,
+                              "val_seconds": time.perf_counter() - t0})
+        return p
+
+    if val is not None and state.epochs_done == 0 and not state.history:
+        p0 = validate(0)
+        state.best_psnr, state.best_epoch = p0, 0
+        log({"event": "val", "epoch": 0, "val_psnr": p0})
+
+    n_rays = train.n_rays
+    k = max(1, int(ray_tile))
+    n_tiles = train.n_tiles(k)
+    tiles_per_batch = max(1, batch_rays // (k * k))
+    steps_per_epoch = max(1, math.ceil(n_tiles / tiles_per_batch))
+    bar = progress(total=(epochs - state.epochs_done) * steps_per_epoch, desc="finetune",
+                   disable=None if show_progress is None else not show_progress)
+    first_mse = None
+    ema = None
+    batches_run = 0
+    try:
+        while state.epochs_done < epochs and not state.stop_reason:
+            epoch = state.epochs_done + 1
+            state.rng_state = rng.bit_generator.state
+            perm = rng.permutation(n_tiles)
+            sse_epoch, t_epoch, s_epoch = 0.0, time.perf_counter(), state.train_seconds
+            for b0 in range(0, n_tiles, tiles_per_batch):
+                idx = train.tile_pixels(perm[b0:b0 + tiles_per_batch], k)
+                o, d, tgt = train.rays(idx)
+                t0 = time.perf_counter()
+                sse, bad = stepper.step(o, d, tgt, scale)
+                state.train_seconds += time.perf_counter() - t0
+                state.train_rays += idx.shape[0]
+                state.steps += 1
+                batches_run += 1
+                mse = sse / (3.0 * idx.shape[0])
+                sse_epoch += sse
+                if bad or not math.isfinite(mse):
+                    raise Diverged(f"non-finite values after step {state.steps} (epoch {epoch})")
+                if first_mse is None:
+                    first_mse = ema = mse
+                ema = (1 - _EMA) * ema + _EMA * mse
+                if batches_run >= _MIN_BATCHES and ema > _DIVERGE_FACTOR * first_mse + _DIVERGE_ABS:
+                    raise Diverged(f"training MSE rose from {first_mse:.3g} to {ema:.3g} "
+                                   f"(epoch {epoch}, step {state.steps})")
+                bar.update(1)
+                bar.set_postfix(epoch=epoch, mse=f"{ema:.2e}")
+            state.epochs_done = epoch
+            state.rng_state = rng.bit_generator.state
+            train_mse = sse_epoch / (3.0 * n_rays)
+            rec = {"event": "epoch", "epoch": epoch,
+                   "train_psnr": -10 * math.log10(max(train_mse, 1e-20)),
+                   "seconds": time.perf_counter() - t_epoch,
+                   "rays_per_s": n_rays / max(state.train_seconds - s_epoch, 1e-9)}
+            log(rec)
+            due = val_every <= 0 or epoch % val_every == 0 or epoch == epochs
+            if val is None:
+                np.copyto(best, stepper.values())
+                state.best_epoch = epoch
+                if checkpoint is not None and due:
+                    save_checkpoint(checkpoint, stepper, best, state, fingerprint)
+            elif val_every > 0 and due:
+                p = validate(epoch)
+                log({"event": "val", "epoch": epoch, "val_psnr": p})
+                if p > state.best_psnr:
+                    state.best_psnr, state.best_epoch = p, epoch
+                    np.copyto(best, stepper.values())
+                elif stop_on_decrease:
+                    state.stop_reason = (f"validation PSNR fell from {state.best_psnr:.3f} dB "
+                                         f"(epoch {state.best_epoch}) to {p:.3f} dB (epoch {epoch})")
+                if checkpoint is not None and not state.stop_reason:
+                    save_checkpoint(checkpoint, stepper, best, state, fingerprint)
+    except Diverged as e:
+        state.stop_reason = f"diverged: {e}"
+    except KeyboardInterrupt:
+        if checkpoint is not None:
+            save_checkpoint(checkpoint, stepper, best, state, fingerprint)
+            log({"event": "interrupted", "checkpoint": str(checkpoint)})
+        raise
+    finally:
+        bar.close()
+    if not state.stop_reason:
+        state.stop_reason = f"finished {state.epochs_done} epochs"
+    stepper.set_values(best)
+    return best, state

@@ -1,0 +1,240 @@
+"""One optimisation step on a batch of rays, for each backend, with SGD / Adam / RMSprop.
+
+Both steppers minimise ``L = scale · Σ_rays Σ_ch (C - target)²`` over the cell values (the
+fine-tuning loop passes ``scale = 1 / (3 H W)``, the per-pixel mean of one training image).
+
+- :class:`NumbaStepper` (CPU): one fused numba kernel renders the batch and scatters the
+  analytic gradient (eq. 15 / 20) into per-thread slabs; the optimiser kernels then update
+  only the touched cells. Adam and RMSprop are *lazy*: moments of cells the batch does not
+  reach are left alone (``torch.optim.SparseAdam`` semantics), so a step costs O(touched cells).
+- :class:`TorchStepper` (CPU or CUDA): the renderer's torch twin with autograd, then the same
+  update rules in torch (SGD dense — identical to the sparse one; Adam/RMSprop lazy over cells
+  with a non-zero gradient).
+
+After every step σ is projected onto ``σ ≥ 0`` (the renderer uses ``relu(σ)``; nothing that
+renders changes, and the tree stays valid for ``save_tree``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConfigError
+
+__all__ = ["OPTIMIZERS", "DEFAULT_LR", "NumbaStepper", "TorchStepper", "make_stepper"]
+
+OPTIMIZERS = ("sgd", "adam", "rmsprop")
+#: Default learning rates: SGD in the paper's units (per-pixel mean loss); Adam/RMSprop are
+#: scale-free (a step moves each value by about ``lr``).
+DEFAULT_LR = {"sgd": 1e7, "adam": 1e-2, "rmsprop": 1e-3}
+_BETAS = (0.9, 0.999)
+_ADAM_EPS = 1e-8
+_RMS_ALPHA = 0.99
+_RMS_EPS = 1e-8
+
+
+class NumbaStepper:
+    """Fused numba forward + analytic backward + sparse optimiser step.
+
+    Args:
+        data2: float32 ``[n_cells, D]`` cell values, updated in place.
+        args: :class:`~plenoctree.optim._fast.KernelArgs` of the tree and render options.
+        optimizer: ``"sgd" | "adam" | "rmsprop"``; ``lr`` its learning rate.
+    """
+
+    backend = "numba"
+
+    def __init__(self, data2: np.ndarray, args: Any, optimizer: str, lr: float,
+                 n_chunks: int | None = None) -> None:
+        from ._fast import SparseGrad
+
+        if data2.dtype != np.float32 or not data2.flags.c_contiguous:
+            raise ConfigError("NumbaStepper: data must be a contiguous float32 [n_cells, D] array")
+        self.data2, self.args, self.optimizer, self.lr = data2, args, optimizer, float(lr)
+        self.buf = SparseGrad(data2.shape[0], data2.shape[1], np.float32, n_chunks)
+        self.sig = np.ascontiguousarray(data2[:, -1])
+        self.step_count = 0
+        self.m1 = np.zeros_like(data2) if optimizer == "adam" else None
+        self.m2 = np.zeros_like(data2) if optimizer in ("adam", "rmsprop") else None
+        self._dummy = np.zeros((1, 1), np.float32)
+        self.last_touched = 0
+
+    def step(self, origins: np.ndarray, dirs: np.ndarray, targets: np.ndarray,
+             scale: float) -> tuple[float, int]:
+        """One step on a batch; returns ``(sum of squared errors, non-finite values written)``."""
+        from . import _numba_grad as k
+        from ._fast import fused_mse_numba
+
+        sse = fused_mse_numba(self.args, self.data2, origins, dirs, targets, scale, self.buf,
+                              sig=self.sig, merge=False)
+        b = self.buf
+        self.last_touched = int(b.n_touched.sum())     # upper bound: lists may overlap
+        self.step_count += 1
+        opt = {"sgd": k.OPT_SGD, "adam": k.OPT_ADAM, "rmsprop": k.OPT_RMSPROP}[self.optimizer]
+        beta1, beta2, eps = (_BETAS[0], _BETAS[1], _ADAM_EPS) if self.optimizer == "adam" \
+            else (0.0, _RMS_ALPHA, _RMS_EPS)
+        m1 = self.m1 if self.m1 is not None else self._dummy
+        m2 = self.m2 if self.m2 is not None else self._dummy
+        bad = k.step_touched(self.data2, self.sig, b.grad3, b.flags, b.touched, b.n_touched, opt,
+                             self.lr, m1, m2, beta1, beta2, eps, float(self.step_count))
+        return sse, int(bad)
+
+    def render(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """Render rays with the current values (no gradient): float32 ``[N, 3]``."""
+        from ._fast import forward_numba
+
+        return forward_numba(self.args, self.data2, origins, dirs).astype(np.float32, copy=False)
+
+    def values(self) -> np.ndarray:
+        """The current ``[n_cells, D]`` float32 values (a view; copy before keeping)."""
+        return self.data2
+
+    def set_values(self, values: np.ndarray) -> None:
+        np.copyto(self.data2, values)
+        np.copyto(self.sig, self.data2[:, -1])
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Optimiser state for checkpoints."""
+        out = {"step_count": np.int64(self.step_count)}
+        if self.m1 is not None:
+            out["m1"] = self.m1
+        if self.m2 is not None:
+            out["m2"] = self.m2
+        return out
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        self.step_count = int(state["step_count"])
+        for key in ("m1", "m2"):
+            mine = getattr(self, key)
+            if mine is not None:
+                if key not in state or state[key].shape != mine.shape:
+                    raise ConfigError(f"checkpoint: optimiser state {key!r} missing or of the "
+                                      "wrong shape")
+                np.copyto(mine, state[key])
+
+
+class TorchStepper:
+    """The same step with the renderer's torch twin and autograd (CPU or CUDA)."""
+
+    backend = "torch"
+
+    def __init__(self, data2: np.ndarray, tree: Any, options: Any, optimizer: str, lr: float,
+                 device: Any = None) -> None:
+        import torch
+
+        self.torch = torch
+        self.device = torch.device(device if device is not None else
+                                   ("cuda" if torch.cuda.is_available() else "cpu"))
+        self.tree, self.options, self.optimizer, self.lr = tree, options, optimizer, float(lr)
+        self.shape = tuple(tree.child.shape) + (data2.shape[1],)
+        self.data = torch.tensor(data2, dtype=torch.float32, device=self.device).reshape(self.shape)
+        self.data.requires_grad_(True)
+        self.step_count = 0
+        z = lambda: torch.zeros(data2.shape, dtype=torch.float32, device=self.device)  # noqa: E731
+        self.m1 = z() if optimizer == "adam" else None
+        self.m2 = z() if optimizer in ("adam", "rmsprop") else None
+        self.last_touched = 0
+
+    def _t(self, x: np.ndarray):
+        return self.torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).to(self.device)
+
+    def step(self, origins: np.ndarray, dirs: np.ndarray, targets: np.ndarray,
+             scale: float) -> tuple[float, int]:
+        from .autograd import render_rays_differentiable
+
+        torch = self.torch
+        rgb = render_rays_differentiable(self.data, self.tree, self._t(origins), self._t(dirs),
+                                         self.options, backend="torch")
+        err = rgb - self._t(targets)
+        sse_t = (err * err).sum()
+        if self.data.grad is not None:
+            self.data.grad = None
+        (sse_t * scale).backward()
+        self.step_count += 1
+        with torch.no_grad():
+            p = self.data.view(-1, self.shape[-1])
+            g = self.data.grad.view(-1, self.shape[-1])
+            if self.optimizer == "sgd":
+                p.sub_(self.lr * g)
+                rows = None
+            else:
+                rows = torch.nonzero((g != 0).any(dim=1)).reshape(-1)
+                gr = g[rows]
+                if self.optimizer == "adam":
+                    b1, b2 = _BETAS
+                    m1 = self.m1[rows].mul_(b1).add_((1 - b1) * gr)
+                    m2 = self.m2[rows].mul_(b2).add_((1 - b2) * gr * gr)
+                    self.m1[rows], self.m2[rows] = m1, m2
+                    bc1, bc2 = 1 - b1 ** self.step_count, 1 - b2 ** self.step_count
+                    p[rows] -= self.lr * (m1 / bc1) / ((m2 / bc2).sqrt() + _ADAM_EPS)
+                else:
+                    m2 = self.m2[rows].mul_(_RMS_ALPHA).add_((1 - _RMS_ALPHA) * gr * gr)
+                    self.m2[rows] = m2
+                    p[rows] -= self.lr * gr / (m2.sqrt() + _RMS_EPS)
+            self.last_touched = int((g != 0).any(dim=1).sum()) if rows is None else int(rows.numel())
+            bad = int((~torch.isfinite(p)).sum())
+            p[:, -1].clamp_(min=0.0)
+        self.data.grad = None
+        return float(sse_t.detach()), bad
+
+    def render(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        from ..render._torch_impl import render_rays_torch
+
+        with self.torch.no_grad():
+            out = render_rays_torch(self.tree.child, self.data.detach(), self.tree.offset,
+                                    self.tree.invradius, self.tree.data_format,
+                                    self.tree.extra_data, self._t(origins), self._t(dirs),
+                                    self.options)
+        return out.rgb.float().cpu().numpy()
+
+    def values(self) -> np.ndarray:
+        return self.data.detach().reshape(-1, self.shape[-1]).cpu().numpy()
+
+    def set_values(self, values: np.ndarray) -> None:
+        with self.torch.no_grad():
+            self.data.view(-1, self.shape[-1]).copy_(self._t(values))
+
+    def state(self) -> dict[str, np.ndarray]:
+        out = {"step_count": np.int64(self.step_count)}
+        for key in ("m1", "m2"):
+            v = getattr(self, key)
+            if v is not None:
+                out[key] = v.cpu().numpy()
+        return out
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        self.step_count = int(state["step_count"])
+        for key in ("m1", "m2"):
+            mine = getattr(self, key)
+            if mine is not None:
+                if key not in state or tuple(state[key].shape) != tuple(mine.shape):
+                    raise ConfigError(f"checkpoint: optimiser state {key!r} missing or of the "
+                                      "wrong shape")
+                mine.copy_(self._t(state[key]))
+
+
+def make_stepper(backend: str, data2: np.ndarray, tree: Any, options: Any, optimizer: str,
+                 lr: float | None) -> NumbaStepper | TorchStepper:
+    """Build the stepper for ``backend`` (``"auto"``: numba on CPU, torch when CUDA is there)."""
+    from ..render import has_numba
+
+    if optimizer not in OPTIMIZERS:
+        raise ConfigError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {optimizer!r}")
+    lr = DEFAULT_LR[optimizer] if lr is None else float(lr)
+    if not (math.isfinite(lr) and lr > 0):
+        raise ConfigError(f"learning rate must be a finite number > 0, got {lr!r}")
+    name = str(backend).lower()
+    if name == "auto":
+        import torch
+
+        name = "torch" if torch.cuda.is_available() or not has_numba() else "numba"
+    if name == "numba":
+        from ._fast import kernel_args
+
+        return NumbaStepper(data2, kernel_args(tree, options), optimizer, lr)
+    if name == "torch":
+        return TorchStepper(data2, tree, options, optimizer, lr)
+    raise ConfigError(f"unknown fine-tuning backend {backend!r} (expected auto, numba or torch)")

@@ -1,0 +1,232 @@
+"""Fine-tuning loop, CLI and bad input, on a known tree and datasets rendered from it."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from plenoctree.datasets.procedural import CAMERA_ANGLE_X, procedural_cameras, procedural_tree
+from plenoctree.errors import ConfigError, TreeFormatError
+from plenoctree.octree import load_tree, save_tree
+from plenoctree.optim.finetune import FinetuneConfig, finetune
+from plenoctree.render import RenderOptions, render_rays
+
+SIZE = 24
+
+
+def known_tree():
+    """The procedural scene at 16³, cut down to SH degree 1 (4 bases per channel)."""
+    t = procedural_tree(16)
+    d = t.data
+    cols = [d[..., ch * 16: ch * 16 + 4] for ch in range(3)]
+    t.data = np.ascontiguousarray(np.concatenate(cols + [d[..., -1:]], axis=-1))
+    t.data_format = "SH4"
+    t.check_integrity()
+    return t
+
+
+def write_dataset(tree, root: Path, n_train=40, n_val=4, n_test=4, splits=("train", "val", "test")):
+    """A Blender-format dataset of ``tree``'s own renders (white background, alpha 1)."""
+    from plenoctree._util import atomic_save_json, save_png
+    from plenoctree.datasets import generate_rays
+
+    fx = 0.5 * SIZE / math.tan(0.5 * CAMERA_ANGLE_X)
+    counts = {"train": (n_train, "random", 0), "val": (n_val, "random", 1),
+              "test": (n_test, "orbit", 0)}
+    for split in splits:
+        n, kind, seed = counts[split]
+        frames = []
+        for i, c2w in enumerate(procedural_cameras(n, kind, seed)):
+            o, d = generate_rays(c2w, fx, fx, SIZE / 2, SIZE / 2, SIZE, SIZE)
+            rgb = render_rays(tree, o, d, RenderOptions(), backend="numba").rgb.numpy()
+            rgba = np.concatenate([rgb, np.ones((SIZE, SIZE, 1), np.float32)], -1)
+            save_png(root / split / f"r_{i}.png", rgba)
+            frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": c2w.tolist()})
+        atomic_save_json(root / f"transforms_{split}.json",
+                         {"camera_angle_x": CAMERA_ANGLE_X, "frames": frames})
+    return root
+
+
+def perturbed(tree, seed=0, amount=1.5):
+    t = tree.copy()
+    rng = np.random.default_rng(seed)
+    occ = (t.child == 0) & (t.data[..., -1] > 0)
+    t.data[occ, :-1] += rng.normal(size=(int(occ.sum()), t.data_dim - 1)).astype(np.float32) * amount
+    t.data[occ, -1] *= rng.uniform(0.5, 1.5, size=int(occ.sum())).astype(np.float32)
+    return t
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ft")
+    tree = known_tree()
+    write_dataset(tree, root / "data")
+    save_tree(tree, root / "true.npz")
+    save_tree(perturbed(tree), root / "noisy.npz")
+    return root
+
+
+def cfg(scene, out, **kw):
+    base = dict(tree=scene / "noisy.npz", data=scene / "data", out=out, epochs=6,
+                batch_rays=2048, val_every=2, verbose=False, show_progress=False)
+    base.update(kw)
+    return FinetuneConfig(**base)
+
+
+@pytest.mark.parametrize("optimizer,lr", [("sgd", 2e4), ("adam", 0.1)])
+def test_finetune_recovers_the_known_tree(scene, tmp_path, optimizer, lr):
+    res = finetune(cfg(scene, tmp_path / "ft.npz", optimizer=optimizer, lr=lr))
+    assert res.test_psnr_before < 26
+    assert res.test_psnr_after > res.test_psnr_before + 8, res
+    assert res.val_psnr_best > res.val_psnr_before + 8
+    out = load_tree(tmp_path / "ft.npz")
+    out.check_integrity()
+    truth = load_tree(scene / "true.npz")
+    np.testing.assert_array_equal(out.child, truth.child)
+    # the log has one line per event and the checkpoint is gone after success
+    events = [json.loads(line)["event"] for line in open(tmp_path / "ft.log.jsonl")]
+    assert events[0] == "start" and events[-1] == "end" and "val" in events
+    assert not (tmp_path / "ft.ckpt.npz").exists()
+
+
+def test_torch_twin_backend_takes_the_same_steps(scene):
+    from plenoctree.optim._fast import kernel_args
+    from plenoctree.optim._loop import ViewSet
+    from plenoctree.optim._steppers import NumbaStepper, TorchStepper
+    from plenoctree.datasets import load_dataset
+
+    tree = load_tree(scene / "noisy.npz")
+    views = ViewSet.from_dataset(load_dataset(scene / "data", "train"))
+    opts = RenderOptions()
+    d2 = tree.data.reshape(-1, tree.data_dim)
+    for optimizer, lr, chunks in (("sgd", 2e4, 3), ("adam", 1e-2, 1), ("adam", 1e-2, 3),
+                                  ("rmsprop", 1e-3, 2)):
+        fast = NumbaStepper(d2.copy(), kernel_args(tree, opts), optimizer, lr, n_chunks=chunks)
+        twin = TorchStepper(d2.copy(), tree, opts, optimizer, lr, device="cpu")
+        rng = np.random.default_rng(1)
+        for _ in range(3):
+            o, d, t = views.rays(views.tile_pixels(rng.choice(views.n_tiles(2), 256, False), 2))
+            s1, bad = fast.step(o, d, t, 1e-3)
+            s2, _ = twin.step(o, d, t, 1e-3)
+            assert s1 == pytest.approx(s2, rel=1e-4) and bad == 0
+            # slabs, flags and lists are clean after every step; sig mirrors σ
+            assert not fast.buf.grad3.any() and not fast.buf.flags.any()
+            assert not fast.buf.n_touched.any()
+            np.testing.assert_array_equal(fast.sig, fast.values()[:, -1])
+        moved = np.abs(fast.values() - d2).max()
+        assert moved > 1e-3
+        np.testing.assert_allclose(fast.values(), twin.values(), atol=2e-3 * moved)
+
+
+def test_edge_cases_do_not_crash(scene, tmp_path):
+    """Rays that miss the tree or see only empty space, fully opaque rays and leaves no ray
+    reaches, in one run."""
+    tree = load_tree(scene / "noisy.npz")
+    big = tree.copy()
+    big.invradius = big.invradius * 0.45        # box ~2.2x larger: border rays are empty
+    big.offset = np.full(3, 0.5)
+    occ = (big.child == 0) & (big.data[..., -1] > 0)
+    idx = np.argwhere(occ)[:40]
+    big.data[tuple(idx.T) + (-1,)] = 1e5            # opaque cells
+    save_tree(big, tmp_path / "big.npz")
+    res = finetune(cfg(scene, tmp_path / "o.npz", tree=tmp_path / "big.npz", epochs=2,
+                       optimizer="adam", lr=1e-2, test_views=-1))
+    assert res.epochs_run >= 1 and math.isfinite(res.val_psnr_best)
+    out = load_tree(tmp_path / "o.npz")
+    assert np.isfinite(out.data).all() and (out.data[..., -1] >= 0).all()
+
+
+def test_resume_continues_exactly(scene, tmp_path):
+    kw = dict(epochs=4, optimizer="adam", lr=1e-2, continue_on_decrease=True, test_views=-1)
+    ref = finetune(cfg(scene, tmp_path / "a.npz", **kw))
+
+    def interrupt(line: str) -> None:
+        if line.strip().startswith("epoch   3: train"):
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        finetune(cfg(scene, tmp_path / "b.npz", verbose=True, **kw), log_fn=interrupt)
+    assert (tmp_path / "b.ckpt.npz").exists() and not (tmp_path / "b.npz").exists()
+    res = finetune(cfg(scene, tmp_path / "b.npz", resume=True, **kw))
+    assert res.epochs_run == ref.epochs_run == 4
+    np.testing.assert_allclose(load_tree(tmp_path / "b.npz").data,
+                               load_tree(tmp_path / "a.npz").data, rtol=1e-4, atol=1e-4)
+    assert not (tmp_path / "b.ckpt.npz").exists()
+    # a checkpoint of another run is refused
+    save_ck = tmp_path / "c.ckpt.npz"
+    shutil.copy(tmp_path / "a.npz", save_ck)
+    with pytest.raises(ConfigError, match="checkpoint"):
+        finetune(cfg(scene, tmp_path / "c.npz", resume=True, **kw))
+
+
+def test_holdout_validation_and_fp16_precision(scene, tmp_path):
+    data = tmp_path / "data"
+    shutil.copytree(scene / "data", data)
+    (data / "transforms_val.json").unlink()
+    t = load_tree(scene / "noisy.npz")
+    save_tree(t, tmp_path / "half.npz", precision="fp16")
+    res = finetune(cfg(scene, tmp_path / "h.npz", tree=tmp_path / "half.npz", data=data,
+                       epochs=2, optimizer="adam", lr=1e-2, test_views=2))
+    assert len(res.history) >= 2                       # epoch 0 and epoch 2 validations
+    assert load_tree(tmp_path / "h.npz", keep_dtype=True).data.dtype == np.float16
+    finetune(cfg(scene, tmp_path / "f.npz", tree=tmp_path / "half.npz", epochs=0,
+                 precision="fp32", test_views=-1))
+    assert load_tree(tmp_path / "f.npz", keep_dtype=True).data.dtype == np.float32
+
+
+def test_diverging_learning_rate_keeps_the_last_good_tree(scene, tmp_path):
+    with pytest.raises(ConfigError, match="diverged.*last good"):
+        finetune(cfg(scene, tmp_path / "d.npz", optimizer="sgd", lr=1e12, test_views=-1))
+    kept = load_tree(tmp_path / "d.npz")
+    np.testing.assert_array_equal(kept.data, load_tree(scene / "noisy.npz").data)
+
+
+def test_bad_trees_and_boxes(scene, tmp_path):
+    t = load_tree(scene / "noisy.npz")
+    far = t.copy()
+    far.offset = 0.5 - np.array([50.0, 50.0, 50.0]) * far.invradius
+    save_tree(far, tmp_path / "far.npz")
+    with pytest.raises(ConfigError, match="does not overlap"):
+        finetune(cfg(scene, tmp_path / "x.npz", tree=tmp_path / "far.npz"))
+    empty = t.copy()
+    empty.data[...] = 0
+    save_tree(empty, tmp_path / "empty.npz")
+    with pytest.raises(ConfigError, match="no leaf has density"):
+        finetune(cfg(scene, tmp_path / "x.npz", tree=tmp_path / "empty.npz"))
+    # NaN in the leaf data: the loader names the file and the cell
+    save_tree(t, tmp_path / "nan.npz")
+    with np.load(tmp_path / "nan.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    leaf = np.argwhere(arrays["child"] == 0)[0]
+    arrays["data"][tuple(leaf) + (0,)] = np.nan
+    np.savez(tmp_path / "nan.npz", **arrays)
+    with pytest.raises(TreeFormatError, match="nan.npz.*not finite"):
+        finetune(cfg(scene, tmp_path / "x.npz", tree=tmp_path / "nan.npz"))
+    with pytest.raises(ConfigError, match="optimizer"):
+        finetune(cfg(scene, tmp_path / "x.npz", optimizer="lbfgs"))
+    with pytest.raises(ConfigError, match="lr"):
+        finetune(cfg(scene, tmp_path / "x.npz", lr=-1.0))
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_cli_prints_psnr_before_and_after(scene, tmp_path, capsys):
+    from plenoctree.cli import main
+
+    rc = main(["finetune", str(scene / "noisy.npz"), "--data", str(scene / "data"), "--out",
+               str(tmp_path / "cli.npz"), "--epochs", "2", "--optimizer", "adam", "--lr", "0.02",
+               "--batch-rays", "4096", "--quiet", "--progress", "off"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "test PSNR before" in out and "after" in out
+    before, after = [float(x) for x in
+                     __import__("re").findall(r"([0-9.]+) dB", out.splitlines()[0])]
+    assert after > before
+    assert (tmp_path / "cli.npz").exists()
+    rc = main(["finetune", str(scene / "noisy.npz"), "--data", str(tmp_path / "nope"),
+               "--out", str(tmp_path / "cli2.npz")])
+    assert rc == 1 and "error" in capsys.readouterr().err
