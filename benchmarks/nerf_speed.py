@@ -1,0 +1,156 @@
+"""NeRF-SH speed on this machine: training throughput of both presets, render-nerf frame time.
+
+Method: every figure comes from the package's own code paths on real data (lego by default).
+
+* CPU preset: ``train()`` for ``--cpu-minutes`` of training from scratch; throughput is the
+  median of the log rows of the second half (the occupancy grid has settled by then) — the
+  rays/s and samples/s the trainer itself logs (samples = network evaluations).
+* Paper preset (fp32, and bf16 autocast as a variant): ``--paper-steps`` steps of 1024 rays
+  with 64 coarse + 192 fine network samples per ray; median over the steps after the first two.
+* render-nerf: seconds per 800x800 frame with the network, chunked, no gradients. The paper
+  preset is timed on ``--render-rows`` rows of test view 0 and extrapolated (a full frame takes
+  minutes); the CPU preset renders the whole frame.
+
+Prints a markdown table and writes JSON (figures, config, machine, load average) to ``--out``.
+Re-executes itself once with ``OMP_WAIT_POLICY=PASSIVE`` like the CLI does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+if os.name == "posix" and "OMP_WAIT_POLICY" not in os.environ:
+    os.execve(sys.executable, [sys.executable, *sys.argv],
+              {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
+
+import torch  # noqa: E402
+
+from plenoctree.datasets import load_dataset  # noqa: E402
+from plenoctree.nerf import load_nerf, preset, train  # noqa: E402
+from plenoctree.nerf.evaluate import evaluate_views  # noqa: E402
+from plenoctree.nerf.trainer import resolve_amp, setup_threads  # noqa: E402
+
+LEGO = Path(__file__).resolve().parents[2] / "shared" / "data" / "nerf_synthetic" / "lego"
+
+
+def _machine() -> dict:
+    import numba
+
+    return {"cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+            "torch": torch.__version__, "numba": numba.__version__,
+            "python": platform.python_version(), "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+            "loadavg_start": os.getloadavg()}
+
+
+def _rows(run: Path) -> list[dict]:
+    return json.loads((run / "log.json").read_text())["train"]
+
+
+def bench_cpu(data: str, downscale: int, minutes: float, root: Path) -> dict:
+    cfg = preset("cpu")
+    cfg.data, cfg.out, cfg.downscale = data, str(root / "cpu"), downscale
+    cfg.minutes, cfg.max_steps, cfg.val_views, cfg.log_every = minutes, 10**9, 0, 10
+    cfg.ckpt_every_s = 0.0
+    res = train(cfg, quiet=True)
+    rows = [r for r in _rows(Path(cfg.out)) if r["train_s"] >= 0.5 * res.train_time_s]
+    return {"steps": res.step, "train_s": res.train_time_s,
+            "rays_per_s": statistics.median(r["rays_per_s"] for r in rows),
+            "samples_per_s": statistics.median(r["samples_per_s"] for r in rows),
+            "samples_per_ray": statistics.median(r["samples_per_ray"] for r in rows),
+            "rays_per_step": statistics.median(r["rays"] for r in rows),
+            "occupancy": rows[-1]["occupancy"], "run": cfg.out}
+
+
+def bench_paper(data: str, downscale: int, steps: int, amp: str, root: Path) -> dict:
+    cfg = preset("paper")
+    cfg.data, cfg.out, cfg.downscale = data, str(root / f"paper_{amp}"), downscale
+    cfg.max_steps, cfg.log_every, cfg.val_views, cfg.amp = steps, 1, 0, amp
+    cfg.ckpt_every_s = 0.0
+    train(cfg, quiet=True)
+    rows = _rows(Path(cfg.out))[2:] or _rows(Path(cfg.out))
+    return {"steps": steps, "rays_per_s": statistics.median(r["rays_per_s"] for r in rows),
+            "samples_per_s": statistics.median(r["samples_per_s"] for r in rows),
+            "samples_per_ray": rows[-1]["samples_per_ray"], "run": cfg.out}
+
+
+def bench_render(run: str, data: str, rows: int | None) -> dict:
+    model = load_nerf(run)
+    cfg = model.train_config
+    amp = resolve_amp(cfg.amp, torch.device("cpu"))
+    test = load_dataset(data, "test", limit=1, background=cfg.background)
+    sl = slice(0, rows) if rows else None
+    r = evaluate_views(model, test, cfg, [0], with_ssim=False, amp=amp, rows=sl)
+    frac = 1.0 if sl is None else rows / test.cameras.height
+    return {"width": test.cameras.width, "height": test.cameras.height,
+            "rows_rendered": rows or test.cameras.height,
+            "seconds_per_frame": r["seconds"][0] / frac,
+            "samples_per_ray": r["n_samples"][0] / (frac * test.cameras.width * test.cameras.height),
+            "extrapolated": sl is not None, "psnr_of_rendered_part": r["psnr"][0]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=str(LEGO))
+    ap.add_argument("--downscale", type=int, default=2, help="training resolution (2: 400x400)")
+    ap.add_argument("--cpu-minutes", type=float, default=1.5)
+    ap.add_argument("--paper-steps", type=int, default=8)
+    ap.add_argument("--render-rows", type=int, default=8,
+                    help="rows of the 800x800 frame timed for the paper preset")
+    ap.add_argument("--threads", type=int, default=0)
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "nerf_speed.json"))
+    args = ap.parse_args(argv)
+    setup_threads(args.threads)
+    machine = _machine()
+    out: dict = {"machine": machine, "args": vars(args)}
+    with tempfile.TemporaryDirectory(prefix="nerf_speed_") as tmp:
+        root = Path(tmp)
+        out["cpu_train"] = bench_cpu(args.data, args.downscale, args.cpu_minutes, root)
+        out["paper_train_fp32"] = bench_paper(args.data, args.downscale, args.paper_steps, "off",
+                                              root)
+        out["paper_train_bf16"] = bench_paper(args.data, args.downscale, args.paper_steps,
+                                              "bf16", root)
+        out["paper_render_800"] = bench_render(out["paper_train_fp32"]["run"], args.data,
+                                               args.render_rows)
+        out["cpu_render_800"] = bench_render(out["cpu_train"]["run"], args.data, None)
+    machine["loadavg_end"] = os.getloadavg()
+    c, p, pb = out["cpu_train"], out["paper_train_fp32"], out["paper_train_bf16"]
+    pr, cr = out["paper_render_800"], out["cpu_render_800"]
+    lines = [
+        f"NeRF-SH speed — {machine['cpu_count']} cores, torch {machine['torch']}, numba "
+        f"{machine['numba']}, load average {machine['loadavg_start'][0]:.2f} → "
+        f"{machine['loadavg_end'][0]:.2f}",
+        "",
+        "| preset | training rays/s | training samples/s | samples/ray | 800×800 render s/frame |",
+        "|---|---|---|---|---|",
+        f"| cpu (hash grid, occupancy, bf16) | {c['rays_per_s']:.0f} | {c['samples_per_s']:.0f} "
+        f"| {c['samples_per_ray']:.1f} | {cr['seconds_per_frame']:.2f} |",
+        f"| paper (8×256 PE MLP, 64+128, fp32) | {p['rays_per_s']:.0f} | "
+        f"{p['samples_per_s']:.0f} | {p['samples_per_ray']:.0f} | "
+        f"{pr['seconds_per_frame']:.0f} (from {pr['rows_rendered']} rows) |",
+        f"| paper, bf16 autocast | {pb['rays_per_s']:.0f} | {pb['samples_per_s']:.0f} | "
+        f"{pb['samples_per_ray']:.0f} | — |",
+        "",
+        f"cpu preset vs paper preset training: {c['rays_per_s'] / p['rays_per_s']:.0f}x rays/s; "
+        f"render: {pr['seconds_per_frame'] / cr['seconds_per_frame']:.0f}x faster per frame",
+    ]
+    text = "\n".join(lines)
+    print(text)
+    out["table"] = text
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(out, indent=2, default=float) + "\n")
+    print(f"\nwrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

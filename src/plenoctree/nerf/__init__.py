@@ -1,0 +1,44 @@
+"""NeRF-SH (§3, §4.1): the network, its rendering, training, checkpoints and evaluation.
+
+Public entry points::
+
+    from plenoctree.nerf import preset, train, load_nerf
+    cfg = preset("cpu"); cfg.data, cfg.out = "lego", "runs/lego"
+    train(cfg)                                   # writes runs/lego/checkpoint.pt, logs, plot
+    model = load_nerf("runs/lego")               # for the conversion step
+    sigma, coeffs = model.query(points)          # [N], [N, 3 * basis_dim] pre-sigmoid
+
+Importing this package compiles nothing: the numba kernels (hash-grid encoding, occupancy
+marching) are imported on first use.
+"""
+
+from __future__ import annotations
+
+from .checkpoint import CheckpointError, load_nerf, read_checkpoint
+from .config import ModelConfig, TrainConfig, preset
+from .encoding import HashGridEncoding, PositionalEncoding
+from .evaluate import evaluate_views
+from .model import NeRFModel, RadianceField
+from .occupancy import OccupancyGrid
+from .renderer import render_image, render_rays
+from .trainer import TrainingError, TrainResult, train
+
+__all__ = [
+    "ModelConfig",
+    "TrainConfig",
+    "preset",
+    "NeRFModel",
+    "RadianceField",
+    "HashGridEncoding",
+    "PositionalEncoding",
+    "OccupancyGrid",
+    "render_rays",
+    "render_image",
+    "evaluate_views",
+    "train",
+    "TrainResult",
+    "TrainingError",
+    "load_nerf",
+    "read_checkpoint",
+    "CheckpointError",
+]

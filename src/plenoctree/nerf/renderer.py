@@ -1,0 +1,293 @@
+"""Render rays and images with a NeRF-SH (training and evaluation).
+
+Two samplers share one output format, a dict with ``rgb [R, 3]``, ``acc [R]`` (opacity),
+``depth [R]`` (expected distance, normalised by ``acc``) and ``n_samples`` (network points):
+
+* :func:`render_rays_hierarchical` — the paper's: ``n_coarse`` stratified samples evaluated by
+  the coarse network, ``n_fine`` importance samples from its weights, the fine network on the
+  sorted union (also returns ``rgb_coarse``);
+* :func:`render_rays_occupancy` — the CPU preset's: fixed steps through the occupancy grid.
+  Rays are marched in waves of a few samples; a ray stops once its transmittance falls below
+  ``stop_thresh`` (early ray termination), so the samples behind a surface are never
+  evaluated, in training as in rendering.
+
+:func:`render_image` renders a whole camera in chunks of rays without gradients.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+import torch
+
+from .config import TrainConfig
+from .model import NeRFModel, RadianceField
+from .sampling import march_rays, pdf_samples, ray_aabb, stratified_samples
+from .volrend import composite, composite_packed, deltas_from_t, render_weights, \
+    render_weights_packed
+
+__all__ = ["autocast", "render_rays", "render_rays_hierarchical", "render_rays_occupancy",
+           "render_image", "ray_bounds"]
+
+
+def autocast(device: torch.device, enabled: bool):
+    """bf16 autocast context for the network on ``device`` (a no-op when not ``enabled``)."""
+    if not enabled:
+        return contextlib.nullcontext()
+    return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
+
+
+def ray_bounds(origins: torch.Tensor, dirs: torch.Tensor, bbox: torch.Tensor, near: float,
+               far: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(t_min [R], t_max [R])``: the part of ``[near, far]`` inside ``bbox`` (empty: max <= min)."""
+    t0, t1 = ray_aabb(origins, dirs, bbox)
+    return t0.clamp(min=near), t1.clamp(max=far)
+
+
+def _bg(background: torch.Tensor, n: int) -> torch.Tensor:
+    return background.expand(n, 3) if background.dim() == 1 else background
+
+
+def render_rays_hierarchical(model: NeRFModel, origins: torch.Tensor, dirs: torch.Tensor,
+                             near: float, far: float, background: torch.Tensor, cfg: TrainConfig,
+                             train: bool, generator: torch.Generator | None = None,
+                             amp: bool = False) -> dict:
+    """The paper's coarse-to-fine rendering of ``R`` rays (``origins, dirs [R, 3]``, unit dirs).
+
+    ``background`` is ``[3]`` or ``[R, 3]``. In training (``train=True``) the samples are
+    jittered with ``generator``. Returns ``rgb, acc, depth, rgb_coarse, n_samples``.
+    """
+    n = origins.shape[0]
+    dev = origins.device
+    bg = _bg(background, n)
+    near_t = torch.full((n,), float(near), device=dev)
+    far_t = torch.full((n,), float(far), device=dev)
+    t_c = stratified_samples(near_t, far_t, cfg.n_coarse, train, generator)        # [R, Sc]
+    coarse = model.coarse if model.coarse is not None else model.fine
+
+    def run(field: RadianceField, t: torch.Tensor):
+        s = t.shape[1]
+        pts = (origins[:, None, :] + t[..., None] * dirs[:, None, :]).reshape(-1, 3)
+        d = dirs[:, None, :].expand(n, s, 3).reshape(-1, 3)
+        with autocast(dev, amp):
+            sigma, coeffs = field(pts, d)
+        rgb = field.colors(coeffs, d).reshape(n, s, 3)
+        w, _ = render_weights(sigma.reshape(n, s), deltas_from_t(t))
+        return w, composite(w, rgb, t, bg)
+
+    w_c, (rgb_c, _, _) = run(coarse, t_c)
+    out = {"rgb_coarse": rgb_c, "n_samples": n * cfg.n_coarse}
+    if cfg.n_fine > 0:
+        mids = 0.5 * (t_c[:, 1:] + t_c[:, :-1])
+        t_f = pdf_samples(mids, w_c[:, 1:-1], cfg.n_fine, train, generator)
+        t_all = torch.sort(torch.cat([t_c, t_f], -1), -1).values
+        _, (rgb, acc, depth) = run(model.fine, t_all)
+        out["n_samples"] += n * t_all.shape[1]
+    else:
+        _, (rgb, acc, depth) = run(model.fine, t_c)
+    out.update(rgb=rgb, acc=acc, depth=depth)
+    return out
+
+
+def _first_per_ray(flag: torch.Tensor, ray_idx: torch.Tensor, n_rays: int) -> torch.Tensor:
+    """Index of the first sample with ``flag`` in each ray, ``M`` (= none) otherwise: ``[R]``."""
+    m = flag.shape[0]
+    pos = torch.where(flag, torch.arange(m, device=flag.device), torch.full_like(ray_idx, m))
+    return torch.full((n_rays,), m, dtype=torch.int64, device=flag.device).scatter_reduce(
+        0, ray_idx, pos, reduce="amin")
+
+
+def _wave_bookkeeping(tau: torch.Tensor, ridx: torch.Tensor, offsets: torch.Tensor,
+                      opt_before: torch.Tensor, log_thresh: float):
+    """Early termination within one wave (no gradients).
+
+    Args:
+        tau: float64 ``[M]`` optical depths ``σ δ`` of the wave's samples (packed, ray-major).
+        ridx, offsets: the packing (local ray index per sample; ``[A + 1]`` offsets).
+        opt_before: float64 ``[A]`` optical depth each ray accumulated in earlier waves.
+        log_thresh: ``-log(stop_thresh)`` (``inf`` = never stop).
+
+    Returns:
+        ``(before [M], keep [M] bool, first_term [A])``: optical depth before each sample,
+        whether the sample is at or before its ray's termination, and the index of the
+        terminating sample of each ray (``M`` when the ray goes on).
+    """
+    incl = torch.cumsum(tau, 0)
+    first = offsets[:-1].clamp(max=max(len(tau) - 1, 0))
+    base = (incl - tau)[first]
+    before = incl - tau - base[ridx] + opt_before[ridx]
+    first_term = _first_per_ray(before + tau > log_thresh, ridx, offsets.shape[0] - 1)
+    keep = torch.arange(len(tau), device=tau.device) <= first_term[ridx]
+    return before, keep, first_term
+
+
+def _march_waves(field: RadianceField, origins, dirs, t_min, t_max, jitter, step, grid,
+                 stop_thresh: float, amp: bool, train: bool = False, budget: int = 1 << 16,
+                 max_samples: int = 0) -> dict:
+    """March rays in waves of a few samples each, stopping rays whose ``T < stop_thresh``.
+
+    Each wave marches every unfinished ray for up to ``budget / rays`` more samples (at most
+    32, 64, 128, … in the successive waves), evaluates
+    them, and retires the rays that terminated or left the box. Samples past a ray's
+    termination (the rest of its last wave) are dropped.
+
+    Without ``train`` everything runs without gradients and is composited on the fly: returns
+    ``rgb [R, 3], acc [R], dsum [R] (Σ w t), n_samples``. With ``train`` the network runs with
+    gradients and the kept samples are composited at the end (eq. 1–2 over each ray's whole
+    sequence): returns ``rgb, acc, dsum, n_samples, complete [R] bool`` where ``complete`` is
+    False for rays cut off because more than ``max_samples`` (> 0) samples were evaluated.
+    """
+    n = origins.shape[0]
+    dev = origins.device
+    opt = torch.zeros(n, dtype=torch.float64, device=dev)             # optical depth so far
+    k = torch.zeros(n, dtype=torch.int64, device=dev)
+    complete = torch.ones(n, dtype=torch.bool, device=dev)
+    rgb = torch.zeros((n, 3), device=dev)
+    acc = torch.zeros(n, device=dev)
+    dsum = torch.zeros(n, device=dev)
+    parts: list[tuple] = []
+    active = torch.arange(n, device=dev)
+    evaluated = n_waves = 0
+    log_thresh = -np.log(stop_thresh) if stop_thresh > 0 else np.inf
+    grad_ctx = torch.enable_grad() if train else torch.no_grad()
+    while active.numel():
+        if max_samples and evaluated >= max_samples:
+            complete[active] = False
+            break
+        # about `budget` samples per wave, but short first waves: most rays end early
+        wave = int(min(512, 32 << n_waves, max(16, budget // active.numel())))
+        n_waves += 1
+        with torch.no_grad():
+            s = march_rays(origins[active], dirs[active], t_min[active], t_max[active],
+                           jitter[active], step, grid.mask, grid.bbox, k_start=k[active],
+                           max_per_ray=wave)
+        finished = s.done.clone()
+        if len(s):
+            d = dirs[active][s.ray_idx]
+            gidx = active[s.ray_idx]
+            with grad_ctx, autocast(dev, amp):
+                sigma, coeffs = field(s.points, d)
+            with grad_ctx:
+                color = field.colors(coeffs, d)
+            evaluated += len(s)
+            with torch.no_grad():
+                tau = sigma.detach().double() * step
+                before, keep, first_term = _wave_bookkeeping(tau, s.ray_idx, s.offsets,
+                                                             opt[active], log_thresh)
+                opt.index_add_(0, gidx, tau * keep)
+                finished |= first_term < len(s)
+            if train:
+                parts.append((gidx[keep], s.t[keep], sigma[keep], color[keep]))
+            else:
+                w = (torch.exp(-before) * (1.0 - torch.exp(-tau))).float() * keep
+                acc.index_add_(0, gidx, w)
+                dsum.index_add_(0, gidx, w * s.t)
+                rgb.index_add_(0, gidx, w[:, None] * color)
+        k[active] = s.k_next
+        active = active[~finished]
+    if not train:
+        return {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": evaluated}
+    if not parts:
+        return {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": 0, "complete": complete}
+    gidx, t, sigma, color = (torch.cat(x) for x in zip(*parts))
+    order = torch.sort(gidx, stable=True).indices          # ray-major; waves keep k order
+    gidx, t, sigma, color = gidx[order], t[order], sigma[order], color[order]
+    counts = torch.bincount(gidx, minlength=n)
+    offsets = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])
+    w, _ = render_weights_packed(sigma, step, gidx, offsets)
+    rgb = composite_packed(w, color, gidx, n)
+    acc = composite_packed(w, torch.ones_like(w)[:, None], gidx, n)[:, 0]
+    dsum = composite_packed(w, t[:, None], gidx, n)[:, 0]
+    return {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": evaluated,
+            "complete": complete}
+
+
+def render_rays_occupancy(model: NeRFModel, origins: torch.Tensor, dirs: torch.Tensor,
+                          near: float, far: float, background: torch.Tensor, cfg: TrainConfig,
+                          train: bool, generator: torch.Generator | None = None,
+                          amp: bool = False, stop_thresh: float | None = None,
+                          max_samples: int = 0) -> dict:
+    """Fixed-step rendering through the occupancy grid of ``model``, in waves (see
+    :func:`_march_waves`) so that rays stop at ``T < stop_thresh``.
+
+    Args:
+        origins, dirs: ``[R, 3]`` rays (unit dirs). near, far: distance bounds.
+        background: ``[3]`` or ``[R, 3]``. cfg: supplies ``render_step``.
+        train: jitter the samples with ``generator`` and keep gradients; otherwise samples sit
+            at the middle of each step and everything runs without gradients.
+        stop_thresh: early termination (default: ``cfg.train_stop_thresh`` /
+            ``cfg.eval_stop_thresh``; 0 = march every ray to the end of the box).
+        max_samples: training only: stop marching once this many samples were evaluated;
+            rays not finished by then are marked in ``complete`` (0 = no limit).
+
+    Returns:
+        ``rgb [R, 3], acc [R], depth [R]``, ``n_samples`` (network evaluations) and, in
+        training, ``complete [R]`` (rays whose colour is final; use only those in a loss).
+    """
+    n = origins.shape[0]
+    dev = origins.device
+    step = float(cfg.render_step)
+    bg = _bg(background, n)
+    t_min, t_max = ray_bounds(origins, dirs, model.scene_bbox, near, far)
+    if train:
+        jitter = torch.rand(n, generator=generator, device=dev)
+    else:
+        jitter = torch.full((n,), 0.5, device=dev)
+    if stop_thresh is None:
+        stop_thresh = cfg.train_stop_thresh if train else cfg.eval_stop_thresh
+    r = _march_waves(model.fine, origins, dirs, t_min, t_max, jitter, step, model.occupancy,
+                     stop_thresh, amp, train=train, max_samples=max_samples)
+    acc = r["acc"]
+    out = {"rgb": r["rgb"] + (1.0 - acc)[:, None] * bg, "acc": acc,
+           "depth": r["dsum"] / acc.clamp(min=1e-10), "n_samples": r["n_samples"]}
+    if train:
+        out["complete"] = r["complete"]
+    return out
+
+
+def render_rays(model: NeRFModel, origins, dirs, near, far, background, cfg: TrainConfig,
+                train: bool, generator=None, amp: bool = False) -> dict:
+    """Dispatch on ``cfg.sampler`` ("occupancy" or "hierarchical")."""
+    if cfg.sampler == "occupancy":
+        return render_rays_occupancy(model, origins, dirs, near, far, background, cfg, train,
+                                     generator, amp)
+    return render_rays_hierarchical(model, origins, dirs, near, far, background, cfg, train,
+                                    generator, amp)
+
+
+@torch.no_grad()
+def render_image(model: NeRFModel, cameras, index: int, near: float, far: float,
+                 background, cfg: TrainConfig, amp: bool = False, chunk: int | None = None,
+                 device: torch.device | str = "cpu", rows: slice | None = None) -> dict:
+    """Render camera ``index`` of ``cameras`` without gradients, ``chunk`` rays at a time.
+
+    ``rows`` renders only those image rows (for timing a part of a large frame).
+    Returns ``rgb [H, W, 3]``, ``acc [H, W]``, ``depth [H, W]`` (numpy float32) and
+    ``n_samples`` (network evaluations).
+    """
+    dev = torch.device(device)
+    o, d = cameras.rays(index)
+    if rows is not None:
+        o, d = o[rows], d[rows]
+    h, w = o.shape[:2]
+    o = torch.from_numpy(np.ascontiguousarray(o.reshape(-1, 3))).to(dev)
+    d = torch.from_numpy(np.ascontiguousarray(d.reshape(-1, 3))).to(dev)
+    bg = torch.as_tensor(np.asarray(background, np.float32), device=dev)
+    chunk = int(chunk or cfg.chunk)
+    outs = {"rgb": [], "acc": [], "depth": []}
+    n_samples = 0
+    was_training = model.training
+    model.eval()
+    try:
+        for i in range(0, o.shape[0], chunk):
+            r = render_rays(model, o[i:i + chunk], d[i:i + chunk], near, far, bg, cfg, False,
+                            amp=amp)
+            n_samples += int(r["n_samples"])
+            for k in outs:
+                outs[k].append(r[k].float().cpu())
+    finally:
+        model.train(was_training)
+    res = {k: torch.cat(v).reshape(h, w, *v[0].shape[1:]).numpy() for k, v in outs.items()}
+    res["n_samples"] = n_samples
+    return res

@@ -1,0 +1,51 @@
+"""Shared helpers of the NeRF-SH tests: a tiny procedural dataset and tiny configurations."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from plenoctree.nerf.config import TrainConfig, preset
+
+
+def tiny_dataset(root: Path, size: int = 24, n_train: int = 12) -> Path:
+    """Write (once) a small Blender-format dataset of the procedural scene under ``root``."""
+    from plenoctree.datasets.procedural import write_procedural_dataset
+
+    if not (root / "transforms_train.json").exists():
+        write_procedural_dataset(root, n_train=n_train, n_val=2, n_test=2, width=size,
+                                 height=size, n_samples=192)
+    return root
+
+
+def tiny_cpu_config(data: Path, out: Path, steps: int = 10) -> TrainConfig:
+    """The CPU preset shrunk to run a step in milliseconds on a 24x24 scene."""
+    cfg = preset("cpu")
+    cfg.data, cfg.out = str(data), str(out)
+    m = cfg.model
+    m.grid_levels, m.grid_base_res, m.grid_max_res, m.grid_log2_table = 6, 8, 96, 12
+    m.net_width = 32
+    cfg.occ_res, cfg.render_step = 32, 0.03
+    cfg.occ_warmup_steps, cfg.occ_update_every = 16, 4
+    cfg.batch_rays, cfg.max_rays, cfg.target_samples = 256, 1024, 1 << 13
+    cfg.sparsity_points = 512
+    cfg.max_steps, cfg.log_every = steps, 5
+    cfg.val_views, cfg.val_split, cfg.val_every_s = 1, "test", 0.0
+    cfg.ckpt_every_s, cfg.ckpt_every_steps = 0.0, 0
+    cfg.threads = 1
+    cfg.chunk = 1024
+    return cfg
+
+
+def tiny_paper_config(data: Path, out: Path, steps: int = 3) -> TrainConfig:
+    """The paper preset (coarse + fine positional-encoding MLPs) shrunk for tests."""
+    cfg = preset("paper")
+    cfg.data, cfg.out = str(data), str(out)
+    m = cfg.model
+    m.pe_freqs, m.net_depth, m.net_width, m.skip_layer = 4, 3, 32, 2
+    cfg.n_coarse, cfg.n_fine, cfg.batch_rays = 8, 8, 64
+    cfg.sparsity_points = 256
+    cfg.max_steps, cfg.log_every = steps, 1
+    cfg.val_views, cfg.val_every_s, cfg.ckpt_every_s = 1, 0.0, 0.0
+    cfg.threads = 1
+    cfg.chunk = 256
+    return cfg
