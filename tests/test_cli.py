@@ -65,17 +65,3 @@ def test_render_missing_tree_and_bad_data(tiny_scene, tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert main(["render", str(tiny_scene / "tree.npz"), "--data", str(tmp_path / "empty")]) == 1
     assert "empty" in capsys.readouterr().err
-
-
-def test_demo_runs_and_resumes(tmp_path, capsys):
-    out = tmp_path / "demo"
-    args = ["demo", "--out", str(out), "--image-size", "16", "--grid", "32", "--n-test", "2"]
-    assert main(args) == 0
-    s = json.loads((out / "summary.json").read_text())
-    assert s["tree"]["leaves"] > 0 and np.isfinite(s["test"]["psnr"])
-    assert s["test"]["psnr"] > 18.0
-    assert (out / "summary.md").exists() and (out / "renders" / "metrics.json").exists()
-    capsys.readouterr()
-    assert main(args) == 0  # second run skips the finished stages
-    text = capsys.readouterr().out
-    assert "skipped" in text

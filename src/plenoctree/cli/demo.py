@@ -1,33 +1,37 @@
-"""``plenoctree demo``: the main job on the embedded procedural scene."""
+"""``plenoctree demo``: the whole chain on the embedded procedural scene."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 
 def _run(args: argparse.Namespace) -> int:
     from ..demo import DemoConfig, run_demo
+    from .train import reexec_with_runtime_env
 
-    cfg = DemoConfig(out=Path(args.out), image_size=args.image_size, grid=args.grid,
-                     n_test=args.n_test, backend=args.backend, seed=args.seed)
+    reexec_with_runtime_env("demo")
+    cfg = DemoConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(DemoConfig)})
+    cfg.out = Path(cfg.out)
     run_demo(cfg)
     return 0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the ``demo`` command."""
+    """Add the ``demo`` command (one flag per :class:`DemoConfig` field)."""
     from ..demo import DemoConfig
+    from ..nerf.config import field_docs
 
-    d = DemoConfig()
-    p = sub.add_parser("demo", help="run the main job on the embedded procedural scene")
-    p.add_argument("--out", default=str(d.out), help=f"output folder (default {d.out})")
-    p.add_argument("--image-size", type=int, default=d.image_size,
-                   help=f"image width/height in pixels (default {d.image_size})")
-    p.add_argument("--grid", type=int, default=d.grid,
-                   help=f"octree finest resolution, a power of two (default {d.grid})")
-    p.add_argument("--n-test", type=int, default=d.n_test,
-                   help=f"test views (default {d.n_test})")
-    p.add_argument("--backend", default=d.backend, help="auto, numba or torch (default auto)")
-    p.add_argument("--seed", type=int, default=d.seed, help="camera seed (default 0)")
+    d, docs = DemoConfig(), field_docs(DemoConfig)
+    p = sub.add_parser("demo", help="the whole chain on the embedded procedural scene",
+                       description="Write the procedural scene as a dataset, train a NeRF-SH, "
+                                   "extract, fine-tune, evaluate, compress, export the viewer "
+                                   "and an orbit video; prints one summary table.")
+    for f in dataclasses.fields(DemoConfig):
+        default = getattr(d, f.name)
+        kind = str if isinstance(default, Path) else type(default)
+        p.add_argument("--" + f.name.replace("_", "-"), dest=f.name, type=kind,
+                       default=str(default) if isinstance(default, Path) else default,
+                       help=f"{docs.get(f.name, '')} (default {default})")
     p.set_defaults(func=_run)

@@ -199,52 +199,29 @@ def _parse_rows(text: str | None) -> slice | None:
 
 
 def run_render_nerf(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from ..datasets import load_dataset
-    from ..nerf.checkpoint import load_nerf
-    from ..nerf.evaluate import evaluate_views, evenly_spaced
-    from ..nerf.trainer import resolve_amp, resolve_device, setup_threads, tune_malloc
+    from ..nerf.evaluate import render_nerf_views
 
     reexec_with_runtime_env("render-nerf")
-    tune_malloc()
-    setup_threads(args.threads)
-    model = load_nerf(args.run_dir)
-    cfg = model.train_config
-    device = resolve_device(cfg.device)
-    model = model.to(device)
-    amp = resolve_amp(args.amp or cfg.amp, device)
-    data = load_dataset(args.data or cfg.data, args.split,
-                        downscale=args.downscale or cfg.downscale, background=cfg.background)
     if args.indices:
         try:
             idx = [int(v) for v in args.indices.split(",")]
         except ValueError:
             raise ConfigError(f"--indices: expected comma-separated integers, got "
                               f"{args.indices!r}") from None
-    elif args.views:
-        idx = evenly_spaced(len(data), args.views)
     else:
-        idx = list(range(len(data)))
+        idx = None
     rows = _parse_rows(args.rows)
-    if rows is not None and rows.stop > data.cameras.height:
-        raise ConfigError(f"--rows {args.rows}: the images have {data.cameras.height} rows")
-    run_dir = Path(args.run_dir)
-    run_dir = run_dir.parent if run_dir.is_file() else run_dir
-    out = Path(args.out) if args.out else run_dir / f"render_{args.split}"
-    res = evaluate_views(model, data, cfg, idx, out_dir=out, with_ssim=not args.no_ssim,
-                         amp=amp, device=device, chunk=args.chunk, rows=rows)
-    frac = 1.0 if rows is None else (rows.stop - rows.start) / data.cameras.height
-    spf = res["seconds_per_frame"] / frac
-    res["seconds_per_full_frame"] = spf
-    from .._util import atomic_save_json
-
-    atomic_save_json(out / "metrics.json", res)
-    w, h = data.cameras.width, data.cameras.height
+    res = render_nerf_views(args.run_dir, split=args.split, views=args.views, indices=idx,
+                            data=args.data, downscale=args.downscale, out=args.out,
+                            with_ssim=not args.no_ssim, amp=args.amp, chunk=args.chunk,
+                            rows=rows, threads=args.threads)
+    w, h, frac = res["width"], res["height"], res["rows_fraction"]
+    spf = res["seconds_per_full_frame"]
     for n, p, s, t in zip(res["names"], res["psnr"], res["ssim"], res["seconds"]):
         print(f"{n}: PSNR {p:.2f} dB  SSIM {s:.4f}  {t:.2f} s")
-    print(f"{len(idx)} views at {w}x{h}{'' if rows is None else f' (rows {args.rows})'}: "
+    print(f"{len(res['names'])} views at {w}x{h}{'' if rows is None else f' (rows {args.rows})'}: "
           f"mean PSNR {res['mean_psnr']:.2f} dB, SSIM {res['mean_ssim']:.4f}, "
           f"{spf:.2f} s per {w}x{h} frame ({1 / spf:.3f} FPS), "
-          f"{np.mean(res['n_samples']) / max(frac, 1e-9) / (w * h):.1f} network samples per ray")
+          f"{sum(res['n_samples']) / len(res['n_samples']) / max(frac, 1e-9) / (w * h):.1f} "
+          f"network samples per ray")
     return 0

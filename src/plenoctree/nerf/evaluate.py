@@ -19,7 +19,7 @@ from .config import TrainConfig
 from .model import NeRFModel
 from .renderer import render_image
 
-__all__ = ["evenly_spaced", "evaluate_views"]
+__all__ = ["evenly_spaced", "evaluate_views", "render_nerf_views"]
 
 
 def evenly_spaced(n_total: int, n: int) -> list[int]:
@@ -76,3 +76,71 @@ def evaluate_views(model: NeRFModel, data: Dataset, cfg: TrainConfig,
         atomic_save_json(out / "metrics.json", res)
     return res
 
+
+
+def render_nerf_views(run_dir: str | Path, split: str = "test", views: int = 0,
+                      indices: list[int] | None = None, data: str | Path | None = None,
+                      downscale: int | None = None, out: str | Path | None = None,
+                      with_ssim: bool = True, amp: str | None = None, chunk: int | None = None,
+                      rows: slice | None = None, threads: int = 0) -> dict:
+    """Render views of a dataset split with a trained run's network and score them.
+
+    The NeRF-SH baseline of ``plenoctree render-nerf`` and of the pipeline's speed-up figure.
+
+    Args:
+        run_dir: training run directory (or its ``checkpoint.pt``).
+        split: dataset split. views: this many evenly spaced views (0 = all), unless
+            ``indices`` names them. data / downscale: default the ones trained on.
+        out: folder for the PNGs and ``metrics.json`` (default ``RUN_DIR/render_<split>``).
+        rows: render only these image rows (timing probes on slow presets); the reported
+            ``seconds_per_full_frame`` is scaled to the whole image.
+
+    Returns:
+        The ``metrics.json`` dict: per-view ``names``/``psnr``/``ssim``/``seconds``/
+        ``n_samples``, ``mean_psnr``, ``mean_ssim``, ``seconds_per_frame``,
+        ``seconds_per_full_frame``, ``fps``, ``width``, ``height``, ``mean`` {psnr, ssim, fps},
+        ``n_views``, ``model_mb``.
+    """
+    from ..datasets import load_dataset
+    from .checkpoint import load_nerf
+    from .trainer import resolve_amp, resolve_device, setup_threads, tune_malloc
+
+    tune_malloc()
+    setup_threads(threads)
+    model = load_nerf(run_dir)
+    cfg = model.train_config
+    device = resolve_device(cfg.device)
+    model = model.to(device)
+    use_amp = resolve_amp(amp or cfg.amp, device)
+    dataset = load_dataset(data or cfg.data, split, downscale=downscale or cfg.downscale,
+                           background=cfg.background)
+    if indices is not None:
+        bad = [i for i in indices if not 0 <= i < len(dataset)]
+        if bad:
+            raise ConfigError(f"view indices {bad} out of range: split {split!r} has "
+                              f"{len(dataset)} views")
+        idx = list(indices)
+    elif views:
+        idx = evenly_spaced(len(dataset), views)
+    else:
+        idx = list(range(len(dataset)))
+    height = dataset.cameras.height
+    if rows is not None and rows.stop > height:
+        raise ConfigError(f"rows {rows.start}:{rows.stop}: the images have {height} rows")
+    run_dir = Path(run_dir)
+    run_dir = run_dir.parent if run_dir.is_file() else run_dir
+    out = Path(out) if out else run_dir / f"render_{split}"
+    res = evaluate_views(model, dataset, cfg, idx, out_dir=out, with_ssim=with_ssim,
+                         amp=use_amp, device=device, chunk=chunk, rows=rows)
+    frac = 1.0 if rows is None else (rows.stop - rows.start) / height
+    spf = res["seconds_per_frame"] / frac
+    n_params = sum(p.numel() * p.element_size() for p in model.parameters())
+    res.update({
+        "seconds_per_full_frame": spf, "fps": 1.0 / spf if spf > 0 else None,
+        "width": dataset.cameras.width, "height": height, "n_views": len(idx),
+        "model_mb": n_params / 2**20, "rows_fraction": frac,
+        "mean": {"psnr": res["mean_psnr"], "ssim": res["mean_ssim"],
+                 "fps": 1.0 / spf if spf > 0 else None},
+    })
+    atomic_save_json(out / "metrics.json", res)
+    return res

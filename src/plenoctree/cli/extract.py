@@ -1,0 +1,120 @@
+"""``plenoctree extract RUN_DIR --out tree.npz``: convert a trained NeRF-SH into a PlenOctree.
+
+Every option is a field of :class:`plenoctree.convert.ExtractConfig`; its docstring is the
+``--help`` text. This module only parses, calls :func:`plenoctree.convert.extract` and prints.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+from ..errors import ConfigError
+
+_POSITIONAL = ("run_dir",)
+_SKIP = ("show_progress",)
+_SHORT = {"out": "-o"}
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    from ..convert import ExtractConfig
+    from ..nerf.config import field_docs
+
+    docs = field_docs(ExtractConfig)
+    for f in dataclasses.fields(ExtractConfig):
+        if f.name in _SKIP:
+            continue
+        default = f.default
+        help_ = docs.get(f.name, "").replace("%", "%%")
+        if f.name in _POSITIONAL:
+            p.add_argument(f.name, metavar=f.name.upper(), help=help_)
+            continue
+        flags = [_flag(f.name)] + ([_SHORT[f.name]] if f.name in _SHORT else [])
+        if isinstance(default, bool):
+            p.add_argument(*flags, dest=f.name, action=argparse.BooleanOptionalAction,
+                           default=default, help=help_)
+        elif f.name == "center":
+            p.add_argument(*flags, dest=f.name, type=float, nargs=3, metavar=("X", "Y", "Z"),
+                           default=None, help=help_)
+        elif f.name == "radius":
+            p.add_argument(*flags, dest=f.name, type=float, nargs="+", metavar="R",
+                           default=None, help=help_)
+        else:
+            kind = type(default)
+            p.add_argument(*flags, dest=f.name, type=kind, default=default,
+                           help=f"{help_} (default: {default!r})" if default != "" else help_)
+    p.add_argument("--progress", dest="show_progress", action=argparse.BooleanOptionalAction,
+                   default=None, help="progress bars (default: when stderr is a terminal)")
+
+
+def config_from_args(args: argparse.Namespace):
+    """Build an :class:`~plenoctree.convert.ExtractConfig` from parsed arguments."""
+    from ..convert import ExtractConfig
+
+    kw = {}
+    for f in dataclasses.fields(ExtractConfig):
+        v = getattr(args, f.name, None)
+        if f.name in ("center", "radius"):
+            v = tuple(v) if v else ()
+        elif v is None and f.name != "show_progress":
+            continue
+        kw[f.name] = v
+    if len(kw.get("radius", ())) not in (0, 1, 3):
+        raise ConfigError(f"--radius needs 1 or 3 numbers, got {list(kw['radius'])}")
+    return ExtractConfig(**kw)
+
+
+def _mb(n: float) -> str:
+    return f"{n / 2**20:.1f} MB"
+
+
+def report(res) -> str:
+    """Human-readable summary: per-stage time and peak RSS, leaves, size, PSNR."""
+    lines = ["stage      seconds   peak RSS (MB)"]
+    for name, st in res.stages.items():
+        lines.append(f"{name:<9}{st['seconds']:>9.2f}   {st['peak_rss_mb']:>10.1f}")
+    total = sum(st["seconds"] for st in res.stages.values())
+    lines.append(f"{'total':<9}{total:>9.2f}")
+    b = res.box
+    lines.append(f"box ({b.source}): center {[round(float(x), 4) for x in b.center]} "
+                 f"radius {[round(float(x), 4) for x in b.radius]}")
+    t = res.tree
+    lines.append(f"grid {res.grid}^3: {res.n_candidates} candidate voxels, {res.n_kept} kept "
+                 f"-> {t.n_leaves} leaves ({t.n_nodes} nodes, {t.data_format})")
+    if res.out is not None:
+        lines.append(f"saved {res.out} ({_mb(res.file_bytes)}, {res.extra.get('precision')})")
+    if res.eval_views:
+        line = (f"raw tree test PSNR {res.psnr:.2f} dB  SSIM {res.ssim:.4f} over "
+                f"{res.eval_views} views")
+        if res.nerf_psnr is not None:
+            line += f"  (NeRF-SH validation PSNR {res.nerf_psnr:.2f} dB)"
+        lines.append(line)
+    if res.extra.get("sigma_clamped_fp16"):
+        lines.append(f"{res.extra['sigma_clamped_fp16']} leaves had σ above the float16 maximum "
+                     "and were clamped to 65504 (opaque either way)")
+    if res.extra.get("nonfinite_values"):
+        lines.append(f"warning: {res.extra['nonfinite_values']} non-finite network outputs were "
+                     "replaced by 0")
+    return "\n".join(lines)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from ..convert import extract
+
+    res = extract(config_from_args(args))
+    print(report(res))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``extract`` command."""
+    p = sub.add_parser("extract", help="convert a trained NeRF-SH run into a PlenOctree",
+                       description="Convert a trained NeRF-SH (RUN_DIR/checkpoint.pt) into a "
+                       "PlenOctree (paper section 4.2): auto box, sigma grid, visibility filter "
+                       "over the training views, per-voxel sampling, octree, test PSNR.")
+    _add_config_args(p)
+    p.set_defaults(func=_run)

@@ -1,0 +1,421 @@
+"""NeRF-SH → PlenOctree extraction (paper §4.2), the function behind ``plenoctree extract``.
+
+Stages (each timed, with its peak RSS):
+
+1. ``load`` — the trained model (``load_nerf``) and the dataset's training cameras;
+2. ``bbox`` — the extraction box: fitted to the content on a coarse grid (``--bbox auto``) or
+   fixed (``--center/--radius``, else the model's training box, else the dataset's box);
+3. ``grid`` — σ at the centres of the ``grid³`` cells of the box;
+4. ``filter`` — keep cells whose maximum ray weight over all training views is ``≥ τ_w``
+   (``--masking weight``), or whose alpha is ``≥ --mask-alpha-thresh`` (``--masking sigma``);
+5. ``sample`` — mean of ``S`` random samples of (coefficients, σ) in each kept cell
+   (projected onto SH first for a plain NeRF);
+6. ``build`` / ``save`` — the octree (kept cells are leaves at the deepest level) and its file;
+7. ``eval`` — test-split PSNR/SSIM of the raw tree.
+
+:func:`extract` takes an :class:`ExtractConfig` (its field docstrings are the ``--help``) and
+optionally a radiance field object (anything following
+:class:`~plenoctree.convert.field.RadianceField`) instead of a run directory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._util import atomic_save_json
+from ..errors import ConfigError, PlenOctreeError
+from .bbox import BoxResult, auto_bbox, fixed_bbox
+from .field import as_field
+from .grid import GridSpec, check_resolution, evaluate_density_grid
+from .memory import StageMonitor, check_budget, memory_limit
+from .sampling import SamplingStats, output_format, sample_cells
+from .visibility import (auto_ray_scale, rescale_cameras, sigma_mask, visibility_weights,
+                         weight_mask)
+
+__all__ = ["ExtractConfig", "ExtractResult", "extract", "estimate_grid_memory",
+           "clamp_sigma_for_fp16"]
+
+
+@dataclass
+class ExtractConfig:
+    """Conversion of a trained NeRF-SH run into a PlenOctree."""
+
+    run_dir: str = ""
+    """Run directory of a trained NeRF-SH (holding checkpoint.pt), or the checkpoint file."""
+    out: str = ""
+    """Output tree file (.npz); default: RUN_DIR/tree.npz."""
+    data: str = ""
+    """Dataset folder (default: the one the run was trained on)."""
+    grid: int = 256
+    """Cells per axis of the extraction grid, a power of two (paper: 512; CPU default 256)."""
+    samples: int = 8
+    """Random samples averaged per kept voxel (paper: 256)."""
+    masking: str = "weight"
+    """Voxel filter: "weight" (max ray weight over the training views, the paper's) or "sigma"
+    (alpha threshold; keeps hidden matter too)."""
+    weight_thresh: float = 0.001
+    """τ_w: keep voxels whose maximum ray weight is at least this (paper 1.4G variant: 0.01)."""
+    mask_alpha_thresh: float = 0.01
+    """With --masking sigma: keep voxels whose alpha 1 - exp(-σ δ) (δ = voxel side) is at
+    least this."""
+    bbox: str = "auto"
+    """Extraction box: "auto" (fitted to the content on a coarse grid) or "fixed"."""
+    alpha_thresh: float = 0.1
+    """τ_a of the auto box: coarse cells with alpha 1 - exp(-σ δ) at least this define the
+    content (paper configs: 0.1)."""
+    bbox_grid: int = 128
+    """Cells per axis of the coarse grid of the auto box (original code: 256)."""
+    bbox_scale: float = 1.0
+    """Multiply the box's radius by this (paper: 1.1-1.2 for scenes with thin outer parts)."""
+    bbox_cube: bool = False
+    """Make the box a cube (equal radii)."""
+    center: tuple = ()
+    """Box centre (x y z) of the fixed box, or the initial box the auto box searches; default:
+    the model's training box, else the dataset's."""
+    radius: tuple = ()
+    """Box half side (one value or x y z) to go with --center."""
+    precision: str = "fp32"
+    """Stored precision of the tree: fp32 or fp16 (half the file size; σ above the float16
+    maximum 65504 is clamped to it, which renders identically)."""
+    projection_dirs: int = 10000
+    """Plain (view-dependent) NeRFs: Monte-Carlo directions per sample point for the SH
+    projection (paper: 10000)."""
+    projection_degree: int = 3
+    """Plain NeRFs: SH degree the colour is projected onto."""
+    vis_scale: float = 0.0
+    """Ray density of the visibility filter: the training views are rendered at this multiple
+    of the run's image size (0: auto, the smallest scale >= 1 at which a pixel is no wider
+    than a voxel at the scene centre, so no visible voxel is missed between rays)."""
+    chunk: int = 1 << 17
+    """Points per network call (bounds memory besides the grids)."""
+    memory_gb: float = 0.0
+    """Memory budget in GiB for the grids and leaf values (0: 80% of the available memory)."""
+    eval: bool = True
+    """Render the test split with the raw tree and report PSNR/SSIM."""
+    eval_views: int = 0
+    """Test views to evaluate, evenly spaced (0: all)."""
+    eval_downscale: int = 0
+    """Downscale of the test views (0: the run's)."""
+    eval_out: str = ""
+    """Folder for the test renders and metrics.json (default: none written)."""
+    backend: str = "auto"
+    """Kernels for the visibility filter and the evaluation: auto, numba or torch."""
+    device: str = "cpu"
+    """Device of the network: cpu or cuda."""
+    amp: bool = False
+    """Evaluate the network in bf16 autocast (faster on CPUs with bf16 units, less exact)."""
+    threads: int = 0
+    """CPU threads for torch and numba (0: all cores)."""
+    seed: int = 0
+    """Random seed of the per-voxel samples and projection directions."""
+    show_progress: bool | None = None
+    """Progress bars (None: when stderr is a terminal)."""
+
+
+@dataclass
+class ExtractResult:
+    """What :func:`extract` produced: the tree, where it went, and the figures of each stage."""
+
+    tree: Any
+    out: Path | None
+    box: BoxResult
+    grid: int
+    n_candidates: int
+    n_kept: int
+    file_bytes: int
+    stages: dict
+    psnr: float = float("nan")
+    ssim: float = float("nan")
+    eval_views: int = 0
+    nerf_psnr: float | None = None
+    extra: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        t = self.tree
+        return {"out": str(self.out) if self.out else None, "grid": self.grid,
+                "box": self.box.to_json(), "n_candidates": self.n_candidates,
+                "n_leaves_kept": self.n_kept, "n_nodes": int(t.n_nodes),
+                "n_leaves": int(t.n_leaves), "data_format": t.data_format,
+                "file_bytes": self.file_bytes, "file_mb": round(self.file_bytes / 2**20, 3),
+                "stages": self.stages, "test_psnr": _nan_none(self.psnr),
+                "test_ssim": _nan_none(self.ssim), "eval_views": self.eval_views,
+                "nerf_val_psnr": self.nerf_psnr, **self.extra}
+
+
+def _nan_none(x: float) -> float | None:
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+FP16_MAX = 65504.0
+
+
+def clamp_sigma_for_fp16(tree: Any) -> int:
+    """Clamp σ of ``tree`` (in place) to the float16 maximum; returns how many leaves changed.
+
+    Networks with an exponential density activation produce σ far above 65504 inside solid
+    matter. Any σ that large is opaque within 1e-3 world units (alpha = 1 - exp(-65.5) = 1
+    in float32), so the clamp leaves renders unchanged while letting the tree be saved in fp16.
+    """
+    sig = tree.data[..., -1]
+    over = sig > FP16_MAX
+    n = int(np.count_nonzero(over))
+    if n:
+        sig[over] = FP16_MAX
+    return n
+
+
+def estimate_grid_memory(res: int) -> int:
+    """Bytes for the dense stages at ``res³``: σ (float32), candidate index (int32), mask (bool)
+    and the octree builder's occupancy pyramid."""
+    return int(res ** 3 * (4 + 4 + 1 + 1.2))
+
+
+def _validate(cfg: ExtractConfig) -> None:
+    check_resolution("--grid", cfg.grid, low=2, high=4096)
+    check_resolution("--bbox-grid", cfg.bbox_grid, low=2, high=4096)
+    for name, v in (("--samples", cfg.samples), ("--projection-dirs", cfg.projection_dirs),
+                    ("--chunk", cfg.chunk)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ConfigError(f"{name} must be a positive integer, got {v!r}")
+    if cfg.masking not in ("weight", "sigma"):
+        raise ConfigError(f"--masking must be weight or sigma, got {cfg.masking!r}")
+    if cfg.bbox not in ("auto", "fixed"):
+        raise ConfigError(f"--bbox must be auto or fixed, got {cfg.bbox!r}")
+    if not 0.0 < cfg.weight_thresh < 1.0:
+        raise ConfigError(f"--weight-thresh must be in (0, 1), got {cfg.weight_thresh}")
+    if not 0.0 <= cfg.mask_alpha_thresh < 1.0:
+        raise ConfigError(f"--mask-alpha-thresh must be in [0, 1), got {cfg.mask_alpha_thresh}")
+    if not 0.0 < cfg.alpha_thresh < 1.0:
+        raise ConfigError(f"--alpha-thresh must be in (0, 1), got {cfg.alpha_thresh}")
+    if not (np.isfinite(cfg.bbox_scale) and cfg.bbox_scale > 0):
+        raise ConfigError(f"--bbox-scale must be > 0, got {cfg.bbox_scale}")
+    if cfg.precision not in ("fp16", "fp32"):
+        raise ConfigError(f"--precision must be fp16 or fp32, got {cfg.precision!r}")
+    if not 0 <= cfg.projection_degree <= 4:
+        raise ConfigError(f"--projection-degree must be in 0..4, got {cfg.projection_degree}")
+    if len(cfg.center) not in (0, 3):
+        raise ConfigError(f"--center needs 3 numbers, got {list(cfg.center)}")
+    if len(cfg.radius) not in (0, 1, 3):
+        raise ConfigError(f"--radius needs 1 or 3 numbers, got {list(cfg.radius)}")
+    for name, v in (("--vis-scale", cfg.vis_scale), ("--eval-downscale",
+                    cfg.eval_downscale), ("--eval-views", cfg.eval_views),
+                    ("--threads", cfg.threads)):
+        if v < 0:
+            raise ConfigError(f"{name} must be >= 0, got {v}")
+
+
+def _set_threads(n: int) -> None:
+    if n <= 0:
+        return
+    import torch
+
+    torch.set_num_threads(n)
+    from ..render import has_numba
+
+    if has_numba():
+        import numba
+
+        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+
+
+def _load_run(cfg: ExtractConfig) -> tuple[Any, Any, float | None]:
+    """``(field, train_config, nerf_val_psnr)`` of the run directory."""
+    from ..nerf.checkpoint import model_from_checkpoint, read_checkpoint
+    from .field import NeRFField
+
+    if not cfg.run_dir:
+        raise ConfigError("no run directory given (RUN_DIR holding checkpoint.pt)")
+    try:
+        ck = read_checkpoint(cfg.run_dir)
+        model = model_from_checkpoint(ck, device=cfg.device)
+    except PlenOctreeError as e:
+        raise ConfigError(f"{e} — extraction needs a trained NeRF-SH run directory with a "
+                          f"usable checkpoint.pt (train one with `plenoctree train`)") from None
+    val = ck["log"].get("val") if isinstance(ck.get("log"), dict) else None
+    psnr = None
+    if val and isinstance(val[-1], dict) and val[-1].get("psnr") is not None:
+        psnr = float(val[-1]["psnr"])
+    return NeRFField(model, device=cfg.device, amp=cfg.amp), ck["config"], psnr
+
+
+def _initial_box(cfg: ExtractConfig, field_: Any, data_bbox: np.ndarray | None
+                 ) -> tuple[np.ndarray, np.ndarray, str]:
+    if cfg.center or cfg.radius:
+        center = np.asarray(cfg.center if cfg.center else (0.0, 0.0, 0.0), dtype=np.float64)
+        if not cfg.radius:
+            raise ConfigError("--center needs --radius too")
+        return center, np.broadcast_to(np.asarray(cfg.radius, np.float64), (3,)).copy(), "user"
+    for bbox, src in ((getattr(field_, "scene_bbox", None), "model"), (data_bbox, "dataset")):
+        if bbox is not None:
+            b = np.asarray(bbox, dtype=np.float64).reshape(2, 3)
+            return 0.5 * (b[0] + b[1]), 0.5 * (b[1] - b[0]), src
+    raise ConfigError("no box: give --center and --radius (neither the model nor the dataset "
+                      "has a scene box)")
+
+
+def _load_split(root: str, split: str, downscale: int, background: Any) -> Any:
+    from ..datasets import load_dataset
+
+    return load_dataset(root, split=split, downscale=downscale, background=background)
+
+
+def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
+    """Convert a trained radiance field into a PlenOctree (see the module docstring).
+
+    Args:
+        cfg: the options. ``cfg.run_dir`` names the run unless ``field`` is given.
+        field: optional radiance field to convert instead of the run's model (e.g.
+            :class:`~plenoctree.convert.field.AnalyticField`); then ``cfg.data`` names the
+            dataset (needed for ``masking="weight"`` and ``eval``).
+
+    Returns:
+        An :class:`ExtractResult`; the tree is also saved to ``cfg.out`` (default
+        ``RUN_DIR/tree.npz``; with ``field`` and no ``out``, not saved) together with
+        ``<out stem>.extract.json`` holding the figures.
+
+    Raises:
+        ConfigError: bad options, an unusable run directory, a box with nothing in it, a grid
+            too large for the memory budget, a threshold that removes every voxel.
+    """
+    from ..octree import Octree, save_tree
+
+    _validate(cfg)
+    _set_threads(cfg.threads)
+    mon = StageMonitor()
+    limit = memory_limit(cfg.memory_gb)
+    check_budget(f"a {cfg.grid}^3 extraction grid", estimate_grid_memory(cfg.grid), limit,
+                 f"use a smaller --grid (e.g. {max(2, cfg.grid // 2)}) or raise --memory-gb")
+    check_budget(f"the {cfg.bbox_grid}^3 auto-bbox grid", cfg.bbox_grid ** 3 * 5, limit,
+                 "use a smaller --bbox-grid")
+    need_train = cfg.masking == "weight"
+
+    with mon.stage("load"):
+        train_cfg, nerf_psnr = None, None
+        if field is None:
+            field, train_cfg, nerf_psnr = _load_run(cfg)
+        else:
+            field = as_field(field, device=cfg.device, amp=cfg.amp)
+        data_root = cfg.data or (train_cfg.data if train_cfg is not None else "")
+        run_down = int(train_cfg.downscale) if train_cfg is not None else 1
+        background = tuple(train_cfg.background) if train_cfg is not None else (1.0, 1.0, 1.0)
+        if (need_train or cfg.eval) and not data_root:
+            raise ConfigError("no dataset: pass --data (the training views are needed by "
+                              "--masking weight and the test views by --eval)")
+        if data_root and not Path(data_root).is_dir():
+            raise ConfigError(f"{data_root}: dataset folder not found; pass --data")
+        train = _load_split(data_root, "train", run_down, background) if need_train else None
+        if train is not None and getattr(train.cameras, "ndc", False):
+            raise ConfigError(f"{data_root}: forward-facing (NDC) scenes are not supported by "
+                              "the extraction yet; use --masking sigma")
+        data_bbox = train.scene_bbox if train is not None else None
+        fmt, extra_data, dim = output_format(field, cfg.projection_degree)
+
+    with mon.stage("bbox"):
+        c0, r0, src = _initial_box(cfg, field, data_bbox)
+        if cfg.bbox == "auto":
+            box = auto_bbox(field, c0, r0, cfg.bbox_grid, cfg.alpha_thresh, cfg.bbox_scale,
+                            cfg.bbox_cube, cfg.chunk, cfg.show_progress)
+        else:
+            box = fixed_bbox(c0, r0, src, cfg.bbox_scale, cfg.bbox_cube)
+        spec = GridSpec.make(box.center, box.radius, cfg.grid)
+
+    with mon.stage("grid"):
+        sigma = evaluate_density_grid(field, spec, cfg.chunk, show_progress=cfg.show_progress)
+
+    with mon.stage("filter"):
+        if cfg.masking == "weight":
+            ray_scale = cfg.vis_scale or auto_ray_scale(train.cameras, spec)
+            cams = rescale_cameras(train.cameras, ray_scale)
+            vis_info = {"vis_views": len(cams), "vis_size": [cams.width, cams.height],
+                        "vis_scale": ray_scale}
+            cand, weights = visibility_weights(sigma, spec, cams, cfg.weight_thresh,
+                                               cfg.backend, cfg.show_progress, limit)
+            n_cand = int(cand.flat.size)
+            mask = weight_mask(spec, cand, weights, cfg.weight_thresh)
+            max_w = float(weights.max()) if weights.size else 0.0
+            del cand, weights
+            what = (f"no voxel reaches the weight threshold {cfg.weight_thresh:g} in any of the "
+                    f"{len(train)} training views (largest weight {max_w:.3g}); lower "
+                    f"--weight-thresh or use --masking sigma")
+        else:
+            vis_info = {}
+            mask = sigma_mask(sigma, spec, cfg.mask_alpha_thresh)
+            n_cand = int(np.count_nonzero(sigma > 0))
+            what = (f"no voxel has alpha >= {cfg.mask_alpha_thresh:g} (largest σ "
+                    f"{float(sigma.max()):.4g}); lower --mask-alpha-thresh")
+        del sigma, train
+        n_kept = int(np.count_nonzero(mask))
+        if n_kept == 0:
+            raise ConfigError(f"every voxel was removed: {what}")
+        check_budget(f"{n_kept} leaves x {dim} values (sampling and octree)",
+                     int(n_kept * dim * 4 * 3.5), limit,
+                     "use a smaller --grid or a higher --weight-thresh")
+
+    with mon.stage("sample"):
+        st = SamplingStats()
+        values = sample_cells(field, spec, np.flatnonzero(mask), cfg.samples, cfg.chunk, cfg.seed,
+                              cfg.projection_degree, cfg.projection_dirs, cfg.show_progress, st)
+
+    with mon.stage("build"):
+        tree = Octree.from_grid(values, mask, spec.center, spec.radius, fmt, extra_data)
+        del values, mask
+
+    out = Path(cfg.out) if cfg.out else (Path(cfg.run_dir) / "tree.npz"
+                                         if cfg.run_dir and train_cfg is not None else None)
+    if out is not None and out.is_dir():
+        out = out / "tree.npz"
+    file_bytes, n_clamped = 0, 0
+    if out is not None:
+        with mon.stage("save"):
+            n_clamped = clamp_sigma_for_fp16(tree) if cfg.precision == "fp16" else 0
+            try:
+                save_tree(tree, out, cfg.precision)
+            except ValueError as e:
+                raise ConfigError(f"{out}: {e}; save with --precision fp32") from None
+            file_bytes = os.path.getsize(out)
+
+    res = ExtractResult(tree, out, box, cfg.grid, n_cand, n_kept, file_bytes, {},
+                        nerf_psnr=nerf_psnr,
+                        extra={"sampled_points": st.points, "nonfinite_values": st.nonfinite,
+                               "sigma_clamped_fp16": n_clamped,
+                               "samples": cfg.samples, "masking": cfg.masking,
+                               "weight_thresh": cfg.weight_thresh, "precision": cfg.precision,
+                               **vis_info,
+                               "config": {k: (list(v) if isinstance(v, tuple) else v)
+                                          for k, v in dataclasses.asdict(cfg).items()}})
+    if cfg.eval:
+        with mon.stage("eval"):
+            _evaluate(res, cfg, data_root, cfg.eval_downscale or run_down, background)
+    res.stages = mon.to_json()
+    if out is not None:
+        atomic_save_json(out.with_name(out.stem + ".extract.json"), res.to_json())
+    return res
+
+
+def _evaluate(res: ExtractResult, cfg: ExtractConfig, root: str, downscale: int,
+              background: Any) -> None:
+    """Test-split PSNR/SSIM of the raw tree (evenly spaced ``cfg.eval_views`` views)."""
+    from ..evaluation import evaluate_tree
+    from ..render import RenderOptions
+
+    test = _load_split(root, "test", downscale, background)
+    if cfg.eval_views and cfg.eval_views < len(test):
+        idx = [int(i * len(test) // cfg.eval_views) for i in range(cfg.eval_views)]
+        test = dataclasses.replace(test, images=test.images[idx], cameras=test.cameras.select(idx),
+                                   names=[test.names[i] for i in idx],
+                                   alphas=None if test.alphas is None else test.alphas[idx])
+    t0 = time.perf_counter()
+    ev = evaluate_tree(res.tree, test, cfg.eval_out or None,
+                       RenderOptions(background=tuple(float(b) for b in test.background)),
+                       cfg.backend, show_progress=cfg.show_progress)
+    res.psnr, res.ssim, res.eval_views = ev.mean_psnr, ev.mean_ssim, len(ev.psnr)
+    res.extra["eval_ms_per_frame"] = ev.ms_per_frame
+    res.extra["eval_seconds"] = time.perf_counter() - t0
+    res.extra["eval_size"] = [ev.width, ev.height]

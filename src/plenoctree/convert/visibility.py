@@ -1,0 +1,258 @@
+"""Which grid cells matter: the visibility (max ray weight) filter and plain σ thresholding.
+
+Paper §4.2, *Filtering*: render every training view through the dense σ grid and keep, for
+each cell, the maximum ray weight ``T_i (1 - exp(-σ_i δ_i))`` it ever received; cells below
+``τ_w`` are dropped. Unlike thresholding σ, this removes matter no training view sees (the
+inside of solid objects, floaters behind walls), which would otherwise cost leaves.
+
+Rays march the grid exactly from cell boundary to cell boundary (the renderer's model, with
+piecewise-constant cells) and stop once ``T < τ_w``. Only *candidate* cells are tracked: a cell
+can reach weight ``τ_w`` only if ``1 - exp(-σ δ_max) ≥ τ_w`` (``δ_max``: the cell diagonal),
+so the running maxima need ``M`` (candidates) floats per thread instead of ``R³``.
+
+Backends: ``"numba"`` (:mod:`._visibility_numba`, imported on first use, parallel over rays)
+and ``"torch"`` (:func:`_max_weights_torch`, vectorised, the spec the kernel is tested against).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .._util import progress
+from ..errors import BackendError, ConfigError
+from .grid import GridSpec
+
+__all__ = ["Candidates", "candidates", "max_ray_weights", "visibility_weights", "weight_mask",
+           "sigma_mask", "auto_ray_scale", "rescale_cameras"]
+
+
+@dataclass
+class Candidates:
+    """Cells that may reach a weight of ``min_weight``.
+
+    Attributes:
+        flat: int64 ``[M]`` C-order flat indices of the candidate cells (sorted).
+        index: int32 ``[R, R, R]``: position of each cell in ``flat``, -1 elsewhere.
+        min_weight: the weight threshold they were selected for.
+    """
+
+    flat: np.ndarray
+    index: np.ndarray
+    min_weight: float
+
+
+def candidates(sigma: np.ndarray, spec: GridSpec, min_weight: float) -> Candidates:
+    """Cells where one segment can reach weight τ: σ ≥ -log(1 - τ) / |cell diagonal|."""
+    if not 0.0 < min_weight < 1.0:
+        raise ConfigError(f"weight threshold must be in (0, 1), got {min_weight}")
+    diag = float(np.linalg.norm(spec.cell))
+    flat = np.flatnonzero(sigma.reshape(-1) >= -np.log1p(-min_weight) / diag)
+    if flat.size >= 2 ** 31 - 1:
+        raise ConfigError(f"{flat.size} candidate cells exceed the int32 index; use a smaller grid")
+    index = np.full(sigma.shape, -1, dtype=np.int32)
+    index.reshape(-1)[flat] = np.arange(flat.size, dtype=np.int32)
+    return Candidates(flat, index, float(min_weight))
+
+
+# ------------------------------------------------------------------------------ torch twin
+def _max_weights_torch(sigma: Any, index: Any, lo: Any, cell: Any, origins: Any, dirs: Any,
+                       min_weight: float, n_cand: int) -> Any:
+    """The spec: max ray weight per candidate cell, ``[n_cand]`` float64 (torch).
+
+    Every crossing of the ``R + 1`` planes per axis inside the ray's box interval
+    ``[max(t_box_in, 0), t_box_out]`` splits the ray into segments; a segment's cell is the one
+    holding its midpoint, its length δ; ``T`` before a segment is ``exp(-Σ σ δ)`` of the
+    earlier ones. Segments with ``T < min_weight`` do not count (the kernel stops there).
+
+    Args:
+        sigma: ``[R, R, R]`` σ. index: int ``[R, R, R]`` candidate column or -1.
+        lo, cell: ``[3]`` grid corner and cell sides (world). origins, dirs: ``[N, 3]`` rays.
+    """
+    import torch
+
+    f64 = torch.float64
+    sig = torch.as_tensor(sigma).to(f64)
+    idx = torch.as_tensor(index).long()
+    lo_t = torch.as_tensor(np.asarray(lo), dtype=f64)
+    cell_t = torch.as_tensor(np.asarray(cell), dtype=f64)
+    o = torch.as_tensor(np.asarray(origins)).to(f64)
+    d = torch.as_tensor(np.asarray(dirs)).to(f64)
+    d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+    res = sig.shape[0]
+    hi_t = lo_t + cell_t * res
+    inv = 1.0 / d                                                       # ±inf where d == 0
+    ta = (lo_t - o) * inv
+    tb = (hi_t - o) * inv
+    tmin = torch.minimum(ta, tb).nan_to_num(nan=-torch.inf)
+    tmax = torch.maximum(ta, tb).nan_to_num(nan=torch.inf)
+    t0 = tmin.max(-1).values.clamp(min=0.0)
+    t1 = tmax.min(-1).values
+    planes = lo_t[None, :] + torch.arange(res + 1, dtype=f64)[:, None] * cell_t[None, :]  # [R+1, 3]
+    tp = (planes[None] - o[:, None, :]) * inv[:, None, :]               # [N, R+1, 3]
+    tp = tp.reshape(len(o), -1)
+    tp = torch.where(torch.isfinite(tp), tp, t1[:, None])
+    tp = torch.minimum(torch.maximum(tp, t0[:, None]), t1[:, None])    # out of range -> δ = 0
+    ts = torch.sort(torch.cat([t0[:, None], tp, t1[:, None]], -1), -1).values
+    delta = (ts[:, 1:] - ts[:, :-1]).clamp(min=0.0)                     # [N, S]
+    mid = 0.5 * (ts[:, 1:] + ts[:, :-1])
+    p = o[:, None, :] + mid[..., None] * d[:, None, :]
+    c = ((p - lo_t) / cell_t).floor().long().clamp(0, res - 1)
+    s = sig[c[..., 0], c[..., 1], c[..., 2]]
+    tau = s * delta
+    trans_before = torch.exp(-(torch.cumsum(tau, -1) - tau))
+    w = trans_before * (1.0 - torch.exp(-tau))
+    col = idx[c[..., 0], c[..., 1], c[..., 2]]
+    ok = (delta > 0) & (t1 > t0)[:, None] & (col >= 0) & (trans_before >= min_weight)
+    out = torch.zeros(n_cand, dtype=f64)
+    if bool(ok.any()):
+        out = out.scatter_reduce(0, col[ok], w[ok], reduce="amax", include_self=True)
+    return out
+
+
+# ------------------------------------------------------------------------------ front end
+def auto_ray_scale(cameras: Any, spec: GridSpec) -> float:
+    """Image scale at which the training views' pixels are no wider than a voxel.
+
+    A voxel no ray passes through gets weight 0 and is dropped, so the rays must be at least
+    as dense as the voxels where the content is: the pixel footprint at the box centre,
+    ``distance / focal``, is compared with the smallest cell side. Returns ``>= 1``.
+    """
+    dist = float(np.median(np.linalg.norm(cameras.centers - spec.center, axis=1)))
+    focal = float(min(np.min(np.atleast_1d(cameras.fx)), np.min(np.atleast_1d(cameras.fy))))
+    return max(1.0, dist / focal / float(spec.cell.min()))
+
+
+def rescale_cameras(cameras: Any, scale: float) -> Any:
+    """The same cameras with images ``scale`` times as wide and high (more, finer rays)."""
+    import dataclasses
+
+    if scale == 1.0:
+        return cameras
+    w = max(1, int(round(cameras.width * scale)))
+    h = max(1, int(round(cameras.height * scale)))
+    sx, sy = w / cameras.width, h / cameras.height
+    return dataclasses.replace(cameras, fx=cameras.fx * sx, fy=cameras.fy * sy,
+                               cx=cameras.cx * sx, cy=cameras.cy * sy, width=w, height=h)
+
+
+def _backend(name: str) -> str:
+    from ..render import has_numba
+
+    name = str(name).lower()
+    if name == "auto":
+        return "numba" if has_numba() else "torch"
+    if name not in ("numba", "torch"):
+        raise BackendError(f"unknown visibility backend {name!r}; use auto, numba or torch")
+    if name == "numba" and not has_numba():
+        raise BackendError("visibility backend 'numba' needs the numba package (pip install numba)")
+    return name
+
+
+def max_ray_weights(sigma: np.ndarray, spec: GridSpec, cand: Candidates, origins: np.ndarray,
+                    dirs: np.ndarray, backend: str = "auto", out: np.ndarray | None = None,
+                    ray_chunk: int = 1 << 15) -> np.ndarray:
+    """Maximum ray weight of each candidate cell over the rays ``origins, dirs [..., 3]``.
+
+    Args:
+        sigma: float32 ``[R, R, R]``. spec: its grid. cand: from :func:`candidates`.
+        backend: "auto" | "numba" | "torch" (the torch twin needs ``O(rays · R)`` memory; it
+            is processed in ``ray_chunk`` / R rays at a time).
+        out: running maxima to update in place (numba: float32 ``[n_threads, M]``; torch:
+            float32 ``[1, M]``), to accumulate over many views; allocated when ``None``.
+
+    Returns:
+        ``out`` (reduce with ``out.max(0)`` for the per-cell maxima ``[M]``).
+    """
+    name = _backend(backend)
+    o = np.ascontiguousarray(np.asarray(origins, dtype=np.float32).reshape(-1, 3))
+    d = np.ascontiguousarray(np.asarray(dirs, dtype=np.float32).reshape(-1, 3))
+    m = cand.flat.size
+    if name == "numba":
+        import numba
+
+        from ._visibility_numba import max_weights_numba
+
+        if out is None:
+            out = np.zeros((numba.get_num_threads(), m), dtype=np.float32)
+        max_weights_numba(sigma, cand.index, spec.lo, spec.cell, o, d, cand.min_weight, out)
+        return out
+    if out is None:
+        out = np.zeros((1, m), dtype=np.float32)
+    step = max(1, ray_chunk // max(1, spec.res))
+    for s in range(0, len(o), step):
+        w = _max_weights_torch(sigma, cand.index, spec.lo, spec.cell, o[s:s + step],
+                               d[s:s + step], cand.min_weight, m).numpy()
+        np.maximum(out[0], w.astype(np.float32), out=out[0])
+    return out
+
+
+def visibility_weights(sigma: np.ndarray, spec: GridSpec, cameras: Any, min_weight: float,
+                       backend: str = "auto", show_progress: bool | None = None,
+                       memory_limit: int | None = None) -> tuple[Candidates, np.ndarray]:
+    """Render every camera through the grid; max ray weight of each candidate cell.
+
+    Args:
+        sigma: float32 ``[R, R, R]`` σ grid. spec: its grid.
+        cameras: a :class:`~plenoctree.datasets.Cameras` (the training views).
+        min_weight: τ_w; only cells that could reach it are tracked (use the smallest τ_w you
+            will threshold with).
+        memory_limit: bytes allowed for the per-thread maxima (``n_threads · M · 4``).
+
+    Returns:
+        ``(cand, weights [M] float32)``: candidates and their max weights (0: never reached).
+    """
+    cand = candidates(sigma, spec, min_weight)
+    if cand.flat.size == 0:
+        raise ConfigError(
+            f"every voxel was removed: no cell of the {spec.res}^3 grid is dense enough to "
+            f"reach the weight threshold {min_weight:g} (largest σ {float(sigma.max()):.4g}, "
+            f"needs {-np.log1p(-min_weight) / float(np.linalg.norm(spec.cell)):.4g}); lower "
+            f"--weight-thresh, or check the box (--bbox, --center/--radius) holds the content")
+    name = _backend(backend)
+    if name == "numba":
+        import numba
+
+        rows = numba.get_num_threads()
+    else:
+        rows = 1
+    need = rows * cand.flat.size * 4
+    if memory_limit is not None and need > memory_limit:
+        raise ConfigError(f"visibility filter: {cand.flat.size} candidate cells x {rows} threads "
+                          f"need {need / 2**30:.2f} GiB (budget {memory_limit / 2**30:.2f} GiB); "
+                          f"use fewer threads (--threads), a smaller --grid or a higher "
+                          f"--weight-thresh")
+    out = np.zeros((rows, cand.flat.size), dtype=np.float32)
+    for i in progress(range(len(cameras)), desc="visibility", unit="view",
+                      disable=None if show_progress is None else not show_progress):
+        o, d = cameras.rays(i)
+        max_ray_weights(sigma, spec, cand, o, d, name, out)
+    return cand, out.max(axis=0)
+
+
+def weight_mask(spec: GridSpec, cand: Candidates, weights: np.ndarray, weight_thresh: float
+                ) -> np.ndarray:
+    """Bool ``[R, R, R]``: cells whose max ray weight is ``≥ weight_thresh``.
+
+    ``weight_thresh`` must be ``≥ cand.min_weight`` (cells below that were not tracked).
+    """
+    if weight_thresh < cand.min_weight:
+        raise ConfigError(f"weight threshold {weight_thresh:g} is below the {cand.min_weight:g} "
+                          "the weights were computed for")
+    mask = np.zeros((spec.res,) * 3, dtype=bool)
+    mask.reshape(-1)[cand.flat[weights >= weight_thresh]] = True
+    return mask
+
+
+def sigma_mask(sigma: np.ndarray, spec: GridSpec, alpha_thresh: float) -> np.ndarray:
+    """Bool ``[R, R, R]``: cells with alpha ``1 - exp(-σ δ) ≥ alpha_thresh`` (δ: largest side).
+
+    The original code's ``--masking_mode sigma``: keeps hidden matter too.
+    """
+    if not 0.0 <= alpha_thresh < 1.0:
+        raise ConfigError(f"alpha threshold must be in [0, 1), got {alpha_thresh}")
+    if alpha_thresh == 0.0:
+        return sigma > 0
+    return sigma >= -np.log1p(-alpha_thresh) / float(spec.cell.max())

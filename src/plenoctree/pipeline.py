@@ -1,0 +1,336 @@
+"""The whole chain as a resumable pipeline: photos → NeRF-SH → octree → fine-tuned → compressed.
+
+``plenoctree run --data DIR --out DIR`` and ``plenoctree demo`` call :func:`run_pipeline`.
+Each stage writes its artefact atomically and records a stamp (its settings plus the size and
+modification time of its inputs) in ``OUT/.stages/``; a stage whose artefact exists with an
+unchanged stamp is skipped, so a run killed at any point continues where it stopped (the
+trainer and the fine-tuner also resume mid-stage from their checkpoints). A failing stage stops
+the run with a :class:`PipelineError` naming the stage; finished artefacts are kept.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from ._util import atomic_save_json, atomic_write
+from .errors import ConfigError, PlenOctreeError
+
+__all__ = ["PipelineConfig", "PipelineError", "run_pipeline", "STAGES"]
+
+STAGES = ("train", "nerf_eval", "extract", "finetune", "eval", "compress", "web", "video")
+
+
+class PipelineError(PlenOctreeError, RuntimeError):
+    """A pipeline stage failed; the message names the stage and what to do."""
+
+
+@dataclass
+class PipelineConfig:
+    """Settings of ``plenoctree run`` (and of the demo, which fills them for its scene)."""
+
+    data: str = ""
+    """dataset folder (any supported format)"""
+    out: str = ""
+    """output folder: every artefact of the chain goes there"""
+    format: str | None = None
+    """dataset format (default: detected from the folder)"""
+    downscale: int = 1
+    """integer area downscale of the images for every stage (2 = lego at 400²)"""
+    preset: str = "cpu"
+    """NeRF-SH training preset: cpu or paper"""
+    train_minutes: float = 30.0
+    """NeRF-SH training budget in minutes (0 = the preset's step count)"""
+    train_steps: int = 0
+    """NeRF-SH training steps (0 = the preset's)"""
+    grid: int = 256
+    """octree finest resolution at extraction (power of two)"""
+    samples: int = 8
+    """random samples averaged per leaf at extraction"""
+    weight_thresh: float = 0.001
+    """visibility threshold τ_w on the maximum ray weight of a voxel"""
+    finetune_epochs: int = 20
+    """maximum fine-tuning epochs (stops at the first validation drop)"""
+    finetune_lr: float | None = None
+    """fine-tuning learning rate (default: the fine-tuner's SGD default)"""
+    compress_bits: int = 16
+    """median-cut codebook bits per SH basis"""
+    eval_views: int = 0
+    """test views scored per stage (0 = all)"""
+    nerf_eval_views: int = 2
+    """test views rendered with the NeRF-SH for its PSNR and speed baseline (0 = skip)"""
+    video_frames: int = 60
+    """frames of the orbit video (0 = no video)"""
+    video_size: int = 0
+    """orbit video width/height in pixels (0 = the dataset's)"""
+    web: bool = True
+    """export the static web-viewer bundle"""
+    backend: str = "auto"
+    """renderer backend: auto, numba or torch"""
+    seed: int = 0
+    """random seed of training and fine-tuning"""
+    extra: dict = field(default_factory=dict)
+    """stage overrides: {"train": {...TrainConfig fields}, "extract": {...}, "finetune": {...}}"""
+
+
+def _fingerprint(paths: list[Path]) -> dict:
+    out = {}
+    for p in paths:
+        try:
+            st = p.stat()
+            out[str(p)] = [st.st_size, st.st_mtime_ns] if p.is_file() else "dir"
+        except OSError:
+            out[str(p)] = None
+    return out
+
+
+class _Runner:
+    """Runs stages with stamps, timing and uniform error reporting."""
+
+    def __init__(self, out: Path, log: Callable[[str], None]):
+        self.out, self.log = out, log
+        self.stamps = out / ".stages"
+        self.times: dict[str, float] = {}
+        self.skipped: list[str] = []
+
+    def stage(self, name: str, settings: dict, inputs: list[Path], outputs: list[Path],
+              fn: Callable[[], Any], hint: str) -> bool:
+        """Run ``fn`` unless its outputs exist with the same stamp. Returns True if it ran."""
+        stamp = {"settings": settings, "inputs": _fingerprint(inputs)}
+        stamp = json.loads(json.dumps(stamp, default=str))
+        path = self.stamps / f"{name}.json"
+        try:
+            old = json.loads(path.read_text())
+        except (OSError, ValueError):
+            old = None
+        if old is not None and old.get("stamp") == stamp and all(p.exists() for p in outputs):
+            self.log(f"[{name}] up to date, skipped")
+            self.times[name] = float(old.get("seconds", 0.0))
+            self.skipped.append(name)
+            return False
+        self.log(f"[{name}] running")
+        t0 = time.perf_counter()
+        try:
+            fn()
+        except PlenOctreeError as e:
+            raise PipelineError(
+                f"stage '{name}' failed: {e}\n  finished artefacts are kept in {self.out}; "
+                f"{hint}, then rerun the same command to resume") from e
+        except KeyboardInterrupt:
+            self.log(f"[{name}] interrupted; rerun the same command to resume")
+            raise
+        seconds = time.perf_counter() - t0
+        self.times[name] = seconds
+        atomic_save_json(path, {"stamp": stamp, "seconds": seconds})
+        self.log(f"[{name}] done in {seconds:.1f} s")
+        return True
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dict:
+    """Run (or resume) the whole chain; returns the summary also written to ``summary.json``.
+
+    Artefacts in ``cfg.out``: ``nerf/`` (run directory), ``nerf_eval.json``, ``tree.npz`` (raw
+    extracted octree), ``tree_ft.npz`` (fine-tuned), ``tree_ft.plnz`` (compressed),
+    ``eval_{raw,ft,compressed}/eval.json``, ``web/`` (viewer bundle), ``orbit.mp4``,
+    ``summary.json`` and ``summary.md``.
+    """
+    if not cfg.data or not cfg.out:
+        raise ConfigError("both --data and --out are needed")
+    data, out = Path(cfg.data), Path(cfg.out)
+    if not data.exists():
+        raise ConfigError(f"{data}: dataset folder does not exist")
+    out.mkdir(parents=True, exist_ok=True)
+    r = _Runner(out, log)
+    common = {"data": str(data.resolve()), "format": cfg.format, "downscale": cfg.downscale}
+    run_dir, tree_raw, tree_ft = out / "nerf", out / "tree.npz", out / "tree_ft.npz"
+    tree_c = out / "tree_ft.plnz"
+
+    # 1. NeRF-SH training (resumes from its checkpoint when a previous run was cut short).
+    from .nerf.checkpoint import CHECKPOINT_NAME
+    from .nerf.config import preset as train_preset
+
+    tcfg = train_preset(cfg.preset)
+    tcfg.data, tcfg.out, tcfg.downscale, tcfg.seed = str(data), str(run_dir), cfg.downscale, cfg.seed
+    tcfg.minutes = cfg.train_minutes
+    if cfg.train_steps:
+        tcfg.max_steps = cfg.train_steps
+    elif cfg.train_minutes:
+        tcfg.max_steps = 10**9  # the time budget decides
+    for k, v in cfg.extra.get("train", {}).items():
+        if not hasattr(tcfg, k):
+            raise ConfigError(f"unknown training option {k!r}")
+        setattr(tcfg, k, v)
+
+    from .nerf.config import validate
+
+    validate(tcfg)
+
+    def do_train():
+        from .nerf.trainer import train
+
+        resume = (run_dir / CHECKPOINT_NAME).exists()
+        if resume:
+            log(f"[train] resuming {run_dir}")
+        train(tcfg, resume=resume)
+
+    r.stage("train", {**common, "train": _config_dict(tcfg)}, [], [run_dir / CHECKPOINT_NAME],
+            do_train, "check the dataset and training options")
+
+    # 2. NeRF-SH baseline on a few test views: PSNR and seconds per frame.
+    nerf_json = out / "nerf_eval.json"
+    if cfg.nerf_eval_views > 0:
+        def do_nerf_eval():
+            from .nerf.evaluate import render_nerf_views
+
+            res = render_nerf_views(run_dir, split="test", views=cfg.nerf_eval_views,
+                                    data=str(data), downscale=cfg.downscale,
+                                    out=out / "nerf_eval")
+            atomic_save_json(nerf_json, res)
+
+        r.stage("nerf_eval", {"views": cfg.nerf_eval_views, **common},
+                [run_dir / CHECKPOINT_NAME], [nerf_json], do_nerf_eval,
+                "check the training run")
+
+    # 3. Conversion to an octree.
+    from .convert.extract import ExtractConfig, extract
+
+    ecfg = ExtractConfig(run_dir=str(run_dir), out=str(tree_raw), data=str(data), grid=cfg.grid,
+                         samples=cfg.samples, weight_thresh=cfg.weight_thresh, eval=False,
+                         precision="fp32", backend=cfg.backend, seed=cfg.seed)
+    for k, v in cfg.extra.get("extract", {}).items():
+        if not hasattr(ecfg, k):
+            raise ConfigError(f"unknown extraction option {k!r}")
+        setattr(ecfg, k, v)
+    r.stage("extract", _config_dict(ecfg), [run_dir / CHECKPOINT_NAME], [tree_raw],
+            lambda: extract(ecfg), "change the extraction options (--grid, --weight-thresh)")
+
+    # 4. Fine-tuning of the leaf values on the training photos.
+    from .optim.finetune import FinetuneConfig, finetune
+
+    fcfg = FinetuneConfig(tree=str(tree_raw), data=str(data), out=str(tree_ft),
+                          epochs=cfg.finetune_epochs, lr=cfg.finetune_lr,
+                          downscale=cfg.downscale, precision="fp32", backend=cfg.backend,
+                          seed=cfg.seed, resume=True, test_views=-1, verbose=False)
+    for k, v in cfg.extra.get("finetune", {}).items():
+        if not hasattr(fcfg, k):
+            raise ConfigError(f"unknown fine-tuning option {k!r}")
+        setattr(fcfg, k, v)
+    ft_settings = {k: v for k, v in _config_dict(fcfg).items()
+                   if k not in ("resume", "verbose", "show_progress")}
+    r.stage("finetune", ft_settings, [tree_raw], [tree_ft], lambda: finetune(fcfg),
+            "lower --finetune-lr or --finetune-epochs")
+
+    # 5. Compression (median cut + DEFLATE).
+    def do_compress():
+        from .compress import CompressOptions, compress, save_compressed
+        from .octree import load_tree
+
+        save_compressed(compress(load_tree(tree_ft), CompressOptions(bits=cfg.compress_bits)),
+                        tree_c)
+
+    r.stage("compress", {"bits": cfg.compress_bits}, [tree_ft], [tree_c], do_compress,
+            "try fewer --compress-bits")
+
+    # 6. Scores of every octree stage on the test split (PSNR, SSIM, FPS, MB).
+    from .evaluation import EvalConfig, eval_tree_file
+
+    evals = {}
+    for key, path in (("raw", tree_raw), ("ft", tree_ft), ("compressed", tree_c)):
+        ev_dir = out / f"eval_{key}"
+        ecfg_ = EvalConfig(tree=str(path), data=str(data), format=cfg.format,
+                           downscale=cfg.downscale, limit=cfg.eval_views or None, out=str(ev_dir),
+                           backend=cfg.backend, show_progress=False)
+        r.stage(f"eval_{key}", {**common, "views": cfg.eval_views}, [path],
+                [ev_dir / "eval.json"], lambda c=ecfg_: eval_tree_file(c, log=lambda *_: None),
+                "check the tree file")
+        evals[key] = _read_json(ev_dir / "eval.json")
+
+    # 7. Static web-viewer bundle and orbit video.
+    if cfg.web:
+        def do_web():
+            from .viewer.export import export_web
+
+            export_web(tree_c, out / "web", overwrite=True)
+
+        r.stage("web", {}, [tree_c], [out / "web" / "index.html"], do_web,
+                "use `plenoctree lod` to make a smaller tree")
+    if cfg.video_frames > 0:
+        def do_video():
+            from .video import VideoConfig, make_video
+
+            size = cfg.video_size or None
+            make_video(VideoConfig(tree=str(tree_ft), out=str(out / "orbit.mp4"), data=str(data),
+                                   format=cfg.format, downscale=cfg.downscale,
+                                   frames=cfg.video_frames, width=size, height=size,
+                                   backend=cfg.backend), log=lambda *_: None)
+
+        r.stage("video", {**common, "frames": cfg.video_frames, "size": cfg.video_size},
+                [tree_ft], [out / "orbit.mp4"], do_video, "check the tree file")
+
+    summary = _summary(cfg, out, r, evals, _read_json(nerf_json),
+                       _read_json(run_dir / "summary.json"))
+    atomic_save_json(out / "summary.json", summary)
+    with atomic_write(out / "summary.md", "w") as f:
+        f.write(summary_markdown(summary))
+    log("")
+    log(summary_markdown(summary))
+    return summary
+
+
+def _config_dict(cfg: Any) -> dict:
+    d = asdict(cfg)
+    return json.loads(json.dumps(d, default=str))
+
+
+def _summary(cfg: PipelineConfig, out: Path, r: _Runner, evals: dict, nerf: dict,
+             train_info: dict) -> dict:
+    rows = []
+    nerf_mean = nerf.get("mean", {})
+    nerf_fps = nerf_mean.get("fps")
+    rows.append({"stage": "NeRF-SH", "psnr": nerf_mean.get("psnr"), "ssim": nerf_mean.get("ssim"),
+                 "fps": nerf_fps, "mb": nerf.get("model_mb"),
+                 "seconds": r.times.get("train"), "views": nerf.get("n_views")})
+    names = {"raw": "PlenOctree", "ft": "PlenOctree fine-tuned", "compressed": "compressed"}
+    stage_time = {"raw": "extract", "ft": "finetune", "compressed": "compress"}
+    for key, ev in evals.items():
+        mean, tree = ev.get("mean", {}), ev.get("tree", {})
+        rows.append({"stage": names[key], "psnr": mean.get("psnr"), "ssim": mean.get("ssim"),
+                     "fps": mean.get("fps"), "mb": tree.get("file_mb"),
+                     "seconds": r.times.get(stage_time[key]),
+                     "views": ev.get("dataset", {}).get("n_views")})
+    ft_fps = evals.get("ft", {}).get("mean", {}).get("fps")
+    speedup = (ft_fps / nerf_fps) if (ft_fps and nerf_fps) else None
+    return {"config": _config_dict(cfg), "rows": rows, "times_s": r.times,
+            "skipped": r.skipped, "speedup_over_nerf": speedup,
+            "total_s": sum(v for v in r.times.values() if v),
+            "web": str(out / "web") if cfg.web else None,
+            "video": str(out / "orbit.mp4") if cfg.video_frames else None,
+            "train": train_info}
+
+
+def summary_markdown(summary: dict) -> str:
+    """One markdown table: PSNR/SSIM, FPS, MB and time per stage, plus the speed-up."""
+    def f(v, fmt):
+        return format(v, fmt) if isinstance(v, (int, float)) else "–"
+
+    lines = ["| stage | PSNR (dB) | SSIM | FPS | MB | time (s) |", "|---|---|---|---|---|---|"]
+    for row in summary["rows"]:
+        lines.append(f"| {row['stage']} | {f(row['psnr'], '.2f')} | {f(row['ssim'], '.4f')} | "
+                     f"{f(row['fps'], '.3g')} | {f(row['mb'], '.1f')} | "
+                     f"{f(row['seconds'], '.0f')} |")
+    if summary.get("speedup_over_nerf"):
+        lines.append("")
+        lines.append(f"Render speed-up of the fine-tuned octree over the NeRF-SH: "
+                     f"{summary['speedup_over_nerf']:,.0f}x (same views, same machine)")
+    lines.append(f"Total wall time of the stages run: {summary['total_s']:.0f} s")
+    return "\n".join(lines) + "\n"

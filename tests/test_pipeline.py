@@ -1,0 +1,94 @@
+"""The resumable pipeline (``plenoctree run``) and the demo on a tiny procedural scene."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from plenoctree.cli import main
+from plenoctree.datasets.procedural import write_procedural_dataset
+from plenoctree.pipeline import PipelineConfig, PipelineError, run_pipeline
+
+# A tiny network and budget: the chain's plumbing, not its quality, is under test here.
+TINY_TRAIN = {"val_views": 1, "chunk": 1024, "target_samples": 4096, "sparsity_points": 256,
+              "model": None}
+
+
+def _tiny_cfg(data, out, **kw) -> PipelineConfig:
+    from plenoctree.nerf.config import ModelConfig
+
+    model = ModelConfig(grid_levels=4, grid_max_res=32, grid_log2_table=10, net_width=16)
+    train = {**TINY_TRAIN, "model": model, "occ_res": 16, "render_step": 0.05}
+    # An (almost) untrained model renders nothing: keep every voxel of the full box.
+    cfg = PipelineConfig(data=str(data), out=str(out), train_minutes=0, train_steps=4, grid=16,
+                         samples=2, finetune_epochs=1, nerf_eval_views=1, video_frames=2,
+                         extra={"train": train, "extract": {
+                             "bbox": "fixed", "masking": "sigma", "mask_alpha_thresh": 1e-12}})
+    for k, v in kw.items():
+        setattr(cfg, k, v)
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pipe")
+    write_procedural_dataset(root / "data", n_train=3, n_val=1, n_test=2, width=16, height=16)
+    return root / "data"
+
+
+def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path):
+    out = tmp_path / "run"
+    logs: list[str] = []
+    s = run_pipeline(_tiny_cfg(scene, out), log=logs.append)
+    for name in ("nerf/checkpoint.pt", "tree.npz", "tree_ft.npz", "tree_ft.plnz",
+                 "eval_ft/eval.json", "web/index.html", "orbit.mp4", "summary.json",
+                 "summary.md", "nerf_eval.json"):
+        assert (out / name).exists(), name
+    stages = [r["stage"] for r in s["rows"]]
+    assert stages == ["NeRF-SH", "PlenOctree", "PlenOctree fine-tuned", "compressed"]
+    assert all(r["psnr"] is not None and r["psnr"] > 5 for r in s["rows"])
+    assert s["speedup_over_nerf"] and s["speedup_over_nerf"] > 0
+    assert not s["skipped"]
+
+    logs.clear()
+    s2 = run_pipeline(_tiny_cfg(scene, out), log=logs.append)
+    assert set(s2["skipped"]) >= {"train", "extract", "finetune", "compress", "eval_ft"}
+
+    # Changing a fine-tuning setting reruns fine-tuning and what depends on it only.
+    logs.clear()
+    s3 = run_pipeline(_tiny_cfg(scene, out, finetune_epochs=2), log=logs.append)
+    assert "train" in s3["skipped"] and "extract" in s3["skipped"]
+    assert "finetune" not in s3["skipped"] and "compress" not in s3["skipped"]
+
+
+def test_failing_stage_names_itself_keeps_artefacts_and_resumes(scene, tmp_path):
+    out = tmp_path / "run"
+    bad = _tiny_cfg(scene, out, grid=3)  # not a power of two: extraction fails
+    with pytest.raises(PipelineError, match="stage 'extract' failed") as e:
+        run_pipeline(bad, log=lambda *_: None)
+    assert "rerun the same command to resume" in str(e.value)
+    assert (out / "nerf" / "checkpoint.pt").exists() and not (out / "tree.npz").exists()
+    logs: list[str] = []
+    run_pipeline(_tiny_cfg(scene, out), log=logs.append)
+    assert "[train] up to date, skipped" in logs
+    assert (out / "tree_ft.npz").exists()
+
+
+def test_run_cli_bad_data(tmp_path, capsys):
+    assert main(["run", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 1
+    assert "missing" in capsys.readouterr().err
+
+
+def test_demo_cli_tiny(tmp_path, capsys):
+    out = tmp_path / "demo"
+    args = ["demo", "--out", str(out), "--image-size", "32", "--n-train", "6", "--n-test", "2",
+            "--train-minutes", "0", "--train-steps", "200", "--grid", "16",
+            "--finetune-epochs", "1", "--video-frames", "0"]
+    assert main(args) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert len(s["rows"]) == 4 and (out / "tree_ft.plnz").exists()
+    text = capsys.readouterr().out
+    assert "PlenOctree fine-tuned" in text and "plenoctree view" in text
+    assert main(args) == 0
+    assert "[dataset] up to date, skipped" in capsys.readouterr().out
