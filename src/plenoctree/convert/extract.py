@@ -311,9 +311,6 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
         if data_root and not Path(data_root).is_dir():
             raise ConfigError(f"{data_root}: dataset folder not found; pass --data")
         train = _load_split(data_root, "train", run_down, background) if need_train else None
-        if train is not None and getattr(train.cameras, "ndc", False):
-            raise ConfigError(f"{data_root}: forward-facing (NDC) scenes are not supported by "
-                              "the extraction yet; use --masking sigma")
         data_bbox = train.scene_bbox if train is not None else None
         fmt, extra_data, dim = output_format(field, cfg.projection_degree)
 

@@ -119,7 +119,12 @@ def auto_ray_scale(cameras: Any, spec: GridSpec) -> float:
     A voxel no ray passes through gets weight 0 and is dropped, so the rays must be at least
     as dense as the voxels where the content is: the pixel footprint at the box centre,
     ``distance / focal``, is compared with the smallest cell side. Returns ``>= 1``.
+    NDC cameras (forward-facing scenes, the grid lives in NDC space): a pixel spans
+    ``2 / W`` by ``2 / H`` NDC units.
     """
+    if getattr(cameras, "ndc", False):
+        foot = 2.0 / float(min(cameras.width, cameras.height))
+        return max(1.0, foot / float(spec.cell.min()))
     dist = float(np.median(np.linalg.norm(cameras.centers - spec.center, axis=1)))
     focal = float(min(np.min(np.atleast_1d(cameras.fx)), np.min(np.atleast_1d(cameras.fy))))
     return max(1.0, dist / focal / float(spec.cell.min()))

@@ -200,8 +200,9 @@ def sparsity_loss(sigma: torch.Tensor, length: float) -> torch.Tensor:
 class RaySource:
     """Random rays over all pixels of all training images, with their target colours.
 
-    Rays are made on the fly from the cameras (the convention of
-    :func:`plenoctree.datasets.generate_rays`), so only the images are held in memory.
+    Rays are made on the fly by :meth:`plenoctree.datasets.Cameras.pixel_rays` (so per-camera
+    intrinsics and NDC rays of forward-facing scenes are honoured, identical to
+    ``cameras.rays(i)``); only the images are held in memory.
     """
 
     def __init__(self, data: Dataset, device: torch.device, random_background: bool):
@@ -209,26 +210,19 @@ class RaySource:
         n, h, w = len(cams), cams.height, cams.width
         self.n, self.h, self.w = n, h, w
         self.device = device
+        self.cameras = cams
         self.images = torch.from_numpy(np.ascontiguousarray(data.images)).reshape(-1, 3).to(device)
         self.bg = torch.tensor(data.background, dtype=torch.float32, device=device)
         self.alphas = None
         if random_background and data.alphas is not None:
             self.alphas = torch.from_numpy(np.ascontiguousarray(data.alphas)).reshape(-1).to(device)
-        self.c2w = torch.from_numpy(cams.c2w).to(device)
-        self.intr = (cams.fx, cams.fy, cams.cx, cams.cy)
 
     def rays_of(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(origins [B, 3], unit dirs [B, 3])`` of flat pixel indices ``idx [B]``."""
-        fx, fy, cx, cy = self.intr
+        """``(origins [B, 3], unit dirs [B, 3])`` float32 of flat pixel indices ``idx [B]``
+        (``img * H * W + row * W + col``), equal to ``cameras.rays(img)[row, col]``."""
         img = idx // (self.h * self.w)
         pix = idx % (self.h * self.w)
-        v, u = (pix // self.w).float(), (pix % self.w).float()
-        d_cam = torch.stack([(u + 0.5 - cx) / fx, -(v + 0.5 - cy) / fy, -torch.ones_like(u)], -1)
-        d_cam = d_cam / d_cam.norm(dim=-1, keepdim=True)
-        rot = self.c2w[img, :3, :3]
-        dirs = (rot @ d_cam[:, :, None])[:, :, 0]
-        dirs = dirs / dirs.norm(dim=-1, keepdim=True)
-        return self.c2w[img, :3, 3].contiguous(), dirs.contiguous()
+        return self.cameras.pixel_rays(img, pix % self.w, pix // self.w)
 
     def sample(self, n: int, generator: torch.Generator):
         """``(origins, dirs, target [n, 3], background [n, 3])`` of ``n`` random pixels."""

@@ -28,8 +28,16 @@ _MIN_BATCHES = 5
 
 @dataclass
 class ViewSet:
-    """Posed images to train or validate on: ``c2w [N, 4, 4]``, shared intrinsics,
-    ``images`` float32 ``[N, H, W, 3]``, and their names."""
+    """Posed images to train or validate on: ``c2w [N, 4, 4]``, the intrinsics of the first
+    camera, ``images`` float32 ``[N, H, W, 3]``, and their names.
+
+    ``cameras`` (the dataset's :class:`~plenoctree.datasets.Cameras`) and ``cam_index``
+    (int64 ``[N]``, view ``i`` is camera ``cam_index[i]``) are the source of truth for rays
+    when given: with NDC or per-camera intrinsics the rays come from
+    :meth:`~plenoctree.datasets.Cameras.pixel_rays` / ``rays(i)``; otherwise the numba kernel
+    (same arithmetic) is used. (All cameras are kept, not a selection, because the NDC space
+    depends on every camera's focal length.)
+    """
 
     c2w: np.ndarray
     fx: float
@@ -40,15 +48,19 @@ class ViewSet:
     height: int
     images: np.ndarray
     names: list[str]
+    cameras: Any = None
+    cam_index: np.ndarray | None = None
 
     @classmethod
     def from_dataset(cls, data: Any, indices: Any = None) -> ViewSet:
         cams = data.cameras
         idx = np.arange(len(cams)) if indices is None else np.asarray(indices, dtype=np.int64)
-        return cls(np.ascontiguousarray(cams.c2w[idx], dtype=np.float32), cams.fx, cams.fy,
-                   cams.cx, cams.cy, cams.width, cams.height,
+        fx, fy, cx, cy = cams.intrinsics(int(idx[0]) if len(idx) else 0)
+        return cls(np.ascontiguousarray(cams.c2w[idx], dtype=np.float32), fx, fy, cx, cy,
+                   cams.width, cams.height,
                    np.ascontiguousarray(data.images[idx], dtype=np.float32),
-                   [data.names[i] for i in idx] if data.names else [f"view_{i}" for i in idx])
+                   [data.names[i] for i in idx] if data.names else [f"view_{i}" for i in idx],
+                   cams, idx)
 
     def __len__(self) -> int:
         return int(self.c2w.shape[0])
@@ -57,8 +69,22 @@ class ViewSet:
     def n_rays(self) -> int:
         return len(self) * self.width * self.height
 
+    @property
+    def _general(self) -> bool:
+        """Rays need the :class:`Cameras` (NDC or per-camera intrinsics), not the fast kernel."""
+        c = self.cameras
+        return c is not None and self.cam_index is not None and (
+            bool(c.ndc) or bool(c.per_camera_intrinsics))
+
     def rays(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``origins, dirs, targets`` float32 ``[M, 3]`` of flat pixel indices ``index [M]``."""
+        """``origins, dirs, targets`` float32 ``[M, 3]`` of flat pixel indices ``index [M]``
+        (``img * H * W + row * W + col``); the rays equal ``cameras.rays(img)[row, col]``."""
+        index = np.ascontiguousarray(index, np.int64)
+        if self._general:
+            img, pix = np.divmod(index, self.height * self.width)
+            row, col = np.divmod(pix, self.width)
+            o, d = self.cameras.pixel_rays(self.cam_index[img], col, row)
+            return o, d, np.ascontiguousarray(self.images[img, row, col])
         from ._numba_grad import pixel_rays
 
         m = index.shape[0]
@@ -66,8 +92,7 @@ class ViewSet:
         d = np.empty((m, 3), np.float32)
         t = np.empty((m, 3), np.float32)
         pixel_rays(self.c2w, float(self.fx), float(self.fy), float(self.cx), float(self.cy),
-                   int(self.width), int(self.height), np.ascontiguousarray(index, np.int64),
-                   self.images, o, d, t)
+                   int(self.width), int(self.height), index, self.images, o, d, t)
         return o, d, t
 
     def n_tiles(self, k: int) -> int:
@@ -90,8 +115,12 @@ class ViewSet:
         return flat.reshape(-1)
 
     def view_rays(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """``origins, dirs [H * W, 3]`` of view ``i`` (``cameras.rays(i)`` when known)."""
         from ..datasets import generate_rays
 
+        if self._general:
+            o, d = self.cameras.rays(int(self.cam_index[i]))
+            return o.reshape(-1, 3), d.reshape(-1, 3)
         o, d = generate_rays(self.c2w[i], self.fx, self.fy, self.cx, self.cy, self.width,
                              self.height)
         return o.reshape(-1, 3), d.reshape(-1, 3)

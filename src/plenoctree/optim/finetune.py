@@ -173,7 +173,11 @@ def _load_split(root: Any, split: str, cfg: FinetuneConfig) -> Any:
 
 
 def _has_split(root: Path, split: str) -> bool:
-    return (Path(root) / f"transforms_{split}.json").is_file()
+    """Whether ``root`` has split ``split``: a Blender ``transforms_<split>.json``, or an LLFF
+    capture (whose train / test splits always exist: every ``llffhold``-th image is test)."""
+    if (Path(root) / f"transforms_{split}.json").is_file():
+        return True
+    return split in ("train", "test") and (Path(root) / "poses_bounds.npy").is_file()
 
 
 def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None) -> FinetuneResult:

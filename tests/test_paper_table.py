@@ -1,0 +1,94 @@
+"""benchmarks/paper_table.py: the table and plot functions on fake inputs (no lego needed)."""
+
+from __future__ import annotations
+
+import copy
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+from plenoctree.errors import ConfigError
+
+_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "paper_table.py"
+
+
+@pytest.fixture(scope="module")
+def pt():
+    spec = importlib.util.spec_from_file_location("paper_table", _PATH)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _fake(pt) -> dict:
+    rows = {}
+    for i, (key, _) in enumerate(pt.ROWS):
+        rows[key] = {"psnr": 30.0 + 0.25 * i, "ssim": 0.95 + 0.001 * i,
+                     "fps_400": 5.0 + i, "fps_800": 1.5 + i, "mb": 100.0 * (i + 1),
+                     "stage_s": 10.0 * (i + 1), "stage_src": "read: fake"}
+    rows["nerf_sh"].update(fps_400=1.0, fps_800=0.25)
+    return {"views": 7, "rows": rows,
+            "paper_nerf": {"fps_400": 1 / 250.0, "fps_800": 1 / 1000.0},
+            "speedup": {"paper_nerf_400": 1750.0, "paper_nerf_800": 3500.0,
+                        "cpu_nerf_400": 7.0, "cpu_nerf_800": 14.0}}
+
+
+def test_table_has_every_row_and_paper_numbers(pt):
+    md = pt.markdown_table(_fake(pt))
+    lines = md.splitlines()
+    for key, label in pt.ROWS:
+        row = [ln for ln in lines if ln.startswith(f"| {label} |")]
+        assert len(row) == 1, f"no table row for {key}"
+    ft = next(ln for ln in lines if ln.startswith("| PlenOctree after fine-tuning |"))
+    cells = [c.strip() for c in ft.strip("|").split("|")]
+    assert cells[1] == "30.50" and cells[3] == "7" and cells[5] == "300.0"
+    assert cells[6] == "30 (read: fake)"
+    assert cells[7] == "32.95" and cells[9] == "186.8"     # paper lego, Table 5
+    nerf = next(ln for ln in lines if ln.startswith("| NeRF-SH (CPU preset"))
+    assert "| 32.77 |" in nerf and "| 0.051 |" in nerf
+    assert "| 1750× | 3500× |" in md and "| 7× | 14× |" in md
+    assert "lego, 7 test views" in md
+
+
+@pytest.mark.parametrize("drop", ["nerf_sh", "raw", "ft", "compressed", "sh1", "sh2"])
+def test_missing_row_is_an_error(pt, drop):
+    res = copy.deepcopy(_fake(pt))
+    del res["rows"][drop]
+    with pytest.raises(ConfigError, match=drop):
+        pt.markdown_table(res)
+
+
+def test_plot_writes_png_with_variants(pt, tmp_path):
+    t3 = tmp_path / "extract_table3.json"
+    t3.write_text(json.dumps({"rows": {
+        "base": {"psnr": 30.7, "render": {"fps": 3.3}},
+        "tau0.01": {"psnr": 30.9, "render": {"fps": 3.8}},
+        "broken": {"psnr": None, "render": {}}}}))
+    variants = pt.table3_variants(t3)
+    assert variants == {"base": {"psnr": 30.7, "fps": 3.3}, "tau0.01": {"psnr": 30.9, "fps": 3.8}}
+    assert pt.table3_variants(tmp_path / "missing.json") == {}
+    out = tmp_path / "plot.png"
+    pt.plot(_fake(pt), out, variants)
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and out.stat().st_size > 5000
+
+
+def test_read_stage_times(pt, tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "summary.json").write_text(json.dumps({"train_time_s": 1800.5, "val_psnr": 34.3}))
+    tree = tmp_path / "ex" / "tree.npz"
+    tree.parent.mkdir()
+    (tree.parent / "tree.extract.json").write_text(json.dumps(
+        {"stages": {"load": {"seconds": 2.0}, "sample": {"seconds": 3.0},
+                    "eval": {"seconds": 100.0}}, "test_psnr": 30.76}))
+    ft = tmp_path / "ft" / "tree_ft.npz"
+    ft.parent.mkdir()
+    (ft.parent / "log.txt").write_text(
+        "test PSNR after:  31.774 dB (best epoch 8)\n"
+        "10 epochs (2450 steps), best epoch 8, 889.6 s, 0.26 M rays/s (numba)\n")
+    got = pt.read_stage_times(run, tree, ft)
+    assert got == {"train_s": 1800.5, "nerf_val_psnr": 34.3, "extract_s": 5.0,
+                   "raw_psnr_all_views": 30.76, "finetune_s": 889.6,
+                   "ft_psnr_all_views": 31.774}
