@@ -92,3 +92,15 @@ def test_demo_cli_tiny(tmp_path, capsys):
     assert "PlenOctree fine-tuned" in text and "plenoctree view" in text
     assert main(args) == 0
     assert "[dataset] up to date, skipped" in capsys.readouterr().out
+
+
+def test_demo_on_a_user_dataset(scene, tmp_path, capsys):
+    out = tmp_path / "demo_data"
+    args = ["demo", "--data", str(scene), "--out", str(out), "--train-minutes", "0",
+            "--train-steps", "200", "--grid", "16", "--finetune-epochs", "1",
+            "--video-frames", "0"]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "downscale 1 (16 px), grid 16" in text and "plenoctree view" in text
+    assert not (out / "data").exists()  # the user's data is used, no procedural scene written
+    assert (out / "eval_ft" / "renders").is_dir()

@@ -25,6 +25,9 @@ class DemoConfig:
 
     out: Path = Path("out/demo")
     """output folder (dataset, NeRF-SH run, trees, renders, video, web bundle, tables)"""
+    data: str = ""
+    """run on this dataset (any supported format) instead of the procedural scene; images are
+    downscaled to at most 400 px wide, and the grid raised to 256 for images of 256 px or more"""
     image_size: int = 128
     """width and height of the procedural dataset's images, pixels"""
     n_train: int = 40
@@ -58,6 +61,8 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         raise ConfigError(f"--grid must be a power of two >= 2, got {cfg.grid}")
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
+    if cfg.data:
+        return _run_on_dataset(cfg, out, log)
     data_dir = out / "data"
     settings = {"size": cfg.image_size, "n_train": cfg.n_train, "n_test": cfg.n_test,
                 "seed": cfg.seed}
@@ -80,6 +85,28 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         video_frames=cfg.video_frames, backend=cfg.backend, seed=cfg.seed,
         extra={"train": {"val_views": 2, "val_split": "val"}},
     )
+    summary = run_pipeline(pcfg, log=log)
+    log(f"open the viewer: plenoctree view {out / 'tree_ft.plnz'}")
+    return summary
+
+
+def _run_on_dataset(cfg: DemoConfig, out: Path, log) -> dict:
+    """The demo chain on a user dataset, with the resolution and grid scaled to its images."""
+    from .datasets import load_dataset
+    from .pipeline import PipelineConfig, run_pipeline
+
+    probe = load_dataset(cfg.data, "train", limit=1)
+    width = probe.cameras.width
+    downscale = max(1, -(-width // 400))
+    while width % downscale:
+        downscale += 1
+    size = width // downscale
+    grid = max(cfg.grid, 256) if size >= 256 else cfg.grid
+    log(f"[demo] {cfg.data}: {width} px wide -> downscale {downscale} ({size} px), grid {grid}³")
+    pcfg = PipelineConfig(data=str(cfg.data), out=str(out), downscale=downscale,
+                          train_minutes=cfg.train_minutes, train_steps=cfg.train_steps,
+                          grid=grid, finetune_epochs=cfg.finetune_epochs,
+                          video_frames=cfg.video_frames, backend=cfg.backend, seed=cfg.seed)
     summary = run_pipeline(pcfg, log=log)
     log(f"open the viewer: plenoctree view {out / 'tree_ft.plnz'}")
     return summary

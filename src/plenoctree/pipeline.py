@@ -141,7 +141,8 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
 
     Artefacts in ``cfg.out``: ``nerf/`` (run directory), ``nerf_eval.json``, ``tree.npz`` (raw
     extracted octree), ``tree_ft.npz`` (fine-tuned), ``tree_ft.plnz`` (compressed),
-    ``eval_{raw,ft,compressed}/eval.json``, ``web/`` (viewer bundle), ``orbit.mp4``,
+    ``eval_{raw,ft,compressed}/eval.json`` (the fine-tuned tree's renders and depth maps in
+    ``eval_ft/renders/``), ``web/`` (viewer bundle), ``orbit.mp4``,
     ``summary.json`` and ``summary.md``.
     """
     if not cfg.data or not cfg.out:
@@ -249,7 +250,8 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
         ev_dir = out / f"eval_{key}"
         ecfg_ = EvalConfig(tree=str(path), data=str(data), format=cfg.format,
                            downscale=cfg.downscale, limit=cfg.eval_views or None, out=str(ev_dir),
-                           backend=cfg.backend, show_progress=False)
+                           backend=cfg.backend, show_progress=False,
+                           save_images=(key == "ft"))
         r.stage(f"eval_{key}", {**common, "views": cfg.eval_views}, [path],
                 [ev_dir / "eval.json"], lambda c=ecfg_: eval_tree_file(c, log=lambda *_: None),
                 "check the tree file")
