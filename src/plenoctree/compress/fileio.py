@@ -39,7 +39,6 @@ from pathlib import Path
 import numpy as np
 
 from .._util import atomic_write
-from ..errors import TreeFormatError
 from ..octree import Octree
 from ..octree._npz import NpzReader
 from .codec import CompressedTree, CompressOptions, decompress

@@ -7,16 +7,15 @@ Decoding and area downscaling are the Blender loader's (:func:`blender._decode`,
 
 from __future__ import annotations
 
-import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from ..errors import DatasetError
 from .blender import _composite_into, _decode
+from .blender import _run_parallel as _run
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -31,23 +30,6 @@ def image_files(folder: Path, prefix: str = "") -> list[Path]:
         raise DatasetError(f"{folder}: cannot list ({e.strerror or e})") from None
     return sorted(p for p in entries if p.suffix.lower() in IMAGE_SUFFIXES
                   and p.name.startswith(prefix) and p.is_file())
-
-
-def _run(n: int, work: Callable[[int], None], num_threads: int | None) -> None:
-    threads = num_threads or min(8, os.cpu_count() or 1)
-    if threads <= 1 or n <= 1:
-        for i in range(n):
-            work(i)
-        return
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        futures = [pool.submit(work, i) for i in range(n)]
-        try:
-            for fut in futures:
-                fut.result()
-        except BaseException:
-            for fut in futures:
-                fut.cancel()
-            raise
 
 
 def probe_size(path: Path) -> tuple[int, int]:

@@ -205,6 +205,25 @@ def _check_options(split: Any, downscale: Any, background: Any, limit: Any) -> n
     return bg
 
 
+def _run_parallel(n: int, work, num_threads: int | None) -> None:
+    """Call ``work(i)`` for ``i < n`` on up to ``num_threads`` threads (default: cores, ≤ 8);
+    the first exception cancels the rest and is re-raised."""
+    threads = num_threads or min(8, os.cpu_count() or 1)
+    if threads <= 1 or n <= 1:
+        for i in range(n):
+            work(i)
+        return
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        futures = [pool.submit(work, i) for i in range(n)]
+        try:
+            for fut in futures:
+                fut.result()
+        except BaseException:
+            for fut in futures:
+                fut.cancel()
+            raise
+
+
 def load_blender(root: str | os.PathLike, split: str = "train", downscale: int = 1,
                  background: Sequence[float] | float = (1.0, 1.0, 1.0),
                  limit: int | None = None, num_threads: int | None = None) -> Dataset:
@@ -266,20 +285,7 @@ def load_blender(root: str | os.PathLike, split: str = "train", downscale: int =
         arr = first if i == 0 else _decode(paths[i], (width, height))
         _composite_into(arr, f, bg, images[i], alphas[i])
 
-    threads = num_threads or min(8, os.cpu_count() or 1)
-    if threads <= 1 or n == 1:
-        for i in range(n):
-            work(i)
-    else:
-        with ThreadPoolExecutor(max_workers=threads) as pool:
-            futures = [pool.submit(work, i) for i in range(n)]
-            try:
-                for fut in futures:
-                    fut.result()
-            except BaseException:
-                for fut in futures:
-                    fut.cancel()
-                raise
+    _run_parallel(n, work, num_threads)
 
     if "fl_x" in meta:
         fx = meta["fl_x"]
