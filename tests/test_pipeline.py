@@ -48,6 +48,9 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path):
     stages = [r["stage"] for r in s["rows"]]
     assert stages == ["NeRF-SH", "PlenOctree", "PlenOctree fine-tuned", "compressed"]
     assert all(r["psnr"] is not None and r["psnr"] > 5 for r in s["rows"])
+    # The table says how many test views each row scored (NeRF-SH: nerf_eval_views).
+    assert [r["views"] for r in s["rows"]] == [1, 2, 2, 2]
+    assert "| test views |" in (out / "summary.md").read_text()
     assert s["speedup_over_nerf"] and s["speedup_over_nerf"] > 0
     assert not s["skipped"]
 

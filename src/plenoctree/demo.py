@@ -83,6 +83,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         data=str(data_dir), out=str(out), train_minutes=cfg.train_minutes,
         train_steps=cfg.train_steps, grid=cfg.grid, finetune_epochs=cfg.finetune_epochs,
         video_frames=cfg.video_frames, backend=cfg.backend, seed=cfg.seed,
+        nerf_eval_views=cfg.n_test,  # the NeRF-SH row scores the same views as the octree rows
         extra={"train": {"val_views": 2, "val_split": "val"}},
     )
     summary = run_pipeline(pcfg, log=log)

@@ -325,11 +325,12 @@ def summary_markdown(summary: dict) -> str:
     def f(v, fmt):
         return format(v, fmt) if isinstance(v, (int, float)) else "–"
 
-    lines = ["| stage | PSNR (dB) | SSIM | FPS | MB | time (s) |", "|---|---|---|---|---|---|"]
+    lines = ["| stage | test views | PSNR (dB) | SSIM | FPS | MB | time (s) |",
+             "|---|---|---|---|---|---|---|"]
     for row in summary["rows"]:
-        lines.append(f"| {row['stage']} | {f(row['psnr'], '.2f')} | {f(row['ssim'], '.4f')} | "
-                     f"{f(row['fps'], '.3g')} | {f(row['mb'], '.1f')} | "
-                     f"{f(row['seconds'], '.0f')} |")
+        lines.append(f"| {row['stage']} | {f(row['views'], 'd')} | {f(row['psnr'], '.2f')} | "
+                     f"{f(row['ssim'], '.4f')} | {f(row['fps'], '.3g')} | {f(row['mb'], '.1f')} "
+                     f"| {f(row['seconds'], '.0f')} |")
     if summary.get("speedup_over_nerf"):
         lines.append("")
         lines.append(f"Render speed-up of the fine-tuned octree over the NeRF-SH: "

@@ -109,16 +109,22 @@ def read_transforms(path: str | os.PathLike) -> tuple[dict, list[tuple[str, np.n
     frames = []
     for i, fr in enumerate(obj["frames"]):
         where = f"{path}: frames[{i}]"
-        if not isinstance(fr, dict):
-            raise DatasetError(f"{where}: expected an object")
-        for key in ("file_path", "transform_matrix"):
-            if key not in fr:
-                raise DatasetError(f"{where}: missing key {key!r}")
-        fp = fr["file_path"]
-        if not isinstance(fp, str) or not fp.strip() or "\x00" in fp:
-            raise DatasetError(f"{where}: file_path must be a non-empty string")
-        frames.append((fp, _matrix(fr["transform_matrix"], where)))
+        frames.append((_frame_file_path(fr, where), _matrix(fr["transform_matrix"], where)))
     return meta, frames
+
+
+def _frame_file_path(fr: Any, where: str) -> str:
+    """Check one ``frames[i]`` entry (an object with ``file_path`` and ``transform_matrix``)
+    and return its ``file_path``; DatasetError prefixed with ``where`` otherwise."""
+    if not isinstance(fr, dict):
+        raise DatasetError(f"{where}: expected an object")
+    for key in ("file_path", "transform_matrix"):
+        if key not in fr:
+            raise DatasetError(f"{where}: missing key {key!r}")
+    fp = fr["file_path"]
+    if not isinstance(fp, str) or not fp.strip() or "\x00" in fp:
+        raise DatasetError(f"{where}: file_path must be a non-empty string")
+    return fp
 
 
 def _image_path(root: Path, file_path: str) -> Path:

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, load_masks, near_far_from_box
-from .blender import _check_options, _finite_number, _image_path, _matrix
+from .blender import _check_options, _finite_number, _frame_file_path, _image_path, _matrix
 from .cameras import Cameras
 from .dataset import Dataset
 
@@ -127,14 +127,7 @@ def read_nerfstudio(path: str | os.PathLike) -> tuple[dict, list[dict]]:
     frames = []
     for i, fr in enumerate(frames_in):
         where = f"{path}: frames[{i}]"
-        if not isinstance(fr, dict):
-            raise DatasetError(f"{where}: expected an object")
-        for key in ("file_path", "transform_matrix"):
-            if key not in fr:
-                raise DatasetError(f"{where}: missing key {key!r}")
-        fp = fr["file_path"]
-        if not isinstance(fp, str) or not fp.strip() or "\x00" in fp:
-            raise DatasetError(f"{where}: file_path must be a non-empty string")
+        fp = _frame_file_path(fr, where)
         mp = fr.get("mask_path")
         if mp is not None and (not isinstance(mp, str) or not mp.strip() or "\x00" in mp):
             raise DatasetError(f"{where}: mask_path must be a non-empty string")
