@@ -57,6 +57,11 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    # Every command may run torch and numba together: restart once with the OpenMP/malloc
+    # settings that must precede both runtimes (a no-op when called in-process, e.g. tests).
+    from .train import reexec_with_runtime_env
+
+    reexec_with_runtime_env(args.command)
     try:
         return int(args.func(args) or 0)
     except PlenOctreeError as e:

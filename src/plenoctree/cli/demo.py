@@ -9,9 +9,7 @@ from pathlib import Path
 
 def _run(args: argparse.Namespace) -> int:
     from ..demo import DemoConfig, run_demo
-    from .train import reexec_with_runtime_env
 
-    reexec_with_runtime_env("demo")
     cfg = DemoConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(DemoConfig)})
     cfg.out = Path(cfg.out)
     run_demo(cfg)

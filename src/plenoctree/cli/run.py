@@ -8,9 +8,7 @@ import dataclasses
 
 def _run(args: argparse.Namespace) -> int:
     from ..pipeline import PipelineConfig, run_pipeline
-    from .train import reexec_with_runtime_env
 
-    reexec_with_runtime_env("run")
     cfg = PipelineConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(
         PipelineConfig) if f.name != "extra"})
     summary = run_pipeline(cfg)

@@ -106,7 +106,7 @@ def reexec_with_runtime_env(command: str) -> None:
     """Re-run this command line with :data:`plenoctree.nerf.trainer.RUNTIME_ENV` set.
 
     The OpenMP and malloc settings only take effect when set before torch loads, so a
-    ``plenoctree train`` / ``render-nerf`` started without them replaces itself (``execve``)
+    ``plenoctree`` command started without them replaces itself (``execve``)
     with the same command line and those variables added (values already in the environment
     win). Skipped when ``PLENOCTREE_NO_REEXEC`` is set, when everything is already set, off
     POSIX, or when the command was not started from the command line (e.g. ``main([...])``).
@@ -171,7 +171,6 @@ def run_train(args: argparse.Namespace) -> int:
     from ..nerf import train
     from ..nerf.config import config_json
 
-    reexec_with_runtime_env("train")
     cfg, given = build_config(args)
     if args.resume:
         cfg = _resume_config(args, given)
@@ -201,7 +200,6 @@ def _parse_rows(text: str | None) -> slice | None:
 def run_render_nerf(args: argparse.Namespace) -> int:
     from ..nerf.evaluate import render_nerf_views
 
-    reexec_with_runtime_env("render-nerf")
     if args.indices:
         try:
             idx = [int(v) for v in args.indices.split(",")]
