@@ -19,7 +19,8 @@ def _run(args: argparse.Namespace) -> int:
         test_views=args.test_views, continue_on_decrease=args.continue_on_decrease,
         precision=args.precision, stop_thresh=args.stop_thresh,
         background=parse_background(args.background) if args.background else None,
-        backend=args.backend, seed=args.seed, checkpoint=args.checkpoint, resume=args.resume,
+        backend=args.backend, device=args.device, seed=args.seed, checkpoint=args.checkpoint,
+        resume=args.resume,
         log=args.log, show_progress=None if args.progress is None else args.progress == "on",
         verbose=not args.quiet)
     res = finetune(cfg)
@@ -27,7 +28,7 @@ def _run(args: argparse.Namespace) -> int:
     print(f"test PSNR before {fmt(res.test_psnr_before)}  after {fmt(res.test_psnr_after)}")
     print(f"{res.epochs_run} epochs ({res.steps} steps), best epoch {res.best_epoch}, "
           f"{res.wall_seconds:.1f} s, {res.train_rays_per_second / 1e6:.2f} M rays/s "
-          f"({res.backend}); {res.stop_reason}")
+          f"({res.backend} on {res.device}); {res.stop_reason}")
     print(f"saved {res.out}")
     if args.json:
         print(json.dumps(res.to_json(), indent=2))
@@ -72,8 +73,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=h("precision"))
     p.add_argument("--stop-thresh", type=float, default=d("stop_thresh"), help=h("stop_thresh"))
     p.add_argument("--background", default=None, help="white, black or R,G,B (default: white)")
-    p.add_argument("--backend", choices=("auto", "numba", "torch"), default=d("backend"),
-                   help=h("backend"))
+    p.add_argument("--backend", choices=("auto", "numba", "triton", "torch"),
+                   default=d("backend"), help=h("backend"))
+    p.add_argument("--device", default=d("device"), help=h("device"))
     p.add_argument("--seed", type=int, default=d("seed"), help=h("seed"))
     p.add_argument("--checkpoint", default=None, help=h("checkpoint"))
     p.add_argument("--resume", action="store_true", help=h("resume"))

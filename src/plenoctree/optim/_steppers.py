@@ -9,7 +9,8 @@ fine-tuning loop passes ``scale = 1 / (3 H W)``, the per-pixel mean of one train
   reach are left alone (``torch.optim.SparseAdam`` semantics), so a step costs O(touched cells).
 - :class:`TorchStepper` (CPU or CUDA): the renderer's torch twin with autograd, then the same
   update rules in torch (SGD dense — identical to the sparse one; Adam/RMSprop lazy over cells
-  with a non-zero gradient).
+  with a non-zero gradient). :class:`TritonStepper` (CUDA) is the same with the Triton
+  forward/analytic-backward kernel in place of the twin.
 
 After every step σ is projected onto ``σ ≥ 0`` (the renderer uses ``relu(σ)``; nothing that
 renders changes, and the tree stays valid for ``save_tree``).
@@ -24,7 +25,8 @@ import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["OPTIMIZERS", "DEFAULT_LR", "NumbaStepper", "TorchStepper", "make_stepper"]
+__all__ = ["OPTIMIZERS", "DEFAULT_LR", "NumbaStepper", "TorchStepper", "TritonStepper",
+           "make_stepper"]
 
 OPTIMIZERS = ("sgd", "adam", "rmsprop")
 #: Default learning rates: SGD in the paper's units (per-pixel mean loss); Adam/RMSprop are
@@ -147,7 +149,7 @@ class TorchStepper:
 
         torch = self.torch
         rgb = render_rays_differentiable(self.data, self.tree, self._t(origins), self._t(dirs),
-                                         self.options, backend="torch")
+                                         self.options, backend=self.backend)
         err = rgb - self._t(targets)
         sse_t = (err * err).sum()
         if self.data.grad is not None:
@@ -216,9 +218,28 @@ class TorchStepper:
                 mine.copy_(self._t(state[key]))
 
 
+class TritonStepper(TorchStepper):
+    """:class:`TorchStepper` with the Triton kernel (forward + analytic backward) on CUDA."""
+
+    backend = "triton"
+
+    def render(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        from ..render._triton_impl import render_rays_triton
+
+        t = self.tree
+        out = render_rays_triton(t.child, self.data.detach(), t.offset, t.invradius,
+                                 t.data_format, t.extra_data, self._t(origins), self._t(dirs),
+                                 self.options)
+        return out.rgb.float().cpu().numpy()
+
+
 def make_stepper(backend: str, data2: np.ndarray, tree: Any, options: Any, optimizer: str,
-                 lr: float | None) -> NumbaStepper | TorchStepper:
-    """Build the stepper for ``backend`` (``"auto"``: numba on CPU, torch when CUDA is there)."""
+                 lr: float | None, device: str = "auto") -> NumbaStepper | TorchStepper:
+    """Build the stepper for ``backend`` on ``device``.
+
+    ``backend="auto"``: numba on the CPU; on CUDA (``device`` "cuda", or "auto" with a GPU
+    present) the Triton kernel when usable, else the torch twin.
+    """
     from ..render import has_numba
 
     if optimizer not in OPTIMIZERS:
@@ -226,15 +247,31 @@ def make_stepper(backend: str, data2: np.ndarray, tree: Any, options: Any, optim
     lr = DEFAULT_LR[optimizer] if lr is None else float(lr)
     if not (math.isfinite(lr) and lr > 0):
         raise ConfigError(f"learning rate must be a finite number > 0, got {lr!r}")
+    import torch
+
+    from .._triton import require_triton, triton_usable
+    from ..device import resolve_device
+
+    dev = resolve_device(device)
     name = str(backend).lower()
     if name == "auto":
-        import torch
-
-        name = "torch" if torch.cuda.is_available() or not has_numba() else "numba"
+        if dev.type == "cuda":
+            name = "triton" if triton_usable(dev) else "torch"
+        else:
+            name = "numba" if has_numba() else "torch"
     if name == "numba":
+        if dev.type != "cpu":
+            raise ConfigError(f"fine-tuning backend 'numba' runs on the CPU, not on {dev} "
+                              "(use --device cpu or --backend auto)")
         from ._fast import kernel_args
 
         return NumbaStepper(data2, kernel_args(tree, options), optimizer, lr)
     if name == "torch":
-        return TorchStepper(data2, tree, options, optimizer, lr)
-    raise ConfigError(f"unknown fine-tuning backend {backend!r} (expected auto, numba or torch)")
+        return TorchStepper(data2, tree, options, optimizer, lr, device=dev)
+    if name == "triton":
+        if dev.type == "cpu" and torch.cuda.is_available() and str(device) == "auto":
+            dev = torch.device("cuda")
+        require_triton(dev, "fine-tuning")
+        return TritonStepper(data2, tree, options, optimizer, lr, device=dev)
+    raise ConfigError(f"unknown fine-tuning backend {backend!r} "
+                      "(expected auto, numba, triton or torch)")

@@ -7,6 +7,8 @@ tensor and returns a colour that autograd can differentiate with respect to that
   whose forward and backward are numba kernels; the backward uses the paper's analytic
   derivatives (B.3: eq. 15 for colour through the basis and the sigmoid, eq. 20 for σ with the
   suffix sums, zero where σ ≤ 0) and scatters race-free into per-thread slabs;
+- ``backend="triton"`` (CUDA tensors): :class:`~plenoctree.optim._triton_grad.TritonRenderFunction`,
+  the same analytic forward/backward as one Triton GPU kernel (atomic scatter);
 - ``backend="torch"``: the renderer's torch twin with plain autograd (the oracle; runs on CUDA).
 
 Example::
@@ -33,7 +35,10 @@ __all__ = ["OctreeRenderFunction", "render_rays_differentiable", "differentiable
 
 def differentiable_backends() -> list[str]:
     """Backends :func:`render_rays_differentiable` can use here, fastest first."""
-    return (["numba"] if has_numba() else []) + ["torch"]
+    from .._triton import triton_usable
+
+    return (["numba"] if has_numba() else []) + \
+        (["triton"] if triton_usable("cuda") or triton_usable("cpu") else []) + ["torch"]
 
 
 class OctreeRenderFunction(torch.autograd.Function):
@@ -93,8 +98,8 @@ def render_rays_differentiable(data: torch.Tensor, tree: Any, origins: Any, dirs
             (``offset``, ``invradius``) and the format; its own ``data`` is not read.
         origins, dirs: ``[..., 3]`` world-space rays (numpy or torch; dirs normalised inside).
         options: :class:`~plenoctree.render.RenderOptions` (early stop, background, basis range).
-        backend: ``"auto"`` (numba for CPU tensors, torch for CUDA ones), ``"numba"`` or
-            ``"torch"`` (the twin, plain autograd).
+        backend: ``"auto"`` (numba for CPU tensors, triton for CUDA ones when usable, else
+            torch), ``"numba"``, ``"triton"`` or ``"torch"`` (the twin, plain autograd).
 
     Returns:
         ``rgb [..., 3]`` in the dtype and on the device of ``data``: ``Σ w c + T_N · background``.
@@ -112,7 +117,12 @@ def render_rays_differentiable(data: torch.Tensor, tree: Any, origins: Any, dirs
     batch = tuple(o.shape[:-1])
     name = str(backend).lower()
     if name == "auto":
-        name = "torch" if data.device.type != "cpu" or not has_numba() else "numba"
+        from .._triton import triton_usable
+
+        if data.device.type != "cpu":
+            name = "triton" if triton_usable(data.device) else "torch"
+        else:
+            name = "numba" if has_numba() else "torch"
     if name == "numba":
         if not has_numba():
             raise BackendError("backend 'numba' needs the numba package (pip install numba)")
@@ -124,6 +134,14 @@ def render_rays_differentiable(data: torch.Tensor, tree: Any, origins: Any, dirs
         args = kernel_args(tree, opts)
         o_np, d_np = _rays(o, d)
         rgb = OctreeRenderFunction.apply(data, args, o_np, d_np)
+    elif name == "triton":
+        from .._triton import require_triton
+
+        require_triton(data.device, "render_rays_differentiable")
+        from ._triton_grad import render_rays_triton_differentiable
+
+        rgb = render_rays_triton_differentiable(data, tree, o.reshape(-1, 3), d.reshape(-1, 3),
+                                                opts)
     elif name == "torch":
         from ..render._torch_impl import render_rays_torch
 

@@ -69,7 +69,9 @@ class FinetuneConfig:
     stop_thresh: float = _f(0.01, "early ray termination when transmittance < this (0 = off)")
     background: tuple[float, float, float] | None = _f(
         None, "background colour R,G,B in [0,1] (default: the dataset loader's, white)")
-    backend: str = _f("auto", "auto (numba on CPU, torch twin with CUDA), numba or torch")
+    backend: str = _f("auto", "auto (numba on the CPU, the Triton kernel on CUDA), numba, "
+                              "triton or torch (the twin)")
+    device: str = _f("auto", "auto (CUDA when a GPU is present, else cpu), cpu, cuda or cuda:N")
     seed: int = _f(0, "random seed (ray order, hold-out split)")
     checkpoint: str | os.PathLike | None = _f(
         None, "checkpoint file (default: <out stem>.ckpt.npz), written at each validation")
@@ -127,6 +129,7 @@ class FinetuneResult:
     train_rays_per_second: float
     backend: str
     history: list[dict] = field(default_factory=list)
+    device: str = "cpu"
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -238,13 +241,15 @@ def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None
     del train
 
     data2 = np.ascontiguousarray(tree.data, dtype=np.float32).reshape(-1, tree.data_dim).copy()
-    stepper = make_stepper(cfg.backend, data2, tree, opts, cfg.optimizer, cfg.lr)
+    stepper = make_stepper(cfg.backend, data2, tree, opts, cfg.optimizer, cfg.lr,
+                           device=cfg.device)
+    run_device = str(getattr(stepper, "device", "cpu"))
     lr = DEFAULT_LR[cfg.optimizer] if cfg.lr is None else float(cfg.lr)
     say(f"finetune: {tree_path} ({tree.n_leaves} leaves, {tree.data_format}) on {cfg.data} "
         f"[{len(train_set)} train / {len(val_set) if val_set else 0} val views, "
         f"{train_set.width}x{train_set.height}], {cfg.optimizer} lr={lr:g}, "
         f"batch {cfg.batch_rays} rays in {cfg.ray_tile}x{cfg.ray_tile} tiles, "
-        f"backend {stepper.backend}")
+        f"backend {stepper.backend} on {run_device}")
 
     test_set = None
     if cfg.test_views >= 0 and _has_split(Path(cfg.data), "test"):
@@ -301,7 +306,7 @@ def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None
         best_epoch=state.best_epoch, epochs_run=state.epochs_done, steps=state.steps,
         stop_reason=state.stop_reason, wall_seconds=time.perf_counter() - t_start,
         train_rays_per_second=state.train_rays / max(state.train_seconds, 1e-9),
-        backend=stepper.backend, history=state.history)
+        backend=stepper.backend, history=state.history, device=run_device)
     log({"event": "end", **result.to_json()})
     if diverged:
         raise ConfigError(f"learning rate {lr:g} ({cfg.optimizer}) diverged: "

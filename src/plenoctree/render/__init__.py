@@ -3,10 +3,12 @@
 >>> out = render_rays(tree, origins, dirs)                  # doctest: +SKIP
 >>> out.rgb.shape, out.depth.shape, out.alpha.shape         # doctest: +SKIP
 
-Backends: ``"numba"`` (fast CPU kernel, compiled on first use and cached on disk) and
-``"torch"`` (the twin: vectorised torch ops, differentiable, runs on CUDA tensors). ``"auto"``
-picks numba for CPU inputs when it is importable, torch for CUDA tensors. Importing this module
-compiles nothing: the kernel module is imported by the first numba render.
+Backends: ``"numba"`` (fast CPU kernel, compiled on first use and cached on disk),
+``"triton"`` (the GPU kernel, compiled by Triton on first use; CUDA tensors, or CPU tensors
+under ``TRITON_INTERPRET=1`` for tests) and ``"torch"`` (the twin: vectorised torch ops,
+differentiable, runs on CUDA tensors). ``"auto"`` picks numba for CPU inputs when it is
+importable, triton for CUDA tensors when it is usable (else the twin). Importing this module
+compiles nothing: the kernel modules are imported by the first render that uses them.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from .options import FormatInfo, RenderOptions, RenderOutput, parse_data_format
 __all__ = ["RenderOptions", "RenderOutput", "available_backends", "has_numba", "render_rays",
            "render_image"]
 
-_BACKENDS = ("numba", "torch")
+_BACKENDS = ("numba", "triton", "torch")
 
 
 def has_numba() -> bool:
@@ -98,9 +100,13 @@ def _vec3(x: Any) -> np.ndarray:
 
 
 def _resolve_backend(backend: str, on_cuda: bool) -> str:
+    from .._triton import triton_usable
+
     name = str(backend).lower()
     if name == "auto":
-        return "torch" if on_cuda or not has_numba() else "numba"
+        if on_cuda:
+            return "triton" if triton_usable("cuda") else "torch"
+        return "numba" if has_numba() else "torch"
     if name not in _BACKENDS:
         raise BackendError(f"unknown render backend {backend!r}; available: "
                            f"{', '.join(available_backends())}")
@@ -120,8 +126,10 @@ def render_rays(tree: Any, origins: Any, dirs: Any, options: RenderOptions | Non
         origins: ``[..., 3]`` ray origins, world units (numpy array or torch tensor).
         dirs: ``[..., 3]`` ray directions (any non-zero length; normalised internally).
         options: :class:`RenderOptions`; defaults when ``None``.
-        backend: ``"auto"`` (numba for CPU inputs, torch for CUDA tensors), ``"numba"`` or
-            ``"torch"``. The numba backend moves CUDA inputs to the CPU and its outputs back.
+        backend: ``"auto"`` (numba for CPU inputs, triton for CUDA tensors when usable, else
+            torch), ``"numba"``, ``"triton"`` or ``"torch"``. The numba backend moves CUDA
+            inputs to the CPU and its outputs back; triton needs CUDA tensors (or
+            ``TRITON_INTERPRET=1``).
 
     Returns:
         :class:`RenderOutput` of torch tensors ``rgb [..., 3]``, ``depth [...]`` (world units
@@ -163,6 +171,19 @@ def render_rays(tree: Any, origins: Any, dirs: Any, options: RenderOptions | Non
             to_np(dirs).reshape(-1, 3), opts)
         out = RenderOutput(torch.from_numpy(rgb), torch.from_numpy(depth),
                            torch.from_numpy(alpha))
+    elif name == "triton":
+        from .._triton import interpret_mode, require_triton
+
+        # CPU inputs go to the GPU and back (as numba does the other way round)
+        dev = device if device.type == "cuda" or interpret_mode() or \
+            not torch.cuda.is_available() else torch.device("cuda")
+        require_triton(dev, "render")
+        from ._triton_impl import render_rays_triton
+
+        o = origins if isinstance(origins, torch.Tensor) else torch.from_numpy(origins)
+        d = dirs if isinstance(dirs, torch.Tensor) else torch.from_numpy(dirs)
+        out = render_rays_triton(tree.child, tree.data, offset, inv, info.name, extra,
+                                 o.to(dev).reshape(-1, 3), d.to(dev).reshape(-1, 3), opts)
     else:
         from ._torch_impl import render_rays_torch
 
