@@ -4,8 +4,23 @@ torch and numba each load an OpenMP runtime whose idle threads spin; on two core
 against each other's work (see ``plenoctree.nerf.trainer.RUNTIME_ENV``). The CLI re-executes
 itself with ``OMP_WAIT_POLICY=PASSIVE``; tests call the CLI in-process, so the policy is set
 here, before either runtime is loaded (``./run test`` also exports it).
+
+Triton's interpreter must be chosen before ``triton`` is first imported (its standard library
+is built at import): on machines without CUDA the session sets ``TRITON_INTERPRET=1``. That
+alone changes nothing else: Triton runs on CPU tensors only where ``PLENOCTREE_TRITON_CPU=1``
+too, which ``tests/test_triton_kernels.py`` sets for its own tests.
 """
 
 import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+def _no_cuda() -> bool:
+    import torch
+
+    return not torch.cuda.is_available()
+
+
+if _no_cuda():
+    os.environ.setdefault("TRITON_INTERPRET", "1")

@@ -1,9 +1,10 @@
 """The Triton GPU kernels against their torch twins, run in Triton's CPU interpreter.
 
-Without a GPU these tests execute the GPU kernels' logic with ``TRITON_INTERPRET=1`` (set below
-before any kernel module is imported) on tiny inputs: the interpreter runs every block op in
-NumPy, so a few hundred rays take seconds. With a CUDA device the same tests run the compiled
-kernels on the GPU.
+Without a GPU these tests execute the GPU kernels' logic in Triton's interpreter
+(``TRITON_INTERPRET=1``, set by ``conftest.py`` before triton is imported, plus
+``PLENOCTREE_TRITON_CPU=1``, set by an autouse fixture for this module only, so that no other
+test sees Triton as usable on the CPU) on tiny inputs: the interpreter runs every block op in NumPy, so a few hundred rays
+take seconds. With a CUDA device the same tests run the compiled kernels on the GPU.
 """
 
 from __future__ import annotations
@@ -14,9 +15,6 @@ import pytest
 import torch
 
 ON_GPU = torch.cuda.is_available()
-if not ON_GPU:
-    os.environ.setdefault("TRITON_INTERPRET", "1")
-
 pytest.importorskip("triton")
 
 import numpy as np  # noqa: E402
@@ -26,6 +24,21 @@ from plenoctree.render import RenderOptions, render_rays  # noqa: E402
 
 pytestmark = pytest.mark.gpu_sim
 DEV = torch.device("cuda" if ON_GPU else "cpu")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _interpreter():
+    """Triton on CPU tensors while this module's tests run (no GPU: the interpreter)."""
+    old = os.environ.get("PLENOCTREE_TRITON_CPU")
+    if not ON_GPU:
+        if os.environ.get("TRITON_INTERPRET") != "1":
+            pytest.skip("TRITON_INTERPRET=1 must be set before triton is imported (conftest.py)")
+        os.environ["PLENOCTREE_TRITON_CPU"] = "1"
+    yield
+    if old is None:
+        os.environ.pop("PLENOCTREE_TRITON_CPU", None)
+    else:
+        os.environ["PLENOCTREE_TRITON_CPU"] = old
 
 
 def _random_tree(fmt, seed, res=8, occupancy=0.3):

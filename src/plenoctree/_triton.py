@@ -6,14 +6,17 @@ the CUDA builds of torch and compiles the kernels at first use (no build step, n
 They run
 
 * on CUDA tensors when ``triton`` is importable and a CUDA device is present, and
-* on CPU tensors through Triton's interpreter when the environment has ``TRITON_INTERPRET=1``
-  (set before the kernel modules are first imported): the tests run every kernel this way
-  against its torch twin on machines without a GPU. The interpreter is slow (NumPy per block):
-  for tiny inputs only.
+* on CPU tensors through Triton's interpreter when the environment has both
+  ``TRITON_INTERPRET=1`` (read by Triton when it is first imported) and
+  ``PLENOCTREE_TRITON_CPU=1`` (read at each call: the opt-in): the tests run every kernel this
+  way against its torch twin on machines without a GPU. The interpreter is slow (NumPy per
+  block): for tiny inputs only.
 
-:func:`triton_usable` is the dispatch rule every ``backend="auto"`` follows: CUDA tensors go to
-the Triton kernel when it is usable, otherwise to the torch twin; CPU tensors keep the numba
-kernels. Moving this function into a shared backend policy changes no caller.
+:func:`register_backends` adds backend ``"triton"`` to the ops of :mod:`plenoctree.backend`
+(``render``, ``render_grad``, ``finetune``, ``hashgrid``, ``march``) with a priority between
+numba (CPU) and the torch twin: ``backend="auto"`` then picks Triton for CUDA tensors when it
+is usable and keeps numba for CPU tensors; CPU tensors reach Triton only when asked for by name
+(in interpreter mode). This module imports torch lazily (``backend.py`` imports it).
 """
 
 from __future__ import annotations
@@ -21,12 +24,23 @@ from __future__ import annotations
 import functools
 import importlib.util
 import os
-
-import torch
+from typing import Any
 
 from .errors import BackendError
 
-__all__ = ["has_triton", "interpret_mode", "triton_usable", "require_triton"]
+__all__ = ["has_triton", "interpret_mode", "triton_usable", "require_triton",
+           "register_backends", "TRITON_PRIORITY"]
+
+#: Between the torch twin (0) and numba (10): first on CUDA, never ``auto``'s pick on the CPU.
+TRITON_PRIORITY = 5
+
+_IMPLS = (
+    ("render", "plenoctree.render._triton_impl:render_backend"),
+    ("render_grad", "plenoctree.optim._triton_grad:render_grad_backend"),
+    ("finetune", "plenoctree.optim._steppers:TritonStepper"),
+    ("hashgrid", "plenoctree.nerf._hashgrid_triton:hashgrid_backend"),
+    ("march", "plenoctree.nerf._march_triton:march_backend"),
+)
 
 
 @functools.cache
@@ -35,16 +49,36 @@ def has_triton() -> bool:
     return importlib.util.find_spec("triton") is not None
 
 
+def _env_on(name: str) -> bool:
+    return os.environ.get(name, "0").strip().lower() in ("1", "true", "yes", "on")
+
+
 def interpret_mode() -> bool:
-    """True when ``TRITON_INTERPRET=1``: Triton kernels run on CPU tensors (tests only)."""
-    return os.environ.get("TRITON_INTERPRET", "0").strip().lower() in ("1", "true", "yes", "on")
+    """True when Triton kernels run on CPU tensors in Triton's interpreter (tests only):
+    ``TRITON_INTERPRET=1`` and ``PLENOCTREE_TRITON_CPU=1``."""
+    return _env_on("TRITON_INTERPRET") and _env_on("PLENOCTREE_TRITON_CPU")
 
 
-def triton_usable(device: torch.device | str) -> bool:
+def _usable_anywhere() -> bool:
+    return triton_usable("cuda") or triton_usable("cpu")
+
+
+def register_backends() -> None:
+    """Register the Triton kernels with :mod:`plenoctree.backend` (idempotent, lazy imports)."""
+    from . import backend
+
+    for op, impl in _IMPLS:
+        backend.register_backend(op, "triton", impl, devices=("cuda", "cpu"),
+                                 priority=TRITON_PRIORITY, available=_usable_anywhere)
+
+
+def triton_usable(device: Any) -> bool:
     """Whether a Triton kernel can run on tensors of ``device``.
 
     CUDA: ``triton`` importable and CUDA available. CPU: only in interpreter mode.
     """
+    import torch
+
     dev = torch.device(device)
     if not has_triton():
         return False
@@ -53,8 +87,10 @@ def triton_usable(device: torch.device | str) -> bool:
     return dev.type == "cpu" and interpret_mode()
 
 
-def require_triton(device: torch.device | str, what: str) -> None:
+def require_triton(device: Any, what: str) -> None:
     """Raise :class:`BackendError` naming what is missing when Triton cannot run on ``device``."""
+    import torch
+
     if triton_usable(device):
         return
     dev = torch.device(device)
@@ -63,5 +99,6 @@ def require_triton(device: torch.device | str, what: str) -> None:
                            "CUDA builds of torch; pip install triton)")
     if dev.type == "cpu":
         raise BackendError(f"{what}: backend 'triton' runs on CUDA tensors (or on CPU tensors "
-                           "with TRITON_INTERPRET=1, for tests); got CPU tensors")
+                           "with TRITON_INTERPRET=1 PLENOCTREE_TRITON_CPU=1, for tests); got "
+                           "CPU tensors")
     raise BackendError(f"{what}: backend 'triton' cannot run on {dev} (CUDA not available)")

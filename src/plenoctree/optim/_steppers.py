@@ -10,7 +10,7 @@ fine-tuning loop passes ``scale = 1 / (3 H W)``, the per-pixel mean of one train
 - :class:`TorchStepper` (CPU or CUDA): the renderer's torch twin with autograd, then the same
   update rules in torch (SGD dense — identical to the sparse one; Adam/RMSprop lazy over cells
   with a non-zero gradient). :class:`TritonStepper` (CUDA) is the same with the Triton
-  forward/analytic-backward kernel in place of the twin.
+  forward/analytic-backward kernel (``optim/_triton_grad.py``) in place of the twin.
 
 After every step σ is projected onto ``σ ≥ 0`` (the renderer uses ``relu(σ)``; nothing that
 renders changes, and the tree stays valid for ``save_tree``).
@@ -223,55 +223,50 @@ class TritonStepper(TorchStepper):
 
     backend = "triton"
 
+    def __init__(self, *args: Any, **kw: Any) -> None:
+        from .._triton import require_triton
+
+        super().__init__(*args, **kw)
+        require_triton(self.device, "fine-tuning")
+
     def render(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         from ..render._triton_impl import render_rays_triton
 
         t = self.tree
-        out = render_rays_triton(t.child, self.data.detach(), t.offset, t.invradius,
-                                 t.data_format, t.extra_data, self._t(origins), self._t(dirs),
-                                 self.options)
+        with self.torch.no_grad():
+            out = render_rays_triton(t.child, self.data.detach(), t.offset, t.invradius,
+                                     t.data_format, t.extra_data, self._t(origins),
+                                     self._t(dirs), self.options)
         return out.rgb.float().cpu().numpy()
 
 
 def make_stepper(backend: str, data2: np.ndarray, tree: Any, options: Any, optimizer: str,
-                 lr: float | None, device: str = "auto") -> NumbaStepper | TorchStepper:
-    """Build the stepper for ``backend`` on ``device``.
+                 lr: float | None, device: Any = "auto") -> NumbaStepper | TorchStepper:
+    """Build the stepper for ``backend`` (op ``"finetune"`` of :mod:`plenoctree.backend`).
 
-    ``backend="auto"``: numba on the CPU; on CUDA (``device`` "cuda", or "auto" with a GPU
-    present) the Triton kernel when usable, else the torch twin.
+    ``device``: ``"auto"`` (CUDA when available, else the CPU), ``"cpu"``, ``"cuda[:N]"``.
+    ``backend="auto"`` takes the policy's choice for that device: numba on the CPU, the Triton
+    kernel on CUDA (the torch twin where Triton is missing); an explicit name runs that backend
+    (an explicit ``numba`` with ``device="auto"`` runs on the CPU).
     """
-    from ..render import has_numba
+    from .. import backend as _backend
+    from ..device import resolve_device
 
+    name = _backend.check_name("finetune", backend)
     if optimizer not in OPTIMIZERS:
         raise ConfigError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {optimizer!r}")
     lr = DEFAULT_LR[optimizer] if lr is None else float(lr)
     if not (math.isfinite(lr) and lr > 0):
         raise ConfigError(f"learning rate must be a finite number > 0, got {lr!r}")
-    import torch
+    auto_dev = device is None or str(device).lower() == "auto"
+    dev = resolve_device("cpu" if auto_dev and name == "numba" else device)
+    name = _backend.resolve("finetune", name, dev)
+    return _backend.implementation("finetune", name)(data2, tree, options, optimizer, lr,
+                                                      device=dev)
 
-    from .._triton import require_triton, triton_usable
-    from ..device import resolve_device
 
-    dev = resolve_device(device)
-    name = str(backend).lower()
-    if name == "auto":
-        if dev.type == "cuda":
-            name = "triton" if triton_usable(dev) else "torch"
-        else:
-            name = "numba" if has_numba() else "torch"
-    if name == "numba":
-        if dev.type != "cpu":
-            raise ConfigError(f"fine-tuning backend 'numba' runs on the CPU, not on {dev} "
-                              "(use --device cpu or --backend auto)")
-        from ._fast import kernel_args
+def _numba_stepper(data2: np.ndarray, tree: Any, options: Any, optimizer: str,
+                   lr: float, device: Any = None) -> NumbaStepper:
+    from ._fast import kernel_args
 
-        return NumbaStepper(data2, kernel_args(tree, options), optimizer, lr)
-    if name == "torch":
-        return TorchStepper(data2, tree, options, optimizer, lr, device=dev)
-    if name == "triton":
-        if dev.type == "cpu" and torch.cuda.is_available() and str(device) == "auto":
-            dev = torch.device("cuda")
-        require_triton(dev, "fine-tuning")
-        return TritonStepper(data2, tree, options, optimizer, lr, device=dev)
-    raise ConfigError(f"unknown fine-tuning backend {backend!r} "
-                      "(expected auto, numba, triton or torch)")
+    return NumbaStepper(data2, kernel_args(tree, options), optimizer, lr)

@@ -17,7 +17,7 @@ import torch
 
 from ..render.options import KIND_RGBA, RenderOptions, parse_data_format
 
-__all__ = ["TritonRenderFunction", "render_rays_triton_differentiable"]
+__all__ = ["TritonRenderFunction", "render_rays_triton_differentiable", "render_grad_backend"]
 
 
 class TritonRenderFunction(torch.autograd.Function):
@@ -69,3 +69,13 @@ def render_rays_triton_differentiable(data: torch.Tensor, tree: Any, origins: to
     basis = ray_basis_torch(info, unit, extra, options).to(data.dtype).contiguous()
     n_b = 1 if info.kind == KIND_RGBA else info.basis_dim
     return TritonRenderFunction.apply(data, child, basis, geo, options, n_b)
+
+
+def render_grad_backend(data: torch.Tensor, tree: Any, o: torch.Tensor, d: torch.Tensor,
+                        opts: RenderOptions) -> torch.Tensor:
+    """Op ``render_grad`` of :mod:`plenoctree.backend` (``data`` on CUDA, or the CPU in
+    Triton's interpreter)."""
+    from .._triton import require_triton
+
+    require_triton(data.device, "render_rays_differentiable")
+    return render_rays_triton_differentiable(data, tree, o, d, opts)

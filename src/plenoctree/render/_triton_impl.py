@@ -273,3 +273,17 @@ def render_rays_triton(child: Any, data: Any, offset: Any, invradius: Any, data_
     n_b = 1 if info.kind == KIND_RGBA else info.basis_dim
     rgb, depth, alpha = march_kernel_call(ch, d2, basis, geo, opts, n_b)
     return RenderOutput(rgb=rgb, depth=depth, alpha=alpha)
+
+
+def render_backend(tree: Any, info: Any, origins: Any, dirs: Any, opts: RenderOptions,
+                   device: torch.device) -> RenderOutput:
+    """Op ``render`` of :mod:`plenoctree.backend`: rays ``[N, 3]`` on ``device`` (CUDA, or
+    the CPU in interpreter mode); numpy rays are moved to ``device``."""
+    from .._triton import require_triton
+    from . import _extra, _vec3
+
+    require_triton(device, "render")
+    o = origins if isinstance(origins, torch.Tensor) else torch.from_numpy(origins)
+    d = dirs if isinstance(dirs, torch.Tensor) else torch.from_numpy(dirs)
+    return render_rays_triton(tree.child, tree.data, _vec3(tree.offset), _vec3(tree.invradius),
+                              info.name, _extra(tree), o.to(device), d.to(device), opts)
