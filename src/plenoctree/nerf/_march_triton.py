@@ -1,0 +1,117 @@
+"""Triton GPU kernels that march rays through an occupancy grid at a fixed step.
+
+Same samples as the torch twin ``sampling._march_torch`` and the numba kernels
+(``_march_numba``): candidate ``t_k = t_min + (jitter + k) step`` for ``k = k_start, …`` while
+``t_k < t_max``; sample ``k`` is kept when the cell ``floor((o + t_k d - lo) inv)`` of the
+``[G, G, G]`` mask is occupied; at most ``max_per_ray`` per call (0 = all). Two passes, as on
+the CPU: count (→ ``counts``, ``k_next``, ``done``), then fill rows ``offsets[r]:offsets[r+1]``.
+All arithmetic is float32 in the twin's order; on the GPU the kernels are compiled without
+fused multiply-adds so that every backend emits the same samples.
+"""
+
+from __future__ import annotations
+
+import torch
+import triton
+import triton.language as tl
+
+__all__ = ["march_backend"]
+
+BLOCK = 128
+
+
+@triton.jit
+def _march_kernel(o_ptr, d_ptr, tmin_ptr, tmax_ptr, jit_ptr, k0_ptr, mask_ptr, step,
+                  lox, loy, loz, ivx, ivy, ivz, G, max_per_ray, n,
+                  counts_ptr, knext_ptr, done_ptr, offsets_ptr, ray_ptr, ts_ptr, pts_ptr,
+                  FILL: tl.constexpr, BLOCK: tl.constexpr):
+    pid = tl.program_id(0)
+    r = pid * BLOCK + tl.arange(0, BLOCK)
+    valid = r < n
+    r64 = r.to(tl.int64)
+    ox = tl.load(o_ptr + r64 * 3 + 0, mask=valid, other=0.0)
+    oy = tl.load(o_ptr + r64 * 3 + 1, mask=valid, other=0.0)
+    oz = tl.load(o_ptr + r64 * 3 + 2, mask=valid, other=0.0)
+    dx = tl.load(d_ptr + r64 * 3 + 0, mask=valid, other=0.0)
+    dy = tl.load(d_ptr + r64 * 3 + 1, mask=valid, other=0.0)
+    dz = tl.load(d_ptr + r64 * 3 + 2, mask=valid, other=0.0)
+    t0 = tl.load(tmin_ptr + r, mask=valid, other=0.0)
+    t1 = tl.load(tmax_ptr + r, mask=valid, other=0.0)
+    jr = tl.load(jit_ptr + r, mask=valid, other=0.0)
+    k = tl.load(k0_ptr + r, mask=valid, other=0)
+    if FILL:
+        i = tl.load(offsets_ptr + r, mask=valid, other=0)
+        end = tl.load(offsets_ptr + r + 1, mask=valid, other=0)
+        active = valid & (i < end)
+    else:
+        cnt = tl.zeros([BLOCK], dtype=tl.int64)
+        active = valid
+    while tl.sum(active.to(tl.int32), axis=0) > 0:
+        t = t0 + (jr + k.to(tl.float32)) * step
+        px = ox + t * dx
+        py = oy + t * dy
+        pz = oz + t * dz
+        cx = tl.floor((px - lox) * ivx).to(tl.int64)
+        cy = tl.floor((py - loy) * ivy).to(tl.int64)
+        cz = tl.floor((pz - loz) * ivz).to(tl.int64)
+        inside = (cx >= 0) & (cy >= 0) & (cz >= 0) & (cx < G) & (cy < G) & (cz < G)
+        cell = (cx * G + cy) * G + cz
+        occ = tl.load(mask_ptr + cell, mask=active & inside, other=0) != 0
+        if FILL:
+            occ = occ & active
+            tl.store(ray_ptr + i, r64, mask=occ)
+            tl.store(ts_ptr + i, t, mask=occ)
+            tl.store(pts_ptr + i * 3 + 0, px, mask=occ)
+            tl.store(pts_ptr + i * 3 + 1, py, mask=occ)
+            tl.store(pts_ptr + i * 3 + 2, pz, mask=occ)
+            i = tl.where(occ, i + 1, i)
+            k = tl.where(active, k + 1, k)
+            active = active & (i < end)
+        else:
+            go = active & (t < t1)              # the lattice stops at the first t_k >= t_max
+            hit = go & occ
+            cnt = tl.where(hit, cnt + 1, cnt)
+            capped = hit & (cnt >= max_per_ray)     # (no limit: max_per_ray = 2^62)
+            k = tl.where(go, k + 1, k)
+            active = go & ~capped
+    if not FILL:
+        tl.store(counts_ptr + r, cnt, mask=valid)
+        tl.store(knext_ptr + r, k, mask=valid)
+        tn = t0 + (jr + k.to(tl.float32)) * step
+        tl.store(done_ptr + r, (~(tn < t1)).to(tl.int8), mask=valid)
+
+
+def march_backend(origins, dirs, t_min, t_max, jitter, k_start, step, mask, bbox, max_per_ray):
+    """Op ``march`` of :mod:`plenoctree.backend` (tensors on CUDA, or the CPU in the
+    interpreter); returns :class:`~plenoctree.nerf.sampling.PackedSamples`."""
+    from .._triton import interpret_mode, require_triton
+    from .sampling import PackedSamples, _grid_consts
+
+    dev = origins.device
+    require_triton(dev, "march_rays")
+    n = origins.shape[0]
+    g = int(mask.shape[0])
+    lo, inv = _grid_consts(mask, bbox)
+    m = mask.to(device=dev, dtype=torch.int8).contiguous().reshape(-1)
+    counts = torch.empty(n, dtype=torch.int64, device=dev)
+    k_next = torch.empty(n, dtype=torch.int64, device=dev)
+    done = torch.empty(n, dtype=torch.int8, device=dev)
+    block = 1024 if interpret_mode() else BLOCK
+    grid = (triton.cdiv(max(n, 1), block),)
+    opts = {} if interpret_mode() else {"enable_fp_fusion": False}
+    cap = int(max_per_ray) if max_per_ray > 0 else 1 << 62
+    consts = (float(step), *map(float, lo), *map(float, inv), g, cap, n)
+    args = (origins, dirs, t_min, t_max, jitter, k_start, m) + consts
+    if n:
+        _march_kernel[grid](*args, counts, k_next, done, counts, counts, counts, counts,
+                            FILL=False, BLOCK=block, **opts)
+    offsets = torch.zeros(n + 1, dtype=torch.int64, device=dev)
+    torch.cumsum(counts, 0, out=offsets[1:])
+    total = int(offsets[-1].item()) if n else 0
+    ray_idx = torch.empty(total, dtype=torch.int64, device=dev)
+    ts = torch.empty(total, dtype=torch.float32, device=dev)
+    pts = torch.empty((total, 3), dtype=torch.float32, device=dev)
+    if total:
+        _march_kernel[grid](*args, counts, k_next, done, offsets, ray_idx, ts, pts,
+                            FILL=True, BLOCK=block, **opts)
+    return PackedSamples(ray_idx, ts, pts, offsets, k_next, done.bool())
