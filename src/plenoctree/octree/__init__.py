@@ -8,9 +8,20 @@
 
 from __future__ import annotations
 
-from .build import dense_tree, tree_from_grid
-from .io import FORMAT_VERSION, export_svox, import_svox, load_tree, save_tree
-from .tree import Octree, parse_data_format
+from .._lazy import lazy_package
+
+_LAZY = {
+    'dense_tree': '.build',
+    'tree_from_grid': '.build',
+    'FORMAT_VERSION': '.io',
+    'export_svox': '.io',
+    'import_svox': '.io',
+    'load_tree': '.io',
+    'save_tree': '.io',
+    'Octree': '.tree',
+    'parse_data_format': '.tree',
+}
+lazy_package(__name__, _LAZY)
 
 __all__ = [
     "Octree",
