@@ -12,26 +12,10 @@ Importing this package compiles nothing; the median-cut kernel is compiled on fi
 
 from __future__ import annotations
 
-from .._lazy import lazy_package
-
-_LAZY = {
-    'CompressedTree': '.codec',
-    'CompressOptions': '.codec',
-    'compress': '.codec',
-    'decompress': '.codec',
-    'is_compressed_file': '.fileio',
-    'load_any_tree': '.fileio',
-    'load_compressed': '.fileio',
-    'save_compressed': '.fileio',
-    'LodOptions': '.lod',
-    'fit_to_size': '.lod',
-    'make_lod': '.lod',
-    'merge_to_depth': '.lod',
-    'prune': '.lod',
-    'truncate_sh': '.lod',
-    'median_cut': '.median_cut',
-}
-lazy_package(__name__, _LAZY)
+from .codec import CompressedTree, CompressOptions, compress, decompress
+from .fileio import is_compressed_file, load_any_tree, load_compressed, save_compressed
+from .lod import LodOptions, fit_to_size, make_lod, merge_to_depth, prune, truncate_sh
+from .median_cut import median_cut
 
 __all__ = [
     "CompressOptions", "CompressedTree", "compress", "decompress",

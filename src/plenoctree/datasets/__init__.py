@@ -8,23 +8,13 @@ variant in :mod:`plenoctree.datasets.forward_facing`.
 
 from __future__ import annotations
 
-from .._lazy import lazy_package
-
-_LAZY = {
-    'load_blender': '.blender',
-    'Cameras': '.cameras',
-    'generate_rays': '.cameras',
-    'FORMATS': '.dataset',
-    'Dataset': '.dataset',
-    'detect_format': '.dataset',
-    'load_dataset': '.dataset',
-    'llff_render_cameras': '.llff',
-    'load_llff': '.llff',
-    'to_ndc_rays': '.ndc',
-    'load_nerfstudio': '.nerfstudio',
-    'load_nsvf': '.nsvf',
-}
-lazy_package(__name__, _LAZY)
+from .blender import load_blender
+from .cameras import Cameras, generate_rays
+from .dataset import FORMATS, Dataset, detect_format, load_dataset
+from .llff import llff_render_cameras, load_llff
+from .ndc import to_ndc_rays
+from .nerfstudio import load_nerfstudio
+from .nsvf import load_nsvf
 
 __all__ = ["Cameras", "generate_rays", "Dataset", "load_blender", "load_dataset", "detect_format",
            "FORMATS", "load_llff", "load_nsvf", "load_nerfstudio", "llff_render_cameras",

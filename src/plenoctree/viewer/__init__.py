@@ -7,13 +7,7 @@ ray-marches them with the CPU renderer's semantics.
 
 from __future__ import annotations
 
-from .._lazy import lazy_package
-
-_LAZY = {
-    'export_web': '.export',
-    'ViewerServer': '.server',
-    'static_dir': '.server',
-}
-lazy_package(__name__, _LAZY)
+from .export import export_web
+from .server import ViewerServer, static_dir
 
 __all__ = ["ViewerServer", "export_web", "static_dir"]
