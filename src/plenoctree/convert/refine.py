@@ -38,10 +38,7 @@ from .._util import atomic_save_json, progress
 from ..errors import ConfigError
 from ..sh import SH_C0
 
-try:   # the one depth limit of the package (reliability helper); fallback until it lands
-    from ..octree.limits import MAX_DEPTH
-except ImportError:  # pragma: no cover - depends on the branch
-    MAX_DEPTH = 15
+from ..octree.limits import MAX_DEPTH
 
 __all__ = ["RefineConfig", "RefineResult", "refine", "refine_tree", "leaf_spread",
            "subdivide_leaves", "merge_leaves", "compact_tree", "field_error", "MAX_DEPTH"]
