@@ -29,6 +29,10 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
                  "OPENCV_FISHEYE")
 
 
+MAPPER_DEFAULTS = {"mapper.abs_pose_min_num_inliers": 50, "mapper.init_min_tri_angle": 8.0}
+"""Mapper settings changed from COLMAP's (chosen on lego by ``benchmarks/colmap_poses.py``)."""
+
+
 class ProcessError(PlenOctreeError, RuntimeError):
     """Structure from motion or the dataset writing failed; the message says what to try."""
 
@@ -67,8 +71,8 @@ class SfmOptions:
     """random seed of COLMAP's RANSAC and mapper"""
     focal_factor: float = 1.2
     """initial focal length / longest side when the images carry no EXIF focal length"""
-    mapper: dict = field(default_factory=dict)
-    """extra IncrementalPipelineOptions fields (expert use), e.g. {"ba_global_max_num_iterations": 100}"""
+    mapper: dict = field(default_factory=lambda: dict(MAPPER_DEFAULTS))
+    """IncrementalPipelineOptions fields ("mapper.<name>" for its mapper's), on top of COLMAP's"""
 
 
 @dataclass
@@ -183,13 +187,11 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     popt = pycolmap.IncrementalPipelineOptions()
     popt.num_threads = int(opts.num_threads)
     popt.random_seed = int(opts.seed)
-    popt.mapper.abs_pose_min_num_inliers = 50
-    popt.mapper.init_min_tri_angle = 8.0
-    popt.ba_refine_principal_point = False
     for k, v in opts.mapper.items():
-        if not hasattr(popt, k):
+        obj, name = (popt.mapper, k[7:]) if k.startswith("mapper.") else (popt, k)
+        if not hasattr(obj, name):
             raise ConfigError(f"unknown COLMAP mapper option {k!r}")
-        setattr(popt, k, v)
+        setattr(obj, name, v)
     sparse = work / "sparse"
     sparse.mkdir(exist_ok=True)
     with progress(total=len(names), desc="colmap mapping", unit="img",
