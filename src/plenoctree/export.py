@@ -237,8 +237,8 @@ def sample_sigma_grid(tree: Octree, resolution: int | None = None,
     yy, zz = np.meshgrid(axes[1], axes[2], indexing="ij")
     slab = max(1, (1 << 21) // (shape[1] * shape[2]))
     starts = range(0, shape[0], slab)
-    for s in progress(starts, total=len(starts), desc="sample sigma", disable=show_progress
-                      if show_progress is None else not show_progress, unit="slab"):
+    for s in progress(starts, total=len(starts), desc="sample sigma", unit="slab",
+                      disable=None if show_progress is None else not show_progress):
         xs = axes[0][s:s + slab]
         pts = np.stack(np.broadcast_arrays(xs[:, None, None], yy[None], zz[None]), -1)
         node, i, j, k, inside = tree.query_cells(pts)
