@@ -45,7 +45,9 @@ class DemoConfig:
     video_frames: int = 40
     """frames of the orbit video (0 = none)"""
     backend: str = "auto"
-    """renderer backend: auto, numba or torch"""
+    """renderer backend: auto, numba, triton or torch"""
+    device: str = "auto"
+    """device of every stage: auto (CUDA when a GPU is present, else cpu), cpu, cuda or cuda:N"""
     seed: int = 0
     """seed of the dataset's cameras and of training"""
 
@@ -82,7 +84,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     pcfg = PipelineConfig(
         data=str(data_dir), out=str(out), train_minutes=cfg.train_minutes,
         train_steps=cfg.train_steps, grid=cfg.grid, finetune_epochs=cfg.finetune_epochs,
-        video_frames=cfg.video_frames, backend=cfg.backend, seed=cfg.seed,
+        video_frames=cfg.video_frames, backend=cfg.backend, device=cfg.device, seed=cfg.seed,
         nerf_eval_views=cfg.n_test,  # the NeRF-SH row scores the same views as the octree rows
         extra={"train": {"val_views": 2, "val_split": "val"}},
     )
@@ -107,7 +109,8 @@ def _run_on_dataset(cfg: DemoConfig, out: Path, log) -> dict:
     pcfg = PipelineConfig(data=str(cfg.data), out=str(out), downscale=downscale,
                           train_minutes=cfg.train_minutes, train_steps=cfg.train_steps,
                           grid=grid, finetune_epochs=cfg.finetune_epochs,
-                          video_frames=cfg.video_frames, backend=cfg.backend, seed=cfg.seed)
+                          video_frames=cfg.video_frames, backend=cfg.backend, device=cfg.device,
+                          seed=cfg.seed)
     summary = run_pipeline(pcfg, log=log)
     log(f"open the viewer: plenoctree view {out / 'tree_ft.plnz'}")
     return summary

@@ -6,6 +6,8 @@ metrics (same layer as ``nerf``/``convert``).
 
 from __future__ import annotations
 
+from typing import Any
+
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -112,7 +114,7 @@ def depth_to_image(depth: np.ndarray, alpha: np.ndarray, near: float, far: float
 def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None,
                   options: RenderOptions | None = None, backend: str = "auto",
                   warmup: bool = True, show_progress: bool | None = None,
-                  lpips_net: str | None = None) -> EvalResult:
+                  lpips_net: str | None = None, device: Any = "cpu") -> EvalResult:
     """Render every view of ``data`` with ``tree`` and score it against the images.
 
     Args:
@@ -122,7 +124,9 @@ def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None
         out_dir: if given, writes ``<name>.png`` (colour), ``<name>_depth.png`` and
             ``metrics.json`` there (atomically).
         options: renderer options; default: stop at T < 0.01, the dataset's background.
-        backend: ``"auto"``, ``"numba"`` or ``"torch"``.
+        backend: ``"auto"``, ``"numba"``, ``"triton"`` or ``"torch"``.
+        device: where to render: ``"cpu"`` (numpy rays), ``"cuda"`` (the tree is copied to
+            the GPU once; per-view times include waiting for the GPU), or ``"auto"``.
         warmup: render the first view once untimed first (JIT compilation).
         lpips_net: also score LPIPS with this backbone (``"vgg"``, ``"alex"``, ``"squeeze"``);
             raises :class:`~plenoctree.errors.BackendError` when it cannot run offline (check
@@ -133,15 +137,21 @@ def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None
     """
     if options is None:
         options = RenderOptions(background=tuple(float(b) for b in data.background))
+    from .device import resolve_device
+    from .render import tree_to_device
+
+    dev = resolve_device(str(device))
+    tree = tree_to_device(tree, dev)
     cams = data.cameras
     if warmup and len(cams):
-        render_image(tree, cams, 0, options, backend)
+        render_image(tree, cams, 0, options, backend, device=dev)
     out = Path(out_dir) if out_dir is not None else None
-    res = EvalResult([], [], [], [], cams.width, cams.height, backend)
+    res = EvalResult([], [], [], [], cams.width, cams.height, backend,
+                     extra={"device": str(dev)})
     disable = None if show_progress is None else not show_progress
     for i in progress(range(len(cams)), desc="render", disable=disable):
         t0 = time.perf_counter()
-        o = render_image(tree, cams, i, options, backend)
+        o = render_image(tree, cams, i, options, backend, device=dev)
         ms = (time.perf_counter() - t0) * 1e3
         rgb = o.rgb.detach().cpu().numpy()
         gt = data.images[i]
@@ -205,7 +215,9 @@ class EvalConfig:
     save_images: bool = False
     """Also write the renders and depth maps as PNGs under ``<out>/renders/``."""
     backend: str = "auto"
-    """Renderer backend: auto, numba or torch."""
+    """Renderer backend: auto, numba, triton or torch."""
+    device: str = "auto"
+    """Where to render: auto (CUDA when a GPU is present, else cpu), cpu, cuda or cuda:N."""
     stop_thresh: float = 0.01
     """Early ray termination when transmittance < this; 0 disables."""
     background: tuple[float, float, float] | None = None
@@ -216,10 +228,10 @@ class EvalConfig:
     """Progress bar: None = only on a terminal."""
 
 
-def _resolved_backend(backend: str) -> str:
+def _resolved_backend(backend: str, device: Any = "cpu") -> str:
     from .backend import resolve
 
-    return resolve("render", backend, "cpu")      # views are rendered from numpy rays
+    return resolve("render", backend, device)
 
 
 def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
@@ -256,7 +268,10 @@ def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
         raise ConfigError(f"--stop-thresh must be in [0, 1), got {cfg.stop_thresh}")
     if cfg.limit is not None and cfg.limit < 1:
         raise ConfigError(f"--limit must be a positive integer, got {cfg.limit}")
-    backend = _resolved_backend(cfg.backend)
+    from .device import device_report, resolve_device
+
+    device = resolve_device(cfg.device)
+    backend = _resolved_backend(cfg.backend, device)
     tree = load_any_tree(tree_path)
     bg = tuple(float(b) for b in cfg.background) if cfg.background is not None else (1.0, 1.0, 1.0)
     data = load_dataset(cfg.data, split=cfg.split, format=cfg.format, downscale=cfg.downscale,
@@ -271,7 +286,7 @@ def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
         log(f"LPIPS skipped: {problem}")
     options = RenderOptions(stop_thresh=float(cfg.stop_thresh), background=bg)
     res = evaluate_tree(tree, data, out / "renders" if cfg.save_images else None, options,
-                        backend, show_progress=cfg.show_progress,
+                        backend, show_progress=cfg.show_progress, device=device,
                         lpips_net=None if problem is not None else cfg.lpips_net)
 
     leaf_sigma = tree.leaf_data()[..., -1]
@@ -294,6 +309,7 @@ def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
                     "downscale": cfg.downscale},
         "render": {"backend": backend, "stop_thresh": float(cfg.stop_thresh),
                    "background": list(bg)},
+        "device": device_report(device),
         "lpips": {"net": cfg.lpips_net,
                   "status": "computed" if problem is None else f"skipped: {problem}"},
         **report,

@@ -72,7 +72,9 @@ class PipelineConfig:
     web: bool = True
     """export the static web-viewer bundle"""
     backend: str = "auto"
-    """renderer backend: auto, numba or torch"""
+    """renderer backend: auto, numba, triton or torch"""
+    device: str = "auto"
+    """device of every stage: auto (CUDA when a GPU is present, else cpu), cpu, cuda or cuda:N"""
     seed: int = 0
     """random seed of training and fine-tuning"""
     extra: dict = field(default_factory=dict)
@@ -170,6 +172,7 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     tcfg = train_preset(cfg.preset)
     tcfg.data, tcfg.out, tcfg.downscale, tcfg.seed = str(data), str(run_dir), cfg.downscale, cfg.seed
     tcfg.minutes = cfg.train_minutes
+    tcfg.device = cfg.device
     if cfg.train_steps:
         tcfg.max_steps = cfg.train_steps
     elif cfg.train_minutes:
@@ -214,7 +217,8 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
 
     ecfg = ExtractConfig(run_dir=str(run_dir), out=str(tree_raw), data=str(data), grid=cfg.grid,
                          samples=cfg.samples, weight_thresh=cfg.weight_thresh, eval=False,
-                         precision="fp32", backend=cfg.backend, seed=cfg.seed)
+                         precision="fp32", backend=cfg.backend, device=cfg.device,
+                         seed=cfg.seed)
     for k, v in cfg.extra.get("extract", {}).items():
         if not hasattr(ecfg, k):
             raise ConfigError(f"unknown extraction option {k!r}")
@@ -228,7 +232,7 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     fcfg = FinetuneConfig(tree=str(tree_raw), data=str(data), out=str(tree_ft),
                           epochs=cfg.finetune_epochs, lr=cfg.finetune_lr,
                           downscale=cfg.downscale, precision="fp32", backend=cfg.backend,
-                          seed=cfg.seed, resume=True, test_views=-1, verbose=False)
+                          device=cfg.device, seed=cfg.seed, resume=True, test_views=-1, verbose=False)
     for k, v in cfg.extra.get("finetune", {}).items():
         if not hasattr(fcfg, k):
             raise ConfigError(f"unknown fine-tuning option {k!r}")
@@ -257,7 +261,7 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
         ev_dir = out / f"eval_{key}"
         ecfg_ = EvalConfig(tree=str(path), data=str(data), format=cfg.format,
                            downscale=cfg.downscale, limit=cfg.eval_views or None, out=str(ev_dir),
-                           backend=cfg.backend, show_progress=False,
+                           backend=cfg.backend, device=cfg.device, show_progress=False,
                            save_images=(key == "ft"))
         r.stage(f"eval_{key}", {**common, "views": cfg.eval_views}, [path],
                 [ev_dir / "eval.json"], lambda c=ecfg_: eval_tree_file(c, log=lambda *_: None),
@@ -281,7 +285,8 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
             make_video(VideoConfig(tree=str(tree_ft), out=str(out / "orbit.mp4"), data=str(data),
                                    format=cfg.format, downscale=cfg.downscale,
                                    frames=cfg.video_frames, width=size, height=size,
-                                   backend=cfg.backend), log=lambda *_: None)
+                                   backend=cfg.backend, device=cfg.device),
+                       log=lambda *_: None)
 
         r.stage("video", {**common, "frames": cfg.video_frames, "size": cfg.video_size},
                 [tree_ft], [out / "orbit.mp4"], do_video, "check the tree file")
@@ -339,7 +344,13 @@ def _summary(cfg: PipelineConfig, out: Path, r: _Runner, evals: dict, nerf: dict
             "total_s": sum(v for v in r.times.values() if v),
             "web": str(out / "web") if cfg.web else None,
             "video": str(out / "orbit.mp4") if cfg.video_frames else None,
-            "train": train_info}
+            "train": train_info, "device": _device_json(cfg.device)}
+
+
+def _device_json(name: str) -> dict:
+    from .device import device_report, resolve_device
+
+    return device_report(resolve_device(name))
 
 
 def summary_markdown(summary: dict) -> str:

@@ -319,7 +319,9 @@ class VideoConfig:
     depth_range: tuple[float, float] | None = None
     """Depth mapped to white..black; default the tree box's extent along the rays."""
     backend: str = "auto"
-    """Renderer backend: auto, numba or torch."""
+    """Renderer backend: auto, numba, triton or torch."""
+    device: str = "auto"
+    """Where to render: auto (CUDA when a GPU is present, else cpu), cpu, cuda or cuda:N."""
     stop_thresh: float = 0.01
     """Early ray termination when transmittance < this; 0 disables."""
     background: tuple[float, float, float] | None = None
@@ -348,6 +350,8 @@ class VideoResult:
     depth_range: tuple[float, float]
     up: str | None            # orbit up axis used
     radius: float | None      # orbit radius used
+    device: str = "cpu"
+    """Where the frames were rendered (cpu, cuda:N)."""
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
@@ -445,7 +449,8 @@ def make_video(cfg: VideoConfig, log=print) -> VideoResult:
     before anything is rendered).
     """
     from .compress import load_any_tree
-    from .render import RenderOptions, render_image
+    from .device import resolve_device
+    from .render import RenderOptions, render_image, tree_to_device
 
     if cfg.mode not in MODES:
         raise ConfigError(f"--mode: expected one of {', '.join(MODES)}, got {cfg.mode!r}")
@@ -458,6 +463,7 @@ def make_video(cfg: VideoConfig, log=print) -> VideoResult:
     if not tree_path.is_file():
         raise TreeFormatError(f"{tree_path}: no such tree file")
     tree = load_any_tree(tree_path)
+    device = resolve_device(cfg.device)
     cams, info = video_cameras(cfg, tree)
     kind = info["path"]
     if cfg.out is not None:
@@ -472,13 +478,14 @@ def make_video(cfg: VideoConfig, log=print) -> VideoResult:
     bg = tuple(float(b) for b in cfg.background) if cfg.background is not None else (1.0,) * 3
     options = RenderOptions(stop_thresh=float(cfg.stop_thresh), background=bg)
     ms: list[float] = []
+    dev_tree = tree_to_device(tree, device)
 
     def frames() -> Iterator[np.ndarray]:
         for i in progress(range(len(cams)), desc="video",
                           disable=None if cfg.show_progress is None else not cfg.show_progress):
             t0 = time.perf_counter()
-            img = compose_frame(render_image(tree, cams, i, options, cfg.backend), cfg.mode,
-                                near, far)
+            img = compose_frame(render_image(dev_tree, cams, i, options, cfg.backend,
+                                             device=device), cfg.mode, near, far)
             ms.append((time.perf_counter() - t0) * 1e3)
             yield img
 
@@ -487,7 +494,8 @@ def make_video(cfg: VideoConfig, log=print) -> VideoResult:
     res = VideoResult(out=out, path=kind, mode=cfg.mode, n_frames=n, width=w, height=h,
                       render_width=cams.width, render_height=cams.height, fps=float(cfg.fps),
                       render_seconds=sum(ms) / 1e3, render_fps=1000.0 / float(np.median(timed)),
-                      depth_range=(near, far), up=info["up"], radius=info["radius"])
+                      depth_range=(near, far), up=info["up"], radius=info["radius"],
+                      device=str(device))
     if (w, h) != ((2 if cfg.mode == "both" else 1) * cams.width, cams.height):
         log(f"note: frames padded to even size {w}x{h} for H.264")
     return res

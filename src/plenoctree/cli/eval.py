@@ -13,7 +13,7 @@ def _run(args: argparse.Namespace) -> int:
     cfg = EvalConfig(
         tree=args.tree, data=args.data, split=args.split, format=args.format,
         downscale=args.downscale, limit=args.limit, out=args.out, json_path=args.json,
-        save_images=args.save_images, backend=args.backend, stop_thresh=args.stop_thresh,
+        save_images=args.save_images, backend=args.backend, device=args.device, stop_thresh=args.stop_thresh,
         background=parse_background(args.background) if args.background else None,
         lpips_net=args.lpips_net)
     report = eval_tree_file(cfg)

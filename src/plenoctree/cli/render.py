@@ -52,7 +52,10 @@ def resize_dataset(data, width: int, height: int):
 
 def add_render_options(p: argparse.ArgumentParser) -> None:
     """Add the renderer knobs shared by render-like commands."""
-    p.add_argument("--backend", default="auto", help="auto, numba or torch (default: auto)")
+    p.add_argument("--backend", default="auto",
+                   help="auto, numba, triton or torch (default: auto)")
+    p.add_argument("--device", default="auto",
+                   help="auto (CUDA when a GPU is present, else cpu), cpu, cuda or cuda:N")
     p.add_argument("--stop-thresh", type=float, default=0.01,
                    help="early ray termination when transmittance < this; 0 disables (default 0.01)")
     p.add_argument("--background", default=None,
@@ -87,10 +90,11 @@ def _run(args: argparse.Namespace) -> int:
     options = render_options_from_args(args, data.background)
     out = Path(args.out) if args.out else Path(args.tree).with_suffix("").parent / (
         Path(args.tree).stem + f"_render_{args.split}")
-    res = evaluate_tree(tree, data, out, options, args.backend)
+    res = evaluate_tree(tree, data, out, options, args.backend, device=args.device)
     print(f"{len(res.names)} views at {res.width}x{res.height} -> {out}")
     print(f"PSNR {res.mean_psnr:.2f} dB  SSIM {res.mean_ssim:.4f}  "
-          f"{res.ms_per_frame:.1f} ms/frame ({res.fps:.1f} FPS, backend {args.backend})")
+          f"{res.ms_per_frame:.1f} ms/frame ({res.fps:.1f} FPS, backend {res.backend} on "
+          f"{res.extra.get('device', 'cpu')})")
     return 0
 
 

@@ -27,7 +27,7 @@ def _run(args: argparse.Namespace) -> int:
         format=args.format, downscale=args.downscale, frames=args.frames, fps=args.fps,
         width=args.width, height=args.height, radius=args.radius, elevation=args.elevation,
         up=args.up, fov=args.fov, mode=args.mode, depth_range=_depth_range(args.depth_range),
-        backend=args.backend, stop_thresh=args.stop_thresh,
+        backend=args.backend, device=args.device, stop_thresh=args.stop_thresh,
         background=parse_background(args.background) if args.background else None,
         quality=args.quality)
     res = make_video(cfg)

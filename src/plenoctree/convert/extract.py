@@ -107,8 +107,8 @@ class ExtractConfig:
     """Folder for the test renders and metrics.json (default: none written)."""
     backend: str = "auto"
     """Kernels for the visibility filter and the evaluation: auto, numba or torch."""
-    device: str = "cpu"
-    """Device of the network: cpu or cuda."""
+    device: str = "auto"
+    """Device of the network: auto (CUDA when a GPU is present, else cpu), cpu, cuda or cuda:N."""
     amp: bool = False
     """Evaluate the network in bf16 autocast (faster on CPUs with bf16 units, less exact)."""
     threads: int = 0
@@ -284,6 +284,9 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
     from ..octree import Octree, save_tree
 
     _validate(cfg)
+    from ..device import resolve_device
+
+    cfg = dataclasses.replace(cfg, device=str(resolve_device(cfg.device)))
     _set_threads(cfg.threads)
     mon = StageMonitor()
     limit = memory_limit(cfg.memory_gb)
@@ -380,6 +383,7 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
                         extra={"sampled_points": st.points, "nonfinite_values": st.nonfinite,
                                "sigma_clamped_fp16": n_clamped,
                                "samples": cfg.samples, "masking": cfg.masking,
+                               "device": cfg.device,
                                "weight_thresh": cfg.weight_thresh, "precision": cfg.precision,
                                **vis_info,
                                "config": {k: (list(v) if isinstance(v, tuple) else v)

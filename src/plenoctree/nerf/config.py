@@ -295,7 +295,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.sparsity_weight >= 0 and cfg.sparsity_length > 0 and cfg.sparsity_points >= 0,
          "sparsity_weight >= 0, sparsity_length > 0 and sparsity_points >= 0 are required")
     need(cfg.amp in ("auto", "bf16", "off"), f"amp must be auto, bf16 or off, got {cfg.amp!r}")
-    need(cfg.device in ("auto", "cpu", "cuda"), f"device must be auto, cpu or cuda, got {cfg.device!r}")
+    need(cfg.device == "auto" or cfg.device == "cpu" or str(cfg.device).startswith("cuda"),
+         f"device must be auto, cpu, cuda or cuda:N, got {cfg.device!r}")
     need(isinstance(cfg.downscale, int) and cfg.downscale >= 1, "downscale must be an integer >= 1")
     need(cfg.threads >= -1, f"threads must be >= -1, got {cfg.threads}")
     need(cfg.val_views >= 0 and cfg.chunk >= 1 and cfg.log_every >= 1,

@@ -192,9 +192,16 @@ def train(cfg: TrainConfig, resume: bool = False,
         raise ConfigError("training needs a dataset folder (--data) and a run directory (--out)")
     n_threads = setup_threads(cfg.threads)
     tuner = ThreadTuner(n_threads) if cfg.threads == -1 else None
-    device = resolve_device(cfg.device)
+    from .distributed import render_generator, setup_distributed
+
+    dctx = setup_distributed(resolve_device(cfg.device))   # torchrun: one shard per process
+    device = dctx.device
     amp = resolve_amp(cfg.amp, device)
-    out, ck = _prepare_run_dir(cfg, resume)
+    if dctx.is_main:
+        out, ck = _prepare_run_dir(cfg, resume)
+    dctx.barrier()
+    if not dctx.is_main:
+        out, ck = _prepare_run_dir(cfg, True) if resume else (Path(cfg.out), None)
 
     data = load_dataset(cfg.data, "train", format=cfg.format, downscale=cfg.downscale,
                         background=cfg.background)
@@ -205,6 +212,7 @@ def train(cfg: TrainConfig, resume: bool = False,
         model = model_from_checkpoint(ck, expect=cfg, device=device)
     else:
         model = NeRFModel(cfg.model, data.scene_bbox, occ_res=cfg.occ_res if occ else 0).to(device)
+    dctx.broadcast_module(model)
     model.train()
     for mod in model.modules():
         if isinstance(mod, HashGridEncoding):
@@ -232,8 +240,13 @@ def train(cfg: TrainConfig, resume: bool = False,
             spr0 = float((model.scene_bbox[1] - model.scene_bbox[0]).norm()) / cfg.render_step / 2
             tstate["n_rays"] = float(min(cfg.batch_rays, max(256, cfg.target_samples / spr0)))
 
-    with atomic_write(out / "config.json", "w") as f:
-        f.write(config_json(cfg) + "\n")
+    if dctx.is_main:
+        with atomic_write(out / "config.json", "w") as f:
+            f.write(config_json(cfg) + "\n")
+    else:
+        log.write = lambda *a, **k: None           # rank 0 alone writes the logs
+    # the rendering noise: the shared generator in one process, one per rank under torchrun
+    rgen = gen if not dctx.active else render_generator(cfg.seed, dctx.rank, step, device)
 
     rays = RaySource(data, device, cfg.random_background)
     bbox = model.scene_bbox
@@ -256,6 +269,8 @@ def train(cfg: TrainConfig, resume: bool = False,
 
     def checkpoint() -> None:
         nonlocal last_ckpt_wall
+        if not dctx.is_main:
+            return
         if not all(bool(torch.isfinite(p).all()) for p in model.parameters()):
             raise TrainingError(f"the weights became NaN/inf by step {step}; training stopped "
                                 f"without overwriting the last good checkpoint ({ckpt_file}, "
@@ -269,7 +284,7 @@ def train(cfg: TrainConfig, resume: bool = False,
 
     def validate_now() -> None:
         nonlocal val_psnr
-        if val is None:
+        if val is None or not dctx.is_main:
             return
         r = evaluate_views(model, val, cfg, out_dir=out / "val", amp=amp, device=device)
         val_psnr = r["mean_psnr"]
@@ -282,7 +297,8 @@ def train(cfg: TrainConfig, resume: bool = False,
     # A time budget counts training seconds (its % and ETA are the budget's), else steps.
     timed = budget_s > 0
     bar = progress(total=round(budget_s) if timed else cfg.max_steps, desc="train",
-                   unit="s" if timed else "step", disable=quiet if quiet is not None else None,
+                   unit="s" if timed else "step",
+                   disable=(quiet if quiet is not None else None) if dctx.is_main else True,
                    **({"bar_format": "{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}"
                        "{postfix}]"} if timed and sys.stderr.isatty() else {}))
     bar.update(train_s if timed else step)
@@ -300,12 +316,14 @@ def train(cfg: TrainConfig, resume: bool = False,
                     model.occupancy.update(model.fine.density, occ_thresh, cfg.occ_decay,
                                            all_cells=step < cfg.occ_warmup_steps,
                                            generator=gen)
+                if dctx.active:     # identical on every rank already; keep it bit-identical
+                    dctx.broadcast_module(model.occupancy)
             t_occ = time.perf_counter() - t_occ
             n_rays = int(tstate["n_rays"]) if occ else cfg.batch_rays
-            o, d, target, bg = rays.sample(n_rays, gen)
+            o, d, target, bg = (dctx.shard(x) for x in rays.sample(n_rays, gen))
             if occ:
-                r = render_rays_occupancy(model, o, d, data.near, data.far, bg, cfg, True, gen,
-                                          amp, max_samples=2 * cfg.target_samples)
+                r = render_rays_occupancy(model, o, d, data.near, data.far, bg, cfg, True, rgen,
+                                          amp, max_samples=2 * cfg.target_samples // dctx.world)
                 ok = r["complete"]
                 used = int(ok.sum())
                 # (used == 0 only if the sample cap cut off every ray: skip the photometric term)
@@ -313,8 +331,8 @@ def train(cfg: TrainConfig, resume: bool = False,
                 loss = mse
             else:
                 r = render_rays_hierarchical(model, o, d, data.near, data.far, bg, cfg, True,
-                                             gen, amp)
-                used = n_rays
+                                             rgen, amp)
+                used = int(o.shape[0])
                 mse = torch.mean((r["rgb"] - target) ** 2)
                 loss = mse + torch.mean((r["rgb_coarse"] - target) ** 2)
             if cfg.sparsity_weight > 0 and cfg.sparsity_points > 0:
@@ -323,32 +341,43 @@ def train(cfg: TrainConfig, resume: bool = False,
                 with autocast(device, amp):
                     sig = model.fine.density(pts)
                 loss = loss + cfg.sparsity_weight * sparsity_loss(sig, cfg.sparsity_length)
-            if not torch.isfinite(loss):
+            n_samples = int(r["n_samples"])
+            if dctx.active:       # global figures: every rank logs, adapts and stops alike
+                g_loss, g_mse, g_used, g_samples = dctx.sum(
+                    [float(loss.detach()), float(mse.detach()), used, n_samples])
+                loss_v, mse_v = g_loss / dctx.world, g_mse / dctx.world
+                used, n_samples = int(g_used), int(g_samples)
+            else:
+                loss_v, mse_v = None, None
+            if not math.isfinite(float(loss.detach()) if loss_v is None else loss_v):
                 kept = (f"the last good checkpoint ({ckpt_file}, step "
                         f"{tstate['last_ckpt_step']}) is kept" if ckpt_file.exists()
                         else "no checkpoint had been written yet")
-                raise TrainingError(f"loss became {loss.item()} at step {step}; training "
+                raise TrainingError(f"loss became {loss_v or loss.item()} at step {step}; training "
                                     f"stopped, {kept}. Try a lower learning rate (--lr-init).")
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            dctx.average_gradients(model.parameters())
             opt.step()
             if step % 100 == 99:
                 flush_tiny_moments(opt)
             if occ:
-                spr = max(r["n_samples"], 1) / max(used, 1)
+                spr = max(n_samples, 1) / max(used, 1)
                 tstate["spr"] = spr if tstate["spr"] == 0 else 0.9 * tstate["spr"] + 0.1 * spr
                 tstate["n_rays"] = float(min(cfg.max_rays, max(
                     256, round(cfg.target_samples / tstate["spr"]))))
             step += 1
             dt = time.perf_counter() - t0
+            if dctx.active:        # rank 0's clock for all (time budgets, validation times)
+                dt = dctx.sum([dt if dctx.is_main else 0.0])[0]
             if tuner is not None:
-                tuner.after_step(step - 1, dt - t_occ, int(r["n_samples"]))
+                tuner.after_step(step - 1, dt - t_occ, n_samples)
             train_s += dt
             win["t"] += dt
             win["rays"] += used
-            win["samples"] += int(r["n_samples"])
-            win["loss"] += float(loss.detach())
-            win["mse"] += float(mse.detach())
+            win["samples"] += n_samples
+            win["loss"] += float(loss.detach()) if loss_v is None else loss_v
+            win["mse"] += float(mse.detach()) if mse_v is None else mse_v
             win["n"] += 1
             bar.update(dt if timed else 1)
             if step % cfg.log_every == 0 or finished():
@@ -388,8 +417,12 @@ def train(cfg: TrainConfig, resume: bool = False,
                "val_views": list(val.names) if val is not None else [],
                "mean_rays_per_s": _mean(log.train, "rays_per_s"),
                "mean_samples_per_s": _mean(log.train, "samples_per_s"),
-               "device": str(device), "amp": amp, "threads": torch.get_num_threads()}
-    atomic_save_json(out / "summary.json", summary)
+               "device": str(device), "amp": amp, "threads": torch.get_num_threads(),
+               "world_size": dctx.world}
+    if dctx.is_main:
+        atomic_save_json(out / "summary.json", summary)
+    dctx.barrier()
+    dctx.close()
     return TrainResult(out, step, train_s, val_psnr, model, log.as_dict())
 
 

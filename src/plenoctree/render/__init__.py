@@ -23,7 +23,8 @@ from .. import backend as _backend
 from ..errors import ConfigError, TreeFormatError
 from .options import FormatInfo, RenderOptions, RenderOutput, parse_data_format
 
-__all__ = ["RenderOptions", "RenderOutput", "available_backends", "render_rays", "render_image"]
+__all__ = ["RenderOptions", "RenderOutput", "available_backends", "render_rays", "render_image",
+           "tree_to_device"]
 
 def available_backends(device: Any = None) -> list[str]:
     """Render backends usable here (on ``device`` when given), fastest first."""
@@ -201,13 +202,58 @@ def _extra(tree: Any) -> Any:
     return extra
 
 
+class DeviceTree:
+    """A tree whose ``child``/``data`` are torch tensors on one device (see :func:`tree_to_device`).
+
+    Same attributes as :class:`~plenoctree.octree.Octree` that the renderers read: ``child``
+    int32 ``[n_nodes, 2, 2, 2]``, ``data`` float32 (float64 kept) ``[n_nodes, 2, 2, 2, D]``,
+    ``offset``, ``invradius`` (numpy float64 ``[3]``), ``data_format``, ``extra_data``.
+    """
+
+    def __init__(self, tree: Any, device: Any) -> None:
+        dev = torch.device(device)
+        data = torch.as_tensor(np.asarray(tree.data) if not isinstance(tree.data, torch.Tensor)
+                               else tree.data)
+        if data.dtype != torch.float64:
+            data = data.to(torch.float32)
+        child = tree.child if isinstance(tree.child, torch.Tensor) else \
+            torch.from_numpy(np.ascontiguousarray(tree.child))
+        self.child = child.to(device=dev, dtype=torch.int32).contiguous()
+        self.data = data.to(dev).contiguous()
+        self.offset, self.invradius = _vec3(tree.offset), _vec3(tree.invradius)
+        self.data_format = tree.data_format
+        self.extra_data = _extra(tree)
+        self.device = dev
+
+
+def tree_to_device(tree: Any, device: Any) -> Any:
+    """``tree`` with its arrays on ``device`` once (a :class:`DeviceTree`), so that a GPU
+    renders many frames without copying the tree each time; ``tree`` itself for the CPU."""
+    dev = torch.device(device)
+    if dev.type == "cpu" or isinstance(tree, DeviceTree) and tree.device == dev:
+        return tree
+    return DeviceTree(tree, dev)
+
+
 def render_image(tree: Any, cameras: Any, index: int, options: RenderOptions | None = None,
-                 backend: str = "auto") -> RenderOutput:
+                 backend: str = "auto", device: Any = None) -> RenderOutput:
     """Render camera ``index`` of ``cameras`` (a :class:`~plenoctree.datasets.Cameras`).
+
+    ``device``: where to render (``None``/``"cpu"``: numpy rays on the CPU; ``"cuda"``: the
+    rays are moved there, the outputs stay there and the call waits for the GPU, so timing it
+    measures the render). Pass a tree from :func:`tree_to_device` to avoid copying the tree
+    each frame.
 
     Returns a :class:`RenderOutput` with ``rgb [H, W, 3]``, ``depth [H, W]``, ``alpha [H, W]``.
     """
     if not hasattr(cameras, "rays"):
         raise ConfigError(f"cameras: expected a Cameras object, got {type(cameras).__name__}")
     origins, dirs = cameras.rays(index)
-    return render_rays(tree, origins, dirs, options=options, backend=backend)
+    dev = torch.device(device) if device is not None else torch.device("cpu")
+    if dev.type == "cpu":
+        return render_rays(tree, origins, dirs, options=options, backend=backend)
+    out = render_rays(tree, torch.from_numpy(origins).to(dev), torch.from_numpy(dirs).to(dev),
+                      options=options, backend=backend)
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+    return out

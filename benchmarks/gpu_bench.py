@@ -1,0 +1,287 @@
+"""GPU vs CPU, the paper-comparable figures: render FPS at 800², fine-tune rays/s, NeRF-SH training
+samples/s, extraction time — each GPU figure beside the CPU figure of the same run.
+
+Method (all on the lego scene of ``--data``):
+
+- **render**: the tree (``--tree``; default ``/work/cache/lego_256.npz``, else extracted once
+  from ``--run`` into ``--scratch``) is rendered on ``--views`` test cameras at full size (800²).
+  Rays are generated (and, for the GPU, moved to it) before timing; the tree is moved to the GPU
+  once. One warm-up render (Triton / numba compilation), then ``--repeats`` passes; median ms per
+  frame. The GPU render is checked against the CPU render (max |Δ rgb|).
+- **fine-tune**: ``--ft-steps`` SGD steps of the fine-tuner's stepper (numba on the CPU, the Triton
+  forward + analytic backward on the GPU) on random training pixels at 400²; batch
+  ``--ft-batch`` rays (CPU: 65536); rays/s over the timed steps after 2 warm-up steps. Rays
+  are copied to the device inside each step (as in ``plenoctree finetune``).
+- **train**: the ``cpu`` NeRF-SH preset on lego at 400² for ``--train-steps`` steps (CPU:
+  ``--cpu-train-steps``); the trainer's mean samples/s (its log rows).
+- **extract**: ``plenoctree extract`` of ``--run`` at ``--grid``³ without evaluation; seconds.
+
+Without a CUDA device the script says so and stops (exit status 0), writing a JSON whose
+``gpu`` entry gives the reason; ``--cpu-only`` measures the CPU column alone. The JSON records
+the machine, the load average, torch/triton versions and the ratios.
+
+Usage (a GPU machine; a few minutes)::
+
+    .venv/bin/python benchmarks/gpu_bench.py                       # writes results/gpu_bench.json
+    .venv/bin/python benchmarks/gpu_bench.py --skip extract --views 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parent
+SHARED = Path(os.environ.get("PLENOCTREE_SHARED", "/work/shared"))
+STAGES = ("render", "finetune", "train", "extract")
+
+
+def _machine() -> dict:
+    import importlib.util
+
+    info = {"python": platform.python_version(), "torch": torch.__version__,
+            "cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+            "loadavg_start": os.getloadavg(), "cuda": torch.cuda.is_available()}
+    if importlib.util.find_spec("triton") is not None:
+        import triton
+
+        info["triton"] = triton.__version__
+    if torch.cuda.is_available():
+        info["gpu"] = torch.cuda.get_device_name(0)
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                info["cpu"] = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return info
+
+
+def _sync(dev: torch.device) -> None:
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+
+
+def _tree(args, scratch: Path):
+    from plenoctree.octree import load_tree
+
+    path = Path(args.tree) if args.tree else Path("/work/cache/lego_256.npz")
+    if not path.is_file():
+        from plenoctree.convert.extract import ExtractConfig, extract
+
+        path = scratch / "lego_tree.npz"
+        if not path.is_file():
+            print(f"[gpu_bench] extracting a tree from {args.run} -> {path}", flush=True)
+            extract(ExtractConfig(run_dir=str(args.run), out=str(path), grid=args.grid,
+                                  eval=False, show_progress=False))
+    return load_tree(path), str(path)
+
+
+def bench_render(tree, data, dev: torch.device, repeats: int) -> dict:
+    from plenoctree.render import RenderOptions, render_rays, tree_to_device
+
+    opts = RenderOptions(background=tuple(float(b) for b in data.background))
+    rays = [data.cameras.rays(i) for i in range(len(data.cameras))]
+    t = tree_to_device(tree, dev)
+    if dev.type == "cuda":
+        rays = [(torch.from_numpy(o).to(dev), torch.from_numpy(d).to(dev)) for o, d in rays]
+    first = render_rays(t, *rays[0], opts)         # warm-up: compilation
+    _sync(dev)
+    ms = []
+    for _ in range(repeats):
+        for o, d in rays:
+            t0 = time.perf_counter()
+            render_rays(t, o, d, opts)
+            _sync(dev)
+            ms.append((time.perf_counter() - t0) * 1e3)
+    med = statistics.median(ms)
+    return {"ms_per_frame": med, "fps": 1000.0 / med, "frames": len(ms),
+            "width": data.cameras.width, "height": data.cameras.height,
+            "rgb_view0": first.rgb.detach().float().cpu().numpy()}
+
+
+def bench_finetune(tree, train, dev: torch.device, batch: int, steps: int) -> dict:
+    from plenoctree.optim._steppers import make_stepper
+    from plenoctree.render import RenderOptions
+
+    rng = np.random.default_rng(0)
+    n, h, w = train.images.shape[:3]
+    data2 = np.ascontiguousarray(tree.data, dtype=np.float32).reshape(-1, tree.data_dim).copy()
+    opts = RenderOptions(background=tuple(float(b) for b in train.background))
+    st = make_stepper("auto", data2, tree, opts, "sgd", None, device=str(dev))
+    batches = []
+    for _ in range(steps + 2):
+        img, row, col = rng.integers(0, n, batch), rng.integers(0, h, batch), rng.integers(0, w, batch)
+        o, d = train.cameras.pixel_rays(img, col, row)
+        batches.append((np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32),
+                        np.ascontiguousarray(train.images[img, row, col], np.float32)))
+    scale = 1.0 / (3 * h * w)
+    for b in batches[:2]:
+        st.step(*b, scale)
+    _sync(dev)
+    t0 = time.perf_counter()
+    for b in batches[2:]:
+        st.step(*b, scale)
+    _sync(dev)
+    secs = time.perf_counter() - t0
+    return {"backend": st.backend, "batch_rays": batch, "steps": steps, "seconds": secs,
+            "rays_per_s": batch * steps / secs}
+
+
+def bench_train(data_root: str, dev: torch.device, steps: int, scratch: Path) -> dict:
+    from plenoctree.nerf.config import preset
+    from plenoctree.nerf.trainer import train
+
+    cfg = preset("cpu")
+    out = scratch / f"train_{dev.type}"
+    cfg.data, cfg.out, cfg.downscale, cfg.device = data_root, str(out), 2, str(dev)
+    cfg.max_steps, cfg.minutes, cfg.val_views = steps, 0.0, 0
+    cfg.log_every = max(1, steps // 10)
+    cfg.ckpt_every_s, cfg.ckpt_every_steps = 0.0, 0
+    if out.exists():
+        import shutil
+
+        shutil.rmtree(out)
+    t0 = time.perf_counter()
+    res = train(cfg, quiet=True)
+    rows = res.log["train"][1:] or res.log["train"]      # the first window holds compilation
+    return {"steps": res.step, "wall_s": time.perf_counter() - t0,
+            "samples_per_s": float(np.mean([r["samples_per_s"] for r in rows])),
+            "rays_per_s": float(np.mean([r["rays_per_s"] for r in rows]))}
+
+
+def bench_extract(run: str, dev: torch.device, grid: int, scratch: Path) -> dict:
+    from plenoctree.convert.extract import ExtractConfig, extract
+
+    out = scratch / f"extract_{dev.type}.npz"
+    t0 = time.perf_counter()
+    res = extract(ExtractConfig(run_dir=run, out=str(out), grid=grid, eval=False,
+                                device=str(dev), show_progress=False))
+    return {"seconds": time.perf_counter() - t0, "grid": grid, "n_leaves": int(res.tree.n_leaves),
+            "stages": res.stages}
+
+
+def _table(results: dict) -> str:
+    cpu, gpu = results.get("cpu", {}), results.get("gpu", {})
+    rows = [("render FPS at 800²", "render", "fps", "{:.1f}"),
+            ("fine-tune M rays/s", "finetune", "rays_per_s", "{:.2f}", 1e-6),
+            ("NeRF-SH train M samples/s", "train", "samples_per_s", "{:.2f}", 1e-6),
+            ("extraction s", "extract", "seconds", "{:.1f}")]
+    lines = ["| figure | CPU | GPU | GPU / CPU |", "|---|---|---|---|"]
+    for name, stage, key, fmt, *mult in rows:
+        m = mult[0] if mult else 1.0
+        c = cpu.get(stage, {}).get(key)
+        g = gpu.get(stage, {}).get(key) if isinstance(gpu, dict) else None
+        ratio = "–"
+        if c and g:
+            ratio = f"{(c / g if key == 'seconds' else g / c):.1f}x"
+        lines.append(f"| {name} | {fmt.format(c * m) if c else '–'} | "
+                     f"{fmt.format(g * m) if g else '–'} | {ratio} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", default=str(SHARED / "data/nerf_synthetic/lego"))
+    ap.add_argument("--run", default=str(SHARED / "data/runs/lego_cpu_400"),
+                    help="trained NeRF-SH run (extraction, and the tree when none is given)")
+    ap.add_argument("--tree", default=None, help="tree to render / fine-tune")
+    ap.add_argument("--views", type=int, default=5, help="test views rendered at 800²")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--ft-batch", type=int, default=1 << 20, help="GPU fine-tune batch (rays)")
+    ap.add_argument("--ft-steps", type=int, default=10)
+    ap.add_argument("--train-steps", type=int, default=300)
+    ap.add_argument("--cpu-train-steps", type=int, default=30)
+    ap.add_argument("--grid", type=int, default=256)
+    ap.add_argument("--skip", nargs="*", default=[], choices=STAGES)
+    ap.add_argument("--cpu-only", action="store_true",
+                    help="without a GPU: measure the CPU column anyway")
+    ap.add_argument("--no-cpu", action="store_true", help="GPU column only")
+    ap.add_argument("--scratch", default=None, help="folder for trees and runs (default: temp)")
+    ap.add_argument("--out", default=str(ROOT / "results" / "gpu_bench.json"))
+    args = ap.parse_args(argv)
+
+    from plenoctree._util import atomic_save_json
+    from plenoctree._triton import has_triton
+
+    machine = _machine()
+    results: dict = {"machine": machine, "args": vars(args)}
+    have_gpu = torch.cuda.is_available()
+    if not have_gpu:
+        reason = "no CUDA device present: the GPU figures are still to be measured"
+        print(f"[gpu_bench] {reason}", flush=True)
+        results["gpu"] = {"skipped": reason}
+        if not args.cpu_only:
+            machine["loadavg_end"] = os.getloadavg()
+            atomic_save_json(Path(args.out), results)
+            print(f"[gpu_bench] wrote {args.out} (pass --cpu-only to measure the CPU column)")
+            return 0
+    elif not has_triton():
+        print("[gpu_bench] CUDA is present but triton is not installed: the GPU column uses "
+              "the torch twins (pip install triton)", flush=True)
+    for p in (args.data, args.run):
+        if not Path(p).exists():
+            print(f"[gpu_bench] {p}: not found (pass --data / --run)", file=sys.stderr)
+            return 2
+    scratch = Path(args.scratch) if args.scratch else Path(tempfile.mkdtemp(prefix="gpu_bench_"))
+    scratch.mkdir(parents=True, exist_ok=True)
+
+    from plenoctree.datasets import load_dataset
+
+    tree, tree_path = _tree(args, scratch)
+    results["tree"] = {"path": tree_path, "n_leaves": int(tree.n_leaves),
+                       "data_format": tree.data_format}
+    need_views = "render" not in args.skip
+    test = load_dataset(args.data, "test", limit=args.views) if need_views else None
+    train_ds = load_dataset(args.data, "train", downscale=2) if "finetune" not in args.skip \
+        else None
+    devices = ([] if args.no_cpu or not (args.cpu_only or have_gpu) else [torch.device("cpu")])
+    devices += [torch.device("cuda")] if have_gpu else []
+    for dev in devices:
+        col = "cpu" if dev.type == "cpu" else "gpu"
+        res: dict = {}
+        results[col] = res
+        print(f"[gpu_bench] {col}: ...", flush=True)
+        if "render" not in args.skip:
+            res["render"] = bench_render(tree, test, dev, args.repeats)
+            print(f"  render {res['render']['fps']:.1f} FPS", flush=True)
+        if "finetune" not in args.skip:
+            batch = args.ft_batch if dev.type == "cuda" else 1 << 16
+            res["finetune"] = bench_finetune(tree, train_ds, dev, batch, args.ft_steps)
+            print(f"  fine-tune {res['finetune']['rays_per_s'] / 1e6:.2f} M rays/s", flush=True)
+        if "train" not in args.skip:
+            steps = args.train_steps if dev.type == "cuda" else args.cpu_train_steps
+            res["train"] = bench_train(args.data, dev, steps, scratch)
+            print(f"  train {res['train']['samples_per_s'] / 1e6:.2f} M samples/s", flush=True)
+        if "extract" not in args.skip:
+            res["extract"] = bench_extract(args.run, dev, args.grid, scratch)
+            print(f"  extract {res['extract']['seconds']:.1f} s", flush=True)
+    if "cpu" in results and isinstance(results.get("gpu"), dict) and \
+            "render" in results["gpu"] and "render" in results["cpu"]:
+        diff = np.abs(results["gpu"]["render"]["rgb_view0"] - results["cpu"]["render"]["rgb_view0"])
+        results["gpu"]["render"]["max_abs_rgb_diff_vs_cpu"] = float(diff.max())
+    for col in ("cpu", "gpu"):
+        if isinstance(results.get(col), dict):
+            results[col].get("render", {}).pop("rgb_view0", None)
+    machine["loadavg_end"] = os.getloadavg()
+    table = _table(results)
+    results["table"] = table
+    print(table)
+    atomic_save_json(Path(args.out), json.loads(json.dumps(results, default=float)))
+    print(f"[gpu_bench] wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
