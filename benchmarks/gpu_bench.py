@@ -122,7 +122,8 @@ def bench_finetune(tree, train, dev: torch.device, batch: int, steps: int) -> di
     st = make_stepper("auto", data2, tree, opts, "sgd", None, device=str(dev))
     batches = []
     for _ in range(steps + 2):
-        img, row, col = rng.integers(0, n, batch), rng.integers(0, h, batch), rng.integers(0, w, batch)
+        img, row = rng.integers(0, n, batch), rng.integers(0, h, batch)
+        col = rng.integers(0, w, batch)
         o, d = train.cameras.pixel_rays(img, col, row)
         batches.append((np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32),
                         np.ascontiguousarray(train.images[img, row, col], np.float32)))

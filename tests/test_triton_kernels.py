@@ -3,8 +3,8 @@
 Without a GPU these tests execute the GPU kernels' logic in Triton's interpreter
 (``TRITON_INTERPRET=1``, set by ``conftest.py`` before triton is imported, plus
 ``PLENOCTREE_TRITON_CPU=1``, set by an autouse fixture for this module only, so that no other
-test sees Triton as usable on the CPU) on tiny inputs: the interpreter runs every block op in NumPy, so a few hundred rays
-take seconds. With a CUDA device the same tests run the compiled kernels on the GPU.
+test sees Triton as usable on the CPU) on tiny inputs: the interpreter runs every block op in
+NumPy, so a few hundred rays take seconds. With a CUDA device the same tests run the compiled kernels on the GPU.
 """
 
 from __future__ import annotations

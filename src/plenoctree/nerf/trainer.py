@@ -353,7 +353,8 @@ def train(cfg: TrainConfig, resume: bool = False,
                 kept = (f"the last good checkpoint ({ckpt_file}, step "
                         f"{tstate['last_ckpt_step']}) is kept" if ckpt_file.exists()
                         else "no checkpoint had been written yet")
-                raise TrainingError(f"loss became {loss_v or loss.item()} at step {step}; training "
+                bad = loss.item() if loss_v is None else loss_v
+                raise TrainingError(f"loss became {bad} at step {step}; training "
                                     f"stopped, {kept}. Try a lower learning rate (--lr-init).")
             opt.zero_grad(set_to_none=True)
             loss.backward()
