@@ -83,7 +83,8 @@ def _tree(args, scratch: Path):
         path = scratch / "lego_tree.npz"
         if not path.is_file():
             print(f"[gpu_bench] extracting a tree from {args.run} -> {path}", flush=True)
-            extract(ExtractConfig(run_dir=str(args.run), out=str(path), grid=args.grid,
+            extract(ExtractConfig(run_dir=str(args.run), data=str(args.data), out=str(path),
+                                  grid=args.grid,
                                   eval=False, show_progress=False))
     return load_tree(path), str(path)
 
@@ -162,12 +163,12 @@ def bench_train(data_root: str, dev: torch.device, steps: int, scratch: Path) ->
             "rays_per_s": float(np.mean([r["rays_per_s"] for r in rows]))}
 
 
-def bench_extract(run: str, dev: torch.device, grid: int, scratch: Path) -> dict:
+def bench_extract(run: str, data: str, dev: torch.device, grid: int, scratch: Path) -> dict:
     from plenoctree.convert.extract import ExtractConfig, extract
 
     out = scratch / f"extract_{dev.type}.npz"
     t0 = time.perf_counter()
-    res = extract(ExtractConfig(run_dir=run, out=str(out), grid=grid, eval=False,
+    res = extract(ExtractConfig(run_dir=run, data=data, out=str(out), grid=grid, eval=False,
                                 device=str(dev), show_progress=False))
     return {"seconds": time.perf_counter() - t0, "grid": grid, "n_leaves": int(res.tree.n_leaves),
             "stages": res.stages}
@@ -266,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
             res["train"] = bench_train(args.data, dev, steps, scratch)
             print(f"  train {res['train']['samples_per_s'] / 1e6:.2f} M samples/s", flush=True)
         if "extract" not in args.skip:
-            res["extract"] = bench_extract(args.run, dev, args.grid, scratch)
+            res["extract"] = bench_extract(args.run, args.data, dev, args.grid, scratch)
             print(f"  extract {res['extract']['seconds']:.1f} s", flush=True)
     if "cpu" in results and isinstance(results.get("gpu"), dict) and \
             "render" in results["gpu"] and "render" in results["cpu"]:
