@@ -24,6 +24,7 @@ from __future__ import annotations
 import functools
 import importlib.util
 import os
+import sys
 from typing import Any
 
 from .errors import BackendError
@@ -60,7 +61,13 @@ def interpret_mode() -> bool:
 
 
 def _usable_anywhere() -> bool:
-    return triton_usable("cuda") or triton_usable("cpu")
+    # no torch import here (backend.resolve must not load it): without torch loaded there
+    # are no CUDA tensors to run on, and interpreter mode needs none
+    if not has_triton():
+        return False
+    if interpret_mode():
+        return True
+    return "torch" in sys.modules and triton_usable("cuda")
 
 
 def register_backends() -> None:

@@ -177,6 +177,13 @@ def _block() -> int:
     return 512 if interpret_mode() else BLOCK
 
 
+def _launch_opts() -> dict:
+    """GPU launch options: 2 warps = 64 lanes, one per ray of the block (not for the interpreter)."""
+    from .._triton import interpret_mode
+
+    return {} if interpret_mode() else {"num_warps": 2}
+
+
 def prepare_rays(offset: Any, invradius: Any, origins: torch.Tensor, dirs: torch.Tensor,
                  step_eps: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-ray float64 geometry ``[N, 14]`` and unit directions ``[N, 3]`` (float64).
@@ -231,7 +238,7 @@ def march_kernel_call(child: torch.Tensor, data2: torch.Tensor, basis: torch.Ten
             _march_kernel[grid](child, data2, basis, geo, rgb, rgb, rgb, depth, alpha, data2,
                                 n, float(opts.stop_thresh), bg[0], bg[1], bg[2],
                                 D=d_dim, B=n_b, BP=bp, QB=QUANT_BITS, BACKWARD=False,
-                                BLOCK=block)
+                                BLOCK=block, **_launch_opts())
         return rgb, depth, alpha
     grad = torch.zeros_like(data2)
     if n:
@@ -239,7 +246,8 @@ def march_kernel_call(child: torch.Tensor, data2: torch.Tensor, basis: torch.Ten
         c = rgb_fwd.to(dt).contiguous()
         _march_kernel[grid](child, data2, basis, geo, g, c, g, g, g, grad,
                             n, float(opts.stop_thresh), bg[0], bg[1], bg[2],
-                            D=d_dim, B=n_b, BP=bp, QB=QUANT_BITS, BACKWARD=True, BLOCK=block)
+                            D=d_dim, B=n_b, BP=bp, QB=QUANT_BITS, BACKWARD=True, BLOCK=block,
+                            **_launch_opts())
     return grad
 
 
