@@ -24,6 +24,11 @@ Usage (a GPU machine; a few minutes)::
 
     .venv/bin/python benchmarks/gpu_bench.py                       # writes results/gpu_bench.json
     .venv/bin/python benchmarks/gpu_bench.py --skip extract --views 3
+
+On a machine whose system python already has a CUDA torch with Triton (no install step), from
+the repository root: ``PYTHONPATH=src python3 benchmarks/gpu_bench.py --data DATA --run RUN``;
+the kernels' tests then run compiled on the GPU with
+``PYTHONPATH=src python3 -m pytest tests/test_triton_kernels.py tests/test_render.py -q``.
 """
 
 from __future__ import annotations
