@@ -76,6 +76,7 @@ def add_stage_flags(p: argparse.ArgumentParser) -> list[str]:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``run`` command."""
+    from ..datasets.dataset import FORMATS
     from ..pipeline import PRESETS, PipelineConfig
     from ._options import add_config, add_config_file
 
@@ -94,6 +95,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--print-config", action="store_true",
                    help="print the resolved configuration as JSON and exit")
     dests = add_config(p, PipelineConfig, skip=("extra", "preset"),
-                       title="pipeline (PipelineConfig)")
+                       title="pipeline (PipelineConfig)", choices={"format": FORMATS})
     dests += add_stage_flags(p)
     p.set_defaults(func=_run, _dests=dests)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -278,9 +279,13 @@ def train(cfg: TrainConfig, resume: bool = False,
                         "load": round(os.getloadavg()[0], 2)})
         log.write()
 
-    bar = progress(total=cfg.max_steps if budget_s <= 0 else None, desc="train",
-                   disable=quiet if quiet is not None else None)
-    bar.update(step)
+    # A time budget counts training seconds (its % and ETA are the budget's), else steps.
+    timed = budget_s > 0
+    bar = progress(total=round(budget_s) if timed else cfg.max_steps, desc="train",
+                   unit="s" if timed else "step", disable=quiet if quiet is not None else None,
+                   **({"bar_format": "{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}"
+                       "{postfix}]"} if timed and sys.stderr.isatty() else {}))
+    bar.update(train_s if timed else step)
     try:
         while not finished():
             if tuner is not None:
@@ -345,7 +350,7 @@ def train(cfg: TrainConfig, resume: bool = False,
             win["loss"] += float(loss.detach())
             win["mse"] += float(mse.detach())
             win["n"] += 1
-            bar.update(1)
+            bar.update(dt if timed else 1)
             if step % cfg.log_every == 0 or finished():
                 m = win["mse"] / win["n"]
                 row = {"step": step, "train_s": round(train_s, 3),
