@@ -7,6 +7,7 @@ import json
 import pytest
 
 from plenoctree.cli import main
+from plenoctree.errors import ConfigError
 from plenoctree.datasets.procedural import write_procedural_dataset
 from plenoctree.pipeline import PipelineConfig, PipelineError, run_pipeline
 
@@ -67,7 +68,9 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path):
 
 def test_failing_stage_names_itself_keeps_artefacts_and_resumes(scene, tmp_path):
     out = tmp_path / "run"
-    bad = _tiny_cfg(scene, out, grid=3)  # not a power of two: extraction fails
+    bad = _tiny_cfg(scene, out)
+    bad.extra = {**bad.extra, "extract": {**bad.extra["extract"],   # removes every voxel
+                                          "mask_alpha_thresh": 0.999999}}
     with pytest.raises(PipelineError, match="stage 'extract' failed") as e:
         run_pipeline(bad, log=lambda *_: None)
     assert "rerun the same command to resume" in str(e.value)
@@ -76,6 +79,19 @@ def test_failing_stage_names_itself_keeps_artefacts_and_resumes(scene, tmp_path)
     run_pipeline(_tiny_cfg(scene, out), log=logs.append)
     assert "[train] up to date, skipped" in logs
     assert (out / "tree_ft.npz").exists()
+
+
+def test_bad_stage_option_fails_before_training(scene, tmp_path):
+    """``run --grid 100`` used to fail after the whole NeRF-SH training."""
+    out = tmp_path / "run_bad"
+    for kw, msg in (({"grid": 100}, "--grid must be a power of two"),
+                    ({"compress_bits": 40}, "bits must be an integer"),
+                    ({"finetune_lr": -1.0}, "lr must be a finite number > 0"),
+                    ({"extra": {"finetune": {"optimizer": "lbfgs"}}}, "optimizer must be"),
+                    ({"extra": {"extrct": {}}}, "unknown stage")):
+        with pytest.raises(ConfigError, match=msg):
+            run_pipeline(_tiny_cfg(scene, out, **kw), log=lambda *_: None)
+    assert not (out / "nerf").exists()
 
 
 def test_run_cli_bad_data(tmp_path, capsys):

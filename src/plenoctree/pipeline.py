@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from ._util import atomic_save_json, atomic_write
+from ._util import atomic_save_json, atomic_write, run_lock
 from .errors import ConfigError, PlenOctreeError
 
 __all__ = ["PipelineConfig", "PipelineError", "run_pipeline", "STAGES"]
@@ -74,6 +74,50 @@ class PipelineConfig:
     """random seed of training and fine-tuning"""
     extra: dict = field(default_factory=dict)
     """stage overrides: {"train": {...TrainConfig fields}, "extract": {...}, "finetune": {...}}"""
+
+    def validate(self) -> tuple[Any, Any, Any]:
+        """Check every stage's options before any work; returns the stage configs.
+
+        Builds the training, extraction and fine-tuning configs (``extra`` overrides applied)
+        and runs each stage's own validation, plus the compression, evaluation and video
+        options, so a bad value (``--grid 100``) fails at once instead of after training.
+        Returns ``(train, extract, finetune)`` configs. Raises :class:`ConfigError`.
+        """
+        from ._util import check_output_dir
+        from .compress import CompressOptions
+        from .convert.extract import _validate as validate_extract
+        from .nerf.config import validate as validate_train
+
+        if not self.data or not self.out:
+            raise ConfigError("both --data and --out are needed")
+        data, out = Path(self.data), Path(self.out)
+        if not data.exists():
+            raise ConfigError(f"{data}: dataset folder does not exist")
+        check_output_dir(out)
+        unknown = set(self.extra) - {"train", "extract", "finetune"}
+        if unknown:
+            raise ConfigError(f"unknown stage(s) in extra: {sorted(unknown)} (train, extract, "
+                              "finetune)")
+        for name, lo in (("downscale", 1), ("eval_views", 0), ("nerf_eval_views", 0),
+                         ("video_frames", 0), ("video_size", 0), ("train_steps", 0),
+                         ("samples", 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise ConfigError(f"run: {name} must be an integer >= {lo}, got {v!r}")
+        if not (isinstance(self.train_minutes, (int, float)) and self.train_minutes >= 0):
+            raise ConfigError(f"run: train_minutes must be >= 0, got {self.train_minutes!r}")
+        tcfg, ecfg, fcfg = _stage_configs(self, data, out)
+        validate_train(tcfg)
+        validate_extract(ecfg)
+        fcfg.validated()
+        CompressOptions(bits=self.compress_bits).validated()
+        from . import backend as _backend
+
+        try:
+            _backend.check_name("render", self.backend)
+        except PlenOctreeError as e:
+            raise ConfigError(f"run: backend: {e}") from None
+        return tcfg, ecfg, fcfg
 
 
 def _fingerprint(paths: list[Path]) -> dict:
@@ -136,29 +180,13 @@ def _read_json(path: Path) -> dict:
         return {}
 
 
-def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dict:
-    """Run (or resume) the whole chain; returns the summary also written to ``summary.json``.
-
-    Artefacts in ``cfg.out``: ``nerf/`` (run directory), ``nerf_eval.json``, ``tree.npz`` (raw
-    extracted octree), ``tree_ft.npz`` (fine-tuned), ``tree_ft.plnz`` (compressed),
-    ``eval_{raw,ft,compressed}/eval.json`` (the fine-tuned tree's renders and depth maps in
-    ``eval_ft/renders/``), ``web/`` (viewer bundle), ``orbit.mp4``,
-    ``summary.json`` and ``summary.md``.
-    """
-    if not cfg.data or not cfg.out:
-        raise ConfigError("both --data and --out are needed")
-    data, out = Path(cfg.data), Path(cfg.out)
-    if not data.exists():
-        raise ConfigError(f"{data}: dataset folder does not exist")
-    out.mkdir(parents=True, exist_ok=True)
-    r = _Runner(out, log)
-    common = {"data": str(data.resolve()), "format": cfg.format, "downscale": cfg.downscale}
-    run_dir, tree_raw, tree_ft = out / "nerf", out / "tree.npz", out / "tree_ft.npz"
-    tree_c = out / "tree_ft.plnz"
-
-    # 1. NeRF-SH training (resumes from its checkpoint when a previous run was cut short).
-    from .nerf.checkpoint import CHECKPOINT_NAME
+def _stage_configs(cfg: PipelineConfig, data: Path, out: Path) -> tuple[Any, Any, Any]:
+    """The training, extraction and fine-tuning configs of a run (overrides applied)."""
+    from .convert.extract import ExtractConfig
     from .nerf.config import preset as train_preset
+    from .optim.finetune import FinetuneConfig
+
+    run_dir, tree_raw, tree_ft = out / "nerf", out / "tree.npz", out / "tree_ft.npz"
 
     tcfg = train_preset(cfg.preset)
     tcfg.data, tcfg.out, tcfg.downscale, tcfg.seed = str(data), str(run_dir), cfg.downscale, cfg.seed
@@ -172,9 +200,51 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
             raise ConfigError(f"unknown training option {k!r}")
         setattr(tcfg, k, v)
 
-    from .nerf.config import validate
+    ecfg = ExtractConfig(run_dir=str(run_dir), out=str(tree_raw), data=str(data), grid=cfg.grid,
+                         samples=cfg.samples, weight_thresh=cfg.weight_thresh, eval=False,
+                         precision="fp32", backend=cfg.backend, seed=cfg.seed)
+    for k, v in cfg.extra.get("extract", {}).items():
+        if not hasattr(ecfg, k):
+            raise ConfigError(f"unknown extraction option {k!r}")
+        setattr(ecfg, k, v)
 
-    validate(tcfg)
+    fcfg = FinetuneConfig(tree=str(tree_raw), data=str(data), out=str(tree_ft),
+                          epochs=cfg.finetune_epochs, lr=cfg.finetune_lr,
+                          downscale=cfg.downscale, precision="fp32", backend=cfg.backend,
+                          seed=cfg.seed, resume=True, test_views=-1, verbose=False)
+    for k, v in cfg.extra.get("finetune", {}).items():
+        if not hasattr(fcfg, k):
+            raise ConfigError(f"unknown fine-tuning option {k!r}")
+        setattr(fcfg, k, v)
+    return tcfg, ecfg, fcfg
+
+
+def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dict:
+    """Run (or resume) the whole chain; returns the summary also written to ``summary.json``.
+
+    Artefacts in ``cfg.out``: ``nerf/`` (run directory), ``nerf_eval.json``, ``tree.npz`` (raw
+    extracted octree), ``tree_ft.npz`` (fine-tuned), ``tree_ft.plnz`` (compressed),
+    ``eval_{raw,ft,compressed}/eval.json`` (the fine-tuned tree's renders and depth maps in
+    ``eval_ft/renders/``), ``web/`` (viewer bundle), ``orbit.mp4``,
+    ``summary.json`` and ``summary.md``.
+    """
+    tcfg, ecfg, fcfg = cfg.validate()
+    data, out = Path(cfg.data), Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with run_lock(out, "run"):
+        return _run_pipeline(cfg, tcfg, ecfg, fcfg, log)
+
+
+def _run_pipeline(cfg: PipelineConfig, tcfg: Any, ecfg: Any, fcfg: Any,
+                  log: Callable[[str], None]) -> dict:
+    data, out = Path(cfg.data), Path(cfg.out)
+    r = _Runner(out, log)
+    common = {"data": str(data.resolve()), "format": cfg.format, "downscale": cfg.downscale}
+    run_dir, tree_raw, tree_ft = out / "nerf", out / "tree.npz", out / "tree_ft.npz"
+    tree_c = out / "tree_ft.plnz"
+
+    # 1. NeRF-SH training (resumes from its checkpoint when a previous run was cut short).
+    from .nerf.checkpoint import CHECKPOINT_NAME
 
     def do_train():
         from .nerf.trainer import train
@@ -203,29 +273,14 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
                 "check the training run")
 
     # 3. Conversion to an octree.
-    from .convert.extract import ExtractConfig, extract
+    from .convert.extract import extract
 
-    ecfg = ExtractConfig(run_dir=str(run_dir), out=str(tree_raw), data=str(data), grid=cfg.grid,
-                         samples=cfg.samples, weight_thresh=cfg.weight_thresh, eval=False,
-                         precision="fp32", backend=cfg.backend, seed=cfg.seed)
-    for k, v in cfg.extra.get("extract", {}).items():
-        if not hasattr(ecfg, k):
-            raise ConfigError(f"unknown extraction option {k!r}")
-        setattr(ecfg, k, v)
     r.stage("extract", _config_dict(ecfg), [run_dir / CHECKPOINT_NAME], [tree_raw],
             lambda: extract(ecfg), "change the extraction options (--grid, --weight-thresh)")
 
     # 4. Fine-tuning of the leaf values on the training photos.
-    from .optim.finetune import FinetuneConfig, finetune
+    from .optim.finetune import finetune
 
-    fcfg = FinetuneConfig(tree=str(tree_raw), data=str(data), out=str(tree_ft),
-                          epochs=cfg.finetune_epochs, lr=cfg.finetune_lr,
-                          downscale=cfg.downscale, precision="fp32", backend=cfg.backend,
-                          seed=cfg.seed, resume=True, test_views=-1, verbose=False)
-    for k, v in cfg.extra.get("finetune", {}).items():
-        if not hasattr(fcfg, k):
-            raise ConfigError(f"unknown fine-tuning option {k!r}")
-        setattr(fcfg, k, v)
     ft_settings = {k: v for k, v in _config_dict(fcfg).items()
                    if k not in ("resume", "verbose", "show_progress")}
     r.stage("finetune", ft_settings, [tree_raw], [tree_ft], lambda: finetune(fcfg),

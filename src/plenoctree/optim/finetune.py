@@ -181,6 +181,21 @@ def _has_split(root: Path, split: str) -> bool:
 
 
 def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None) -> FinetuneResult:
+    """Fine-tune ``config.tree`` on ``config.data`` and write ``config.out`` (see :func:`_finetune`).
+
+    Before any work: ``out`` must be a writable file name that is not a directory nor an
+    unrelated file (:func:`plenoctree._util.check_output_file`); the run holds a lock on
+    ``out`` (``.<name>.lock`` beside it) so two fine-tunings into one file cannot race.
+    """
+    from .._util import check_output_file, run_lock
+
+    cfg = config.validated()
+    out = check_output_file(cfg.out)
+    with run_lock(out, "finetune", folder=False):
+        return _finetune(cfg, log_fn)
+
+
+def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None) -> FinetuneResult:
     """Fine-tune ``config.tree`` on ``config.data`` and write ``config.out``.
 
     Steps: load and check the tree (leaves, finite values, some σ > 0) and the dataset (its box
