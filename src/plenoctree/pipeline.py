@@ -34,6 +34,9 @@ class PipelineConfig:
 
     data: str = ""
     """dataset folder (any supported format)"""
+    images: str = ""
+    """your photos (a folder) or a video instead of --data: the first stage, `process`
+    (COLMAP poses), writes the dataset OUT/data"""
     out: str = ""
     """output folder: every artefact of the chain goes there"""
     format: str | None = None
@@ -88,10 +91,16 @@ class PipelineConfig:
         from .convert.extract import _validate as validate_extract
         from .nerf.config import validate as validate_train
 
-        if not self.data or not self.out:
-            raise ConfigError("both --data and --out are needed")
-        data, out = Path(self.data), Path(self.out)
-        if not data.exists():
+        if not (self.data or self.images) or not self.out:
+            raise ConfigError("--out and one of --data / --images are needed")
+        if self.data and self.images:
+            raise ConfigError("give either --data (a dataset) or --images (photos / a video), "
+                              "not both")
+        out = Path(self.out)
+        data = out / "data" if self.images else Path(self.data)
+        if self.images and not Path(self.images).exists():
+            raise ConfigError(f"{self.images}: no such folder of photos or video file")
+        if not self.images and not data.exists():
             raise ConfigError(f"{data}: dataset folder does not exist")
         check_output_dir(out)
         unknown = set(self.extra) - {"train", "extract", "finetune"}
@@ -229,7 +238,7 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     ``summary.json`` and ``summary.md``.
     """
     tcfg, ecfg, fcfg = cfg.validate()
-    data, out = Path(cfg.data), Path(cfg.out)
+    out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     with run_lock(out, "run"):
         return _run_pipeline(cfg, tcfg, ecfg, fcfg, log)
@@ -237,8 +246,12 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
 
 def _run_pipeline(cfg: PipelineConfig, tcfg: Any, ecfg: Any, fcfg: Any,
                   log: Callable[[str], None]) -> dict:
-    data, out = Path(cfg.data), Path(cfg.out)
+    out = Path(cfg.out)
     r = _Runner(out, log)
+    # 0. camera poses of the user's photos / video (plenoctree.process) into OUT/data
+    data = _process_stage(cfg, out, r, log) if cfg.images else Path(cfg.data)
+    if not data.exists():
+        raise ConfigError(f"{data}: dataset folder does not exist")
     common = {"data": str(data.resolve()), "format": cfg.format, "downscale": cfg.downscale}
     run_dir, tree_raw, tree_ft = out / "nerf", out / "tree.npz", out / "tree_ft.npz"
     tree_c = out / "tree_ft.plnz"
@@ -342,6 +355,21 @@ def _run_pipeline(cfg: PipelineConfig, tcfg: Any, ecfg: Any, fcfg: Any,
     log("")
     log(summary_markdown(summary))
     return summary
+
+
+def _process_stage(cfg: PipelineConfig, out: Path, r: _Runner, log: Callable) -> Path:
+    """Run ``process`` on ``cfg.images`` into ``OUT/data`` (skipped when up to date)."""
+    from .process import ProcessConfig, process
+
+    src, data = Path(cfg.images), out / "data"
+    if not src.exists():
+        raise ConfigError(f"{src}: no such folder of photos or video file")
+    inputs = sorted(p for p in src.iterdir() if p.is_file()) if src.is_dir() else [src]
+    r.stage("process", {"images": str(src.resolve())}, inputs, [data / "process.json"],
+            lambda: process(ProcessConfig(images=str(src), out=str(data), overwrite=True),
+                            log=log), "check the photos (see the message) or run "
+            "`plenoctree process` with other options into --data")
+    return data
 
 
 def _config_dict(cfg: Any) -> dict:
