@@ -30,7 +30,10 @@ import numpy as np
 
 from plenoctree._util import atomic_save_json
 
-LEGO = Path(__file__).resolve().parents[1].parent / "shared/data/nerf_synthetic/lego"
+_HERE = Path(__file__).resolve().parents[1]          # the checkout (a worktree: one deeper)
+LEGO = next((d / "shared/data/nerf_synthetic/lego" for d in (_HERE.parent, _HERE.parent.parent)
+             if (d / "shared/data/nerf_synthetic/lego").is_dir()),
+            _HERE.parent / "shared/data/nerf_synthetic/lego")
 OUTLIER_DEG = 5.0
 
 
@@ -68,12 +71,20 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
 
 
 def pose_errors(est: np.ndarray, ref: np.ndarray) -> dict:
-    """Errors of OpenGL c2w ``est [N, 4, 4]`` against ``ref`` after a similarity alignment."""
-    s, r, t = umeyama(est[:, :3, 3], ref[:, :3, 3])
-    centres = (s * (r @ est[:, :3, 3].T)).T + t
-    cerr = np.linalg.norm(centres - ref[:, :3, 3], axis=1) / np.linalg.norm(ref[:, :3, 3], axis=1)
-    cos = (np.einsum("nij,nij->n", r @ est[:, :3, :3], ref[:, :3, :3]) - 1) / 2
-    rerr = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+    """Errors of OpenGL c2w ``est [N, 4, 4]`` against ``ref`` after a similarity alignment
+    (fitted on all cameras, then refitted without the outliers so that one flipped camera
+    does not tilt the others; the outliers stay in the max figures and are counted)."""
+    keep = np.ones(len(est), bool)
+    for _ in range(2):
+        s, r, t = umeyama(est[keep, :3, 3], ref[keep, :3, 3])
+        centres = (s * (r @ est[:, :3, 3].T)).T + t
+        cerr = (np.linalg.norm(centres - ref[:, :3, 3], axis=1)
+                / np.linalg.norm(ref[:, :3, 3], axis=1))
+        cos = (np.einsum("nij,nij->n", r @ est[:, :3, :3], ref[:, :3, :3]) - 1) / 2
+        rerr = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+        keep = rerr <= OUTLIER_DEG
+        if keep.sum() < 3:
+            break
     return {"rot_median_deg": float(np.median(rerr)), "rot_max_deg": float(rerr.max()),
             "centre_median_pct": float(100 * np.median(cerr)),
             "centre_max_pct": float(100 * cerr.max()),

@@ -17,7 +17,10 @@ from plenoctree.process.frames import sharpness, video_frames
 
 pytest.importorskip("pycolmap")
 
-LEGO = Path(__file__).resolve().parents[1].parent / "shared/data/nerf_synthetic/lego"
+_HERE = Path(__file__).resolve().parents[1]          # the checkout (a worktree: one deeper)
+LEGO = next((d / "shared/data/nerf_synthetic/lego" for d in (_HERE.parent, _HERE.parent.parent)
+             if (d / "shared/data/nerf_synthetic/lego").is_dir()),
+            _HERE.parent / "shared/data/nerf_synthetic/lego")
 
 
 def _noise(path, size=(48, 40), seed=0):
@@ -152,3 +155,17 @@ def test_lego_video_end_to_end(tmp_path):
     data = load_dataset(out, "all")
     assert len(data) == s["n_registered"] and data.images.shape[1:3] == (160, 160)
     assert (out / "images_2").is_dir() and (out / "colmap" / "sparse" / "0").is_dir()
+
+
+def test_run_images_stage_reports_bad_photos(tmp_path):
+    """`run --images` runs `process` first; a bad folder stops it in that stage, no OUT/data."""
+    from plenoctree.pipeline import PipelineConfig, PipelineError, run_pipeline
+
+    d = tmp_path / "imgs"
+    d.mkdir()
+    _noise(d / "only.png")
+    with pytest.raises(PipelineError, match=r"stage 'process' failed: .*imgs: 1 photo"):
+        run_pipeline(PipelineConfig(images=str(d), out=str(tmp_path / "run")), log=lambda *_: None)
+    assert not (tmp_path / "run" / "data").exists()
+    with pytest.raises(ConfigError, match="either --data .* or --images"):
+        run_pipeline(PipelineConfig(images=str(d), data=str(d), out=str(tmp_path / "run")))

@@ -8,9 +8,12 @@ can cause (too few images, too few matches, nothing registered) raises
 
 Defaults chosen by measurement on the lego training photos (``benchmarks/colmap_poses.py``):
 one camera shared by every image (``single_camera``), exhaustive matching with guided matching
-(re-matching along the epipolar geometry once the two-view geometry is known), and a mapper
-that rejects ill-conditioned image registrations (``abs_pose_min_num_inliers`` 50,
-``init_min_tri_angle`` 8) followed by a final global bundle adjustment.
+(re-matching along the epipolar geometry once the two-view geometry is known), and a stricter
+mapper (:data:`MAPPER_DEFAULTS`: an image is registered only with >= 100 inliers, >= 50 %
+inlier ratio and <= 4 px error; observations over 2 px are filtered; no structure-less
+fallback registration). COLMAP's own mapper settings registered one lego photo on the wrong
+side of the object (165° off); these register 98 of 100 with none off by more than 0.5°.
+A final global bundle adjustment refines the chosen model.
 """
 
 from __future__ import annotations
@@ -29,7 +32,10 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
                  "OPENCV_FISHEYE")
 
 
-MAPPER_DEFAULTS = {"mapper.abs_pose_min_num_inliers": 50, "mapper.init_min_tri_angle": 8.0}
+MAPPER_DEFAULTS = {"structure_less_registration_fallback": False,
+                   "mapper.abs_pose_min_num_inliers": 100, "mapper.abs_pose_max_error": 4.0,
+                   "mapper.abs_pose_min_inlier_ratio": 0.5, "mapper.filter_max_reproj_error": 2.0,
+                   "mapper.init_min_tri_angle": 8.0}
 """Mapper settings changed from COLMAP's (chosen on lego by ``benchmarks/colmap_poses.py``)."""
 
 
