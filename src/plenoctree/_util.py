@@ -20,6 +20,7 @@ __all__ = [
     "atomic_save_json",
     "save_png",
     "progress",
+    "LogProgress",
     "check_shape",
 ]
 
@@ -78,14 +79,145 @@ def save_png(path: str | os.PathLike, img: Any) -> None:
         Image.fromarray(arr).save(f, format="PNG")
 
 
-def progress(iterable: Iterable | None = None, total: int | None = None, desc: str = "",
+#: Seconds between two progress lines when stderr is not a terminal (log files, CI, ``run``
+#: piped to ``tee``); ``PLENOCTREE_PROGRESS_INTERVAL`` overrides it.
+PROGRESS_INTERVAL_S = 10.0
+
+
+def _fmt_time(seconds: float) -> str:
+    s = int(max(seconds, 0) + 0.5)
+    h, rem = divmod(s, 3600)
+    return f"{h}:{rem // 60:02d}:{rem % 60:02d}" if h else f"{rem // 60}:{rem % 60:02d}"
+
+
+def _fmt_count(n: float, scale: bool) -> str:
+    if not scale:
+        return f"{n:.0f}" if float(n).is_integer() else f"{n:.1f}"
+    for div, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if abs(n) >= div:
+            return f"{n / div:.2f}{suffix}"
+    return f"{n:.0f}"
+
+
+class LogProgress:
+    """A progress reporter for non-terminals: one plain line every ``interval`` seconds.
+
+    Same calls as the part of tqdm the package uses (iterate, ``update``, ``set_postfix``,
+    ``set_description``, ``close``, ``n``, ``total``, context manager). Each line reads
+    ``desc: 45% 450/1000 step [1:23 elapsed, ETA 1:41, 5.42 step/s] loss=0.01``; without a
+    total, the count and rate only. A step shorter than ``interval`` prints nothing; a longer one
+    also prints a final line when it closes. Lines go to ``sys.stderr`` (looked up per line).
+    """
+
+    def __init__(self, iterable: Iterable | None = None, total: float | None = None,
+                 desc: str = "", interval: float | None = None, unit: str = "it",
+                 unit_scale: bool = False, clock: Any = None, **_: Any) -> None:
+        import time
+
+        self.iterable = iterable
+        if total is None and iterable is not None and hasattr(iterable, "__len__"):
+            total = len(iterable)  # type: ignore[arg-type]
+        self.total = total
+        self.desc, self.unit, self.unit_scale = desc, unit, bool(unit_scale)
+        if interval is None:
+            interval = float(os.environ.get("PLENOCTREE_PROGRESS_INTERVAL", PROGRESS_INTERVAL_S))
+        self.interval = float(interval)
+        self._clock = clock or time.monotonic
+        self.start = self._last = self._clock()
+        self.n: float = 0
+        self.postfix = ""
+        self.lines = 0
+        self.closed = False
+
+    def __iter__(self) -> Iterator[Any]:
+        try:
+            for item in self.iterable:  # type: ignore[union-attr]
+                yield item
+                self.update(1)
+        finally:
+            self.close()
+
+    def __len__(self) -> int:
+        return int(self.total or 0)
+
+    def __enter__(self) -> LogProgress:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def update(self, n: float = 1) -> None:
+        self.n += n
+        now = self._clock()
+        if now - self._last >= self.interval:
+            self._last = now
+            self._emit(now)
+
+    def set_postfix(self, ordered_dict: Any = None, refresh: bool = True, **kw: Any) -> None:
+        items = dict(ordered_dict or {}, **kw)
+        self.postfix = " ".join(f"{k}={v}" for k, v in items.items())
+
+    def set_postfix_str(self, s: str = "", refresh: bool = True) -> None:
+        self.postfix = str(s)
+
+    def set_description(self, desc: str | None = None, refresh: bool = True) -> None:
+        self.desc = desc or ""
+
+    def refresh(self) -> None:
+        pass
+
+    def write(self, s: str) -> None:
+        print(s, file=sys.stderr, flush=True)
+
+    def format_line(self, now: float | None = None) -> str:
+        """The progress line as it would be printed at time ``now`` (default: the clock)."""
+        elapsed = (self._clock() if now is None else now) - self.start
+        rate = self.n / elapsed if elapsed > 0 else 0.0
+        count = _fmt_count(self.n, self.unit_scale)
+        head = f"{self.desc}: " if self.desc else ""
+        if self.total:
+            frac = min(max(self.n / self.total, 0.0), 1.0)
+            eta = (self.total - self.n) / rate if rate > 0 else float("nan")
+            eta_s = _fmt_time(eta) if eta == eta else "?"
+            text = (f"{head}{100 * frac:3.0f}% {count}/{_fmt_count(self.total, self.unit_scale)} "
+                    f"{self.unit} [{_fmt_time(elapsed)} elapsed, ETA {eta_s}, "
+                    f"{_fmt_count(rate, self.unit_scale) if rate >= 10 else f'{rate:.2f}'} "
+                    f"{self.unit}/s]")
+        else:
+            text = (f"{head}{count} {self.unit} [{_fmt_time(elapsed)} elapsed, "
+                    f"{rate:.2f} {self.unit}/s]")
+        return f"{text} {self.postfix}".rstrip()
+
+    def _emit(self, now: float) -> None:
+        self.lines += 1
+        print(self.format_line(now), file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        if self.lines:                       # only steps long enough to have reported
+            self._emit(self._clock())
+
+
+def progress(iterable: Iterable | None = None, total: float | None = None, desc: str = "",
              disable: bool | None = None, **kw: Any):
-    """A tqdm progress bar on stderr; disabled when stderr is not a terminal unless ``disable=False``."""
+    """Progress of a long step on stderr, with % and ETA when ``total`` is known.
+
+    On a terminal: a tqdm bar. Otherwise (log file, CI, a pipe): a :class:`LogProgress`, one
+    plain line every ``PROGRESS_INTERVAL_S`` seconds (``PLENOCTREE_PROGRESS_INTERVAL``), nothing
+    for steps shorter than that. ``disable=True`` shows nothing; ``None``/``False`` = shown.
+    ``total`` may be a float (e.g. seconds of a time budget, updated with ``update(dt)``).
+    """
+    if disable:
+        from tqdm.auto import tqdm
+
+        return tqdm(iterable, total=total, desc=desc, disable=True, **kw)
+    if not sys.stderr.isatty():
+        return LogProgress(iterable, total=total, desc=desc, **kw)
     from tqdm.auto import tqdm
 
-    if disable is None:
-        disable = not sys.stderr.isatty()
-    return tqdm(iterable, total=total, desc=desc, disable=disable, dynamic_ncols=True, **kw)
+    return tqdm(iterable, total=total, desc=desc, dynamic_ncols=True, **kw)
 
 
 def check_shape(name: str, x: Any, shape: tuple) -> None:
