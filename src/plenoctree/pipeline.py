@@ -16,10 +16,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from ._util import atomic_save_json, atomic_write, run_lock
+from ._config import apply
+from ._util import atomic_save_json, atomic_write, check_output_dir, run_lock
 from .errors import ConfigError, PlenOctreeError
+from .optim.finetune import DEFAULT_EPOCHS
 
-__all__ = ["PipelineConfig", "PipelineError", "run_pipeline", "STAGES"]
+__all__ = ["PipelineConfig", "PipelineError", "run_pipeline", "STAGES", "PRESETS",
+           "pipeline_preset", "check_extras"]
 
 STAGES = ("train", "nerf_eval", "extract", "finetune", "eval", "compress", "web", "video")
 
@@ -55,7 +58,7 @@ class PipelineConfig:
     """random samples averaged per leaf at extraction"""
     weight_thresh: float = 0.001
     """visibility threshold τ_w on the maximum ray weight of a voxel"""
-    finetune_epochs: int = 20
+    finetune_epochs: int = DEFAULT_EPOCHS
     """maximum fine-tuning epochs (stops at the first validation drop)"""
     finetune_lr: float | None = None
     """fine-tuning learning rate (default: the fine-tuner's SGD default)"""
@@ -76,57 +79,51 @@ class PipelineConfig:
     seed: int = 0
     """random seed of training and fine-tuning"""
     extra: dict = field(default_factory=dict)
-    """stage overrides: {"train": {...TrainConfig fields}, "extract": {...}, "finetune": {...}}"""
+    """stage overrides: {"train": {...TrainConfig fields, "model": {...}}, "extract": {...},
+    "finetune": {...}} (the CLI's --train.*, --extract.*, --finetune.* flags)"""
 
-    def validate(self) -> tuple[Any, Any, Any]:
-        """Check every stage's options before any work; returns the stage configs.
 
-        Builds the training, extraction and fine-tuning configs (``extra`` overrides applied)
-        and runs each stage's own validation, plus the compression, evaluation and video
-        options, so a bad value (``--grid 100``) fails at once instead of after training.
-        Returns ``(train, extract, finetune)`` configs. Raises :class:`ConfigError`.
-        """
-        from ._util import check_output_dir
-        from .compress import CompressOptions
-        from .convert.extract import _validate as validate_extract
-        from .nerf.config import validate as validate_train
+STAGE_OPTIONS = ("train", "extract", "finetune")
+"""Stages whose every config field ``extra`` may set (``plenoctree run --<stage>.<field>``)."""
 
-        if not (self.data or self.images) or not self.out:
-            raise ConfigError("--out and one of --data / --images are needed")
-        if self.data and self.images:
-            raise ConfigError("give either --data (a dataset) or --images (photos / a video), "
-                              "not both")
-        out = Path(self.out)
-        data = out / "data" if self.images else Path(self.data)
-        if self.images and not Path(self.images).exists():
-            raise ConfigError(f"{self.images}: no such folder of photos or video file")
-        if not self.images and not data.exists():
-            raise ConfigError(f"{data}: dataset folder does not exist")
-        check_output_dir(out)
-        unknown = set(self.extra) - {"train", "extract", "finetune"}
-        if unknown:
-            raise ConfigError(f"unknown stage(s) in extra: {sorted(unknown)} (train, extract, "
-                              "finetune)")
-        for name, lo in (("downscale", 1), ("eval_views", 0), ("nerf_eval_views", 0),
-                         ("video_frames", 0), ("video_size", 0), ("train_steps", 0),
-                         ("samples", 1)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-                raise ConfigError(f"run: {name} must be an integer >= {lo}, got {v!r}")
-        if not (isinstance(self.train_minutes, (int, float)) and self.train_minutes >= 0):
-            raise ConfigError(f"run: train_minutes must be >= 0, got {self.train_minutes!r}")
-        tcfg, ecfg, fcfg = _stage_configs(self, data, out)
-        validate_train(tcfg)
-        validate_extract(ecfg)
-        fcfg.validated()
-        CompressOptions(bits=self.compress_bits).validated()
-        from . import backend as _backend
+PRESETS: dict[str, dict[str, Any]] = {
+    "cpu": {},
+    "paper": {"preset": "paper", "train_minutes": 0.0, "grid": 512, "samples": 256,
+              "extra": {"extract": {"bbox_scale": 1.1}}},
+    "quick": {"train_minutes": 3.0, "grid": 128, "samples": 4, "finetune_epochs": 2,
+              "nerf_eval_views": 1, "eval_views": 5, "video_frames": 0},
+}
+"""Settings of ``plenoctree run --preset NAME`` over the :class:`PipelineConfig` defaults:
+``cpu`` (the defaults: cpu NeRF-SH preset, 256³), ``paper`` (the paper's NeRF-SH, 512³,
+256 samples per voxel; for GPUs), ``quick`` (a few minutes end to end, to try a dataset)."""
 
-        try:
-            _backend.check_name("render", self.backend)
-        except PlenOctreeError as e:
-            raise ConfigError(f"run: backend: {e}") from None
-        return tcfg, ecfg, fcfg
+
+def pipeline_preset(name: str) -> PipelineConfig:
+    """A fresh :class:`PipelineConfig` of preset ``name`` (see :data:`PRESETS`)."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown run preset {name!r}; choose one of {sorted(PRESETS)}")
+    import copy
+
+    return apply(PipelineConfig(), copy.deepcopy(PRESETS[name]), where=f"preset {name}")
+
+
+def _check_extra(extra: dict) -> None:
+    unknown = sorted(set(extra) - set(STAGE_OPTIONS))
+    if unknown:
+        raise ConfigError(f"stage overrides for {unknown}: only {', '.join(STAGE_OPTIONS)} "
+                          "take options")
+
+
+def check_extras(cfg: PipelineConfig) -> None:
+    """Fail at the start, with the install hint, when a stage needs a missing optional
+    package (the orbit video needs ``plenoctree[video]``)."""
+    import importlib.util
+
+    if cfg.video_frames > 0:
+        missing = [m for m in ("imageio", "imageio_ffmpeg") if importlib.util.find_spec(m) is None]
+        if missing:
+            raise ConfigError(f"the video stage needs {' and '.join(missing)} (not installed): "
+                              "pip install 'plenoctree[video]', or pass --video-frames 0")
 
 
 def _fingerprint(paths: list[Path]) -> dict:
@@ -189,45 +186,6 @@ def _read_json(path: Path) -> dict:
         return {}
 
 
-def _stage_configs(cfg: PipelineConfig, data: Path, out: Path) -> tuple[Any, Any, Any]:
-    """The training, extraction and fine-tuning configs of a run (overrides applied)."""
-    from .convert.extract import ExtractConfig
-    from .nerf.config import preset as train_preset
-    from .optim.finetune import FinetuneConfig
-
-    run_dir, tree_raw, tree_ft = out / "nerf", out / "tree.npz", out / "tree_ft.npz"
-
-    tcfg = train_preset(cfg.preset)
-    tcfg.data, tcfg.out, tcfg.downscale, tcfg.seed = str(data), str(run_dir), cfg.downscale, cfg.seed
-    tcfg.minutes = cfg.train_minutes
-    if cfg.train_steps:
-        tcfg.max_steps = cfg.train_steps
-    elif cfg.train_minutes:
-        tcfg.max_steps = 10**9  # the time budget decides
-    for k, v in cfg.extra.get("train", {}).items():
-        if not hasattr(tcfg, k):
-            raise ConfigError(f"unknown training option {k!r}")
-        setattr(tcfg, k, v)
-
-    ecfg = ExtractConfig(run_dir=str(run_dir), out=str(tree_raw), data=str(data), grid=cfg.grid,
-                         samples=cfg.samples, weight_thresh=cfg.weight_thresh, eval=False,
-                         precision="fp32", backend=cfg.backend, seed=cfg.seed)
-    for k, v in cfg.extra.get("extract", {}).items():
-        if not hasattr(ecfg, k):
-            raise ConfigError(f"unknown extraction option {k!r}")
-        setattr(ecfg, k, v)
-
-    fcfg = FinetuneConfig(tree=str(tree_raw), data=str(data), out=str(tree_ft),
-                          epochs=cfg.finetune_epochs, lr=cfg.finetune_lr,
-                          downscale=cfg.downscale, precision="fp32", backend=cfg.backend,
-                          seed=cfg.seed, resume=True, test_views=-1, verbose=False)
-    for k, v in cfg.extra.get("finetune", {}).items():
-        if not hasattr(fcfg, k):
-            raise ConfigError(f"unknown fine-tuning option {k!r}")
-        setattr(fcfg, k, v)
-    return tcfg, ecfg, fcfg
-
-
 def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dict:
     """Run (or resume) the whole chain; returns the summary also written to ``summary.json``.
 
@@ -237,16 +195,19 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     ``eval_ft/renders/``), ``web/`` (viewer bundle), ``orbit.mp4``,
     ``summary.json`` and ``summary.md``.
     """
-    tcfg, ecfg, fcfg = cfg.validate()
-    out = Path(cfg.out)
+    if not (cfg.data or cfg.images) or not cfg.out:
+        raise ConfigError("--out and one of --data / --images are needed")
+    if cfg.data and cfg.images:
+        raise ConfigError("give either --data (a dataset) or --images (photos / a video), not both")
+    out = check_output_dir(cfg.out)
+    check_extras(cfg)
     out.mkdir(parents=True, exist_ok=True)
-    with run_lock(out, "run"):
-        return _run_pipeline(cfg, tcfg, ecfg, fcfg, log)
+    with run_lock(out, "run"):      # a second run / resume into OUT fails naming the holder
+        return _run_pipeline(cfg, out, log)
 
 
-def _run_pipeline(cfg: PipelineConfig, tcfg: Any, ecfg: Any, fcfg: Any,
-                  log: Callable[[str], None]) -> dict:
-    out = Path(cfg.out)
+def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) -> dict:
+    atomic_save_json(out / "config.json", _config_dict(cfg))   # `run --config` reads it back
     r = _Runner(out, log)
     # 0. camera poses of the user's photos / video (plenoctree.process) into OUT/data
     data = _process_stage(cfg, out, r, log) if cfg.images else Path(cfg.data)
@@ -258,6 +219,43 @@ def _run_pipeline(cfg: PipelineConfig, tcfg: Any, ecfg: Any, fcfg: Any,
 
     # 1. NeRF-SH training (resumes from its checkpoint when a previous run was cut short).
     from .nerf.checkpoint import CHECKPOINT_NAME
+    from .nerf.config import preset as train_preset
+
+    tcfg = train_preset(cfg.preset)
+    tcfg.data, tcfg.out, tcfg.downscale, tcfg.seed = str(data), str(run_dir), cfg.downscale, cfg.seed
+    tcfg.minutes, tcfg.format = cfg.train_minutes, cfg.format
+    if cfg.train_steps:
+        tcfg.max_steps = cfg.train_steps
+    elif cfg.train_minutes:
+        tcfg.max_steps = 10**9  # the time budget decides
+    _check_extra(cfg.extra)
+    apply(tcfg, cfg.extra.get("train", {}), where="--train")
+
+    from .nerf.config import validate
+
+    validate(tcfg)
+
+    # Every stage's options are checked now, not after the training (which takes minutes).
+    from .convert.extract import ExtractConfig, extract
+
+    ecfg = ExtractConfig(run_dir=str(run_dir), out=str(tree_raw), data=str(data), grid=cfg.grid,
+                         samples=cfg.samples, weight_thresh=cfg.weight_thresh, eval=False,
+                         precision="fp32", backend=cfg.backend, seed=cfg.seed)
+    apply(ecfg, cfg.extra.get("extract", {}), where="--extract")
+    from .optim.finetune import FinetuneConfig, finetune
+
+    fcfg = FinetuneConfig(tree=str(tree_raw), data=str(data), out=str(tree_ft),
+                          epochs=cfg.finetune_epochs, lr=cfg.finetune_lr,
+                          downscale=cfg.downscale, precision="fp32", backend=cfg.backend,
+                          seed=cfg.seed, resume=True, test_views=-1, verbose=False)
+    apply(fcfg, cfg.extra.get("finetune", {}), where="--finetune")
+    from .convert.extract import _validate as validate_extract
+
+    validate_extract(ecfg)
+    fcfg.validated()
+    from .compress import CompressOptions
+
+    CompressOptions(bits=cfg.compress_bits).validated()
 
     def do_train():
         from .nerf.trainer import train
@@ -286,14 +284,10 @@ def _run_pipeline(cfg: PipelineConfig, tcfg: Any, ecfg: Any, fcfg: Any,
                 "check the training run")
 
     # 3. Conversion to an octree.
-    from .convert.extract import extract
-
     r.stage("extract", _config_dict(ecfg), [run_dir / CHECKPOINT_NAME], [tree_raw],
             lambda: extract(ecfg), "change the extraction options (--grid, --weight-thresh)")
 
     # 4. Fine-tuning of the leaf values on the training photos.
-    from .optim.finetune import finetune
-
     ft_settings = {k: v for k, v in _config_dict(fcfg).items()
                    if k not in ("resume", "verbose", "show_progress")}
     r.stage("finetune", ft_settings, [tree_raw], [tree_ft], lambda: finetune(fcfg),
