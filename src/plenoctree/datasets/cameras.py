@@ -11,6 +11,8 @@ normalised, then rotated into world space by ``c2w[:3, :3]``; the origin is ``c2
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 from dataclasses import dataclass
 from typing import Any, Sequence
@@ -305,6 +307,16 @@ class Cameras:
         f = float(factor)
         return Cameras(self.c2w.copy(), self.fx / f, self.fy / f, self.cx / f, self.cy / f,
                        self.width // factor, self.height // factor, self.ndc, self.ndc_near)
+
+    def resized(self, width: int, height: int) -> "Cameras":
+        """The same cameras rendering ``width`` x ``height`` images: focal lengths and
+        principal point scale per axis with the size (the field of view is kept). The one
+        intrinsics rescale (:meth:`scaled` is the integer-downscale case, exact to the bit)."""
+        if width == self.width and height == self.height:
+            return self
+        sx, sy = width / self.width, height / self.height
+        return dataclasses.replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx,
+                                   cy=self.cy * sy, width=int(width), height=int(height))
 
     def select(self, indices: Sequence[int] | np.ndarray | slice) -> "Cameras":
         """A new :class:`Cameras` holding the cameras ``c2w[indices]`` (and their intrinsics)."""

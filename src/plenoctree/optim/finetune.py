@@ -193,11 +193,11 @@ def _load_split(root: Any, split: str, cfg: FinetuneConfig) -> Any:
 
 
 def _has_split(root: Path, split: str) -> bool:
-    """Whether ``root`` has split ``split``: a Blender ``transforms_<split>.json``, or an LLFF
-    capture (whose train / test splits always exist: every ``llffhold``-th image is test)."""
-    if (Path(root) / f"transforms_{split}.json").is_file():
-        return True
-    return split in ("train", "test") and (Path(root) / "poses_bounds.npy").is_file()
+    """Whether ``root`` has split ``split``, by the dataset loader's own rules (Blender, LLFF,
+    NSVF, nerfstudio, COLMAP): :func:`plenoctree.datasets.dataset.has_split`."""
+    from ..datasets.dataset import has_split
+
+    return has_split(root, split)
 
 
 def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None) -> FinetuneResult:
