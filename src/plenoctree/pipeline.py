@@ -282,6 +282,9 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     summary = _summary(cfg, out, r, evals, _read_json(nerf_json),
                        _read_json(run_dir / "summary.json"))
     atomic_save_json(out / "summary.json", summary)
+    from .plots import plot_stages               # PSNR against FPS and MB (needs matplotlib)
+
+    plot_stages(summary["rows"], out / "stages.png", title=f"{Path(cfg.data).name}: stages")
     with atomic_write(out / "summary.md", "w") as f:
         f.write(summary_markdown(summary))
     log("")
