@@ -104,10 +104,13 @@ def test_torch_twin_backend_takes_the_same_steps(scene):
     views = ViewSet.from_dataset(load_dataset(scene / "data", "train"))
     opts = RenderOptions()
     d2 = tree.data.reshape(-1, tree.data_dim)
-    for optimizer, lr, chunks in (("sgd", 2e4, 3), ("adam", 1e-2, 1), ("adam", 1e-2, 3),
-                                  ("rmsprop", 1e-3, 2)):
-        fast = NumbaStepper(d2.copy(), kernel_args(tree, opts), optimizer, lr, n_chunks=chunks)
-        twin = TorchStepper(d2.copy(), tree, opts, optimizer, lr, device="cpu")
+    for optimizer, lr, chunks, slr in (("sgd", 2e4, 3, None), ("adam", 1e-2, 1, None),
+                                       ("adam", 1e-2, 3, None), ("rmsprop", 1e-3, 2, None),
+                                       ("sgd", 2e4, 2, 6e4), ("adam", 1e-2, 3, 0.5),
+                                       ("rmsprop", 1e-3, 1, 0.2)):
+        fast = NumbaStepper(d2.copy(), kernel_args(tree, opts), optimizer, lr, n_chunks=chunks,
+                            sigma_lr=slr)
+        twin = TorchStepper(d2.copy(), tree, opts, optimizer, lr, device="cpu", sigma_lr=slr)
         rng = np.random.default_rng(1)
         for _ in range(3):
             o, d, t = views.rays(views.tile_pixels(rng.choice(views.n_tiles(2), 256, False), 2))

@@ -34,6 +34,9 @@ class PipelineConfig:
 
     data: str = ""
     """dataset folder (any supported format)"""
+    images: str = ""
+    """your photos (a folder) or a video instead of --data: the first stage, `process`
+    (COLMAP poses), writes the dataset OUT/data"""
     out: str = ""
     """output folder: every artefact of the chain goes there"""
     format: str | None = None
@@ -145,13 +148,17 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     ``eval_ft/renders/``), ``web/`` (viewer bundle), ``orbit.mp4``,
     ``summary.json`` and ``summary.md``.
     """
-    if not cfg.data or not cfg.out:
-        raise ConfigError("both --data and --out are needed")
-    data, out = Path(cfg.data), Path(cfg.out)
-    if not data.exists():
-        raise ConfigError(f"{data}: dataset folder does not exist")
+    if not (cfg.data or cfg.images) or not cfg.out:
+        raise ConfigError("--out and one of --data / --images are needed")
+    if cfg.data and cfg.images:
+        raise ConfigError("give either --data (a dataset) or --images (photos / a video), not both")
+    out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     r = _Runner(out, log)
+    # 0. camera poses of the user's photos / video (plenoctree.process) into OUT/data
+    data = _process_stage(cfg, out, r, log) if cfg.images else Path(cfg.data)
+    if not data.exists():
+        raise ConfigError(f"{data}: dataset folder does not exist")
     common = {"data": str(data.resolve()), "format": cfg.format, "downscale": cfg.downscale}
     run_dir, tree_raw, tree_ft = out / "nerf", out / "tree.npz", out / "tree_ft.npz"
     tree_c = out / "tree_ft.plnz"
@@ -290,6 +297,21 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     log("")
     log(summary_markdown(summary))
     return summary
+
+
+def _process_stage(cfg: PipelineConfig, out: Path, r: _Runner, log: Callable) -> Path:
+    """Run ``process`` on ``cfg.images`` into ``OUT/data`` (skipped when up to date)."""
+    from .process import ProcessConfig, process
+
+    src, data = Path(cfg.images), out / "data"
+    if not src.exists():
+        raise ConfigError(f"{src}: no such folder of photos or video file")
+    inputs = sorted(p for p in src.iterdir() if p.is_file()) if src.is_dir() else [src]
+    r.stage("process", {"images": str(src.resolve())}, inputs, [data / "process.json"],
+            lambda: process(ProcessConfig(images=str(src), out=str(data), overwrite=True),
+                            log=log), "check the photos (see the message) or run "
+            "`plenoctree process` with other options into --data")
+    return data
 
 
 def _config_dict(cfg: Any) -> dict:

@@ -52,7 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Run the whole chain on a dataset. Each stage writes its artefact "
                     "atomically and is skipped when its artefact and settings are unchanged, "
                     "so a killed run continues where it stopped.")
-    p.add_argument("--data", required=True, help="dataset folder (any supported format)")
+    p.add_argument("--data", default="", help="dataset folder (any supported format); or "
+                   "--images")
     p.add_argument("--out", required=True, help="output folder")
     add_pipeline_flags(p, PipelineConfig())
     p.set_defaults(func=_run)

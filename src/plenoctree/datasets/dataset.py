@@ -66,7 +66,7 @@ class Dataset:
         return len(self.cameras)
 
 
-FORMATS = ("blender", "llff", "nsvf", "nerfstudio")
+FORMATS = ("blender", "llff", "nsvf", "nerfstudio", "colmap")
 """Dataset formats :func:`load_dataset` reads (values of its ``format`` argument)."""
 
 _SIGNATURES = {
@@ -74,6 +74,7 @@ _SIGNATURES = {
     "nerfstudio": "transforms.json",
     "llff": "poses_bounds.npy",
     "nsvf": "intrinsics.txt + pose/",
+    "colmap": "sparse/0/cameras.bin|txt",
 }
 
 
@@ -87,6 +88,10 @@ def _matches(root: Path) -> list[str]:
         found.append("llff")
     if (root / "intrinsics.txt").is_file() and (root / "pose").is_dir():
         found.append("nsvf")
+    from .colmap_model import find_colmap_model
+
+    if find_colmap_model(root) is not None:
+        found.append("colmap")
     return found
 
 
@@ -94,7 +99,8 @@ def detect_format(root: str | os.PathLike) -> str:
     """Name of the dataset format of folder ``root`` (one of :data:`FORMATS`).
 
     Signatures: Blender ``transforms_<split>.json``; nerfstudio / instant-ngp
-    ``transforms.json``; LLFF ``poses_bounds.npy``; NSVF ``intrinsics.txt`` and ``pose/``.
+    ``transforms.json``; LLFF ``poses_bounds.npy``; NSVF ``intrinsics.txt`` and ``pose/``;
+    COLMAP a model folder ``sparse/0`` (or ``sparse``, or the folder itself) with ``cameras``.
     Raises :class:`DatasetError` when none or several match (then pass ``format=``).
     """
     root = Path(root)
@@ -122,7 +128,8 @@ def load_dataset(root: str | os.PathLike, split: str = "train", format: str | No
             ``limit`` and ``num_threads`` (see :func:`~plenoctree.datasets.blender.load_blender`,
             :func:`~plenoctree.datasets.llff.load_llff` (``llffhold``, ``ndc``, ``spherify``,
             ...), :func:`~plenoctree.datasets.nsvf.load_nsvf`,
-            :func:`~plenoctree.datasets.nerfstudio.load_nerfstudio`).
+            :func:`~plenoctree.datasets.nerfstudio.load_nerfstudio`,
+            :func:`~plenoctree.datasets.colmap.load_colmap` (``scene``)).
     """
     from ..errors import ConfigError
 
@@ -139,6 +146,8 @@ def load_dataset(root: str | os.PathLike, split: str = "train", format: str | No
         from .llff import load_llff as loader
     elif fmt == "nsvf":
         from .nsvf import load_nsvf as loader
+    elif fmt == "colmap":
+        from .colmap import load_colmap as loader
     else:
         from .nerfstudio import load_nerfstudio as loader
     try:

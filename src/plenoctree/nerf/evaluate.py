@@ -103,16 +103,16 @@ def render_nerf_views(run_dir: str | Path, split: str = "test", views: int = 0,
     """
     from ..datasets import load_dataset
     from .checkpoint import load_nerf
-    from .trainer import resolve_amp, resolve_device, setup_threads, tune_malloc
+    from ..runtime import resolve_amp, resolve_device, setup_threads
 
-    tune_malloc()
     setup_threads(threads)
     model = load_nerf(run_dir)
     cfg = model.train_config
     device = resolve_device(cfg.device)
     model = model.to(device)
     use_amp = resolve_amp(amp or cfg.amp, device)
-    dataset = load_dataset(data or cfg.data, split, downscale=downscale or cfg.downscale,
+    dataset = load_dataset(data or cfg.data, split, format=None if data else cfg.format,
+                           downscale=downscale or cfg.downscale,
                            background=cfg.background)
     if indices is not None:
         bad = [i for i in indices if not 0 <= i < len(dataset)]

@@ -53,6 +53,13 @@ class FinetuneConfig:
     lr: float | None = _f(None, "learning rate; default 1e7 for sgd (paper units: per-pixel mean "
                                 "loss of one image), 1e-2 for adam, 1e-3 for rmsprop")
     optimizer: str = _f("sgd", "sgd (paper), adam or rmsprop (lazy: touched cells only)")
+    lr_sigma: float | None = _f(None, "adam / rmsprop: learning rate of σ in opacity units (a step "
+                                      "changes σ·h by about this, h = the finest leaf side); "
+                                      "default: lr (sgd: always lr)")
+    lr_decay: float = _f(1.0, "multiply the learning rate by this over the epochs (exponential "
+                              "schedule; 1 = constant)")
+    backoffs: int = _f(0, "on a validation drop (or a divergence) restore the best values and "
+                          "halve the learning rate, up to this many times, before stopping")
     batch_rays: int = _f(1 << 16, "rays per optimisation step, drawn at random from all images")
     ray_tile: int = _f(4, "draw rays as random k x k pixel tiles (1 = independent pixels); "
                           "every pixel is still used once per epoch, and tiles run 2-3x faster")
@@ -85,7 +92,7 @@ class FinetuneConfig:
             if getattr(self, name) in (None, ""):
                 raise ConfigError(f"finetune: {name} is required")
         for name, lo in (("epochs", 0), ("batch_rays", 1), ("ray_tile", 1), ("downscale", 1),
-                         ("val_every", 0),
+                         ("val_every", 0), ("backoffs", 0),
                          ("val_views", 0), ("test_views", -1)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
@@ -96,6 +103,13 @@ class FinetuneConfig:
         if self.lr is not None and not (isinstance(self.lr, (int, float)) and math.isfinite(self.lr)
                                         and self.lr > 0):
             raise ConfigError(f"finetune: lr must be a finite number > 0, got {self.lr!r}")
+        if self.lr_sigma is not None and not (isinstance(self.lr_sigma, (int, float))
+                                              and math.isfinite(self.lr_sigma)
+                                              and self.lr_sigma > 0):
+            raise ConfigError(f"finetune: lr_sigma must be a finite number > 0, got "
+                              f"{self.lr_sigma!r}")
+        if not (isinstance(self.lr_decay, (int, float)) and 0.0 < float(self.lr_decay) <= 1.0):
+            raise ConfigError(f"finetune: lr_decay must be in (0, 1], got {self.lr_decay!r}")
         if not 0.0 < float(self.val_fraction) < 1.0:
             raise ConfigError(f"finetune: val_fraction must be in (0, 1), got {self.val_fraction!r}")
         if self.precision not in _PRECISIONS:
@@ -124,6 +138,7 @@ class FinetuneResult:
     epochs_run: int
     steps: int
     stop_reason: str
+    backoffs: int
     wall_seconds: float
     train_rays_per_second: float
     backend: str
@@ -239,11 +254,15 @@ def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None
     del train
 
     data2 = np.ascontiguousarray(tree.data, dtype=np.float32).reshape(-1, tree.data_dim).copy()
-    stepper = make_stepper(cfg.backend, data2, tree, opts, cfg.optimizer, cfg.lr)
     lr = DEFAULT_LR[cfg.optimizer] if cfg.lr is None else float(cfg.lr)
+    h = float(tree.leaf_sizes().min())
+    sigma_lr = None if cfg.optimizer == "sgd" or cfg.lr_sigma is None else float(cfg.lr_sigma) / h
+    stepper = make_stepper(cfg.backend, data2, tree, opts, cfg.optimizer, lr, sigma_lr)
     say(f"finetune: {tree_path} ({tree.n_leaves} leaves, {tree.data_format}) on {cfg.data} "
         f"[{len(train_set)} train / {len(val_set) if val_set else 0} val views, "
-        f"{train_set.width}x{train_set.height}], {cfg.optimizer} lr={lr:g}, "
+        f"{train_set.width}x{train_set.height}], {cfg.optimizer} lr={lr:g}"
+        f"{'' if sigma_lr is None else f' (σ {sigma_lr:g} = {cfg.lr_sigma:g}/h)'}"
+        f"{'' if cfg.lr_decay == 1 else f' decaying x{cfg.lr_decay:g}'}, "
         f"batch {cfg.batch_rays} rays in {cfg.ray_tile}x{cfg.ray_tile} tiles, "
         f"backend {stepper.backend}")
 
@@ -266,12 +285,17 @@ def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None
             f.write(json.dumps(rec) + "\n")
         if rec["event"] == "val":
             say(f"  epoch {rec['epoch']:3d}: val PSNR {rec['val_psnr']:.3f} dB")
+        elif rec["event"] == "backoff":
+            say(f"  back-off {rec['backoffs']}: {rec['reason']}; best values restored, "
+                f"learning rate x{rec['lr_scale']:g}")
         elif rec["event"] == "epoch":
             say(f"  epoch {rec['epoch']:3d}: train PSNR {rec['train_psnr']:.3f} dB, "
                 f"{rec['seconds']:.1f} s, {rec['rays_per_s'] / 1e6:.2f} M rays/s in the steps")
 
     fingerprint = {"tree": str(tree_path.resolve()), "n_cells": int(data2.shape[0]),
                    "data_dim": int(data2.shape[1]), "optimizer": cfg.optimizer, "lr": lr,
+                   "sigma_lr": sigma_lr, "lr_decay": float(cfg.lr_decay),
+                   "backoffs": int(cfg.backoffs),
                    "batch_rays": int(cfg.batch_rays), "ray_tile": int(cfg.ray_tile),
                    "downscale": int(cfg.downscale),
                    "seed": int(cfg.seed), "backend": stepper.backend}
@@ -282,7 +306,8 @@ def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None
                            val_every=int(cfg.val_every),
                            stop_on_decrease=not cfg.continue_on_decrease, seed=int(cfg.seed),
                            checkpoint=ckpt, resume=bool(cfg.resume), fingerprint=fingerprint,
-                           log=log, show_progress=cfg.show_progress)
+                           log=log, show_progress=cfg.show_progress,
+                           backoffs=int(cfg.backoffs), lr_decay=float(cfg.lr_decay))
 
     out_tree = dataclasses.replace(tree, data=best.reshape(tree.data.shape))
     try:
@@ -300,7 +325,7 @@ def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None
         val_psnr_before=state.history[0]["val_psnr"] if state.history else None,
         val_psnr_best=state.best_psnr if math.isfinite(state.best_psnr) else None,
         best_epoch=state.best_epoch, epochs_run=state.epochs_done, steps=state.steps,
-        stop_reason=state.stop_reason, wall_seconds=time.perf_counter() - t_start,
+        stop_reason=state.stop_reason, backoffs=state.backoffs, wall_seconds=time.perf_counter() - t_start,
         train_rays_per_second=state.train_rays / max(state.train_seconds, 1e-9),
         backend=stepper.backend, history=state.history)
     log({"event": "end", **result.to_json()})
