@@ -267,11 +267,15 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     # 7. Static web-viewer bundle and orbit video.
     if cfg.web:
         def do_web():
+            from .datasets import load_dataset
             from .viewer.export import export_web
 
-            export_web(tree_c, out / "web", overwrite=True)
+            train = load_dataset(data, split="train", format=cfg.format, downscale=4)
+            cams = None if train.cameras.ndc else train.cameras   # page: world-space only
+            export_web(tree_c, out / "web", overwrite=True, cameras=cams,
+                       camera_names=train.names)
 
-        r.stage("web", {}, [tree_c], [out / "web" / "index.html"], do_web,
+        r.stage("web", {"cameras": 1}, [tree_c], [out / "web" / "index.html"], do_web,
                 "use `plenoctree lod` to make a smaller tree")
     if cfg.video_frames > 0:
         def do_video():

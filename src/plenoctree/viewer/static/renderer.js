@@ -204,7 +204,11 @@ void main() {
     float g = 1.0 - clamp((depth - u_depth_range.x) / max(u_depth_range.y - u_depth_range.x, 1e-6), 0.0, 1.0);
     frag_color = vec4(vec3(g) * alpha + T * u_background, 1.0);
   } else {
-    frag_color = vec4(vec3(alpha) + T * u_background, 1.0);
+    // opacity drawn in the colour that contrasts with the background (white on dark, black
+    // on light), so it shows on the default white background too
+    float lum = dot(u_background, vec3(0.299, 0.587, 0.114));
+    vec3 ink = lum > 0.5 ? vec3(0.0) : vec3(1.0);
+    frag_color = vec4(mix(u_background, ink, alpha), 1.0);
   }
 }`;
 
