@@ -127,3 +127,27 @@ def test_stage_plot(tmp_path):
     assert not plot_stages([{"stage": "x", "psnr": None, "fps": None, "mb": None}],
                            tmp_path / "n.png")
     assert not (tmp_path / "n.png").exists()
+
+
+def test_cli_plot_summary_and_log(tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    from plenoctree.cli import main
+
+    summary = tmp_path / "summary.json"
+    summary.write_text(json.dumps({"rows": [{"stage": "a", "psnr": 30, "fps": 2, "mb": 10},
+                                            {"stage": "b", "psnr": 31, "fps": 3, "mb": 5}]}))
+    assert main(["plot", str(summary)]) == 0
+    assert (tmp_path / "stages.png").exists() and "stage plot" in capsys.readouterr().out
+    log = tmp_path / "ft.log.jsonl"
+    _write_log(log)
+    assert main(["plot", str(log), "--title", "t"]) == 0
+    assert (tmp_path / "ft.curve.png").exists()
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"rows": 3}')
+    assert main(["plot", str(bad)]) == 1
+    assert "summary.json" in capsys.readouterr().err
+    empty = tmp_path / "empty.json"
+    empty.write_text("[]")
+    assert main(["plot", str(empty)]) == 1
+    assert "nothing to plot" in capsys.readouterr().err
+    assert main(["plot", str(tmp_path / "missing.json")]) == 1

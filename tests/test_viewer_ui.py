@@ -249,3 +249,61 @@ def test_file_url_says_to_serve_the_folder(browser, scene):
     assert "web server" in msg.inner_text() and "http.server" in msg.inner_text()
     assert page.locator("#status").inner_text() == ""
     page.close()
+
+
+def test_radiance_probe_matches_the_tree(bundle, scene):
+    """The probe picks the max-weight leaf along the ray (checked by the same march in numpy)
+    and its lumisphere shows sigmoid(sum k Y(-n)) for each sphere normal n."""
+    from plenoctree.export import point_colors
+
+    tree = scene["tree"]
+    bundle.evaluate("window.viewer.resetView()")
+    origin = np.array([0.05, 3.0, -0.15])             # from above onto the glossy sphere
+    target = np.array([0.0, 0.35, -0.2])
+    d = (target - origin) / np.linalg.norm(target - origin)
+    S = 32
+    hit = bundle.evaluate("([o, d, s]) => window.viewer.probeRay(o, d, s)",
+                          [origin.tolist(), d.tolist(), S])
+    assert hit is not None and hit["sigma"] > 0 and hit["weight"] > 0.05
+    # the same uniform march in numpy
+    o_t = tree.world_to_tree(origin)
+    d_t = d * tree.invradius
+    with np.errstate(divide="ignore"):
+        a, b = (0 - o_t) / d_t, (1 - o_t) / d_t
+    t0, t1 = max(0.0, np.minimum(a, b).max()), np.maximum(a, b).min()
+    n = 2048
+    t = t0 + (np.arange(n) + 0.5) * (t1 - t0) / n
+    sig = np.maximum(tree.query(origin + t[:, None] * d)[:, -1], 0)
+    alpha = 1 - np.exp(-sig * (t1 - t0) / n)
+    T = np.concatenate([[1.0], np.cumprod(1 - alpha)[:-1]])
+    w = T * alpha
+    w[T <= 1e-3] = 0
+    i = int(np.argmax(w))
+    assert hit["weight"] == pytest.approx(w[i], rel=1e-3)
+    want = tree.query(origin + t[i] * d)
+    got = np.asarray(hit["coeffs"], np.float64).T.reshape(-1)        # [B][3] -> channel-major
+    np.testing.assert_allclose(got, want[:-1], atol=1e-6)
+    np.testing.assert_allclose(hit["point"], origin + hit["t"] * d if "t" in hit else
+                               origin + t[i] * d, atol=1e-3)
+    # lumisphere pixels
+    img = np.frombuffer(base64.b64decode(hit["image"]), np.uint8).reshape(S, S, 4)
+    rot = np.reshape(_view(bundle)["c2w"], (4, 4))[:3, :3]
+    u = (np.arange(S) + 0.5) * 2 / S - 1
+    x, y = np.meshgrid(u, -u)
+    inside = x ** 2 + y ** 2 <= 1
+    z = np.sqrt(np.clip(1 - x ** 2 - y ** 2, 0, 1))
+    nrm = np.stack([x, y, z], -1)[inside] @ rot.T
+    col = point_colors(tree, np.broadcast_to(want[:-1], (len(nrm), want.size - 1)), -nrm)
+    assert np.abs(img[inside][:, :3].astype(float) - col * 255).max() <= 1.0
+    assert (img[~inside][:, 3] == 0).all()
+    assert np.ptp(img[inside][:, :3].astype(float), 0).max() > 5     # view-dependent colour
+
+
+def test_alt_click_probes_the_scene(bundle):
+    bundle.evaluate("window.viewer.resetView()")
+    box = bundle.locator("#canvas").bounding_box()
+    bundle.locator("#canvas").click(position={"x": box["width"] / 2, "y": box["height"] / 2},
+                                    modifiers=["Alt"])
+    info = bundle.evaluate("document.getElementById('probe_info').textContent")
+    assert "sigma" in info, info
+    assert bundle.locator("#probe_box").get_attribute("open") is not None

@@ -164,20 +164,30 @@ def plot_stages(rows: Sequence[dict], out: str | os.PathLike, title: str | None 
     rows = [r for r in rows if ok(r.get("psnr"))]
     if plt is None or not any(ok(r.get("fps")) or ok(r.get("mb")) for r in rows):
         return False
-    fig, axes = plt.subplots(1, 2, figsize=(9.6, 4.0), dpi=110, sharey=True)
-    for ax, key, label in ((axes[0], "fps", "frames per second (log)"),
-                           (axes[1], "mb", "size, MB (log)")):
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    fig, axes = plt.subplots(1, 2, figsize=(10.0, 4.2), dpi=110, sharey=True)
+    for ax, key, label, unit in ((axes[0], "fps", "frames per second (log)", "FPS"),
+                                 (axes[1], "mb", "size, MB (log)", "MB")):
         for i, r in enumerate(rows):
             if not ok(r.get(key)):
                 continue
-            ax.scatter([r[key]], [r["psnr"]], s=60, color=f"C{i}", zorder=3)
-            ax.annotate(f"{r['stage']}\n{r['psnr']:.2f} dB, {r[key]:.3g}", (r[key], r["psnr"]),
-                        textcoords="offset points", xytext=(6, 4), fontsize=8)
+            ax.scatter([r[key]], [r["psnr"]], s=60, color=f"C{i}", zorder=3,
+                       label=f"{r['stage']}: {r['psnr']:.2f} dB" if key == "fps" or
+                       not ok(rows[i].get("fps")) else None)
+            ax.annotate(f"{r[key]:.3g} {unit}", (r[key], r["psnr"]), textcoords="offset points",
+                        xytext=(6, -3 - 9 * (i % 2)), fontsize=8, color=f"C{i}")
         ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel(label)
         ax.grid(alpha=0.3, which="both")
-        ax.margins(x=0.35, y=0.25)
+        ax.margins(x=0.3, y=0.2)
     axes[0].set_ylabel("PSNR (dB)")
+    fig.legend(loc="lower center", ncol=min(len(rows), 3), fontsize=8, frameon=False)
     fig.suptitle(title or "stages: quality, speed and size")
-    _save(fig, plt, out)
+    fig.tight_layout(rect=(0, 0.12, 1, 1))
+    with atomic_write(out, "wb") as f:
+        fig.savefig(f, format="png")
+    plt.close(fig)
     return True

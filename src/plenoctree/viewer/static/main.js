@@ -6,6 +6,7 @@ import { NpzArchive, FormatError } from "./npz.js";
 import { packTree, LimitError } from "./tree.js";
 import { Renderer, GLError } from "./renderer.js";
 import { OrbitCamera, UP } from "./camera.js";
+import { probeRay, lumisphere } from "./probe.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -70,6 +71,11 @@ const api = {
   jumpToCamera(i) { jumpToCamera(i); },
   setFov(deg) { setFov(deg); },
   dismissMessage() { dismissMessage(); },
+  // Radiance probe along a world ray: {leaf, point, sigma, coeffs, weight, image (base64 RGBA
+  // size x size lumisphere seen with the current view's rotation)} or null.
+  probeRay(origin, dir, size = 128) { return runProbe(origin, dir, size); },
+  // Probe the pixel (x, y) of the canvas (CSS pixels from the top-left).
+  probe(x, y) { return probePixel(x, y); },
 };
 window.viewer = api;
 
@@ -230,6 +236,41 @@ function drawCameras(view) {
     for (const k of [2, 3, 4, 1]) ctx.lineTo(...pts[k]);
     ctx.stroke();
   });
+}
+
+// ---------------------------------------------------------------- radiance probe
+function runProbe(origin, dir, size = 128) {
+  if (!renderer || !renderer.tree) return null;
+  const l = Math.hypot(...dir) || 1;
+  const d = dir.map((v) => v / l);
+  const hit = probeRay(renderer.tree, origin, d);
+  const info = $("probe_info");
+  const cv = $("probe_canvas");
+  const ctx = cv.getContext("2d");
+  ctx.clearRect(0, 0, cv.width, cv.height);
+  if (!hit) { info.textContent = "nothing along this ray"; return null; }
+  const view = fixedView || camera.view(size, size);
+  const img = lumisphere(renderer.tree, hit.coeffs, view.c2w, size);
+  const shown = size === cv.width ? img : lumisphere(renderer.tree, hit.coeffs, view.c2w, cv.width);
+  ctx.putImageData(new ImageData(shown, cv.width, cv.width), 0, 0);
+  info.textContent = `leaf ${hit.leaf} at (${hit.point.map((v) => v.toFixed(3)).join(", ")}), `
+    + `sigma ${hit.sigma.toFixed(2)}, weight ${hit.weight.toFixed(2)}; the sphere shows the colour `
+    + "seen from each direction (as oriented in the current view)";
+  let s = "";
+  for (let i = 0; i < img.length; i += 0x8000) s += String.fromCharCode.apply(null, img.subarray(i, i + 0x8000));
+  return { leaf: hit.leaf, point: hit.point, sigma: hit.sigma, weight: hit.weight,
+    coeffs: hit.coeffs, image: btoa(s) };
+}
+
+function probePixel(x, y) {
+  const w = Math.max(1, canvas.clientWidth), h = Math.max(1, canvas.clientHeight);
+  const view = fixedView ? { ...fixedView } : camera.view(w, h);
+  const sx = view.width / w, sy = view.height / h;
+  const m = view.c2w;
+  const dc = [(x * sx - view.cx) / view.fx, -(y * sy - view.cy) / view.fy, -1];
+  const dir = [0, 1, 2].map((k) => m[4 * k] * dc[0] + m[4 * k + 1] * dc[1] + m[4 * k + 2] * dc[2]);
+  $("probe_box").open = true;
+  return runProbe([m[3], m[7], m[11]], dir);
 }
 
 // ---------------------------------------------------------------- keyboard fly
@@ -439,6 +480,11 @@ function buildControls() {
   $("camera_prev").addEventListener("click", () => jumpToCamera(Number($("camera_select").value) - 1));
   $("camera_next").addEventListener("click", () => jumpToCamera(Number($("camera_select").value) + 1));
   $("show_cameras").addEventListener("change", () => invalidate());
+  canvas.addEventListener("click", (e) => {
+    if (!(e.altKey || $("probe_mode").checked) || api.state !== "ready") return;
+    const r = canvas.getBoundingClientRect();
+    probePixel(e.clientX - r.left, e.clientY - r.top);
+  });
   camera.onChange = () => { invalidate(); };
   camera.attach(canvas);
 }
