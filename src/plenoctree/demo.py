@@ -15,6 +15,7 @@ from pathlib import Path
 
 from ._util import atomic_save_json
 from .errors import ConfigError
+from .optim.finetune import DEFAULT_EPOCHS
 
 __all__ = ["DemoConfig", "run_demo"]
 
@@ -40,7 +41,7 @@ class DemoConfig:
     """NeRF-SH training steps (0 = the time budget decides)"""
     grid: int = 128
     """octree finest resolution at extraction (power of two)"""
-    finetune_epochs: int = 10
+    finetune_epochs: int = DEFAULT_EPOCHS
     """maximum fine-tuning epochs"""
     video_frames: int = 40
     """frames of the orbit video (0 = none)"""

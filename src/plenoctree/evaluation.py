@@ -17,7 +17,8 @@ from .datasets import Dataset
 from .metrics import lpips as lpips_score
 from .metrics import psnr, ssim
 from .octree import Octree
-from .render import RenderOptions, render_image
+
+# The renderer (torch) is imported inside the functions: EvalConfig is read by `--help`.
 
 __all__ = ["EvalConfig", "EvalResult", "depth_to_image", "eval_markdown", "eval_tree_file",
            "evaluate_tree", "metrics_markdown"]
@@ -153,6 +154,8 @@ def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None
     Returns:
         An :class:`EvalResult` with PSNR/SSIM/ms (and LPIPS) per view.
     """
+    from .render import RenderOptions, render_image
+
     if options is None:
         options = RenderOptions(background=tuple(float(b) for b in data.background))
     cams = data.cameras
@@ -291,6 +294,8 @@ def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
     problem = _lpips_problem(cfg.lpips_net)
     if problem is not None:
         log(f"LPIPS skipped: {problem}")
+    from .render import RenderOptions
+
     options = RenderOptions(stop_thresh=float(cfg.stop_thresh), background=bg)
     res = evaluate_tree(tree, data, out / "renders" if cfg.save_images else None, options,
                         backend, show_progress=cfg.show_progress,

@@ -9,22 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-
-
-def parse_background(text: str) -> tuple[float, float, float]:
-    """Parse ``white``, ``black`` or ``R,G,B`` (floats in [0, 1]) into an RGB tuple."""
-    named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
-    if text.lower() in named:
-        return named[text.lower()]
-    try:
-        vals = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        vals = ()
-    if len(vals) == 1:
-        vals = vals * 3
-    if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
-        raise ConfigError(f"--background: expected white, black or R,G,B in [0,1], got {text!r}")
-    return vals  # type: ignore[return-value]
+from ._options import parse_background  # noqa: F401  (re-exported: eval, video, compress)
 
 
 def resize_dataset(data, width: int, height: int):
@@ -76,8 +61,10 @@ def _run(args: argparse.Namespace) -> int:
 
     if args.camera_path:
         return _run_camera_path(args)
-    if args.data is None:
-        raise ConfigError("give --data (a dataset split to render and score) or --camera-path")
+    if not args.data:
+        from ._provenance import data_from_provenance
+
+        args.data = data_from_provenance(args.tree, "render")
     tree = load_any_tree(args.tree)
     bg = parse_background(args.background) if args.background else (1.0, 1.0, 1.0)
     data = load_dataset(args.data, split=args.split, format=args.format,
@@ -124,10 +111,12 @@ def _run_camera_path(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``render`` command."""
     from ..datasets import FORMATS
+    from ._output import add_views
 
     p = sub.add_parser("render", help="render a tree over a dataset split (PNGs + metrics.json)")
     p.add_argument("tree", help="tree file (.npz native or svox layout, or compressed .plnz)")
-    p.add_argument("--data", default=None, help="dataset folder (the views to render and score)")
+    p.add_argument("--data", default=None,
+                   help="dataset folder (default: the one recorded next to the tree)")
     p.add_argument("--camera-path", default=None, metavar="JSON",
                    help="render along a nerfstudio camera-path JSON instead (frames, depth; "
                         "no scores); --width/--height override its size")
@@ -141,6 +130,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--downscale", type=int, default=1, help="integer area downscale of the images")
     p.add_argument("--width", type=int, default=None, help="render width (with --height)")
     p.add_argument("--height", type=int, default=None, help="render height (with --width)")
-    p.add_argument("--limit", type=int, default=None, help="only the first N views")
+    add_views(p, dest="limit", legacy="--limit")
     add_render_options(p)
     p.set_defaults(func=_run)

@@ -44,7 +44,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, load_masks, near_far_from_box
-from .blender import _check_options, _finite_number, _frame_file_path, _image_path, _matrix
+from ._files import _check_options, _finite_number, _frame_file_path, _image_path, _matrix
 from .cameras import Cameras
 from .dataset import Dataset
 

@@ -37,6 +37,10 @@ __all__ = ["FinetuneConfig", "FinetuneResult", "finetune", "config_help"]
 
 _PRECISIONS = ("auto", "fp16", "fp32")
 
+DEFAULT_EPOCHS = 20
+"""The one fine-tuning epoch default (``finetune``, ``run``, ``demo``); training stops earlier at
+the first validation drop."""
+
 
 def _f(default: Any, help: str, **kw: Any) -> Any:
     return field(default=default, metadata={"help": help}, **kw)
@@ -49,7 +53,8 @@ class FinetuneConfig:
     tree: str | os.PathLike = _f(None, "input tree (.npz, native or svox layout)")
     data: str | os.PathLike = _f(None, "dataset folder (Blender / NeRF-synthetic format)")
     out: str | os.PathLike = _f(None, "output tree (.npz), written atomically")
-    epochs: int = _f(80, "maximum number of epochs (passes over every training pixel)")
+    epochs: int = _f(DEFAULT_EPOCHS, "maximum number of epochs (passes over every training "
+                                     "pixel; stops earlier at the first validation drop)")
     lr: float | None = _f(None, "learning rate; default 1e7 for sgd (paper units: per-pixel mean "
                                 "loss of one image), 1e-2 for adam, 1e-3 for rmsprop")
     optimizer: str = _f("sgd", "sgd (paper), adam or rmsprop (lazy: touched cells only)")
