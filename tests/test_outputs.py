@@ -151,3 +151,19 @@ def test_cli_plot_summary_and_log(tmp_path, capsys):
     assert main(["plot", str(empty)]) == 1
     assert "nothing to plot" in capsys.readouterr().err
     assert main(["plot", str(tmp_path / "missing.json")]) == 1
+
+
+def test_cli_eval_save_images_writes_comparison_and_raw_depth(tmp_path):
+    from plenoctree.cli import main
+    from plenoctree.datasets.procedural import procedural_tree, write_procedural_dataset
+    from plenoctree.octree import save_tree
+
+    write_procedural_dataset(tmp_path / "data", n_train=1, n_val=1, n_test=2, width=16, height=16)
+    save_tree(procedural_tree(16), tmp_path / "t.npz")
+    out = tmp_path / "ev"
+    assert main(["eval", str(tmp_path / "t.npz"), "--data", str(tmp_path / "data"),
+                 "--save-images", "--views", "1", "--out", str(out)]) == 0
+    names = sorted(p.name for p in (out / "renders").iterdir())
+    assert any(n.endswith("_compare.png") for n in names), names
+    assert any(n.endswith("_depth.npy") for n in names) and any(n.endswith("_depth.png") for n in names)
+    assert any(n.endswith("_alpha.npy") for n in names)
