@@ -11,7 +11,6 @@ import pytest
 from plenoctree.cli import main
 from plenoctree.datasets import load_dataset
 from plenoctree.datasets.procedural import procedural_tree, write_procedural_dataset
-from plenoctree.errors import ConfigError
 from plenoctree.octree.io import save_tree
 from plenoctree.viewer import ViewerServer
 from plenoctree.viewer.export import add_cameras_to_server, cameras_config
@@ -38,12 +37,16 @@ def test_cameras_config_layout(scene):
     assert few["names"] == [data.names[0], data.names[-1]]
 
 
-def test_ndc_cameras_are_refused(scene):
+def test_ndc_cameras_add_the_reference_camera(scene):
     import dataclasses
 
-    cams = dataclasses.replace(load_dataset(scene / "data", "train").cameras, ndc=True)
-    with pytest.raises(ConfigError, match="NDC"):
-        cameras_config(cams)
+    cams = dataclasses.replace(load_dataset(scene / "data", "train").cameras, ndc=True,
+                               ndc_near=1.5)
+    cfg = cameras_config(cams)
+    fx, fy = cams.ndc_focal
+    assert cfg["ndc"] == {"fx": pytest.approx(fx), "fy": pytest.approx(fy), "width": 16,
+                          "height": 16, "near": 1.5}
+    assert "ndc" not in cameras_config(load_dataset(scene / "data", "train").cameras)
 
 
 def test_export_web_with_data(scene, tmp_path, capsys):

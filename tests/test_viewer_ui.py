@@ -307,3 +307,42 @@ def test_alt_click_probes_the_scene(bundle):
     info = bundle.evaluate("document.getElementById('probe_info').textContent")
     assert "sigma" in info, info
     assert bundle.locator("#probe_box").get_attribute("open") is not None
+
+
+def test_ndc_forward_facing_tree_matches_cpu(browser, tmp_path):
+    """An LLFF (NDC) tree: the page maps world rays to NDC like Cameras(ndc=True).rays()."""
+    from plenoctree.datasets import load_dataset
+    from plenoctree.datasets.forward_facing import forward_facing_tree, write_forward_facing_dataset
+
+    root = write_forward_facing_dataset(tmp_path / "ff", n_images=9, width=48, height=36,
+                                        n_samples=64)
+    tree = forward_facing_tree(root, 32)
+    save_tree(tree, tmp_path / "ff.npz", precision="fp16")
+    tree = tree.astype(np.float16).astype(np.float32)
+    data = load_dataset(root, "train")
+    assert data.cameras.ndc
+    out = export_web(tmp_path / "ff.npz", tmp_path / "ffsite", cameras=data.cameras)
+    srv = _Static(out)
+    try:
+        page = browser.new_page(viewport={"width": 640, "height": 400})
+        page.goto(srv.url)
+        page.wait_for_function("window.viewer && window.viewer.state !== 'loading'",
+                               timeout=90_000)
+        assert page.evaluate("window.viewer.state") == "ready", page.evaluate("window.viewer.message")
+        first = page.evaluate("window.viewer.currentView(48, 36)")
+        np.testing.assert_allclose(np.reshape(first["c2w"], (4, 4)), np.eye(4), atol=1e-6)
+        cams = data.cameras
+        for i in (0, 3):
+            fx, fy, cx, cy = cams.intrinsics(i)
+            view = {"c2w": cams.c2w[i].reshape(-1).tolist(), "fx": fx, "fy": fy, "cx": cx,
+                    "cy": cy, "width": cams.width, "height": cams.height}
+            gpu = _pixels(page, view)
+            o, d = cams.rays(i)
+            cpu = render_rays(tree, o, d, RenderOptions()).rgb.numpy()
+            diff = np.abs(gpu - np.clip(cpu, 0, 1))
+            assert diff.mean() <= 1 / 255 and np.percentile(diff, 99) <= 3 / 255, \
+                (i, diff.mean() * 255, np.percentile(diff, 99) * 255)
+            assert gpu.std() > 0.05
+        page.close()
+    finally:
+        srv.close()

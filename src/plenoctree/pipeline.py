@@ -318,11 +318,10 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
             from .viewer.export import export_web
 
             train = load_dataset(data, split="train", format=cfg.format, downscale=4)
-            cams = None if train.cameras.ndc else train.cameras   # page: world-space only
-            export_web(tree_c, out / "web", overwrite=True, cameras=cams,
-                       camera_names=train.names)
+            export_web(tree_c, out / "web", overwrite=True, cameras=train.cameras,
+                       camera_names=train.names)        # (NDC scenes: + the NDC camera)
 
-        r.stage("web", {"cameras": 1}, [tree_c], [out / "web" / "index.html"], do_web,
+        r.stage("web", {"cameras": 2}, [tree_c], [out / "web" / "index.html"], do_web,
                 "use `plenoctree lod` to make a smaller tree")
     if cfg.video_frames > 0:
         def do_video():

@@ -40,13 +40,12 @@ def cameras_config(cameras: Any, names: list[str] | None = None,
     ``{"up": signed axis nearest the cameras' mean +y, "cameras": {"c2w": [[16 numbers,
     row-major OpenGL camera-to-world], ...], "fx", "fy" (a number or one per camera), "cx", "cy",
     "width", "height", "names"}}``. The page frames its first view like these cameras, lists
-    them and jumps to them. NDC (forward-facing) cameras raise ConfigError (the page shows
-    world-space trees only).
+    them and jumps to them. NDC (forward-facing) cameras add ``"ndc": {"fx", "fy", "width",
+    "height", "near"}`` (the NDC reference camera, :attr:`Cameras.ndc_focal`): the page then
+    maps each world ray into NDC (as ``to_ndc_rays``) and starts at the reference camera.
     """
     from ..video import detect_up_axis
 
-    if getattr(cameras, "ndc", False):
-        raise ConfigError("the viewer cannot place the cameras of an NDC (forward-facing) scene")
     n = len(cameras)
     if n == 0:
         return {}
@@ -65,7 +64,12 @@ def cameras_config(cameras: Any, names: list[str] | None = None,
     }
     if names is not None:
         out["names"] = [str(names[i]) for i in idx if i < len(names)]
-    return {"up": detect_up_axis(np.asarray(cameras.c2w)), "cameras": out}
+    cfg: dict[str, Any] = {"up": detect_up_axis(np.asarray(cameras.c2w)), "cameras": out}
+    if getattr(cameras, "ndc", False):
+        fx, fy = cameras.ndc_focal
+        cfg["ndc"] = {"fx": float(fx), "fy": float(fy), "width": int(cameras.width),
+                      "height": int(cameras.height), "near": float(cameras.ndc_near)}
+    return cfg
 
 
 def add_cameras_to_server(server: Any, extra: dict[str, Any]) -> None:

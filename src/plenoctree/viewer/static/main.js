@@ -142,7 +142,14 @@ function frameInitialView(t) {
   const center = sceneCenter(t);
   const cams = config.cameras;
   if (config.up && UP[config.up]) camera.up = config.up;
-  if (cams && cams.c2w.length) {
+  if (config.ndc) {
+    // forward-facing: the NDC reference camera (identity pose at the origin, looking down -z)
+    const n = config.ndc;
+    camera.up = "+y";
+    camera.fovY = 2 * Math.atan(0.5 * n.height / n.fy) * 180 / Math.PI;
+    camera.lookFrom([0, 0, 0], [0, 0, -1]);
+    camera.pose = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1];
+  } else if (cams && cams.c2w.length) {
     const dists = cams.c2w.map((m) => Math.hypot(m[3] - center[0], m[7] - center[1], m[11] - center[2]));
     dists.sort((a, b) => a - b);
     const median = dists[Math.floor(dists.length / 2)];
@@ -189,7 +196,10 @@ function jumpToCamera(i) {
   if (!cams || !cams.c2w.length || !renderer || !renderer.tree) return;
   const n = cams.c2w.length;
   i = ((Math.round(i) % n) + n) % n;
-  camera.setPose(cams.c2w[i], cameraFovY(i), sceneCenter(renderer.tree));
+  // (NDC trees: orbit about a point 2 near-plane distances in front of the camera)
+  const pivot = config.ndc ? [cams.c2w[i][3] - 2 * cams.c2w[i][2], cams.c2w[i][7] - 2 * cams.c2w[i][6],
+    cams.c2w[i][11] - 2 * cams.c2w[i][10]] : sceneCenter(renderer.tree);
+  camera.setPose(cams.c2w[i], cameraFovY(i), pivot);
   fixedView = null;
   $("camera_select").value = String(i);
   $("fov").value = String(Math.round(camera.fovY));
@@ -242,8 +252,20 @@ function drawCameras(view) {
 function runProbe(origin, dir, size = 128) {
   if (!renderer || !renderer.tree) return null;
   const l = Math.hypot(...dir) || 1;
-  const d = dir.map((v) => v / l);
-  const hit = probeRay(renderer.tree, origin, d);
+  let d = dir.map((v) => v / l);
+  let o = origin;
+  if (opts.ndc) {                         // the same world -> NDC ray map as the shader
+    if (!(d[2] < 0)) return null;
+    const n = opts.ndc, ax = -2 * n.fx / n.width, ay = -2 * n.fy / n.height;
+    const t = -(n.near + o[2]) / d[2];
+    const on = o.map((v, k) => v + t * d[k]);
+    const rx = on[0] / on[2], ry = on[1] / on[2];
+    o = [ax * rx, ay * ry, 1 + 2 * n.near / on[2]];
+    const d2 = [ax * (d[0] / d[2] - rx), ay * (d[1] / d[2] - ry), -2 * n.near / on[2]];
+    const l2 = Math.hypot(...d2);
+    d = d2.map((v) => v / l2);
+  }
+  const hit = probeRay(renderer.tree, o, d);
   const info = $("probe_info");
   const cv = $("probe_canvas");
   const ctx = cv.getContext("2d");
@@ -331,7 +353,9 @@ function renderOnce(scale = scaleMode === "auto" ? 1 : Number(scaleMode)) {
   if (!renderer || !renderer.tree) throw new Error("no tree loaded");
   const [w, h] = targetSize(scale);
   const view = fixedView || camera.view(w, h);
-  if (!fixedView) {
+  if (opts.ndc) {
+    opts.depth_range = [0, 2.5];          // NDC lengths (the cube is 2 deep)
+  } else if (!fixedView) {
     const c = camera.target, e = camera.eye();
     const dist = Math.hypot(e[0] - c[0], e[1] - c[1], e[2] - c[2]);
     const r = treeRadius() * Math.sqrt(3);
@@ -525,6 +549,7 @@ async function loadBuffer(buffer, name) {
   const packed = await packTree(archive, limits, setStatus);
   setStatus("Uploading textures...");
   renderer.upload(packed);
+  opts.ndc = config.ndc || null;
   frameInitialView(packed);
   opts.sh_min = 0;
   opts.sh_max = -1;
