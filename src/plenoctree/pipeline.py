@@ -322,11 +322,14 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
     # 7. Static web-viewer bundle and orbit video.
     if cfg.web:
         def do_web():
+            from .datasets import load_dataset
             from .viewer.export import export_web
 
-            export_web(tree_c, out / "web", overwrite=True)
+            train = load_dataset(data, split="train", format=cfg.format, downscale=4)
+            export_web(tree_c, out / "web", overwrite=True, cameras=train.cameras,
+                       camera_names=train.names)        # (NDC scenes: + the NDC camera)
 
-        r.stage("web", {}, [tree_c], [out / "web" / "index.html"], do_web,
+        r.stage("web", {"cameras": 2}, [tree_c], [out / "web" / "index.html"], do_web,
                 "use `plenoctree lod` to make a smaller tree")
     if cfg.video_frames > 0:
         def do_video():
@@ -344,6 +347,9 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
     summary = _summary(cfg, out, r, evals, _read_json(nerf_json),
                        _read_json(run_dir / "summary.json"))
     atomic_save_json(out / "summary.json", summary)
+    from .plots import plot_stages               # PSNR against FPS and MB (needs matplotlib)
+
+    plot_stages(summary["rows"], out / "stages.png", title=f"{Path(cfg.data).name}: stages")
     with atomic_write(out / "summary.md", "w") as f:
         f.write(summary_markdown(summary))
     log("")
