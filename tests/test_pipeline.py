@@ -44,7 +44,7 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path):
     s = run_pipeline(_tiny_cfg(scene, out), log=logs.append)
     for name in ("nerf/checkpoint.pt", "tree.npz", "tree_ft.npz", "tree_ft.plnz",
                  "eval_ft/eval.json", "web/index.html", "orbit.mp4", "summary.json",
-                 "summary.md", "nerf_eval.json"):
+                 "summary.md", "nerf_eval.json", "stages.png"):
         assert (out / name).exists(), name
     stages = [r["stage"] for r in s["rows"]]
     assert stages == ["NeRF-SH", "PlenOctree", "PlenOctree fine-tuned", "compressed"]

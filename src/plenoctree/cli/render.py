@@ -56,6 +56,8 @@ def _run(args: argparse.Namespace) -> int:
     from ..evaluation import evaluate_tree
     from ..compress import load_any_tree
 
+    if args.camera_path:
+        return _run_camera_path(args)
     if not args.data:
         from ._provenance import data_from_provenance
 
@@ -80,6 +82,29 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_camera_path(args: argparse.Namespace) -> int:
+    """``render TREE --camera-path JSON``: frames along a nerfstudio camera path, no scores."""
+    from ..camera_path import load_camera_path
+    from ..compress import load_any_tree
+    from ..video import render_path_images
+
+    if (args.width is None) != (args.height is None):
+        raise ConfigError("--width and --height must be given together")
+    if args.data is not None:
+        raise ConfigError("--camera-path renders its own cameras: leave out --data")
+    cp = load_camera_path(args.camera_path, args.width, args.height, args.dataparser_transforms)
+    tree = load_any_tree(args.tree)
+    options = render_options_from_args(args, (1.0, 1.0, 1.0))
+    out = Path(args.out) if args.out else Path(args.tree).parent / (
+        Path(args.tree).stem + f"_render_{Path(args.camera_path).stem}")
+    cams = cp.cameras
+    if args.limit is not None:
+        cams = cams.select(np.arange(min(args.limit, len(cams))))
+    paths = render_path_images(tree, cams, out, options, args.backend)
+    print(f"{len(paths)} frames at {cams.width}x{cams.height} along {args.camera_path} -> {out}")
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``render`` command."""
     from ..datasets import FORMATS
@@ -89,6 +114,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("tree", help="tree file (.npz native or svox layout, or compressed .plnz)")
     p.add_argument("--data", default=None,
                    help="dataset folder (default: the one recorded next to the tree)")
+    p.add_argument("--camera-path", default=None, metavar="JSON",
+                   help="render along a nerfstudio camera-path JSON instead (frames, depth; "
+                        "no scores); --width/--height override its size")
+    p.add_argument("--dataparser-transforms", default=None, metavar="JSON",
+                   help="with --camera-path: nerfstudio's dataparser_transforms.json, mapping "
+                        "nerfstudio-viewer poses back to the dataset's world")
     p.add_argument("--split", default="test", help="dataset split (default: test)")
     p.add_argument("--format", default=None, choices=FORMATS,
                    help="dataset format (default: detected)")

@@ -46,7 +46,24 @@ def _check_c2w(c2w: np.ndarray, batched: bool) -> np.ndarray:
         raise ConfigError(f"c2w: expected shape {want}, got {list(arr.shape)}")
     if not np.all(np.isfinite(arr)):
         raise ConfigError("c2w: contains NaN or infinite values")
+    bad = degenerate_rotations(arr.reshape(-1, 4, 4))
+    if bad.size:
+        raise ConfigError(f"c2w{f'[{int(bad[0])}]' if batched else ''}: the rotation part "
+                          "c2w[:3, :3] is singular (e.g. all zeros); every camera needs three "
+                          "independent axes")
     return arr
+
+
+def degenerate_rotations(c2w: np.ndarray) -> np.ndarray:
+    """Indices of the ``[N, 4, 4]`` matrices whose ``[:3, :3]`` block is singular.
+
+    Scale-invariant: ``|det R| <= 1e-6 · Π |column|`` (an all-zero, rank-deficient or
+    nearly flat rotation); scaled or mirrored rotations pass.
+    """
+    r = np.asarray(c2w, dtype=np.float64)[:, :3, :3]
+    norms = np.linalg.norm(r, axis=1).prod(axis=-1)
+    det = np.abs(np.linalg.det(r))
+    return np.flatnonzero(~(det > 1e-6 * norms) | (norms == 0))
 
 
 def generate_rays(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float,

@@ -86,7 +86,8 @@ class FinetuneConfig:
     checkpoint: str | os.PathLike | None = _f(
         None, "checkpoint file (default: <out stem>.ckpt.npz), written at each validation")
     resume: bool = _f(False, "continue from the checkpoint if it exists")
-    log: str | os.PathLike | None = _f(None, "JSON-lines log (default: <out stem>.log.jsonl)")
+    log: str | os.PathLike | None = _f(None, "JSON-lines log (default: <out stem>.log.jsonl); "
+                                             "its curve goes to <out stem>.curve.png")
     show_progress: bool | None = _f(None, "progress bar (default: when stderr is a terminal)")
     verbose: bool = _f(True, "print one line per epoch / validation to stderr")
 
@@ -201,6 +202,21 @@ def _has_split(root: Path, split: str) -> bool:
 
 
 def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None) -> FinetuneResult:
+    """Fine-tune ``config.tree`` on ``config.data`` and write ``config.out`` (see :func:`_finetune`).
+
+    Before any work: ``out`` must be a writable file name that is not a directory nor an
+    unrelated file (:func:`plenoctree._util.check_output_file`); the run holds a lock on
+    ``out`` (``.<name>.lock`` beside it) so two fine-tunings into one file cannot race.
+    """
+    from .._util import check_output_file, run_lock
+
+    cfg = config.validated()
+    out = check_output_file(cfg.out)
+    with run_lock(out, "finetune", folder=False):
+        return _finetune(cfg, log_fn)
+
+
+def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None) -> FinetuneResult:
     """Fine-tune ``config.tree`` on ``config.data`` and write ``config.out``.
 
     Steps: load and check the tree (leaves, finite values, some σ > 0) and the dataset (its box
@@ -333,6 +349,9 @@ def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None
         train_rays_per_second=state.train_rays / max(state.train_seconds, 1e-9),
         backend=stepper.backend, history=state.history)
     log({"event": "end", **result.to_json()})
+    from ..plots import plot_finetune_curve      # train/val PSNR per epoch (needs matplotlib)
+
+    plot_finetune_curve(log_path, stem.with_name(stem.name + ".curve.png"))
     if diverged:
         raise ConfigError(f"learning rate {lr:g} ({cfg.optimizer}) diverged: "
                           f"{state.stop_reason[len('diverged: '):]}. Kept the last good values "
