@@ -137,8 +137,8 @@ def test_lego_video_end_to_end(tmp_path):
     iio = pytest.importorskip("imageio.v2")
     meta = json.loads((LEGO / "transforms_test.json").read_text())
     frames, gt = [], []
-    for fr in meta["frames"][::5]:                 # 40 frames around the orbit
-        im = Image.open(LEGO / (fr["file_path"] + ".png")).convert("RGBA").resize((160, 160),
+    for fr in meta["frames"][::7]:                 # 29 frames around the orbit
+        im = Image.open(LEGO / (fr["file_path"] + ".png")).convert("RGBA").resize((320, 320),
                                                                                Image.BOX)
         a = np.asarray(im).astype(np.float32) / 255
         frames.append(np.round((a[..., :3] * a[..., 3:] + 1 - a[..., 3:]) * 255).astype(np.uint8))
@@ -146,14 +146,14 @@ def test_lego_video_end_to_end(tmp_path):
     video = tmp_path / "lego.mp4"
     iio.mimwrite(video, frames, fps=10, quality=9, macro_block_size=16)
     out = tmp_path / "data"
-    s = process(ProcessConfig(images=str(video), out=str(out), frames=36, drop_blurry=0.1),
+    s = process(ProcessConfig(images=str(video), out=str(out), frames=26, drop_blurry=0.1),
                 log=lambda *_: None)
     assert s["format"] == "nerfstudio" and s["kind"] == "360" and s["video"]
-    assert s["n_registered"] >= 32
+    assert s["n_registered"] >= 24 and s["n_images"] == 26
     from plenoctree.datasets import load_dataset
 
     data = load_dataset(out, "all")
-    assert len(data) == s["n_registered"] and data.images.shape[1:3] == (160, 160)
+    assert len(data) == s["n_registered"] and data.images.shape[1:3] == (320, 320)
     assert (out / "images_2").is_dir() and (out / "colmap" / "sparse" / "0").is_dir()
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ._config import apply
-from ._util import atomic_save_json, atomic_write
+from ._util import atomic_save_json, atomic_write, check_output_dir, run_lock
 from .errors import ConfigError, PlenOctreeError
 from .optim.finetune import DEFAULT_EPOCHS
 
@@ -199,9 +199,14 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
         raise ConfigError("--out and one of --data / --images are needed")
     if cfg.data and cfg.images:
         raise ConfigError("give either --data (a dataset) or --images (photos / a video), not both")
-    out = Path(cfg.out)
+    out = check_output_dir(cfg.out)
     check_extras(cfg)
     out.mkdir(parents=True, exist_ok=True)
+    with run_lock(out, "run"):      # a second run / resume into OUT fails naming the holder
+        return _run_pipeline(cfg, out, log)
+
+
+def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) -> dict:
     atomic_save_json(out / "config.json", _config_dict(cfg))   # `run --config` reads it back
     r = _Runner(out, log)
     # 0. camera poses of the user's photos / video (plenoctree.process) into OUT/data
@@ -248,6 +253,9 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
 
     validate_extract(ecfg)
     fcfg.validated()
+    from .compress import CompressOptions
+
+    CompressOptions(bits=cfg.compress_bits).validated()
 
     def do_train():
         from .nerf.trainer import train

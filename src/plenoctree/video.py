@@ -119,9 +119,7 @@ def resize_cameras(cams: Cameras, width: int, height: int) -> Cameras:
     """``cams`` rendered at ``width`` x ``height``: intrinsics scaled per axis (the field of
     view is kept)."""
     _check_size(width, height)
-    sx, sy = width / cams.width, height / cams.height
-    return dataclasses.replace(cams, fx=cams.fx * sx, fy=cams.fy * sy, cx=cams.cx * sx,
-                               cy=cams.cy * sy, width=int(width), height=int(height))
+    return cams.resized(int(width), int(height))
 
 
 def _check_frames(n: object) -> None:

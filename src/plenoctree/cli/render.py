@@ -19,10 +19,7 @@ def resize_dataset(data, width: int, height: int):
     """
     from PIL import Image
 
-    cams = data.cameras
-    sx, sy = width / cams.width, height / cams.height
-    new_cams = dataclasses.replace(cams, fx=cams.fx * sx, fy=cams.fy * sy, cx=cams.cx * sx,
-                                   cy=cams.cy * sy, width=width, height=height)
+    new_cams = data.cameras.resized(width, height)
     def resample(plane: np.ndarray) -> np.ndarray:
         img = Image.fromarray(np.ascontiguousarray(plane, dtype=np.float32), mode="F")
         return np.asarray(img.resize((width, height), Image.Resampling.BOX))

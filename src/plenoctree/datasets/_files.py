@@ -12,6 +12,7 @@ from __future__ import annotations
 import io
 import math
 import os
+import re
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
+from .cameras import degenerate_rotations
 
 _PNG_END = b"IEND\xaeB`\x82"   # the last 8 bytes of every complete PNG
 _MAX_PIXELS = 1 << 27          # refuse absurd image headers before allocating anything
@@ -47,6 +49,9 @@ def _matrix(value: Any, where: str) -> np.ndarray:
     m = np.array(value, dtype=np.float64)
     if np.abs(m).max() > 1e30:
         raise DatasetError(f"{where}: transform_matrix has non-finite (float32 overflowing) values")
+    if degenerate_rotations(m[None]).size:
+        raise DatasetError(f"{where}: transform_matrix rotation (the upper-left 3x3) is singular "
+                           "(e.g. all zeros); a camera needs three independent axes")
     return m
 
 
@@ -61,7 +66,21 @@ def _frame_file_path(fr: Any, where: str) -> str:
     fp = fr["file_path"]
     if not isinstance(fp, str) or not fp.strip() or "\x00" in fp:
         raise DatasetError(f"{where}: file_path must be a non-empty string")
+    check_inside_dataset(fp, f"{where}: file_path")
     return fp
+
+
+def check_inside_dataset(rel: str, where: str) -> None:
+    """A path listed in a dataset file must stay inside the dataset folder (DatasetError).
+
+    Lexical: absolute paths and paths whose normal form starts with ``..`` are refused
+    (symlinks inside the folder are the user's choice and are followed).
+    """
+    norm = os.path.normpath(rel.replace("\\", "/"))
+    if os.path.isabs(norm) or norm == ".." or norm.startswith(".." + os.sep) \
+            or re.match(r"^[A-Za-z]:", norm):
+        raise DatasetError(f"{where} {rel!r} points outside the dataset folder; paths must "
+                           "be relative and inside it (move or link the files there)")
 
 
 def _image_path(root: Path, file_path: str) -> Path:

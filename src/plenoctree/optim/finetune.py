@@ -194,14 +194,29 @@ def _load_split(root: Any, split: str, cfg: FinetuneConfig) -> Any:
 
 
 def _has_split(root: Path, split: str) -> bool:
-    """Whether ``root`` has split ``split``: a Blender ``transforms_<split>.json``, or an LLFF
-    capture (whose train / test splits always exist: every ``llffhold``-th image is test)."""
-    if (Path(root) / f"transforms_{split}.json").is_file():
-        return True
-    return split in ("train", "test") and (Path(root) / "poses_bounds.npy").is_file()
+    """Whether ``root`` has split ``split``, by the dataset loader's own rules (Blender, LLFF,
+    NSVF, nerfstudio, COLMAP): :func:`plenoctree.datasets.dataset.has_split`."""
+    from ..datasets.dataset import has_split
+
+    return has_split(root, split)
 
 
 def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None) -> FinetuneResult:
+    """Fine-tune ``config.tree`` on ``config.data`` and write ``config.out`` (see :func:`_finetune`).
+
+    Before any work: ``out`` must be a writable file name that is not a directory nor an
+    unrelated file (:func:`plenoctree._util.check_output_file`); the run holds a lock on
+    ``out`` (``.<name>.lock`` beside it) so two fine-tunings into one file cannot race.
+    """
+    from .._util import check_output_file, run_lock
+
+    cfg = config.validated()
+    out = check_output_file(cfg.out)
+    with run_lock(out, "finetune", folder=False):
+        return _finetune(cfg, log_fn)
+
+
+def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None) -> FinetuneResult:
     """Fine-tune ``config.tree`` on ``config.data`` and write ``config.out``.
 
     Steps: load and check the tree (leaves, finite values, some σ > 0) and the dataset (its box

@@ -25,7 +25,7 @@ import numpy as np
 from .._util import atomic_write
 from ..errors import ConfigError
 from .budget import DEFAULT_MAX_MB
-from .server import _tree_name, static_files, viewer_config
+from .server import _tree_name, check_servable, static_files, viewer_config
 
 __all__ = ["export_web", "cameras_config", "add_cameras_to_server", "MAX_BUNDLE_CAMERAS"]
 
@@ -108,11 +108,13 @@ def export_web(tree_path: str | os.PathLike, out_dir: str | os.PathLike,
             and the page lists them (see :func:`cameras_config`); ``camera_names`` labels them.
     Raises:
         ConfigError: missing tree, ``out_dir`` is a file or a non-empty folder without
-        ``overwrite``.
+        ``overwrite``. TreeFormatError: a tree the page would refuse (see
+        :func:`~plenoctree.viewer.server.check_servable`).
     """
     tree = Path(tree_path)
     if not tree.is_file():
         raise ConfigError(f"{tree}: no such tree file")
+    check_servable(tree)         # never ship a tree the page would refuse
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{out}: exists and is not a folder")
