@@ -255,3 +255,19 @@ def test_bad_models_name_the_file(tmp_path):
     (d / "cameras.bin").write_bytes(b"\x01\x00\x00\x00\x00\x00\x00\x00\x01\x00")
     with pytest.raises(DatasetError, match="cameras.bin: truncated"):
         read_colmap_model(d)
+
+
+def test_weakly_supported_images_are_dropped():
+    from plenoctree.process.sfm import drop_weak_images
+
+    o = pycolmap.SyntheticDatasetOptions()
+    o.num_rigs, o.num_cameras_per_rig, o.num_frames_per_rig, o.num_points3D = 1, 1, 8, 60
+    rec = pycolmap.synthesize_dataset(o)
+    assert drop_weak_images(rec, 0.35) == []             # equal support: none dropped
+    victim = sorted(rec.images)[3]
+    im = rec.images[victim]
+    obs = [i for i, p in enumerate(im.points2D) if p.has_point3D()]
+    for i in obs[: int(0.8 * len(obs))]:                 # keep 20 % of its observations
+        rec.delete_observation(victim, i)
+    assert drop_weak_images(rec, 0.35) == [rec.images[victim].name]
+    assert not rec.images[victim].has_pose and rec.num_reg_images() == 7

@@ -181,3 +181,14 @@ def test_huge_finite_values_are_refused_at_load(tmp_path):
     for backend in ("numba", "torch"):
         out = render_rays(big, o, d, backend=backend)
         assert all(bool(torch.isfinite(x).all()) for x in (out.rgb, out.depth, out.alpha))
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_differentiable_render_checks_in_memory_trees(backend):
+    from plenoctree.optim.autograd import render_rays_differentiable
+
+    t = small_tree()
+    t.child[0, 1, 0, 0] = 10 ** 8
+    data = torch.zeros(t.data.shape, dtype=torch.float32, requires_grad=True)
+    with pytest.raises(ConfigError, match="render: tree: child"):
+        render_rays_differentiable(data, t, *rays(), backend=backend)

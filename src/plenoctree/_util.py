@@ -1,13 +1,17 @@
-"""Small shared helpers: atomic writes, progress bars, shape checks.
+"""Small shared helpers: atomic writes, run-folder locks, output checks, progress bars, shape checks.
 
-Imports nothing else from the package except :mod:`plenoctree.errors`.
+Imports nothing else from the package except :mod:`plenoctree.errors` (and, lazily, the tree
+file reader for :func:`check_output_file`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import datetime
 import json
 import os
+import re
+import socket
 import sys
 from pathlib import Path
 from typing import Any, Iterable, Iterator
@@ -18,6 +22,10 @@ __all__ = [
     "atomic_write",
     "atomic_save_npz",
     "atomic_save_json",
+    "run_lock",
+    "clean_stale_tmp",
+    "check_output_file",
+    "check_output_dir",
     "save_png",
     "progress",
     "LogProgress",
@@ -30,9 +38,12 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[Any]:
     """Open ``path.tmp-<pid>`` for writing and move it onto ``path`` only on success.
 
     A crash or exception inside the block leaves ``path`` untouched (no half-written file).
+    Temp files of *dead* processes (left by kill -9) next to ``path`` are removed first
+    (:func:`clean_stale_tmp`).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    clean_stale_tmp(path.parent)
     tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
     try:
         with open(tmp, mode) as f:
@@ -43,6 +54,179 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[Any]:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+_TMP_RE = re.compile(r"\.tmp-(\d+)(\.[^.]*)?$")
+_LOCK_NAME = ".plenoctree.lock"
+_held_locks: dict[str, list] = {}        # lock path -> [fd, depth] held by this process
+
+
+def pid_alive(pid: int) -> bool:
+    """True if a process with this id exists on this machine (signal 0 probe)."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:        # exists, owned by someone else
+        return True
+    except OSError:
+        return True
+    return True
+
+
+def clean_stale_tmp(folder: str | os.PathLike) -> list[Path]:
+    """Remove ``*.tmp-<pid>`` files (and ``.name.tmp-<pid>.ext``) of dead processes in ``folder``.
+
+    What :func:`atomic_write` (and the video writer) leave behind when killed with SIGKILL.
+    Files of live processes, and anything not matching the pattern, are left alone. Returns the
+    removed paths. Never raises for an unreadable folder.
+    """
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for e in entries:
+        m = _TMP_RE.search(e.name)
+        if m is None or int(m.group(1)) == os.getpid() or pid_alive(int(m.group(1))):
+            continue
+        try:
+            if e.is_file(follow_symlinks=False):
+                os.unlink(e.path)
+                removed.append(Path(e.path))
+        except OSError:
+            pass
+    return removed
+
+
+@contextlib.contextmanager
+def run_lock(target: str | os.PathLike, command: str = "", folder: bool = True) -> Iterator[Path]:
+    """Hold an exclusive lock on a run folder (or output file) for the duration of the block.
+
+    The lock is an ``flock`` on ``<folder>/.plenoctree.lock`` (``folder=False``: on
+    ``.<name>.lock`` beside an output file), which names its holder as JSON: pid, host, start time, command. The kernel drops
+    the lock when its process dies, so the lock of a killed run is simply taken over. A second
+    process gets a :class:`~plenoctree.errors.ConfigError` naming the holder; the same process
+    may nest locks on one target (``run`` → ``train``). Yields the lock file's path.
+    """
+    from .errors import ConfigError
+
+    target = Path(target)
+    path = target / _LOCK_NAME if folder else target.with_name(f".{target.name}.lock")
+    key = str(path.resolve()) if path.parent.exists() else str(path.absolute())
+    if key in _held_locks:
+        _held_locks[key][1] += 1
+        try:
+            yield path
+        finally:
+            _held_locks[key][1] -= 1
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:            # no flock (Windows): run without a lock
+        yield path
+        return
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            try:
+                holder = json.loads(os.read(fd, 4096).decode() or "{}")
+            except (OSError, ValueError):
+                holder = {}
+            os.close(fd)
+            who = (f"pid {holder.get('pid', '?')} on {holder.get('host', '?')} since "
+                   f"{holder.get('started', '?')}" + (f" ({holder['command']})"
+                                                     if holder.get("command") else ""))
+            raise ConfigError(f"{target}: in use by another plenoctree process: {who}; wait "
+                              "for it to finish or choose another --out") from None
+        try:                       # the file may have been unlinked by its last holder
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except OSError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    info = {"pid": os.getpid(), "host": socket.gethostname(),
+            "started": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+            "command": command}
+    os.ftruncate(fd, 0)
+    os.write(fd, (json.dumps(info) + "\n").encode())
+    _held_locks[key] = [fd, 1]
+    try:
+        yield path
+    finally:
+        del _held_locks[key]
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
+        os.close(fd)
+
+
+def _is_plenoctree_file(path: Path) -> bool:
+    """A tree (native, svox, ``.plnz``) or another zip of arrays this package writes."""
+    from .errors import TreeFormatError
+    from .octree._npz import NpzReader
+
+    try:
+        with NpzReader(path) as r:
+            keys = set(r.keys())
+    except TreeFormatError:
+        return False
+    return bool(keys & {"format_version", "plnz_version", "quant_map"}) \
+        or {"child", "data", "offset"} <= keys
+
+
+def check_output_file(path: str | os.PathLike, what: str = "--out") -> Path:
+    """Check, before any work, that a tree file can be written to ``path``.
+
+    Refuses (``ConfigError``, one line naming the path): an existing directory, a parent that
+    is a file or not writable, and an existing file that is not a tree file written by this
+    package (a stray ``notes.txt`` is never overwritten). Returns ``Path(path)``.
+    """
+    from .errors import ConfigError
+
+    p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"{p}: {what} is a directory; give a file name such as "
+                          f"{p / 'tree.npz'}")
+    parent = p.parent if str(p.parent) else Path(".")
+    anc = parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if anc.exists() and not anc.is_dir():
+        raise ConfigError(f"{p}: {what}: {anc} is a file, not a folder")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise ConfigError(f"{p}: {what}: folder {anc} is not writable")
+    if p.exists() or p.is_symlink():
+        if not p.is_file():
+            raise ConfigError(f"{p}: {what} exists and is not a regular file")
+        if not _is_plenoctree_file(p):
+            raise ConfigError(f"{p}: exists and is not a tree file written by plenoctree; "
+                              "refusing to overwrite it (choose another name or delete it)")
+    return p
+
+
+def check_output_dir(path: str | os.PathLike, what: str = "--out") -> Path:
+    """Check, before any work, that ``path`` can be used as an output folder (``ConfigError``)."""
+    from .errors import ConfigError
+
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ConfigError(f"{p}: {what} must be a folder, but a file of that name exists")
+    anc = p
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if anc.exists() and not anc.is_dir():
+        raise ConfigError(f"{p}: {what}: {anc} is a file, not a folder")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise ConfigError(f"{p}: {what}: folder {anc} is not writable")
+    return p
 
 
 def atomic_save_npz(path: str | os.PathLike, compressed: bool = False, **arrays: np.ndarray) -> None:

@@ -16,10 +16,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from ._util import atomic_save_json, atomic_write
+from ._config import apply
+from ._util import atomic_save_json, atomic_write, check_output_dir, run_lock
 from .errors import ConfigError, PlenOctreeError
+from .optim.finetune import DEFAULT_EPOCHS
 
-__all__ = ["PipelineConfig", "PipelineError", "run_pipeline", "STAGES"]
+__all__ = ["PipelineConfig", "PipelineError", "run_pipeline", "STAGES", "PRESETS",
+           "pipeline_preset", "check_extras"]
 
 STAGES = ("train", "nerf_eval", "extract", "finetune", "eval", "compress", "web", "video")
 
@@ -55,7 +58,7 @@ class PipelineConfig:
     """random samples averaged per leaf at extraction"""
     weight_thresh: float = 0.001
     """visibility threshold τ_w on the maximum ray weight of a voxel"""
-    finetune_epochs: int = 20
+    finetune_epochs: int = DEFAULT_EPOCHS
     """maximum fine-tuning epochs (stops at the first validation drop)"""
     finetune_lr: float | None = None
     """fine-tuning learning rate (default: the fine-tuner's SGD default)"""
@@ -78,7 +81,51 @@ class PipelineConfig:
     seed: int = 0
     """random seed of training and fine-tuning"""
     extra: dict = field(default_factory=dict)
-    """stage overrides: {"train": {...TrainConfig fields}, "extract": {...}, "finetune": {...}}"""
+    """stage overrides: {"train": {...TrainConfig fields, "model": {...}}, "extract": {...},
+    "finetune": {...}} (the CLI's --train.*, --extract.*, --finetune.* flags)"""
+
+
+STAGE_OPTIONS = ("train", "extract", "finetune")
+"""Stages whose every config field ``extra`` may set (``plenoctree run --<stage>.<field>``)."""
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "cpu": {},
+    "paper": {"preset": "paper", "train_minutes": 0.0, "grid": 512, "samples": 256,
+              "extra": {"extract": {"bbox_scale": 1.1}}},
+    "quick": {"train_minutes": 3.0, "grid": 128, "samples": 4, "finetune_epochs": 2,
+              "nerf_eval_views": 1, "eval_views": 5, "video_frames": 0},
+}
+"""Settings of ``plenoctree run --preset NAME`` over the :class:`PipelineConfig` defaults:
+``cpu`` (the defaults: cpu NeRF-SH preset, 256³), ``paper`` (the paper's NeRF-SH, 512³,
+256 samples per voxel; for GPUs), ``quick`` (a few minutes end to end, to try a dataset)."""
+
+
+def pipeline_preset(name: str) -> PipelineConfig:
+    """A fresh :class:`PipelineConfig` of preset ``name`` (see :data:`PRESETS`)."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown run preset {name!r}; choose one of {sorted(PRESETS)}")
+    import copy
+
+    return apply(PipelineConfig(), copy.deepcopy(PRESETS[name]), where=f"preset {name}")
+
+
+def _check_extra(extra: dict) -> None:
+    unknown = sorted(set(extra) - set(STAGE_OPTIONS))
+    if unknown:
+        raise ConfigError(f"stage overrides for {unknown}: only {', '.join(STAGE_OPTIONS)} "
+                          "take options")
+
+
+def check_extras(cfg: PipelineConfig) -> None:
+    """Fail at the start, with the install hint, when a stage needs a missing optional
+    package (the orbit video needs ``plenoctree[video]``)."""
+    import importlib.util
+
+    if cfg.video_frames > 0:
+        missing = [m for m in ("imageio", "imageio_ffmpeg") if importlib.util.find_spec(m) is None]
+        if missing:
+            raise ConfigError(f"the video stage needs {' and '.join(missing)} (not installed): "
+                              "pip install 'plenoctree[video]', or pass --video-frames 0")
 
 
 def _fingerprint(paths: list[Path]) -> dict:
@@ -154,8 +201,15 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
         raise ConfigError("--out and one of --data / --images are needed")
     if cfg.data and cfg.images:
         raise ConfigError("give either --data (a dataset) or --images (photos / a video), not both")
-    out = Path(cfg.out)
+    out = check_output_dir(cfg.out)
+    check_extras(cfg)
     out.mkdir(parents=True, exist_ok=True)
+    with run_lock(out, "run"):      # a second run / resume into OUT fails naming the holder
+        return _run_pipeline(cfg, out, log)
+
+
+def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) -> dict:
+    atomic_save_json(out / "config.json", _config_dict(cfg))   # `run --config` reads it back
     r = _Runner(out, log)
     # 0. camera poses of the user's photos / video (plenoctree.process) into OUT/data
     data = _process_stage(cfg, out, r, log) if cfg.images else Path(cfg.data)
@@ -171,20 +225,42 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
 
     tcfg = train_preset(cfg.preset)
     tcfg.data, tcfg.out, tcfg.downscale, tcfg.seed = str(data), str(run_dir), cfg.downscale, cfg.seed
-    tcfg.minutes = cfg.train_minutes
+    tcfg.minutes, tcfg.format = cfg.train_minutes, cfg.format
     tcfg.device = cfg.device
     if cfg.train_steps:
         tcfg.max_steps = cfg.train_steps
     elif cfg.train_minutes:
         tcfg.max_steps = 10**9  # the time budget decides
-    for k, v in cfg.extra.get("train", {}).items():
-        if not hasattr(tcfg, k):
-            raise ConfigError(f"unknown training option {k!r}")
-        setattr(tcfg, k, v)
+    _check_extra(cfg.extra)
+    apply(tcfg, cfg.extra.get("train", {}), where="--train")
 
     from .nerf.config import validate
 
     validate(tcfg)
+
+    # Every stage's options are checked now, not after the training (which takes minutes).
+    from .convert.extract import ExtractConfig, extract
+
+    ecfg = ExtractConfig(run_dir=str(run_dir), out=str(tree_raw), data=str(data), grid=cfg.grid,
+                         samples=cfg.samples, weight_thresh=cfg.weight_thresh, eval=False,
+                         precision="fp32", backend=cfg.backend, device=cfg.device,
+                         seed=cfg.seed)
+    apply(ecfg, cfg.extra.get("extract", {}), where="--extract")
+    from .optim.finetune import FinetuneConfig, finetune
+
+    fcfg = FinetuneConfig(tree=str(tree_raw), data=str(data), out=str(tree_ft),
+                          epochs=cfg.finetune_epochs, lr=cfg.finetune_lr,
+                          downscale=cfg.downscale, precision="fp32", backend=cfg.backend,
+                          device=cfg.device,
+                          seed=cfg.seed, resume=True, test_views=-1, verbose=False)
+    apply(fcfg, cfg.extra.get("finetune", {}), where="--finetune")
+    from .convert.extract import _validate as validate_extract
+
+    validate_extract(ecfg)
+    fcfg.validated()
+    from .compress import CompressOptions
+
+    CompressOptions(bits=cfg.compress_bits).validated()
 
     def do_train():
         from .nerf.trainer import train
@@ -213,30 +289,10 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
                 "check the training run")
 
     # 3. Conversion to an octree.
-    from .convert.extract import ExtractConfig, extract
-
-    ecfg = ExtractConfig(run_dir=str(run_dir), out=str(tree_raw), data=str(data), grid=cfg.grid,
-                         samples=cfg.samples, weight_thresh=cfg.weight_thresh, eval=False,
-                         precision="fp32", backend=cfg.backend, device=cfg.device,
-                         seed=cfg.seed)
-    for k, v in cfg.extra.get("extract", {}).items():
-        if not hasattr(ecfg, k):
-            raise ConfigError(f"unknown extraction option {k!r}")
-        setattr(ecfg, k, v)
     r.stage("extract", _config_dict(ecfg), [run_dir / CHECKPOINT_NAME], [tree_raw],
             lambda: extract(ecfg), "change the extraction options (--grid, --weight-thresh)")
 
     # 4. Fine-tuning of the leaf values on the training photos.
-    from .optim.finetune import FinetuneConfig, finetune
-
-    fcfg = FinetuneConfig(tree=str(tree_raw), data=str(data), out=str(tree_ft),
-                          epochs=cfg.finetune_epochs, lr=cfg.finetune_lr,
-                          downscale=cfg.downscale, precision="fp32", backend=cfg.backend,
-                          device=cfg.device, seed=cfg.seed, resume=True, test_views=-1, verbose=False)
-    for k, v in cfg.extra.get("finetune", {}).items():
-        if not hasattr(fcfg, k):
-            raise ConfigError(f"unknown fine-tuning option {k!r}")
-        setattr(fcfg, k, v)
     ft_settings = {k: v for k, v in _config_dict(fcfg).items()
                    if k not in ("resume", "verbose", "show_progress")}
     r.stage("finetune", ft_settings, [tree_raw], [tree_ft], lambda: finetune(fcfg),
@@ -271,11 +327,14 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     # 7. Static web-viewer bundle and orbit video.
     if cfg.web:
         def do_web():
+            from .datasets import load_dataset
             from .viewer.export import export_web
 
-            export_web(tree_c, out / "web", overwrite=True)
+            train = load_dataset(data, split="train", format=cfg.format, downscale=4)
+            export_web(tree_c, out / "web", overwrite=True, cameras=train.cameras,
+                       camera_names=train.names)        # (NDC scenes: + the NDC camera)
 
-        r.stage("web", {}, [tree_c], [out / "web" / "index.html"], do_web,
+        r.stage("web", {"cameras": 2}, [tree_c], [out / "web" / "index.html"], do_web,
                 "use `plenoctree lod` to make a smaller tree")
     if cfg.video_frames > 0:
         def do_video():
@@ -294,6 +353,9 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     summary = _summary(cfg, out, r, evals, _read_json(nerf_json),
                        _read_json(run_dir / "summary.json"))
     atomic_save_json(out / "summary.json", summary)
+    from .plots import plot_stages               # PSNR against FPS and MB (needs matplotlib)
+
+    plot_stages(summary["rows"], out / "stages.png", title=f"{Path(cfg.data).name}: stages")
     with atomic_write(out / "summary.md", "w") as f:
         f.write(summary_markdown(summary))
     log("")

@@ -44,6 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="plenoctree",
         description="PlenOctrees: train NeRF-SH, convert to an octree, fine-tune, render, view.",
     )
+    from .. import __version__
+
+    parser.add_argument("--version", action="version", version=f"plenoctree {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _group_modules():
         importlib.import_module(f"{__name__}.{name}").register(sub)

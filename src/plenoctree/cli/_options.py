@@ -11,8 +11,8 @@ field into a flag; a new field becomes a flag with no other edit:
   default (``default: 0.01``; nothing when the default is ``None``/empty and the text says
   what happens then);
 - type from the annotation: ``bool`` → ``--x/--no-x``; ``int``/``float``/``str`` (``| None``
-  allowed); tuples of numbers → ``A,B,C``; a field named ``background`` → ``white``,
-  ``black`` or ``R,G,B``;
+  allowed); tuples of numbers → ``--x 1 2 3``; ``dict``/``list`` → a JSON value; a field
+  named ``background`` → ``white``, ``black`` or ``R,G,B``;
 - field metadata (``field(metadata={...})``) may add ``"choices"``, ``"flag"`` (another flag
   name, e.g. ``"steps"``), ``"positional": True``, ``"cli": False`` (no flag), ``"metavar"``.
 
@@ -30,55 +30,36 @@ import re
 from pathlib import Path
 from typing import Any, Iterable
 
+from .._config import apply, field_help, load_config_file
 from ..errors import ConfigError
 
-__all__ = ["add_config", "given", "apply", "field_help", "load_config_file", "parse_background",
+__all__ = ["add_config", "given", "layered", "apply", "field_help", "load_config_file", "parse_background",
            "add_config_file", "config_to_json", "format_default"]
 
 
-def field_help(cls: type) -> dict[str, str]:
-    """Help text of each field of dataclass ``cls``: ``metadata["help"]``, else the docstring
-    written under the field (searched through the base classes)."""
-    from ..nerf.config import field_docs
-
-    docs: dict[str, str] = {}
-    for klass in reversed([c for c in cls.__mro__ if dataclasses.is_dataclass(c)]):
-        try:
-            docs.update(field_docs(klass))
-        except (OSError, TypeError, IndexError, SyntaxError):  # pragma: no cover - no source
-            pass
-    for f in dataclasses.fields(cls):
-        if "help" in f.metadata:
-            docs[f.name] = str(f.metadata["help"])
-    return docs
-
-
 def parse_background(text: str) -> tuple[float, float, float]:
-    """``white``, ``black`` or ``R,G,B`` in [0, 1]."""
+    """``white``, ``black``, ``R,G,B`` or one grey value, floats in [0, 1] -> an RGB tuple;
+    anything else raises :class:`ConfigError`."""
     t = str(text).strip().lower()
-    if t == "white":
-        return (1.0, 1.0, 1.0)
-    if t == "black":
-        return (0.0, 0.0, 0.0)
+    named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+    if t in named:
+        return named[t]
     try:
         vals = tuple(float(v) for v in t.split(","))
     except ValueError:
         vals = ()
+    if len(vals) == 1:
+        vals = vals * 3
     if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
-        raise argparse.ArgumentTypeError(
-            f"expected white, black or R,G,B with values in [0, 1], got {text!r}")
+        raise ConfigError(f"--background: expected white, black or R,G,B in [0,1], got {text!r}")
     return vals  # type: ignore[return-value]
 
 
-def _numbers(kind: type):
-    def parse(text: str) -> tuple:
-        try:
-            return tuple(kind(v) for v in str(text).split(",") if v.strip() != "")
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"expected comma-separated numbers, got {text!r}") from None
-    parse.__name__ = f"{kind.__name__}s"
-    return parse
+def _background_arg(text: str) -> tuple[float, float, float]:
+    try:
+        return parse_background(text)
+    except ConfigError as e:
+        raise argparse.ArgumentTypeError(str(e).split(": ", 1)[1]) from None
 
 
 def _kind(f: dataclasses.Field) -> tuple[str, Any]:
@@ -89,12 +70,11 @@ def _kind(f: dataclasses.Field) -> tuple[str, Any]:
     base = parts[0] if parts else "str"
     default = f.default if f.default is not dataclasses.MISSING else None
     if f.name == "background":
-        return "background", parse_background
+        return "background", _background_arg
     if base == "bool":
         return "bool", None
     if base.startswith("tuple") or isinstance(default, tuple):
-        inner = float if "int" not in base else int
-        return "tuple", _numbers(inner)
+        return "tuple", (int if "int" in base and "float" not in base else float)
     if base == "int":
         return "int", int
     if base == "float":
@@ -127,15 +107,25 @@ def _default_of(f: dataclasses.Field) -> Any:
 
 def add_config(p: argparse.ArgumentParser | Any, cls: type, *, prefix: str = "",
                dest_prefix: str | None = None, shown: Any = None,
-               skip: Iterable[str] = (), title: str | None = None) -> list[str]:
+               skip: Iterable[str] = (), title: str | None = None,
+               positional: Iterable[str] = (), short: dict[str, str] | None = None,
+               rename: dict[str, str] | None = None,
+               aliases: dict[str, str] | None = None,
+               choices: dict[str, Iterable[str]] | None = None) -> list[str]:
     """Add one flag per field of dataclass ``cls`` to parser (or group) ``p``.
 
     ``prefix``: flag and dest prefix (``"finetune."`` → ``--finetune.epochs``, dest
     ``finetune.epochs``); ``dest_prefix`` overrides the dest prefix alone (``"model."`` for
     ``ModelConfig`` fields shown as plain ``--grid-levels``). ``shown``: an instance whose
     values ``--help`` shows as the defaults (a preset); default: the dataclass defaults.
-    ``skip``: fields without a flag. Returns the dests added.
+    ``skip``: fields without a flag. ``positional``: fields taken as positional arguments
+    (required). ``short``: extra short flags (``{"out": "-o"}``). ``rename``: flag names
+    differing from the field's (``{"show_progress": "progress"}``). ``aliases``: an older
+    flag name kept working (``{"limit": "--limit"}``). ``choices``: allowed values of
+    fields (as the ``"choices"`` metadata). Returns the dests added.
     """
+    choices = choices or {}
+    positional, short, rename, aliases = set(positional), short or {}, rename or {}, aliases or {}
     dprefix = prefix if dest_prefix is None else dest_prefix
     docs = field_help(cls)
     target = p.add_argument_group(title) if title else p
@@ -153,29 +143,41 @@ def add_config(p: argparse.ArgumentParser | Any, cls: type, *, prefix: str = "",
             text = f"{text} (default: {shown_default})" if text else f"default: {shown_default}"
         text = text.replace("%", "%%")
         dest = dprefix + f.name
-        if f.metadata.get("positional"):
-            target.add_argument(dest, metavar=f.name.upper(), nargs="?", default=None,
-                                help=text)
+        if f.metadata.get("positional") or f.name in positional:
+            target.add_argument(dest, metavar=f.name.upper(), help=text)
             dests.append(dest)
             continue
-        names = ["--" + prefix + f.name.replace("_", "-")]
+        names = ["--" + prefix + rename.get(f.name, f.name).replace("_", "-")]
         if "flag" in f.metadata:
             names.insert(0, "--" + prefix + f.metadata["flag"])
+        if f.name in short and not prefix:
+            names.append(short[f.name])
+        if f.name in aliases and not prefix:
+            names.append(aliases[f.name])
         kw: dict[str, Any] = {"dest": dest, "default": None, "help": text}
         if kind == "bool":
             kw["action"] = argparse.BooleanOptionalAction
         else:
             kw["type"] = parse
-            if "choices" in f.metadata:
-                kw["choices"] = list(f.metadata["choices"])
+            if kind == "tuple":
+                kw["nargs"] = "+"
+            if "choices" in f.metadata or f.name in choices:
+                kw["choices"] = list(choices.get(f.name) or f.metadata["choices"])
             kw["metavar"] = f.metadata.get("metavar") or {
-                "int": "INT", "float": "FLOAT", "str": "TEXT", "tuple": "A,B,C",
-                "background": "COLOUR", "json": "JSON"}[kind]
+                "tuple": "X", "background": "COLOUR", "json": "JSON"}.get(kind, f.name.upper())
             if "choices" in kw:
                 kw.pop("metavar")
         target.add_argument(*names, **kw)
         dests.append(dest)
     return dests
+
+
+def layered(args: argparse.Namespace, base: Any, where: str) -> Any:
+    """``base`` (a config instance: defaults or a preset) with ``--config FILE`` and then the
+    flags of ``args._dests`` applied: the one layering rule of every command."""
+    apply(base, load_config_file(getattr(args, "_config_file", None)),
+          where=str(getattr(args, "_config_file", None) or where))
+    return apply(base, given(args, args._dests), where=where)
 
 
 def given(args: argparse.Namespace, dests: Iterable[str], prefix: str = "") -> dict[str, Any]:
@@ -195,49 +197,12 @@ def given(args: argparse.Namespace, dests: Iterable[str], prefix: str = "") -> d
     return out
 
 
-def apply(cfg: Any, values: dict[str, Any], where: str = "config") -> Any:
-    """Set ``values`` (nested dicts for nested dataclasses) on dataclass ``cfg``; returns it.
-
-    Unknown names raise :class:`ConfigError` naming ``where``; lists become tuples where the
-    field's default is a tuple (JSON has no tuples)."""
-    names = {f.name: f for f in dataclasses.fields(cfg)}
-    for key, value in values.items():
-        if key not in names:
-            raise ConfigError(f"{where}: unknown option {key!r}; known: "
-                              f"{', '.join(sorted(names))}")
-        cur = getattr(cfg, key)
-        if dataclasses.is_dataclass(cur) and isinstance(value, dict):
-            apply(cur, value, f"{where}.{key}")
-            continue
-        if isinstance(value, list) and (isinstance(cur, tuple) or _kind(names[key])[0] in (
-                "tuple", "background")):
-            value = tuple(value)
-        setattr(cfg, key, value)
-    return cfg
-
-
 def add_config_file(p: argparse.ArgumentParser) -> None:
     """Add ``--config FILE``: a JSON file of option values (e.g. a run's saved config.json),
     applied before the flags given on the command line."""
     p.add_argument("--config", dest="_config_file", metavar="FILE", default=None,
                    help="JSON file of options (a run's saved config.json); flags given on the "
                         "command line override it")
-
-
-def load_config_file(path: str | Path | None) -> dict[str, Any]:
-    """The options of ``--config FILE`` (``{}`` without one); bad files raise ConfigError."""
-    if not path:
-        return {}
-    p = Path(path)
-    try:
-        data = json.loads(p.read_text())
-    except OSError as e:
-        raise ConfigError(f"{p}: cannot read the config file ({e.strerror})") from None
-    except ValueError as e:
-        raise ConfigError(f"{p}: not a JSON config file ({e})") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{p}: expected a JSON object of options, got {type(data).__name__}")
-    return data
 
 
 def config_to_json(cfg: Any) -> str:

@@ -18,6 +18,7 @@ _TRAIN_SKIP = ("out", "preset", "model")
 
 def register(sub) -> None:
     """Add ``train`` and ``render-nerf`` to the CLI."""
+    from ..datasets.dataset import FORMATS
     from ..nerf.config import ModelConfig, TrainConfig, preset
     from ._options import add_config, add_config_file
 
@@ -40,7 +41,7 @@ def register(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     shown = preset("cpu")
     dests = add_config(p, TrainConfig, shown=shown, skip=_TRAIN_SKIP,
-                       title="training (TrainConfig)")
+                       title="training (TrainConfig)", choices={"format": FORMATS})
     dests += add_config(p, ModelConfig, dest_prefix="model.", shown=shown.model,
                         title="network (ModelConfig)")
     p.set_defaults(func=run_train, _dests=dests)

@@ -18,5 +18,6 @@ from .nerfstudio import load_nerfstudio
 from .nsvf import load_nsvf
 
 __all__ = ["Cameras", "generate_rays", "Dataset", "load_blender", "load_dataset", "detect_format",
-           "FORMATS", "load_colmap", "load_llff", "load_nsvf", "load_nerfstudio", "llff_render_cameras",
+           "FORMATS", "load_colmap", "load_llff", "load_nsvf", "load_nerfstudio",
+           "llff_render_cameras",
            "to_ndc_rays"]

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, near_far_from_box
-from .blender import _check_options
+from ._files import _check_options
 from .cameras import Cameras
 from .colmap_model import colmap_c2w, find_colmap_model, read_colmap_model
 from .dataset import Dataset

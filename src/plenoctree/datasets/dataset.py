@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import DatasetError
 from .cameras import Cameras
 
-__all__ = ["Dataset", "load_dataset", "detect_format", "FORMATS"]
+__all__ = ["Dataset", "load_dataset", "detect_format", "has_split", "FORMATS"]
 
 
 @dataclass
@@ -156,3 +156,32 @@ def load_dataset(root: str | os.PathLike, split: str = "train", format: str | No
         if "unexpected keyword argument" in str(e):
             raise ConfigError(f"{fmt} loader: {e}") from None
         raise
+
+
+def has_split(root: str | os.PathLike, split: str, format: str | None = None) -> bool:
+    """Whether the dataset at ``root`` has a non-empty split ``split``, by its loader's rules:
+    Blender ``transforms_<split>.json``; LLFF ``train`` and ``test`` (every ``llffhold``-th
+    image; its ``val`` is the test set, so not a separate split); NSVF images named ``0_`` /
+    ``1_`` / ``2_`` (test falls back to ``1_``); nerfstudio ``<split>_filenames`` or the 90 %
+    rule; COLMAP the held-out views. A broken dataset still raises its ``DatasetError``."""
+    root = Path(root)
+    fmt = format or detect_format(root)
+    if fmt == "blender":
+        return (root / f"transforms_{split}.json").is_file()
+    if fmt == "llff":
+        return split in ("train", "test")
+    if fmt == "nsvf":
+        from .nsvf import NSVF_SPLIT_PREFIX
+
+        names = [p.name for p in (root / "rgb").iterdir()] if (root / "rgb").is_dir() else []
+        prefixes = [NSVF_SPLIT_PREFIX[split]] if split in NSVF_SPLIT_PREFIX else []
+        if split == "test":
+            prefixes.append(NSVF_SPLIT_PREFIX["val"])
+        return any(n.startswith(p) for n in names for p in prefixes)
+    try:
+        load_dataset(root, split, format=fmt, limit=1)
+    except DatasetError as e:
+        if f"split {split!r} is empty" in str(e):
+            return False
+        raise
+    return True

@@ -44,7 +44,8 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, load_masks, near_far_from_box
-from .blender import _check_options, _finite_number, _frame_file_path, _image_path, _matrix
+from ._files import (_check_options, _finite_number, _frame_file_path, _image_path, _matrix,
+                     check_inside_dataset)
 from .cameras import Cameras
 from .dataset import Dataset
 
@@ -147,6 +148,8 @@ def read_nerfstudio(path: str | os.PathLike) -> tuple[dict, list[dict]]:
         mp = fr.get("mask_path")
         if mp is not None and (not isinstance(mp, str) or not mp.strip() or "\x00" in mp):
             raise DatasetError(f"{where}: mask_path must be a non-empty string")
+        if mp is not None:
+            check_inside_dataset(mp, f"{where}: mask_path")
         m = fr["transform_matrix"]
         if isinstance(m, list) and len(m) == 3:       # 3x4 accepted
             m = m + [[0, 0, 0, 1]]

@@ -83,9 +83,9 @@ class TrainConfig:
 
     data: str = ""
     """Dataset folder (any supported format: Blender, LLFF, NSVF, nerfstudio)."""
-    format: str | None = field(default=None, metadata={
-        "choices": ("blender", "llff", "nsvf", "nerfstudio")})
-    """Dataset format (default: detected from the folder's files)."""
+    format: str | None = None
+    """Dataset format (one of ``plenoctree.datasets.FORMATS``; default: detected from the
+    folder's files)."""
     out: str = ""
     """Run directory for checkpoints, logs and plots."""
     preset: str = "cpu"
@@ -302,6 +302,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.val_views >= 0 and cfg.chunk >= 1 and cfg.log_every >= 1,
          "val_views >= 0, chunk >= 1 and log_every >= 1 are required")
     need(len(cfg.background) == 3, "background must have 3 components")
-    need(cfg.format in (None, "blender", "llff", "nsvf", "nerfstudio"),
-         f"format must be blender, llff, nsvf or nerfstudio, got {cfg.format!r}")
+    from ..datasets.dataset import FORMATS
+
+    need(cfg.format in (None, *FORMATS),
+         f"format must be one of {', '.join(FORMATS)}, got {cfg.format!r}")
     return cfg

@@ -64,7 +64,8 @@ def evaluate_views(model: NeRFModel, data: Dataset, cfg: TrainConfig,
         pred = np.clip(r["rgb"], 0.0, 1.0)
         res["names"].append(data.names[i])
         res["psnr"].append(psnr(pred, gt))
-        res["ssim"].append(ssim(pred, gt) if with_ssim else float("nan"))
+        small = min(pred.shape[:2]) < 11             # SSIM's 11x11 window: NaN for tiny images
+        res["ssim"].append(ssim(pred, gt) if with_ssim and not small else float("nan"))
         res["n_samples"].append(int(r["n_samples"]))
         if out is not None:
             save_png(out / f"{data.names[i]}.png", pred)

@@ -174,6 +174,24 @@ def _prepare_run_dir(cfg: TrainConfig, resume: bool):
 def train(cfg: TrainConfig, resume: bool = False,
           on_step: Callable[[int], None] | None = None, quiet: bool | None = None
           ) -> TrainResult:
+    """Train a NeRF-SH as configured; see :func:`_train` and the module docstring.
+
+    Holds the run-folder lock (:func:`plenoctree._util.run_lock`) while training: a second
+    ``train``/``--resume`` into the same ``--out`` fails at once naming the holder.
+    """
+    from .._util import check_output_dir, run_lock
+
+    validate(cfg)
+    if not cfg.data or not cfg.out:
+        raise ConfigError("training needs a dataset folder (--data) and a run directory (--out)")
+    check_output_dir(cfg.out)
+    with run_lock(cfg.out, "train --resume" if resume else "train"):
+        return _train(cfg, resume, on_step, quiet)
+
+
+def _train(cfg: TrainConfig, resume: bool = False,
+           on_step: Callable[[int], None] | None = None, quiet: bool | None = None
+           ) -> TrainResult:
     """Train a NeRF-SH as configured; see the module docstring for the outputs.
 
     Args:

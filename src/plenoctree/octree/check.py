@@ -164,7 +164,10 @@ def _check_values(tree: Octree, name: str, n: int) -> None:
     """Finite data and σ >= 0 in every cell (checked in blocks of nodes)."""
     for start in range(0, n, _CHUNK_NODES):
         block = tree.data[start:start + _CHUNK_NODES]
-        finite = np.abs(block) <= MAX_ABS_VALUE        # False for NaN and inf too
+        if block.dtype == np.float16:                   # float16 cannot exceed the bound
+            finite = np.isfinite(block)
+        else:
+            finite = np.abs(block) <= MAX_ABS_VALUE    # False for NaN and inf too
         if not finite.all():
             f = np.argwhere(~finite)[0]
             v = block[tuple(f)]

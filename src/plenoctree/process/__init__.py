@@ -146,6 +146,7 @@ def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Pa
     sparse.mkdir(parents=True, exist_ok=True)
     res.reconstruction.write(sparse)
     und = work / "undistorted"
+    pycolmap.logging.minloglevel = 2
     pycolmap.undistort_images(und, sparse, image_dir, output_type="COLMAP")
     model = read_colmap_model(und / "sparse")
     order = sorted(model.images, key=lambda i: model.images[i][0])
@@ -188,7 +189,8 @@ def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Pa
                     stage / f"images_{f}" / out_names[j], fmt, quality=95)
     k = np.array([v[:4] for v in intr])
     if forward:
-        if np.abs(k[:, 0] - k[:, 1]).max() > 1e-3 * k[:, 0].max() or np.ptp(k[:, 0]) > 1e-6 * k[0, 0]:
+        square = np.abs(k[:, 0] - k[:, 1]).max() <= 1e-3 * k[:, 0].max()
+        if not square or np.ptp(k[:, 0]) > 1e-6 * k[0, 0]:
             raise ProcessError(f"{image_dir}: a forward-facing (LLFF) dataset needs one square-"
                                "pixel camera (use --camera-model SIMPLE_RADIAL or "
                                "SIMPLE_PINHOLE with --single-camera), or --scene 360")

@@ -8,9 +8,14 @@ can cause (too few images, too few matches, nothing registered) raises
 
 Defaults chosen by measurement on the lego training photos (``benchmarks/colmap_poses.py``):
 one camera shared by every image (``single_camera``), exhaustive matching with guided matching
-(re-matching along the epipolar geometry once the two-view geometry is known), and a mapper
-that rejects ill-conditioned image registrations (``abs_pose_min_num_inliers`` 50,
-``init_min_tri_angle`` 8) followed by a final global bundle adjustment.
+(re-matching along the epipolar geometry once the two-view geometry is known), and a stricter
+mapper (:data:`MAPPER_DEFAULTS`: an image is registered only with >= 100 inliers, >= 50 %
+inlier ratio and <= 4 px error; observations over 2 px are filtered; no structure-less
+fallback registration), then :func:`drop_weak_images`. With COLMAP's own mapper settings one
+lego photo was registered on the wrong side of the nearly symmetric object (165° off); the
+stricter ones alone still did so in one of two runs (multi-threaded matching is not
+deterministic), with ~5x fewer 3D points than the median photo, which the filter removes.
+A final global bundle adjustment refines the chosen model.
 """
 
 from __future__ import annotations
@@ -29,7 +34,10 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
                  "OPENCV_FISHEYE")
 
 
-MAPPER_DEFAULTS = {"mapper.abs_pose_min_num_inliers": 50, "mapper.init_min_tri_angle": 8.0}
+MAPPER_DEFAULTS = {"structure_less_registration_fallback": False,
+                   "mapper.abs_pose_min_num_inliers": 100, "mapper.abs_pose_max_error": 4.0,
+                   "mapper.abs_pose_min_inlier_ratio": 0.5, "mapper.filter_max_reproj_error": 2.0,
+                   "mapper.init_min_tri_angle": 8.0}
 """Mapper settings changed from COLMAP's (chosen on lego by ``benchmarks/colmap_poses.py``)."""
 
 
@@ -52,7 +60,7 @@ class SfmOptions:
     """Options of :func:`run_sfm` (the ``plenoctree process`` flags)."""
 
     camera_model: str = "SIMPLE_RADIAL"
-    """COLMAP camera model: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE"""
+    """COLMAP camera model (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, ...)"""
     single_camera: bool = True
     """one camera (intrinsics) shared by every image; off: one per image"""
     matcher: str = "auto"
@@ -205,7 +213,11 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
                            "overlap (each part of the scene seen from 3+ nearby views), "
                            "sharper or more textured images, or --matcher exhaustive")
     best = max(models.values(), key=lambda r: r.num_reg_images())
+    weak = drop_weak_images(best, WEAK_IMAGE_FRACTION)
+    if weak:
+        log(f"colmap: {len(weak)} weakly supported image(s) left out: {', '.join(weak)}")
     # A final global bundle adjustment of the chosen model.
+    pycolmap.logging.minloglevel = 2          # (the mapper resets COLMAP's log level)
     t0 = time.perf_counter()
     ba = pycolmap.BundleAdjustmentOptions()
     ba.print_summary = False
@@ -218,6 +230,30 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
         raise ProcessError(f"{image_dir}: only {n_reg} of {len(names)} images could be "
                            "registered; take more overlapping photos of the scene")
     return SfmResult(best, len(names), n_reg, len(models), times)
+
+
+WEAK_IMAGE_FRACTION = 0.35
+"""Images seeing fewer than this fraction of the median image's 3D points are deregistered."""
+
+
+def drop_weak_images(rec: Any, fraction: float) -> list[str]:
+    """Deregister the images of ``rec`` that observe fewer than ``fraction`` x the median
+    number of 3D points per image; returns their names.
+
+    Measured on lego (``benchmarks/colmap_poses.py``): a photo registered on the wrong side of
+    the nearly symmetric object (165-170° off) keeps ~110 points where correctly registered
+    ones keep 210-670 (median ~500), so these are cut; in a model without such a camera none
+    is cut.
+    """
+    counts = {iid: im.num_points3D for iid, im in rec.images.items() if im.has_pose}
+    if len(counts) < 5:
+        return []
+    limit = fraction * float(sorted(counts.values())[len(counts) // 2])
+    weak = [iid for iid, n in counts.items() if n < limit]
+    names = sorted(rec.images[iid].name for iid in weak)
+    for iid in weak:
+        rec.deregister_frame(rec.images[iid].frame_id)
+    return names
 
 
 def _match_pairs(pycolmap: Any, db: Path, work: Path, names: list[str], pairs: list,
