@@ -21,7 +21,8 @@ from .errors import ConfigError, PlenOctreeError
 
 __all__ = ["PipelineConfig", "PipelineError", "run_pipeline", "STAGES"]
 
-STAGES = ("train", "nerf_eval", "extract", "finetune", "eval", "compress", "web", "video")
+STAGES = ("train", "nerf_eval", "extract", "refine", "finetune", "eval", "compress", "web",
+          "video")
 
 
 class PipelineError(PlenOctreeError, RuntimeError):
@@ -52,8 +53,13 @@ class PipelineConfig:
     """random samples averaged per leaf at extraction"""
     weight_thresh: float = 0.001
     """visibility threshold τ_w on the maximum ray weight of a voxel"""
+    refine_passes: int = 1
+    """adaptive refinement passes after extraction: subdivide leaves where the NeRF-SH varies
+    inside them (0 = off; see `plenoctree refine`)"""
+    refine_threshold: float = 0.02
+    """refinement: subdivide leaves whose sample spread is at least this (pixel units)"""
     finetune_epochs: int = 20
-    """maximum fine-tuning epochs (stops at the first validation drop)"""
+    """maximum fine-tuning epochs (the learning rate backs off on a validation drop)"""
     finetune_lr: float | None = None
     """fine-tuning learning rate (default: the fine-tuner's SGD default)"""
     compress_bits: int = 16
@@ -140,8 +146,9 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     """Run (or resume) the whole chain; returns the summary also written to ``summary.json``.
 
     Artefacts in ``cfg.out``: ``nerf/`` (run directory), ``nerf_eval.json``, ``tree.npz`` (raw
-    extracted octree), ``tree_ft.npz`` (fine-tuned), ``tree_ft.plnz`` (compressed),
-    ``eval_{raw,ft,compressed}/eval.json`` (the fine-tuned tree's renders and depth maps in
+    extracted octree), ``tree_refined.npz`` (adaptively refined, when ``refine_passes``),
+    ``tree_ft.npz`` (fine-tuned, with ``tree_ft.log.jsonl``), ``tree_ft.plnz`` (compressed),
+    ``eval_{raw,refined,ft,compressed}/eval.json`` (the fine-tuned tree's renders and depth maps in
     ``eval_ft/renders/``), ``web/`` (viewer bundle), ``orbit.mp4``,
     ``summary.json`` and ``summary.md``.
     """
@@ -215,10 +222,28 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     r.stage("extract", _config_dict(ecfg), [run_dir / CHECKPOINT_NAME], [tree_raw],
             lambda: extract(ecfg), "change the extraction options (--grid, --weight-thresh)")
 
-    # 4. Fine-tuning of the leaf values on the training photos.
+    # 4. Adaptive refinement against the NeRF-SH.
+    tree_in = tree_raw
+    if cfg.refine_passes > 0:
+        from .convert.refine import RefineConfig, refine
+
+        tree_ref = out / "tree_refined.npz"
+        rcfg = RefineConfig(tree=str(tree_raw), run_dir=str(run_dir), out=str(tree_ref),
+                            passes=cfg.refine_passes, threshold=cfg.refine_threshold,
+                            data=str(data), seed=cfg.seed, show_progress=False)
+        for k, v in cfg.extra.get("refine", {}).items():
+            if not hasattr(rcfg, k):
+                raise ConfigError(f"unknown refinement option {k!r}")
+            setattr(rcfg, k, v)
+        r.stage("refine", _config_dict(rcfg), [tree_raw, run_dir / CHECKPOINT_NAME], [tree_ref],
+                lambda: refine(rcfg, log=lambda *_: None),
+                "lower --refine-passes or raise --refine-threshold")
+        tree_in = tree_ref
+
+    # 5. Fine-tuning of the leaf values on the training photos.
     from .optim.finetune import FinetuneConfig, finetune
 
-    fcfg = FinetuneConfig(tree=str(tree_raw), data=str(data), out=str(tree_ft),
+    fcfg = FinetuneConfig(tree=str(tree_in), data=str(data), out=str(tree_ft),
                           epochs=cfg.finetune_epochs, lr=cfg.finetune_lr,
                           downscale=cfg.downscale, precision="fp32", backend=cfg.backend,
                           seed=cfg.seed, resume=True, test_views=-1, verbose=False)
@@ -228,10 +253,10 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
         setattr(fcfg, k, v)
     ft_settings = {k: v for k, v in _config_dict(fcfg).items()
                    if k not in ("resume", "verbose", "show_progress")}
-    r.stage("finetune", ft_settings, [tree_raw], [tree_ft], lambda: finetune(fcfg),
+    r.stage("finetune", ft_settings, [tree_in], [tree_ft], lambda: finetune(fcfg),
             "lower --finetune-lr or --finetune-epochs")
 
-    # 5. Compression (median cut + DEFLATE).
+    # 6. Compression (median cut + DEFLATE).
     def do_compress():
         from .compress import CompressOptions, compress, save_compressed
         from .octree import load_tree
@@ -242,11 +267,13 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     r.stage("compress", {"bits": cfg.compress_bits}, [tree_ft], [tree_c], do_compress,
             "try fewer --compress-bits")
 
-    # 6. Scores of every octree stage on the test split (PSNR, SSIM, FPS, MB).
+    # 7. Scores of every octree stage on the test split (PSNR, SSIM, FPS, MB).
     from .evaluation import EvalConfig, eval_tree_file
 
     evals = {}
-    for key, path in (("raw", tree_raw), ("ft", tree_ft), ("compressed", tree_c)):
+    stages = [("raw", tree_raw)] + ([("refined", tree_in)] if tree_in != tree_raw else []) + [
+        ("ft", tree_ft), ("compressed", tree_c)]
+    for key, path in stages:
         ev_dir = out / f"eval_{key}"
         ecfg_ = EvalConfig(tree=str(path), data=str(data), format=cfg.format,
                            downscale=cfg.downscale, limit=cfg.eval_views or None, out=str(ev_dir),
@@ -257,7 +284,7 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
                 "check the tree file")
         evals[key] = _read_json(ev_dir / "eval.json")
 
-    # 7. Static web-viewer bundle and orbit video.
+    # 8. Static web-viewer bundle and orbit video.
     if cfg.web:
         def do_web():
             from .viewer.export import export_web
@@ -280,7 +307,7 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
                 [tree_ft], [out / "orbit.mp4"], do_video, "check the tree file")
 
     summary = _summary(cfg, out, r, evals, _read_json(nerf_json),
-                       _read_json(run_dir / "summary.json"))
+                       _read_json(run_dir / "summary.json"), _finetune_outcome(tree_ft))
     atomic_save_json(out / "summary.json", summary)
     with atomic_write(out / "summary.md", "w") as f:
         f.write(summary_markdown(summary))
@@ -294,20 +321,43 @@ def _config_dict(cfg: Any) -> dict:
     return json.loads(json.dumps(d, default=str))
 
 
+def _finetune_outcome(tree_ft: Path) -> dict:
+    """The fine-tuner's ``end`` record (validation before / best, best epoch, why it stopped,
+    back-offs) from ``<tree_ft stem>.log.jsonl``; ``{}`` when absent."""
+    path = tree_ft.with_name(tree_ft.stem + ".log.jsonl")
+    try:
+        lines = path.read_text().splitlines()
+    except OSError:
+        return {}
+    for line in reversed(lines):
+        try:
+            rec = json.loads(line)
+        except ValueError:
+            continue
+        if rec.get("event") == "end":
+            keys = ("val_psnr_before", "val_psnr_best", "best_epoch", "epochs_run",
+                    "stop_reason", "backoffs", "wall_seconds")
+            return {k: rec.get(k) for k in keys}
+    return {}
+
+
 def _summary(cfg: PipelineConfig, out: Path, r: _Runner, evals: dict, nerf: dict,
-             train_info: dict) -> dict:
+             train_info: dict, ft: dict | None = None) -> dict:
     rows = []
     nerf_mean = nerf.get("mean", {})
     nerf_fps = nerf_mean.get("fps")
     rows.append({"stage": "NeRF-SH", "psnr": nerf_mean.get("psnr"), "ssim": nerf_mean.get("ssim"),
                  "fps": nerf_fps, "mb": nerf.get("model_mb"),
                  "seconds": r.times.get("train"), "views": nerf.get("n_views")})
-    names = {"raw": "PlenOctree", "ft": "PlenOctree fine-tuned", "compressed": "compressed"}
-    stage_time = {"raw": "extract", "ft": "finetune", "compressed": "compress"}
+    names = {"raw": "PlenOctree", "refined": "PlenOctree refined",
+             "ft": "PlenOctree fine-tuned", "compressed": "compressed"}
+    stage_time = {"raw": "extract", "refined": "refine", "ft": "finetune",
+                  "compressed": "compress"}
     for key, ev in evals.items():
         mean, tree = ev.get("mean", {}), ev.get("tree", {})
         rows.append({"stage": names[key], "psnr": mean.get("psnr"), "ssim": mean.get("ssim"),
                      "fps": mean.get("fps"), "mb": tree.get("file_mb"),
+                     "leaves": tree.get("n_leaves"),
                      "seconds": r.times.get(stage_time[key]),
                      "views": ev.get("dataset", {}).get("n_views")})
     ft_fps = evals.get("ft", {}).get("mean", {}).get("fps")
@@ -315,9 +365,25 @@ def _summary(cfg: PipelineConfig, out: Path, r: _Runner, evals: dict, nerf: dict
     return {"config": _config_dict(cfg), "rows": rows, "times_s": r.times,
             "skipped": r.skipped, "speedup_over_nerf": speedup,
             "total_s": sum(v for v in r.times.values() if v),
+            "finetune": _finetune_note(evals, ft or {}),
             "web": str(out / "web") if cfg.web else None,
             "video": str(out / "orbit.mp4") if cfg.video_frames else None,
             "train": train_info}
+
+
+def _finetune_note(evals: dict, ft: dict) -> dict:
+    """Test-PSNR gain of fine-tuning over its input and, when the input tree was kept, why."""
+    def psnr(key):
+        return evals.get(key, {}).get("mean", {}).get("psnr")
+
+    start = psnr("refined") if "refined" in evals else psnr("raw")
+    after = psnr("ft")
+    note = dict(ft)
+    note["test_gain_db"] = (after - start) if (after is not None and start is not None) else None
+    if ft.get("best_epoch") == 0:
+        note["kept_input"] = ("no fine-tuning epoch raised the validation PSNR above the input "
+                              f"tree's ({ft.get('stop_reason')}), so the input tree was kept")
+    return note
 
 
 def summary_markdown(summary: dict) -> str:
@@ -325,12 +391,27 @@ def summary_markdown(summary: dict) -> str:
     def f(v, fmt):
         return format(v, fmt) if isinstance(v, (int, float)) else "–"
 
-    lines = ["| stage | test views | PSNR (dB) | SSIM | FPS | MB | time (s) |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| stage | test views | PSNR (dB) | SSIM | FPS | leaves | MB | time (s) |",
+             "|---|---|---|---|---|---|---|---|"]
     for row in summary["rows"]:
         lines.append(f"| {row['stage']} | {f(row['views'], 'd')} | {f(row['psnr'], '.2f')} | "
-                     f"{f(row['ssim'], '.4f')} | {f(row['fps'], '.3g')} | {f(row['mb'], '.1f')} "
+                     f"{f(row['ssim'], '.4f')} | {f(row['fps'], '.3g')} | "
+                     f"{f(row.get('leaves'), ',d')} | {f(row['mb'], '.1f')} "
                      f"| {f(row['seconds'], '.0f')} |")
+    ft = summary.get("finetune") or {}
+    if ft:
+        lines.append("")
+        gain = ft.get("test_gain_db")
+        text = f"Fine-tuning: {f(gain, '+.2f')} dB on the test views"
+        if ft.get("val_psnr_before") is not None:
+            text += (f" (validation {f(ft.get('val_psnr_before'), '.2f')} → "
+                     f"{f(ft.get('val_psnr_best'), '.2f')} dB, best epoch "
+                     f"{ft.get('best_epoch')} of {ft.get('epochs_run')}, "
+                     f"{ft.get('backoffs') or 0} learning-rate back-offs; "
+                     f"{ft.get('stop_reason')})")
+        lines.append(text + ".")
+        if ft.get("kept_input"):
+            lines.append(f"The fine-tuned tree is the input tree: {ft['kept_input']}.")
     if summary.get("speedup_over_nerf"):
         lines.append("")
         lines.append(f"Render speed-up of the fine-tuned octree over the NeRF-SH: "
