@@ -100,6 +100,7 @@ class _Runner:
         self.out, self.log = out, log
         self.stamps = out / ".stages"
         self.times: dict[str, float] = {}
+        self.peaks: dict[str, float] = {}     # peak RSS (MB) of each stage
         self.skipped: list[str] = []
 
     def stage(self, name: str, settings: dict, inputs: list[Path], outputs: list[Path],
@@ -115,12 +116,18 @@ class _Runner:
         if old is not None and old.get("stamp") == stamp and all(p.exists() for p in outputs):
             self.log(f"[{name}] up to date, skipped")
             self.times[name] = float(old.get("seconds", 0.0))
+            if old.get("peak_rss_mb") is not None:
+                self.peaks[name] = float(old["peak_rss_mb"])
             self.skipped.append(name)
             return False
         self.log(f"[{name}] running")
+        from .convert.memory import StageMonitor
+
+        mon = StageMonitor()
         t0 = time.perf_counter()
         try:
-            fn()
+            with mon.stage(name):
+                fn()
         except PlenOctreeError as e:
             raise PipelineError(
                 f"stage '{name}' failed: {e}\n  finished artefacts are kept in {self.out}; "
@@ -130,7 +137,9 @@ class _Runner:
             raise
         seconds = time.perf_counter() - t0
         self.times[name] = seconds
-        atomic_save_json(path, {"stamp": stamp, "seconds": seconds})
+        self.peaks[name] = float(mon.to_json()[name]["peak_rss_mb"])
+        atomic_save_json(path, {"stamp": stamp, "seconds": seconds,
+                                "peak_rss_mb": self.peaks[name]})
         self.log(f"[{name}] done in {seconds:.1f} s")
         return True
 
@@ -348,7 +357,8 @@ def _summary(cfg: PipelineConfig, out: Path, r: _Runner, evals: dict, nerf: dict
     nerf_fps = nerf_mean.get("fps")
     rows.append({"stage": "NeRF-SH", "psnr": nerf_mean.get("psnr"), "ssim": nerf_mean.get("ssim"),
                  "fps": nerf_fps, "mb": nerf.get("model_mb"),
-                 "seconds": r.times.get("train"), "views": nerf.get("n_views")})
+                 "seconds": r.times.get("train"), "views": nerf.get("n_views"),
+                 "peak_rss_mb": r.peaks.get("train")})
     names = {"raw": "PlenOctree", "refined": "PlenOctree refined",
              "ft": "PlenOctree fine-tuned", "compressed": "compressed"}
     stage_time = {"raw": "extract", "refined": "refine", "ft": "finetune",
@@ -358,12 +368,13 @@ def _summary(cfg: PipelineConfig, out: Path, r: _Runner, evals: dict, nerf: dict
         rows.append({"stage": names[key], "psnr": mean.get("psnr"), "ssim": mean.get("ssim"),
                      "fps": mean.get("fps"), "mb": tree.get("file_mb"),
                      "leaves": tree.get("n_leaves"),
+                     "peak_rss_mb": r.peaks.get(stage_time[key]),
                      "seconds": r.times.get(stage_time[key]),
                      "views": ev.get("dataset", {}).get("n_views")})
     ft_fps = evals.get("ft", {}).get("mean", {}).get("fps")
     speedup = (ft_fps / nerf_fps) if (ft_fps and nerf_fps) else None
     return {"config": _config_dict(cfg), "rows": rows, "times_s": r.times,
-            "skipped": r.skipped, "speedup_over_nerf": speedup,
+            "skipped": r.skipped, "speedup_over_nerf": speedup, "peak_rss_mb": r.peaks,
             "total_s": sum(v for v in r.times.values() if v),
             "finetune": _finetune_note(evals, ft or {}),
             "web": str(out / "web") if cfg.web else None,
@@ -391,13 +402,14 @@ def summary_markdown(summary: dict) -> str:
     def f(v, fmt):
         return format(v, fmt) if isinstance(v, (int, float)) else "–"
 
-    lines = ["| stage | test views | PSNR (dB) | SSIM | FPS | leaves | MB | time (s) |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| stage | test views | PSNR (dB) | SSIM | FPS | leaves | MB | time (s) | "
+             "peak RSS (MB) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for row in summary["rows"]:
         lines.append(f"| {row['stage']} | {f(row['views'], 'd')} | {f(row['psnr'], '.2f')} | "
                      f"{f(row['ssim'], '.4f')} | {f(row['fps'], '.3g')} | "
                      f"{f(row.get('leaves'), ',d')} | {f(row['mb'], '.1f')} "
-                     f"| {f(row['seconds'], '.0f')} |")
+                     f"| {f(row['seconds'], '.0f')} | {f(row.get('peak_rss_mb'), '.0f')} |")
     ft = summary.get("finetune") or {}
     if ft:
         lines.append("")
