@@ -13,7 +13,8 @@ def _run(args: argparse.Namespace) -> int:
 
     cfg = FinetuneConfig(
         tree=args.tree, data=args.data, out=args.out, epochs=args.epochs, lr=args.lr,
-        optimizer=args.optimizer, batch_rays=args.batch_rays, ray_tile=args.ray_tile,
+        optimizer=args.optimizer, lr_sigma=args.lr_sigma, lr_decay=args.lr_decay,
+        backoffs=args.backoffs, batch_rays=args.batch_rays, ray_tile=args.ray_tile,
         downscale=args.downscale,
         val_every=args.val_every, val_fraction=args.val_fraction, val_views=args.val_views,
         test_views=args.test_views, continue_on_decrease=args.continue_on_decrease,
@@ -59,6 +60,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lr", type=float, default=None, help=h("lr"))
     p.add_argument("--optimizer", choices=("sgd", "adam", "rmsprop"), default=d("optimizer"),
                    help=h("optimizer"))
+    p.add_argument("--lr-sigma", type=float, default=None, help=h("lr_sigma"))
+    p.add_argument("--lr-decay", type=float, default=d("lr_decay"), help=h("lr_decay"))
+    p.add_argument("--backoffs", type=int, default=d("backoffs"), help=h("backoffs"))
     p.add_argument("--batch-rays", type=int, default=d("batch_rays"), help=h("batch_rays"))
     p.add_argument("--ray-tile", type=int, default=d("ray_tile"), help=h("ray_tile"))
     p.add_argument("--downscale", type=int, default=d("downscale"), help=h("downscale"))
