@@ -222,7 +222,7 @@ def test_cli_prints_psnr_before_and_after(scene, tmp_path, capsys):
 
     rc = main(["finetune", str(scene / "noisy.npz"), "--data", str(scene / "data"), "--out",
                str(tmp_path / "cli.npz"), "--epochs", "2", "--optimizer", "adam", "--lr", "0.02",
-               "--batch-rays", "4096", "--quiet", "--progress", "off"])
+               "--batch-rays", "4096", "--quiet", "--no-progress"])
     out = capsys.readouterr().out
     assert rc == 0
     assert "test PSNR before" in out and "after" in out

@@ -16,10 +16,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from ._util import atomic_save_json, atomic_write
+from ._config import apply
+from ._util import atomic_save_json, atomic_write, check_output_dir, run_lock
 from .errors import ConfigError, PlenOctreeError
+from .optim.finetune import DEFAULT_EPOCHS
 
-__all__ = ["PipelineConfig", "PipelineError", "run_pipeline", "STAGES"]
+__all__ = ["PipelineConfig", "PipelineError", "run_pipeline", "STAGES", "PRESETS",
+           "pipeline_preset", "check_extras"]
 
 STAGES = ("train", "nerf_eval", "extract", "refine", "finetune", "eval", "compress", "web",
           "video")
@@ -35,6 +38,9 @@ class PipelineConfig:
 
     data: str = ""
     """dataset folder (any supported format)"""
+    images: str = ""
+    """your photos (a folder) or a video instead of --data: the first stage, `process`
+    (COLMAP poses), writes the dataset OUT/data"""
     out: str = ""
     """output folder: every artefact of the chain goes there"""
     format: str | None = None
@@ -56,9 +62,9 @@ class PipelineConfig:
     refine_passes: int = 1
     """adaptive refinement passes after extraction: subdivide leaves where the NeRF-SH varies
     inside them (0 = off; see `plenoctree refine`)"""
-    refine_threshold: float = 0.02
+    refine_threshold: float = 0.1
     """refinement: subdivide leaves whose sample spread is at least this (pixel units)"""
-    finetune_epochs: int = 20
+    finetune_epochs: int = DEFAULT_EPOCHS
     """maximum fine-tuning epochs (the learning rate backs off on a validation drop)"""
     finetune_lr: float | None = None
     """fine-tuning learning rate (default: the fine-tuner's, Adam 1e-2)"""
@@ -79,7 +85,51 @@ class PipelineConfig:
     seed: int = 0
     """random seed of training and fine-tuning"""
     extra: dict = field(default_factory=dict)
-    """stage overrides: {"train": {...TrainConfig fields}, "extract": {...}, "finetune": {...}}"""
+    """stage overrides: {"train": {...TrainConfig fields, "model": {...}}, "extract": {...},
+    "finetune": {...}} (the CLI's --train.*, --extract.*, --finetune.* flags)"""
+
+
+STAGE_OPTIONS = ("train", "extract", "refine", "finetune")
+"""Stages whose every config field ``extra`` may set (``plenoctree run --<stage>.<field>``)."""
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "cpu": {},
+    "paper": {"preset": "paper", "train_minutes": 0.0, "grid": 512, "samples": 256,
+              "extra": {"extract": {"bbox_scale": 1.1}}},
+    "quick": {"train_minutes": 3.0, "grid": 128, "samples": 4, "finetune_epochs": 2,
+              "nerf_eval_views": 1, "eval_views": 5, "video_frames": 0},
+}
+"""Settings of ``plenoctree run --preset NAME`` over the :class:`PipelineConfig` defaults:
+``cpu`` (the defaults: cpu NeRF-SH preset, 256³), ``paper`` (the paper's NeRF-SH, 512³,
+256 samples per voxel; for GPUs), ``quick`` (a few minutes end to end, to try a dataset)."""
+
+
+def pipeline_preset(name: str) -> PipelineConfig:
+    """A fresh :class:`PipelineConfig` of preset ``name`` (see :data:`PRESETS`)."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown run preset {name!r}; choose one of {sorted(PRESETS)}")
+    import copy
+
+    return apply(PipelineConfig(), copy.deepcopy(PRESETS[name]), where=f"preset {name}")
+
+
+def _check_extra(extra: dict) -> None:
+    unknown = sorted(set(extra) - set(STAGE_OPTIONS))
+    if unknown:
+        raise ConfigError(f"stage overrides for {unknown}: only {', '.join(STAGE_OPTIONS)} "
+                          "take options")
+
+
+def check_extras(cfg: PipelineConfig) -> None:
+    """Fail at the start, with the install hint, when a stage needs a missing optional
+    package (the orbit video needs ``plenoctree[video]``)."""
+    import importlib.util
+
+    if cfg.video_frames > 0:
+        missing = [m for m in ("imageio", "imageio_ffmpeg") if importlib.util.find_spec(m) is None]
+        if missing:
+            raise ConfigError(f"the video stage needs {' and '.join(missing)} (not installed): "
+                              "pip install 'plenoctree[video]', or pass --video-frames 0")
 
 
 def _fingerprint(paths: list[Path]) -> dict:
@@ -161,13 +211,24 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     ``eval_ft/renders/``), ``web/`` (viewer bundle), ``orbit.mp4``,
     ``summary.json`` and ``summary.md``.
     """
-    if not cfg.data or not cfg.out:
-        raise ConfigError("both --data and --out are needed")
-    data, out = Path(cfg.data), Path(cfg.out)
+    if not (cfg.data or cfg.images) or not cfg.out:
+        raise ConfigError("--out and one of --data / --images are needed")
+    if cfg.data and cfg.images:
+        raise ConfigError("give either --data (a dataset) or --images (photos / a video), not both")
+    out = check_output_dir(cfg.out)
+    check_extras(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    with run_lock(out, "run"):      # a second run / resume into OUT fails naming the holder
+        return _run_pipeline(cfg, out, log)
+
+
+def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) -> dict:
+    atomic_save_json(out / "config.json", _config_dict(cfg))   # `run --config` reads it back
+    r = _Runner(out, log)
+    # 0. camera poses of the user's photos / video (plenoctree.process) into OUT/data
+    data = _process_stage(cfg, out, r, log) if cfg.images else Path(cfg.data)
     if not data.exists():
         raise ConfigError(f"{data}: dataset folder does not exist")
-    out.mkdir(parents=True, exist_ok=True)
-    r = _Runner(out, log)
     common = {"data": str(data.resolve()), "format": cfg.format, "downscale": cfg.downscale}
     run_dir, tree_raw, tree_ft = out / "nerf", out / "tree.npz", out / "tree_ft.npz"
     tree_c = out / "tree_ft.plnz"
@@ -178,19 +239,49 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
 
     tcfg = train_preset(cfg.preset)
     tcfg.data, tcfg.out, tcfg.downscale, tcfg.seed = str(data), str(run_dir), cfg.downscale, cfg.seed
-    tcfg.minutes = cfg.train_minutes
+    tcfg.minutes, tcfg.format = cfg.train_minutes, cfg.format
     if cfg.train_steps:
         tcfg.max_steps = cfg.train_steps
     elif cfg.train_minutes:
         tcfg.max_steps = 10**9  # the time budget decides
-    for k, v in cfg.extra.get("train", {}).items():
-        if not hasattr(tcfg, k):
-            raise ConfigError(f"unknown training option {k!r}")
-        setattr(tcfg, k, v)
+    _check_extra(cfg.extra)
+    apply(tcfg, cfg.extra.get("train", {}), where="--train")
 
     from .nerf.config import validate
 
     validate(tcfg)
+
+    # Every stage's options are checked now, not after the training (which takes minutes).
+    from .convert.extract import ExtractConfig, extract
+
+    ecfg = ExtractConfig(run_dir=str(run_dir), out=str(tree_raw), data=str(data), grid=cfg.grid,
+                         samples=cfg.samples, weight_thresh=cfg.weight_thresh, eval=False,
+                         precision="fp32", backend=cfg.backend, seed=cfg.seed)
+    apply(ecfg, cfg.extra.get("extract", {}), where="--extract")
+    from .optim.finetune import FinetuneConfig, finetune
+
+    tree_in, rcfg = tree_raw, None
+    if cfg.refine_passes > 0:
+        from .convert.refine import RefineConfig, refine
+
+        tree_in = out / "tree_refined.npz"
+        rcfg = RefineConfig(tree=str(tree_raw), run_dir=str(run_dir), out=str(tree_in),
+                            passes=cfg.refine_passes, threshold=cfg.refine_threshold,
+                            data=str(data), seed=cfg.seed, show_progress=False)
+        apply(rcfg, cfg.extra.get("refine", {}), where="--refine")
+        rcfg.validated()
+    fcfg = FinetuneConfig(tree=str(tree_in), data=str(data), out=str(tree_ft),
+                          epochs=cfg.finetune_epochs, lr=cfg.finetune_lr,
+                          downscale=cfg.downscale, precision="fp32", backend=cfg.backend,
+                          seed=cfg.seed, resume=True, test_views=-1, verbose=False)
+    apply(fcfg, cfg.extra.get("finetune", {}), where="--finetune")
+    from .convert.extract import _validate as validate_extract
+
+    validate_extract(ecfg)
+    fcfg.validated()
+    from .compress import CompressOptions
+
+    CompressOptions(bits=cfg.compress_bits).validated()
 
     def do_train():
         from .nerf.trainer import train
@@ -219,47 +310,16 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
                 "check the training run")
 
     # 3. Conversion to an octree.
-    from .convert.extract import ExtractConfig, extract
-
-    ecfg = ExtractConfig(run_dir=str(run_dir), out=str(tree_raw), data=str(data), grid=cfg.grid,
-                         samples=cfg.samples, weight_thresh=cfg.weight_thresh, eval=False,
-                         precision="fp32", backend=cfg.backend, seed=cfg.seed)
-    for k, v in cfg.extra.get("extract", {}).items():
-        if not hasattr(ecfg, k):
-            raise ConfigError(f"unknown extraction option {k!r}")
-        setattr(ecfg, k, v)
     r.stage("extract", _config_dict(ecfg), [run_dir / CHECKPOINT_NAME], [tree_raw],
             lambda: extract(ecfg), "change the extraction options (--grid, --weight-thresh)")
 
     # 4. Adaptive refinement against the NeRF-SH.
-    tree_in = tree_raw
-    if cfg.refine_passes > 0:
-        from .convert.refine import RefineConfig, refine
-
-        tree_ref = out / "tree_refined.npz"
-        rcfg = RefineConfig(tree=str(tree_raw), run_dir=str(run_dir), out=str(tree_ref),
-                            passes=cfg.refine_passes, threshold=cfg.refine_threshold,
-                            data=str(data), seed=cfg.seed, show_progress=False)
-        for k, v in cfg.extra.get("refine", {}).items():
-            if not hasattr(rcfg, k):
-                raise ConfigError(f"unknown refinement option {k!r}")
-            setattr(rcfg, k, v)
-        r.stage("refine", _config_dict(rcfg), [tree_raw, run_dir / CHECKPOINT_NAME], [tree_ref],
+    if rcfg is not None:
+        r.stage("refine", _config_dict(rcfg), [tree_raw, run_dir / CHECKPOINT_NAME], [tree_in],
                 lambda: refine(rcfg, log=lambda *_: None),
                 "lower --refine-passes or raise --refine-threshold")
-        tree_in = tree_ref
 
     # 5. Fine-tuning of the leaf values on the training photos.
-    from .optim.finetune import FinetuneConfig, finetune
-
-    fcfg = FinetuneConfig(tree=str(tree_in), data=str(data), out=str(tree_ft),
-                          epochs=cfg.finetune_epochs, lr=cfg.finetune_lr,
-                          downscale=cfg.downscale, precision="fp32", backend=cfg.backend,
-                          seed=cfg.seed, resume=True, test_views=-1, verbose=False)
-    for k, v in cfg.extra.get("finetune", {}).items():
-        if not hasattr(fcfg, k):
-            raise ConfigError(f"unknown fine-tuning option {k!r}")
-        setattr(fcfg, k, v)
     ft_settings = {k: v for k, v in _config_dict(fcfg).items()
                    if k not in ("resume", "verbose", "show_progress")}
     r.stage("finetune", ft_settings, [tree_in], [tree_ft], lambda: finetune(fcfg),
@@ -296,11 +356,14 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     # 8. Static web-viewer bundle and orbit video.
     if cfg.web:
         def do_web():
+            from .datasets import load_dataset
             from .viewer.export import export_web
 
-            export_web(tree_c, out / "web", overwrite=True)
+            train = load_dataset(data, split="train", format=cfg.format, downscale=4)
+            export_web(tree_c, out / "web", overwrite=True, cameras=train.cameras,
+                       camera_names=train.names)        # (NDC scenes: + the NDC camera)
 
-        r.stage("web", {}, [tree_c], [out / "web" / "index.html"], do_web,
+        r.stage("web", {"cameras": 2}, [tree_c], [out / "web" / "index.html"], do_web,
                 "use `plenoctree lod` to make a smaller tree")
     if cfg.video_frames > 0:
         def do_video():
@@ -318,11 +381,29 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     summary = _summary(cfg, out, r, evals, _read_json(nerf_json),
                        _read_json(run_dir / "summary.json"), _finetune_outcome(tree_ft))
     atomic_save_json(out / "summary.json", summary)
+    from .plots import plot_stages               # PSNR against FPS and MB (needs matplotlib)
+
+    plot_stages(summary["rows"], out / "stages.png", title=f"{Path(cfg.data).name}: stages")
     with atomic_write(out / "summary.md", "w") as f:
         f.write(summary_markdown(summary))
     log("")
     log(summary_markdown(summary))
     return summary
+
+
+def _process_stage(cfg: PipelineConfig, out: Path, r: _Runner, log: Callable) -> Path:
+    """Run ``process`` on ``cfg.images`` into ``OUT/data`` (skipped when up to date)."""
+    from .process import ProcessConfig, process
+
+    src, data = Path(cfg.images), out / "data"
+    if not src.exists():
+        raise ConfigError(f"{src}: no such folder of photos or video file")
+    inputs = sorted(p for p in src.iterdir() if p.is_file()) if src.is_dir() else [src]
+    r.stage("process", {"images": str(src.resolve())}, inputs, [data / "process.json"],
+            lambda: process(ProcessConfig(images=str(src), out=str(data), overwrite=True),
+                            log=log), "check the photos (see the message) or run "
+            "`plenoctree process` with other options into --data")
+    return data
 
 
 def _config_dict(cfg: Any) -> dict:

@@ -42,6 +42,10 @@ __all__ = ["FinetuneConfig", "FinetuneResult", "finetune", "config_help"]
 
 _PRECISIONS = ("auto", "fp16", "fp32")
 
+DEFAULT_EPOCHS = 20
+"""The one fine-tuning epoch default (``finetune``, ``run``, ``demo``); training stops earlier at
+the first validation drop."""
+
 
 def _f(default: Any, help: str, **kw: Any) -> Any:
     return field(default=default, metadata={"help": help}, **kw)
@@ -54,7 +58,8 @@ class FinetuneConfig:
     tree: str | os.PathLike = _f(None, "input tree (.npz, native or svox layout)")
     data: str | os.PathLike = _f(None, "dataset folder (Blender / NeRF-synthetic format)")
     out: str | os.PathLike = _f(None, "output tree (.npz), written atomically")
-    epochs: int = _f(80, "maximum number of epochs (passes over every training pixel)")
+    epochs: int = _f(DEFAULT_EPOCHS, "maximum number of epochs (passes over every training "
+                                     "pixel; stops earlier at the first validation drop)")
     lr: float | None = _f(None, "learning rate; default 1e7 for sgd (paper units: per-pixel mean "
                                 "loss of one image), 1e-2 for adam, 1e-3 for rmsprop")
     optimizer: str = _f("adam", "adam (default: per-value step sizes, transfers across scenes "
@@ -88,7 +93,8 @@ class FinetuneConfig:
     checkpoint: str | os.PathLike | None = _f(
         None, "checkpoint file (default: <out stem>.ckpt.npz), written at each validation")
     resume: bool = _f(False, "continue from the checkpoint if it exists")
-    log: str | os.PathLike | None = _f(None, "JSON-lines log (default: <out stem>.log.jsonl)")
+    log: str | os.PathLike | None = _f(None, "JSON-lines log (default: <out stem>.log.jsonl); "
+                                             "its curve goes to <out stem>.curve.png")
     show_progress: bool | None = _f(None, "progress bar (default: when stderr is a terminal)")
     verbose: bool = _f(True, "print one line per epoch / validation to stderr")
 
@@ -195,14 +201,29 @@ def _load_split(root: Any, split: str, cfg: FinetuneConfig) -> Any:
 
 
 def _has_split(root: Path, split: str) -> bool:
-    """Whether ``root`` has split ``split``: a Blender ``transforms_<split>.json``, or an LLFF
-    capture (whose train / test splits always exist: every ``llffhold``-th image is test)."""
-    if (Path(root) / f"transforms_{split}.json").is_file():
-        return True
-    return split in ("train", "test") and (Path(root) / "poses_bounds.npy").is_file()
+    """Whether ``root`` has split ``split``, by the dataset loader's own rules (Blender, LLFF,
+    NSVF, nerfstudio, COLMAP): :func:`plenoctree.datasets.dataset.has_split`."""
+    from ..datasets.dataset import has_split
+
+    return has_split(root, split)
 
 
 def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None) -> FinetuneResult:
+    """Fine-tune ``config.tree`` on ``config.data`` and write ``config.out`` (see :func:`_finetune`).
+
+    Before any work: ``out`` must be a writable file name that is not a directory nor an
+    unrelated file (:func:`plenoctree._util.check_output_file`); the run holds a lock on
+    ``out`` (``.<name>.lock`` beside it) so two fine-tunings into one file cannot race.
+    """
+    from .._util import check_output_file, run_lock
+
+    cfg = config.validated()
+    out = check_output_file(cfg.out)
+    with run_lock(out, "finetune", folder=False):
+        return _finetune(cfg, log_fn)
+
+
+def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None) -> FinetuneResult:
     """Fine-tune ``config.tree`` on ``config.data`` and write ``config.out``.
 
     Steps: load and check the tree (leaves, finite values, some σ > 0) and the dataset (its box
@@ -336,6 +357,9 @@ def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None
         train_rays_per_second=state.train_rays / max(state.train_seconds, 1e-9),
         backend=stepper.backend, history=state.history)
     log({"event": "end", **result.to_json()})
+    from ..plots import plot_finetune_curve      # train/val PSNR per epoch (needs matplotlib)
+
+    plot_finetune_curve(log_path, stem.with_name(stem.name + ".curve.png"))
     if diverged:
         raise ConfigError(f"learning rate {lr:g} ({cfg.optimizer}) diverged: "
                           f"{state.stop_reason[len('diverged: '):]}. Kept the last good values "
