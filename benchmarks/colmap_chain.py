@@ -61,19 +61,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--grid", type=int, default=128)
     ap.add_argument("--epochs", type=int, default=2)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--only", choices=["colmap", "true"], default=None,
+                    help="run one of the two chains (two processes in parallel); a later run "
+                         "without it skips the finished stages and prints the table")
     args = ap.parse_args(argv)
     data, out = Path(args.data), Path(args.out)
     twin = make_twin(data, out / "gt_data")
     load_before = os.getloadavg()
     res = {}
     for name, d in (("colmap poses", data), ("true poses", twin)):
+        if args.only and not name.startswith(args.only):
+            continue
         cfg = PipelineConfig(data=str(d), out=str(out / name.replace(" ", "_")),
                              downscale=args.downscale, train_minutes=0, train_steps=args.steps,
                              grid=args.grid, finetune_epochs=args.epochs, nerf_eval_views=0,
-                             video_frames=0, web=False, format="nerfstudio")
+                             video_frames=0, web=False, format="nerfstudio",
+                             extra={"train": {"val_views": 0}})
         s = run_pipeline(cfg, log=lambda m: print("  " + m, flush=True))
         res[name] = {row["stage"]: row["psnr"] for row in s["rows"] if row["psnr"] is not None}
     load_after = os.getloadavg()
+    if args.only:
+        return 0
     stages = list(res["true poses"])
     print(f"{'stage':<24} {'colmap poses':>13} {'true poses':>11} {'diff (dB)':>10}")
     for st in stages:

@@ -9,3 +9,19 @@ set here, before either runtime is loaded (``./run test`` also exports it).
 import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    """A 16x16 procedural Blender dataset (2 train, 1 val, 3 test views) and its 32^3 tree:
+    ``root / "data"``, ``root / "tree.npz"``."""
+    from plenoctree.datasets.procedural import procedural_tree, write_procedural_dataset
+    from plenoctree.octree import save_tree
+
+    root = tmp_path_factory.mktemp("scene")
+    write_procedural_dataset(root / "data", n_train=2, n_val=1, n_test=3, width=16, height=16)
+    save_tree(procedural_tree(32), root / "tree.npz", precision="fp32")
+    return root

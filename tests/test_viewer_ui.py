@@ -346,3 +346,49 @@ def test_ndc_forward_facing_tree_matches_cpu(browser, tmp_path):
         page.close()
     finally:
         srv.close()
+
+
+def _plane_obj(x0=0.0, color=(0.2, 0.6, 0.3), half=4.0) -> str:
+    c = " ".join(str(v) for v in color)
+    vs = [(x0, -half, -half), (x0, half, -half), (x0, half, half), (x0, -half, half)]
+    return "\n".join([f"v {x} {y} {z} {c}" for x, y, z in vs] + ["f 1 2 3 4", ""])
+
+
+def test_inserted_mesh_is_occluded_by_the_volume(bundle, scene):
+    """A plane at world x = 0 (a cell boundary of the tree): in front of it the volume
+    composites over the plane's colour, behind it nothing shows; equals the CPU render of the
+    tree with its x < 0 half emptied over a background of the plane's colour."""
+    tree = scene["tree"]
+    view = {"c2w": np.linalg.inv(np.linalg.inv(
+        __import__("plenoctree.datasets.procedural", fromlist=["look_at"]).look_at(
+            np.array([2.6, 1.7, 1.6])))).reshape(-1).tolist(),
+            "fx": 0.5 * SIZE / math.tan(0.5 * FOV_X), "fy": 0.5 * SIZE / math.tan(0.5 * FOV_X),
+            "cx": SIZE / 2, "cy": SIZE / 2, "width": SIZE, "height": SIZE}
+    color = (0.2, 0.6, 0.3)
+    info = bundle.evaluate("t => window.viewer.addMesh(t, 'plane.obj')", _plane_obj(0.0, color))
+    assert info == {"vertices": 4, "triangles": 2}
+    try:
+        gpu = _pixels(bundle, view)
+    finally:
+        bundle.evaluate("window.viewer.clearMeshes()")
+    cut = tree.copy()
+    node, i, j, k = cut.leaf_indices()
+    behind = cut.leaf_centers()[:, 0] < 0
+    cut.data[node[behind], i[behind], j[behind], k[behind], -1] = 0
+    cpu = _cpu(cut, view, background=color)
+    _close(gpu, cpu, "mesh occlusion")
+    plain = _pixels(bundle, view)                      # removed again: the plain render
+    _close(plain, _cpu(tree, view), "after clearMeshes")
+    assert np.abs(gpu - plain).max() > 0.2
+
+
+def test_exported_glb_mesh_loads_into_the_viewer(bundle, tmp_path):
+    pytest.importorskip("trimesh")
+    from plenoctree.export import export_mesh
+
+    tree = procedural_tree(16)
+    mesh = export_mesh(tree, tmp_path / "m.glb")
+    b64 = base64.b64encode((tmp_path / "m.glb").read_bytes()).decode()
+    info = bundle.evaluate("b => window.viewer.addMesh(b, 'm.glb')", b64)
+    bundle.evaluate("window.viewer.clearMeshes()")
+    assert info == {"vertices": len(mesh.vertices), "triangles": len(mesh.faces)}

@@ -33,7 +33,7 @@ from typing import Any, Iterable
 from .._config import apply, field_help, load_config_file
 from ..errors import ConfigError
 
-__all__ = ["add_config", "given", "apply", "field_help", "load_config_file", "parse_background",
+__all__ = ["add_config", "given", "layered", "apply", "field_help", "load_config_file", "parse_background",
            "add_config_file", "config_to_json", "format_default"]
 
 
@@ -170,6 +170,14 @@ def add_config(p: argparse.ArgumentParser | Any, cls: type, *, prefix: str = "",
         target.add_argument(*names, **kw)
         dests.append(dest)
     return dests
+
+
+def layered(args: argparse.Namespace, base: Any, where: str) -> Any:
+    """``base`` (a config instance: defaults or a preset) with ``--config FILE`` and then the
+    flags of ``args._dests`` applied: the one layering rule of every command."""
+    apply(base, load_config_file(getattr(args, "_config_file", None)),
+          where=str(getattr(args, "_config_file", None) or where))
+    return apply(base, given(args, args._dests), where=where)
 
 
 def given(args: argparse.Namespace, dests: Iterable[str], prefix: str = "") -> dict[str, Any]:

@@ -7,11 +7,10 @@ from pathlib import Path
 
 
 def _run(args: argparse.Namespace) -> int:
-    from .._config import apply
     from ..demo import DemoConfig, run_demo
-    from ._options import given
+    from ._options import layered
 
-    cfg = apply(DemoConfig(), given(args, args._dests), where="demo")
+    cfg = layered(args, DemoConfig(), "demo")
     cfg.out = Path(cfg.out)
     run_demo(cfg)
     return 0

@@ -10,15 +10,12 @@ import argparse
 
 
 def _run(args: argparse.Namespace) -> int:
-    from .._config import apply
     from ..evaluation import EvalConfig, eval_markdown, eval_tree_file
-    from ._options import given, load_config_file
+    from ._options import layered
     from ._output import write_json
     from ._provenance import data_from_provenance
 
-    cfg = apply(EvalConfig(tree=args.tree, data=""), load_config_file(args._config_file),
-                where=str(args._config_file))
-    cfg = apply(cfg, given(args, args._dests), where="eval")
+    cfg = layered(args, EvalConfig(tree=args.tree, data=""), "eval")
     if not cfg.data:
         cfg.data = data_from_provenance(cfg.tree, "eval")
     if args.json not in (None, "-"):

@@ -23,11 +23,9 @@ def config_from_args(args: argparse.Namespace):
     """Build an :class:`~plenoctree.convert.ExtractConfig` from parsed arguments (defaults,
     then ``--config FILE``, then the flags given)."""
     from ..convert.extract import ExtractConfig
-    from ._options import apply, given, load_config_file
+    from ._options import layered
 
-    cfg = apply(ExtractConfig(), load_config_file(args._config_file),
-                where=str(args._config_file))
-    cfg = apply(cfg, given(args, args._dests), where="extract")
+    cfg = layered(args, ExtractConfig(), "extract")
     if len(cfg.radius) not in (0, 1, 3):
         raise ConfigError(f"--radius needs 1 or 3 numbers, got {list(cfg.radius)}")
     return cfg

@@ -12,12 +12,10 @@ import argparse
 def config_from_args(args: argparse.Namespace):
     """The :class:`FinetuneConfig` of parsed arguments: defaults, ``--config FILE``, flags."""
     from ..optim.finetune import FinetuneConfig
-    from ._options import apply, given, load_config_file
+    from ._options import layered
     from ._provenance import data_from_provenance
 
-    cfg = apply(FinetuneConfig(), load_config_file(args._config_file),
-                where=str(args._config_file))
-    cfg = apply(cfg, given(args, args._dests), where="finetune")
+    cfg = layered(args, FinetuneConfig(), "finetune")
     if args.quiet:
         cfg.verbose = False
         cfg.show_progress = False if cfg.show_progress is None else cfg.show_progress

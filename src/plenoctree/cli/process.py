@@ -23,7 +23,7 @@ def add_sfm_flags(p: argparse.ArgumentParser) -> None:
                            default=default, help=help_)
         else:
             p.add_argument(flag, dest=f"sfm_{f.name}", type=type(default), default=default,
-                           help=help_)
+                           metavar=f.name.upper(), help=help_)
 
 
 def sfm_options(args: argparse.Namespace):

@@ -82,7 +82,8 @@ def sharpness(rgb: np.ndarray) -> float:
 
 def video_frames(video: str | os.PathLike, out_dir: str | os.PathLike, n_frames: int = 150,
                  drop: float = 0.1, log: Callable[[str], None] = print) -> list[Path]:
-    """Write ``n_frames`` sharp, evenly spread frames of ``video`` as ``out_dir/frame_XXXXX.png``.
+    """Write ``n_frames`` sharp, evenly spread frames of ``video`` as ``out_dir/frame_NNNNN.png``
+    (``NNNNN``: the frame's number in the video, from 0).
 
     Returns the frame files in time order. Raises :class:`ProcessError` for an unreadable
     video, one with fewer than 3 frames, or a missing imageio-ffmpeg.
@@ -131,8 +132,8 @@ def video_frames(video: str | os.PathLike, out_dir: str | os.PathLike, n_frames:
     chosen = np.sort(order)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for j, k in enumerate(chosen):
-        p = out / f"frame_{j + 1:05d}.png"
+    for k in chosen:                                 # named by the video frame number
+        p = out / f"frame_{int(want[k]):05d}.png"
         Image.fromarray(frames[k]).save(p)
         paths.append(p)
     log(f"video: {len(paths)} of {total} frames kept ({len(frames) - len(paths)} blurriest "

@@ -7,6 +7,7 @@ import { packTree, LimitError } from "./tree.js";
 import { Renderer, GLError } from "./renderer.js";
 import { OrbitCamera, UP } from "./camera.js";
 import { probeRay, lumisphere } from "./probe.js";
+import { MeshPass, parseObj, parseGlb, toSceneUp } from "./mesh.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -76,6 +77,16 @@ const api = {
   probeRay(origin, dir, size = 128) { return runProbe(origin, dir, size); },
   // Probe the pixel (x, y) of the canvas (CSS pixels from the top-left).
   probe(x, y) { return probePixel(x, y); },
+  // Insert a mesh: OBJ text, or GLB bytes as base64 (name ending in .glb).
+  addMesh(data, name = "mesh.obj") {
+    if (/\.glb$/i.test(name) && typeof data === "string") {
+      const bin = atob(data), buf = new Uint8Array(bin.length);
+      for (let i = 0; i < bin.length; i++) buf[i] = bin.charCodeAt(i);
+      data = buf.buffer;
+    }
+    return addMesh(data, name);
+  },
+  clearMeshes() { if (meshPass) meshPass.clear(); invalidate(); },
 };
 window.viewer = api;
 
@@ -125,6 +136,20 @@ function dismissMessage() {
 
 // ---------------------------------------------------------------- views
 let initialView = null;
+let meshPass = null;
+
+// Insert a mesh (OBJ text or GLB bytes; world coordinates, GLB +Y up turned onto the scene's
+// up axis). Returns {vertices, triangles}.
+function addMesh(data, name) {
+  if (!renderer) throw new Error("the viewer is not ready");
+  const mesh = /\.glb$/i.test(name) || data instanceof ArrayBuffer && new Uint32Array(data.slice(0, 4))[0] === 0x46546c67
+    ? toSceneUp(parseGlb(data instanceof ArrayBuffer ? data : new TextEncoder().encode(data).buffer, name), camera.up)
+    : parseObj(typeof data === "string" ? data : new TextDecoder().decode(data), name);
+  if (!meshPass) meshPass = new MeshPass(renderer.gl);
+  meshPass.add(mesh);
+  invalidate();
+  return { vertices: mesh.positions.length / 3, triangles: mesh.indices.length / 3 };
+}
 
 function sceneCenter(t) { return [0, 1, 2].map((i) => (0.5 - t.offset[i]) / t.invradius[i]); }
 
@@ -362,7 +387,8 @@ function renderOnce(scale = scaleMode === "auto" ? 1 : Number(scaleMode)) {
     opts.depth_range = [Math.max(0, dist - r), dist + r];
   }
   const t0 = performance.now();
-  renderer.draw(view, opts);
+  const meshTex = meshPass && meshPass.meshes.length && !opts.ndc ? meshPass.draw(view) : null;
+  renderer.draw(view, opts, meshTex);
   renderer.finish();
   drawCameras(view);
   const ms = performance.now() - t0;
@@ -504,6 +530,16 @@ function buildControls() {
   $("camera_prev").addEventListener("click", () => jumpToCamera(Number($("camera_select").value) - 1));
   $("camera_next").addEventListener("click", () => jumpToCamera(Number($("camera_select").value) + 1));
   $("show_cameras").addEventListener("change", () => invalidate());
+  $("mesh_file").addEventListener("change", async () => {
+    const f = $("mesh_file").files[0];
+    if (!f) return;
+    try {
+      const r = addMesh(/\.glb$/i.test(f.name) ? await f.arrayBuffer() : await f.text(), f.name);
+      $("mesh_info").textContent = `${f.name}: ${r.vertices.toLocaleString()} vertices, ${r.triangles.toLocaleString()} triangles`;
+    } catch (err) { showError(err); }
+    $("mesh_file").value = "";
+  });
+  $("mesh_clear").addEventListener("click", () => { api.clearMeshes(); $("mesh_info").textContent = ""; });
   canvas.addEventListener("click", (e) => {
     if (!(e.altKey || $("probe_mode").checked) || api.state !== "ready") return;
     const r = canvas.getBoundingClientRect();

@@ -47,6 +47,9 @@ uniform vec3 u_background;
 uniform int u_mode;               // 0 rgb, 1 depth, 2 alpha
 uniform vec2 u_depth_range;       // world distances mapped to white .. black
 uniform int u_max_steps;
+uniform int u_mesh;               // 1: inserted meshes (mesh.js) occlude the volume
+uniform sampler2D u_mesh_color;   // their unlit colour and world distance along each ray
+uniform sampler2D u_mesh_dist;
 uniform int u_ndc;                // 1: the tree lives in NDC space (forward-facing scene)
 uniform vec4 u_ndc_cam;           // NDC reference camera: 2 fx / W, 2 fy / H, near, unused
 out vec4 frag_color;
@@ -153,6 +156,16 @@ void main() {
   float t1 = min(min(hi3.x, hi3.y), hi3.z);
   vec3 positive = step(0.0, d);
 
+  vec3 background = u_background;
+  if (u_mesh == 1 && u_ndc == 0) {
+    // a mesh surface ends the ray there and replaces the background behind the volume
+    ivec2 pix = ivec2(gl_FragCoord.xy);
+    float tm = texelFetch(u_mesh_dist, pix, 0).r;
+    if (tm < 1e29) {
+      t1 = min(t1, tm);
+      background = texelFetch(u_mesh_color, pix, 0).rgb;
+    }
+  }
   vec3 rgb = vec3(0.0);
   float T = 1.0, wsum = 0.0, wtsum = 0.0;
   float t = t0;
@@ -216,7 +229,7 @@ void main() {
   }
   float alpha = 1.0 - T;
   if (u_mode == 0) {
-    frag_color = vec4(rgb + T * u_background, 1.0);
+    frag_color = vec4(rgb + T * background, 1.0);
   } else if (u_mode == 1) {
     float depth = wtsum / max(wsum, 1e-10);
     float g = 1.0 - clamp((depth - u_depth_range.x) / max(u_depth_range.y - u_depth_range.x, 1e-6), 0.0, 1.0);
@@ -317,7 +330,8 @@ export class Renderer {
   //          fx, fy, cx, cy, width, height}
   // opts: {stop_thresh, step_eps, background[3], sh_min, sh_max, box_min[3], box_max[3],
   //        mode: "rgb"|"depth"|"alpha", depth_range[2]}
-  draw(camera, opts) {
+  // meshTex: [colour, distance] textures of MeshPass.draw for this camera, or null.
+  draw(camera, opts, meshTex = null) {
     const gl = this.gl, L = this.loc, t = this.tree;
     if (!t) throw new GLError("no tree loaded");
     if (this.canvas.width !== camera.width || this.canvas.height !== camera.height) {
@@ -333,6 +347,15 @@ export class Renderer {
     gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.dataTex);
     gl.uniform1i(L.u_child, 0);
     gl.uniform1i(L.u_data, 1);
+    if (meshTex) {
+      gl.activeTexture(gl.TEXTURE2);
+      gl.bindTexture(gl.TEXTURE_2D, meshTex[0]);
+      gl.activeTexture(gl.TEXTURE3);
+      gl.bindTexture(gl.TEXTURE_2D, meshTex[1]);
+    }
+    if (L.u_mesh_color) gl.uniform1i(L.u_mesh_color, 2);
+    if (L.u_mesh_dist) gl.uniform1i(L.u_mesh_dist, 3);
+    if (L.u_mesh) gl.uniform1i(L.u_mesh, meshTex ? 1 : 0);
     gl.uniform3i(L.u_child_layout, t.child.log2PerRow, t.child.log2h, t.child.perItem);
     gl.uniform3i(L.u_data_layout, t.data.log2PerRow, t.data.log2h, t.data.perItem);
     const B = t.format.basisDim;
