@@ -101,7 +101,7 @@ def main() -> None:
 
     from plenoctree.octree import load_tree
     from plenoctree.optim import render_rays_differentiable
-    from plenoctree.optim._fast import forward_numba, kernel_args
+    from plenoctree.optim._render_grad import forward_numba, kernel_args
     from plenoctree.optim._steppers import NumbaStepper, TorchStepper
     from plenoctree.render import RenderOptions, render_rays
 

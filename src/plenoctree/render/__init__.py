@@ -151,14 +151,14 @@ def render_rays(tree: Any, origins: Any, dirs: Any, options: RenderOptions | Non
         extra = extra.detach().cpu().numpy()
 
     if name == "numba":
-        from . import _numba_impl
+        from . import _render_numba
 
         def to_np(x: Any) -> np.ndarray:
             return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x
 
         child = to_np(tree.child)
         data = to_np(tree.data)
-        rgb, depth, alpha = _numba_impl.render_rays_numba(
+        rgb, depth, alpha = _render_numba.render_rays_numba(
             child, data, offset, inv, info, extra, to_np(origins).reshape(-1, 3),
             to_np(dirs).reshape(-1, 3), opts)
         out = RenderOutput(torch.from_numpy(rgb), torch.from_numpy(depth),

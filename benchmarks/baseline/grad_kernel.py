@@ -52,8 +52,8 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from ..render._numba_impl import _basis
-from ..render.options import KIND_RGBA, QUANT_BITS
+from .render_kernel import _basis
+from plenoctree.render.options import KIND_RGBA, QUANT_BITS
 
 __all__ = ["TILE", "grad_kernel", "merge_chunks", "step_touched", "OPT_SGD", "OPT_ADAM",
            "OPT_RMSPROP", "pixel_rays", "initial_capacity"]
