@@ -144,10 +144,8 @@ def ff_root(tmp_path_factory):
 
 def test_renderer_in_ndc_matches_torch_twin(ff_root):
     from plenoctree.octree import Octree
-    from plenoctree.render import available_backends, render_rays
+    from plenoctree.render import render_rays
 
-    if "numba" not in available_backends():
-        pytest.skip("numba not installed")
     data = load_dataset(ff_root, "test")
     box = data.scene_bbox.astype(np.float64)
     tree = Octree.dense(4, "SH4", center=box.mean(0), radius=(box[1] - box[0]) / 2, seed=0)

@@ -13,12 +13,10 @@ import torch
 import plenoctree
 from plenoctree.errors import BackendError, ConfigError, TreeFormatError
 from plenoctree.octree import Octree
-from plenoctree.render import (RenderOptions, available_backends, has_numba, render_image,
-                               render_rays)
+from plenoctree.render import RenderOptions, available_backends, render_image, render_rays
 from plenoctree.sh import eval_sg_bases, eval_sh_bases
 
-BACKENDS = ["torch"] + (["numba"] if has_numba() else [])
-needs_numba = pytest.mark.skipif(not has_numba(), reason="numba not installed")
+BACKENDS = ["torch", "numba"]
 
 
 def _sigmoid(x):
@@ -214,7 +212,6 @@ def _random_rays(tree, n, seed):
     return start.astype(np.float32), d.astype(np.float32)
 
 
-@needs_numba
 @pytest.mark.parametrize("fmt", ["SH1", "SH4", "SH9", "SH16", "SH25", "SG5", "SG30", "RGBA"])
 @pytest.mark.parametrize("stop", [0.0, 0.01])
 def test_numba_matches_twin(fmt, stop):
@@ -235,7 +232,6 @@ def test_numba_matches_twin(fmt, stop):
     assert (fast.rgb - ref32.rgb).abs().max() <= 1e-4
 
 
-@needs_numba
 def test_stack_traversal_equals_root_descent():
     from plenoctree.render import _render_numba
     from plenoctree.render.options import parse_data_format
@@ -251,7 +247,6 @@ def test_stack_traversal_equals_root_descent():
         np.testing.assert_array_equal(x, y)
 
 
-@needs_numba
 def test_rays_along_voxel_faces_agree():
     """Axis-aligned rays starting on grid planes: both backends pick the same leaves."""
     rng = np.random.default_rng(0)
@@ -389,20 +384,14 @@ def test_bad_inputs_raise():
         render_rays(broken, o, d)
 
 
-def test_backend_selection_and_errors(monkeypatch):
-    import plenoctree.render as render
-
-    assert available_backends()[-1] == "torch"
-    assert ("numba" in available_backends()) == has_numba()
+def test_backend_selection_and_errors():
+    assert available_backends() == ["numba", "torch"]
+    assert available_backends("cuda") == ["torch"]
     tree = _random_tree("SH1", seed=2)
     o, d = _random_rays(tree, 4, seed=1)
-    with pytest.raises(BackendError, match="unknown render backend 'warp'.*torch"):
+    with pytest.raises(BackendError, match="render: unknown backend 'warp'.*numba, torch"):
         render_rays(tree, o, d, backend="warp")
-    monkeypatch.setattr(render, "has_numba", lambda: False)
-    assert render.available_backends() == ["torch"]
-    with pytest.raises(BackendError, match="needs the numba package.*available: torch"):
-        render_rays(tree, o, d, backend="numba")
-    out = render_rays(tree, o, d)                    # auto falls back to the twin
+    out = render_rays(tree, o, d)                    # auto: numba for numpy rays
     assert out.rgb.dtype == torch.float32
 
 

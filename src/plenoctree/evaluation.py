@@ -217,10 +217,9 @@ class EvalConfig:
 
 
 def _resolved_backend(backend: str) -> str:
-    from .render import has_numba
+    from .backend import resolve
 
-    return ("numba" if has_numba() else "torch") if str(backend).lower() == "auto" \
-        else str(backend).lower()
+    return resolve("render", backend, "cpu")      # views are rendered from numpy rays
 
 
 def eval_tree_file(cfg: EvalConfig, log=print) -> dict:

@@ -137,8 +137,10 @@ class CompressedTree:
     def validate(self, name: str = "compressed tree") -> None:
         """Raise :class:`TreeFormatError` (``"<name>: <problem>"``) on inconsistent arrays.
 
-        Checks shapes and dtypes against each other, finite values, and that every codebook
-        index used by a cell with σ > 0 lies inside its codebook.
+        Checks shapes and dtypes against each other, the topology of ``child`` and its depth
+        (:func:`plenoctree.octree.check.check_child`: depth <= ``depth_limit`` <= ``MAX_DEPTH``;
+        ``depth_limit = -1`` means unset), finite values, and that every codebook index used by
+        a cell with σ > 0 lies inside its codebook.
         """
         def fail(problem: str) -> None:
             raise TreeFormatError(f"{name}: {problem}")
@@ -146,6 +148,12 @@ class CompressedTree:
         n = self.child.shape[0] if self.child.ndim == 4 else -1
         if self.child.ndim != 4 or self.child.shape[1:] != (2, 2, 2) or n < 1:
             fail(f"'child' must have shape [n_nodes, 2, 2, 2], got {list(self.child.shape)}")
+        if self.child.dtype.kind not in "iu":
+            fail(f"'child' must be an integer array, got {self.child.dtype}")
+        from ..octree.check import check_child
+        from ..octree.limits import MAX_DEPTH
+
+        check_child(self.child, MAX_DEPTH if self.depth_limit == -1 else self.depth_limit, name)
         cells = (n, 2, 2, 2)
         if self.sigma.shape != cells:
             fail(f"'sigma' must have shape {list(cells)}, got {list(self.sigma.shape)}")

@@ -41,6 +41,7 @@ import numpy as np
 from .._util import atomic_write
 from ..octree import Octree
 from ..octree._npz import NpzReader
+from ..octree.limits import MAX_DEPTH
 from .codec import CompressedTree, CompressOptions, decompress
 
 __all__ = ["PLNZ_VERSION", "save_compressed", "load_compressed", "is_compressed_file",
@@ -202,6 +203,8 @@ def load_compressed(path: str | os.PathLike) -> CompressedTree:
             r.require("extra_data")
             extra = r.read("extra_data").astype(np.float32)
         depth_limit = r.scalar_int("depth_limit") if "depth_limit" in r else -1
+        if not header and depth_limit > MAX_DEPTH:     # svox: only caps future refinement
+            depth_limit = MAX_DEPTH
         child = r.read("child")
         if child.dtype != np.int32:
             if child.size and np.abs(child.astype(np.int64)).max() >= n:

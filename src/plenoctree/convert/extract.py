@@ -217,12 +217,9 @@ def _set_threads(n: int) -> None:
     import torch
 
     torch.set_num_threads(n)
-    from ..render import has_numba
+    import numba
 
-    if has_numba():
-        import numba
-
-        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
 
 
 def _load_run(cfg: ExtractConfig) -> tuple[Any, Any, float | None]:

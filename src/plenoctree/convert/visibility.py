@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from .._util import progress
-from ..errors import BackendError, ConfigError
+from ..errors import ConfigError
 from .grid import GridSpec
 
 __all__ = ["Candidates", "candidates", "max_ray_weights", "visibility_weights", "weight_mask",
@@ -144,16 +144,9 @@ def rescale_cameras(cameras: Any, scale: float) -> Any:
 
 
 def _backend(name: str) -> str:
-    from ..render import has_numba
+    from ..backend import resolve
 
-    name = str(name).lower()
-    if name == "auto":
-        return "numba" if has_numba() else "torch"
-    if name not in ("numba", "torch"):
-        raise BackendError(f"unknown visibility backend {name!r}; use auto, numba or torch")
-    if name == "numba" and not has_numba():
-        raise BackendError("visibility backend 'numba' needs the numba package (pip install numba)")
-    return name
+    return resolve("visibility", name, "cpu")       # numpy grids and rays
 
 
 def max_ray_weights(sigma: np.ndarray, spec: GridSpec, cand: Candidates, origins: np.ndarray,
@@ -174,16 +167,28 @@ def max_ray_weights(sigma: np.ndarray, spec: GridSpec, cand: Candidates, origins
     name = _backend(backend)
     o = np.ascontiguousarray(np.asarray(origins, dtype=np.float32).reshape(-1, 3))
     d = np.ascontiguousarray(np.asarray(dirs, dtype=np.float32).reshape(-1, 3))
+    from ..backend import implementation
+
+    return implementation("visibility", name)(sigma, spec, cand, o, d, out, ray_chunk)
+
+
+def _max_weights_numba_run(sigma: np.ndarray, spec: GridSpec, cand: Candidates, o: np.ndarray,
+                           d: np.ndarray, out: np.ndarray | None, ray_chunk: int) -> np.ndarray:
+    """numba kernel: running maxima per thread, ``out`` float32 ``[n_threads, M]``."""
+    import numba
+
+    from ._visibility_numba import max_weights_numba
+
+    if out is None:
+        out = np.zeros((numba.get_num_threads(), cand.flat.size), dtype=np.float32)
+    max_weights_numba(sigma, cand.index, spec.lo, spec.cell, o, d, cand.min_weight, out)
+    return out
+
+
+def _max_weights_torch_run(sigma: np.ndarray, spec: GridSpec, cand: Candidates, o: np.ndarray,
+                           d: np.ndarray, out: np.ndarray | None, ray_chunk: int) -> np.ndarray:
+    """torch twin in chunks of ``ray_chunk / R`` rays, ``out`` float32 ``[1, M]``."""
     m = cand.flat.size
-    if name == "numba":
-        import numba
-
-        from ._visibility_numba import max_weights_numba
-
-        if out is None:
-            out = np.zeros((numba.get_num_threads(), m), dtype=np.float32)
-        max_weights_numba(sigma, cand.index, spec.lo, spec.cell, o, d, cand.min_weight, out)
-        return out
     if out is None:
         out = np.zeros((1, m), dtype=np.float32)
     step = max(1, ray_chunk // max(1, spec.res))

@@ -19,7 +19,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..errors import BackendError, ConfigError
+from .. import backend as _backend
+from ..errors import ConfigError
 
 __all__ = [
     "PositionalEncoding",
@@ -169,12 +170,17 @@ class _HashGridNumba(torch.autograd.Function):
 
 
 def hashgrid_backends() -> list[str]:
-    """Backends of the grid encoding usable here: ``["numba", "torch"]`` or ``["torch"]``."""
-    try:
-        import numba  # noqa: F401
-    except ImportError:  # pragma: no cover - numba is a hard dependency
-        return ["torch"]
-    return ["numba", "torch"]
+    """Backends of the grid encoding usable here, fastest first (``["numba", "torch"]``)."""
+    return _backend.backends("hashgrid")
+
+
+def _hashgrid_numba_run(enc: "HashGridEncoding", x: torch.Tensor) -> torch.Tensor:
+    return _HashGridNumba.apply(x, enc.table, enc.res, enc.offsets, enc.hashed,
+                                enc.grad_in_place and torch.is_grad_enabled())
+
+
+def _hashgrid_torch_run(enc: "HashGridEncoding", x: torch.Tensor) -> torch.Tensor:
+    return _hashgrid_encode_torch(x, enc.table, enc.res, enc.offsets, enc.hashed)
 
 
 class HashGridEncoding(nn.Module):
@@ -196,8 +202,7 @@ class HashGridEncoding(nn.Module):
                  max_res: int = 1024, log2_table: int = 18, backend: str = "auto",
                  init_scale: float = 1e-4, generator: torch.Generator | None = None):
         super().__init__()
-        if backend not in ("auto", "numba", "torch"):
-            raise ConfigError(f"hash grid backend must be auto, numba or torch, got {backend!r}")
+        backend = _backend.check_name("hashgrid", backend)
         self.res, self.offsets, self.hashed = hashgrid_levels(n_levels, base_res, max_res,
                                                               log2_table)
         self.n_levels, self.n_features = n_levels, n_features
@@ -218,18 +223,7 @@ class HashGridEncoding(nn.Module):
 
     def resolve_backend(self, device: torch.device) -> str:
         """The backend :meth:`forward` uses for tensors on ``device``."""
-        if self.backend == "torch":
-            return "torch"
-        if device.type != "cpu":
-            if self.backend == "numba":
-                raise BackendError("hash grid: the numba backend runs on CPU tensors only; "
-                                   f"got a tensor on {device}")
-            return "torch"
-        if "numba" not in hashgrid_backends():  # pragma: no cover
-            if self.backend == "numba":
-                raise BackendError("hash grid: numba is not installed")
-            return "torch"
-        return "numba"
+        return _backend.resolve("hashgrid", self.backend, device)
 
     def normalize(self, points: torch.Tensor) -> torch.Tensor:
         """World ``[N, 3]`` -> unit cube ``[N, 3]`` (clamped), float32."""
@@ -238,7 +232,4 @@ class HashGridEncoding(nn.Module):
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         x = self.normalize(points)
-        if self.resolve_backend(x.device) == "numba":
-            return _HashGridNumba.apply(x, self.table, self.res, self.offsets, self.hashed,
-                                        self.grad_in_place and torch.is_grad_enabled())
-        return _hashgrid_encode_torch(x, self.table, self.res, self.offsets, self.hashed)
+        return _backend.implementation("hashgrid", self.resolve_backend(x.device))(self, x)

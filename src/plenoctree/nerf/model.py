@@ -96,13 +96,19 @@ def sh_colors(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int, backend: st
     (channel-major, pre-sigmoid) and unit directions ``[N, 3]``.
 
     ``backend``: "auto" (fused numba kernels for CPU tensors), "numba" or "torch" (the twin).
-    Gradients flow to ``coeffs`` (not to ``dirs`` on the numba path).
+    Gradients flow to ``coeffs`` (not to ``dirs`` on the numba path, so "auto" takes the twin
+    when ``dirs`` requires a gradient).
     """
-    if backend == "auto":
-        backend = "numba" if coeffs.device.type == "cpu" and not dirs.requires_grad else "torch"
-    if backend == "numba":
-        return _SHColorsNumba.apply(coeffs, dirs, degree)
-    return _sh_colors_torch(coeffs, dirs, degree)
+    from .. import backend as _backend
+
+    if dirs.requires_grad and _backend.check_name("sh_colors", backend) == "auto":
+        backend = "torch"
+    name = _backend.resolve("sh_colors", backend, coeffs.device)
+    return _backend.implementation("sh_colors", name)(coeffs, dirs, degree)
+
+
+def _sh_colors_numba_run(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    return _SHColorsNumba.apply(coeffs, dirs, degree)
 
 
 def _bucket(n: int) -> int:

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..errors import BackendError
 
 __all__ = ["ray_aabb", "stratified_samples", "pdf_samples", "PackedSamples", "march_rays",
            "march_backends"]
@@ -128,8 +127,10 @@ class PackedSamples:
 
 
 def march_backends() -> list[str]:
-    """Marching backends usable here (``["numba", "torch"]``)."""
-    return ["numba", "torch"]
+    """Marching backends usable here, fastest first (``["numba", "torch"]``)."""
+    from .. import backend as _backend
+
+    return _backend.backends("march")
 
 
 def _grid_consts(mask: torch.Tensor, bbox: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
@@ -208,17 +209,19 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, t_min: torch.Tensor,
     origins, dirs = origins.float().contiguous(), dirs.float().contiguous()
     t_min, t_max = t_min.float().contiguous(), t_max.float().contiguous()
     jitter, k_start = jitter.float().contiguous(), k_start.long().contiguous()
-    if backend == "auto":
-        backend = "numba" if dev.type == "cpu" else "torch"
-    if backend == "torch":
-        return _march_torch(origins, dirs, t_min, t_max, jitter, k_start, step, mask, bbox,
-                            max_per_ray)
-    if backend != "numba":
-        raise BackendError(f"march_rays: unknown backend {backend!r}; have {march_backends()}")
-    if dev.type != "cpu":
-        raise BackendError(f"march_rays: the numba backend needs CPU tensors, got {dev}")
+    from .. import backend as _backend
+
+    name = _backend.resolve("march", backend, dev)
+    return _backend.implementation("march", name)(origins, dirs, t_min, t_max, jitter, k_start,
+                                                  step, mask, bbox, max_per_ray)
+
+
+def _march_numba(origins, dirs, t_min, t_max, jitter, k_start, step, mask, bbox, max_per_ray
+                 ) -> PackedSamples:
+    """The numba marching kernels (CPU tensors); the same samples as :func:`_march_torch`."""
     from . import _march_numba as K
 
+    n_rays = origins.shape[0]
     lo, inv = _grid_consts(mask, bbox)
     m = mask.contiguous().numpy()
     counts = np.empty(n_rays, np.int64)

@@ -12,12 +12,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import TreeFormatError
+from .limits import MAX_DEPTH
 from .tree import parse_data_format
 
 if TYPE_CHECKING:
     from .tree import Octree
 
-__all__ = ["check_tree", "expected_data_dim"]
+__all__ = ["check_tree", "check_child", "expected_data_dim"]
 
 _CHUNK_NODES = 1 << 16     # data is checked in blocks of this many nodes (bounded temporaries)
 
@@ -80,15 +81,22 @@ def _check_arrays(tree: Octree, name: str) -> int:
     elif extra is not None:
         _fail(name, f"extra_data must be None for data_format {tree.data_format!r}, got shape "
                     f"{list(np.shape(extra))}")
-    if isinstance(tree.depth_limit, bool) or not isinstance(tree.depth_limit, (int, np.integer)) \
-            or tree.depth_limit < 0:
-        _fail(name, f"depth_limit must be an integer >= 0, got {tree.depth_limit!r}")
     return n
 
 
-def _check_topology(tree: Octree, name: str, n: int) -> None:
-    """Offsets positive and in range, exactly one parent per non-root node, depth limit."""
-    flat = tree.child.reshape(-1)
+def check_child(child: np.ndarray, depth_limit: int, name: str = "tree") -> None:
+    """Check the topology of a ``child`` array (int ``[n, 2, 2, 2]``, n >= 1).
+
+    Offsets >= 0 and pointing inside the array; exactly one parent per non-root node (with
+    positive offsets: no cycles, no orphans); cell depth <= ``depth_limit`` <= ``MAX_DEPTH``.
+    Work is bounded: the level walk stops after ``MAX_DEPTH + 1`` levels. Shared by
+    :func:`check_tree` and the compressed tree's ``validate``.
+    """
+    if isinstance(depth_limit, bool) or not isinstance(depth_limit, (int, np.integer)) \
+            or depth_limit < 0:
+        _fail(name, f"depth_limit must be an integer >= 0, got {depth_limit!r}")
+    n = child.shape[0]
+    flat = child.reshape(-1)
     neg = np.flatnonzero(flat < 0)
     if neg.size:
         f = neg[0]
@@ -111,10 +119,27 @@ def _check_topology(tree: Octree, name: str, n: int) -> None:
         _fail(name, f"node {orphans[0]} has no parent ({orphans.size} orphan nodes; every "
                     "non-root node must have exactly one parent)")
     # Offsets > 0 and one parent each: every node is reachable from the root, no cycles.
-    depth = tree.node_depths()
-    if depth.max() > tree.depth_limit:
-        deep = int(np.argmax(depth))
-        _fail(name, f"node {deep} has depth {depth[deep]} > depth_limit {tree.depth_limit}")
+    # Walk level by level; nodes of depth t hold cells of depth t.
+    rows = child.reshape(n, 8)
+    level = np.zeros(1, dtype=np.int64)
+    for t in range(1, MAX_DEPTH + 2):
+        sub = rows[level]
+        p, c = np.nonzero(sub)
+        if p.size == 0:
+            break
+        level = level[p] + sub[p, c].astype(np.int64)
+        if t > min(depth_limit, MAX_DEPTH):
+            what = (f"exceeds MAX_DEPTH = {MAX_DEPTH}, the deepest cell depth every renderer "
+                    "supports" if t > MAX_DEPTH else f"exceeds depth_limit {depth_limit}")
+            _fail(name, f"node {int(level[0])} has depth {t}: the tree is at least {t + 1} "
+                        f"levels deep and {what}")
+    if depth_limit > MAX_DEPTH:
+        _fail(name, f"depth_limit {depth_limit} exceeds MAX_DEPTH = {MAX_DEPTH} (the deepest "
+                    "cell depth every renderer supports)")
+
+
+def _check_topology(tree: Octree, name: str, n: int) -> None:
+    check_child(tree.child, tree.depth_limit, name)
 
 
 def _check_values(tree: Octree, name: str, n: int) -> None:
@@ -138,10 +163,10 @@ def check_tree(tree: Octree, name: str = "tree") -> None:
 
     Checks, in order: ``child`` int32 ``[n, 2, 2, 2]`` with n >= 1; ``data`` float
     ``[n, 2, 2, 2, D]`` with D matching ``data_format``; ``offset``/``invradius`` finite ``[3]``,
-    ``invradius > 0``; SG ``extra_data [B, 4]`` finite (None otherwise); ``depth_limit >= 0``;
-    child offsets >= 0 and pointing inside the array; every non-root node has exactly one
-    parent (which, with positive offsets, rules out cycles and orphans); node depth <=
-    ``depth_limit``; data finite; σ >= 0.
+    ``invradius > 0``; SG ``extra_data [B, 4]`` finite (None otherwise); then
+    :func:`check_child`: ``0 <= depth_limit <= MAX_DEPTH``, child offsets >= 0 and pointing
+    inside the array, every non-root node has exactly one parent (which, with positive
+    offsets, rules out cycles and orphans), cell depth <= ``depth_limit``; data finite; σ >= 0.
     """
     n = _check_arrays(tree, name)
     _check_topology(tree, name, n)

@@ -38,6 +38,7 @@ from .._util import atomic_save_npz
 from ..errors import TreeFormatError
 from ._npz import NpzReader
 from .check import expected_data_dim
+from .limits import MAX_DEPTH
 from .tree import Octree, parse_data_format
 
 __all__ = ["save_tree", "load_tree", "export_svox", "import_svox", "FORMAT_VERSION"]
@@ -322,6 +323,9 @@ def _load_svox(r: NpzReader, keep_dtype: bool) -> Octree:
     depth_limit = r.scalar_int("depth_limit") if "depth_limit" in r else -1
     if "depth_limit" in r and depth_limit < 0:
         r.fail(f"depth_limit = {depth_limit} is negative")
+    # svox's depth_limit only caps future refinement: clamp it to what our renderers support
+    # (the tree's actual depth is still checked against MAX_DEPTH by check_integrity).
+    depth_limit = min(depth_limit, MAX_DEPTH)
     offset = _check_vec3(r, "offset", allow_scalar=True)
     key = "invradius3" if "invradius3" in r else "invradius"
     invradius = _check_vec3(r, key, allow_scalar=True)
@@ -355,7 +359,8 @@ def import_svox(path: str | os.PathLike, keep_dtype: bool = False) -> Octree:
 
     Accepts legacy files (scalar ``invradius``, no ``data_format`` → SH inferred from
     ``data_dim``), trims capacity beyond ``n_internal``, drops freed nodes (``n_free > 0``),
-    renumbers nodes breadth-first, and clamps negative σ to 0 (svox renders them as empty).
+    renumbers nodes breadth-first, clamps negative σ to 0 (svox renders them as empty) and
+    ``depth_limit`` to ``MAX_DEPTH`` (a tree deeper than ``MAX_DEPTH`` is an error).
     ``parent_depth`` is redundant with ``child`` and only its shape is checked.
 
     Raises:

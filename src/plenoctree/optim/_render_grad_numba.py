@@ -52,7 +52,8 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from ..render._march_numba import MAX_LEVEL, STACK_SIZE, basis_values, next_leaf, ray_start
+from ..render._march_numba import (MAX_LEVEL, MAX_STEPS, STACK_SIZE, basis_values, next_leaf,
+                                   ray_start)
 from ..render.options import KIND_RGBA
 
 __all__ = ["TILE", "grad_kernel", "merge_chunks", "step_touched", "OPT_SGD", "OPT_ADAM",
@@ -98,7 +99,9 @@ def _trace_one(child, sig, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b
     st[0] = 0
     st[1] = -1
     stack[0] = 0
-    while t < t1:
+    steps = 0
+    while t < t1 and steps < MAX_STEPS:
+        steps += 1
         cell, t_end, _ = next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps_t, t1,
                                    True, max_level, st, stack)
         sigma = sig[cell]

@@ -218,23 +218,31 @@ class TorchStepper:
 
 def make_stepper(backend: str, data2: np.ndarray, tree: Any, options: Any, optimizer: str,
                  lr: float | None) -> NumbaStepper | TorchStepper:
-    """Build the stepper for ``backend`` (``"auto"``: numba on CPU, torch when CUDA is there)."""
-    from ..render import has_numba
+    """Build the stepper for ``backend`` (op ``"finetune"`` of :mod:`plenoctree.backend`).
 
+    ``"auto"`` fine-tunes where the work runs fastest: on the GPU (the torch twin) when CUDA
+    is available, else with the numba kernels; an explicit name runs that backend (numba on
+    the CPU, torch on CUDA when available).
+    """
+    from .. import backend as _backend
+
+    name = _backend.check_name("finetune", backend)
     if optimizer not in OPTIMIZERS:
         raise ConfigError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {optimizer!r}")
     lr = DEFAULT_LR[optimizer] if lr is None else float(lr)
     if not (math.isfinite(lr) and lr > 0):
         raise ConfigError(f"learning rate must be a finite number > 0, got {lr!r}")
-    name = str(backend).lower()
+    device = "cpu"
     if name == "auto":
         import torch
 
-        name = "torch" if torch.cuda.is_available() or not has_numba() else "numba"
-    if name == "numba":
-        from ._render_grad import kernel_args
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    name = _backend.resolve("finetune", name, device)
+    return _backend.implementation("finetune", name)(data2, tree, options, optimizer, lr)
 
-        return NumbaStepper(data2, kernel_args(tree, options), optimizer, lr)
-    if name == "torch":
-        return TorchStepper(data2, tree, options, optimizer, lr)
-    raise ConfigError(f"unknown fine-tuning backend {backend!r} (expected auto, numba or torch)")
+
+def _numba_stepper(data2: np.ndarray, tree: Any, options: Any, optimizer: str,
+                   lr: float) -> NumbaStepper:
+    from ._render_grad import kernel_args
+
+    return NumbaStepper(data2, kernel_args(tree, options), optimizer, lr)

@@ -24,8 +24,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..errors import BackendError, ConfigError
-from ..render import RenderOptions, has_numba
+from .. import backend as _backend
+from ..errors import ConfigError
+from ..render import RenderOptions
 from ..render.options import parse_data_format
 
 __all__ = ["OctreeRenderFunction", "render_rays_differentiable", "differentiable_backends"]
@@ -33,7 +34,7 @@ __all__ = ["OctreeRenderFunction", "render_rays_differentiable", "differentiable
 
 def differentiable_backends() -> list[str]:
     """Backends :func:`render_rays_differentiable` can use here, fastest first."""
-    return (["numba"] if has_numba() else []) + ["torch"]
+    return _backend.backends("render_grad")
 
 
 class OctreeRenderFunction(torch.autograd.Function):
@@ -110,29 +111,28 @@ def render_rays_differentiable(data: torch.Tensor, tree: Any, origins: Any, dirs
         raise ConfigError(f"origins/dirs: expected equal shapes (..., 3), got {tuple(o.shape)} "
                           f"and {tuple(d.shape)}")
     batch = tuple(o.shape[:-1])
-    name = str(backend).lower()
-    if name == "auto":
-        name = "torch" if data.device.type != "cpu" or not has_numba() else "numba"
-    if name == "numba":
-        if not has_numba():
-            raise BackendError("backend 'numba' needs the numba package (pip install numba)")
-        if data.device.type != "cpu":
-            raise BackendError("backend 'numba' runs on CPU tensors; use backend='torch' for "
-                               f"data on {data.device}")
-        from ._render_grad import _rays, kernel_args
-
-        args = kernel_args(tree, opts)
-        o_np, d_np = _rays(o, d)
-        rgb = OctreeRenderFunction.apply(data, args, o_np, d_np)
-    elif name == "torch":
-        from ..render._torch_impl import render_rays_torch
-
-        extra = getattr(tree, "extra_data", None)
-        parse_data_format(tree.data_format, data.shape[-1], extra)
-        out = render_rays_torch(tree.child, data, tree.offset, tree.invradius, tree.data_format,
-                                extra, o.reshape(-1, 3), d.reshape(-1, 3), opts)
-        rgb = out.rgb
-    else:
-        raise BackendError(f"unknown backend {backend!r}; available: "
-                           f"{', '.join(differentiable_backends())}")
+    name = _backend.resolve("render_grad", backend, data.device)
+    rgb = _backend.implementation("render_grad", name)(data, tree, o.reshape(-1, 3),
+                                                       d.reshape(-1, 3), opts)
     return rgb.reshape(*batch, 3)
+
+
+def _grad_numba(data: torch.Tensor, tree: Any, o: torch.Tensor, d: torch.Tensor,
+                opts: RenderOptions) -> torch.Tensor:
+    """numba forward + analytic backward (CPU tensors)."""
+    from ._render_grad import _rays, kernel_args
+
+    args = kernel_args(tree, opts)
+    o_np, d_np = _rays(o, d)
+    return OctreeRenderFunction.apply(data, args, o_np, d_np)
+
+
+def _grad_torch(data: torch.Tensor, tree: Any, o: torch.Tensor, d: torch.Tensor,
+                opts: RenderOptions) -> torch.Tensor:
+    """The renderer's torch twin with plain autograd (any device)."""
+    from ..render._torch_impl import render_rays_torch
+
+    extra = getattr(tree, "extra_data", None)
+    parse_data_format(tree.data_format, data.shape[-1], extra)
+    return render_rays_torch(tree.child, data, tree.offset, tree.invradius, tree.data_format,
+                             extra, o, d, opts).rgb

@@ -4,36 +4,28 @@
 >>> out.rgb.shape, out.depth.shape, out.alpha.shape         # doctest: +SKIP
 
 Backends: ``"numba"`` (fast CPU kernel, compiled on first use and cached on disk) and
-``"torch"`` (the twin: vectorised torch ops, differentiable, runs on CUDA tensors). ``"auto"``
-picks numba for CPU inputs when it is importable, torch for CUDA tensors. Importing this module
-compiles nothing: the kernel module is imported by the first numba render.
+``"torch"`` (the twin: vectorised torch ops, differentiable, runs on CUDA tensors), chosen by
+:mod:`plenoctree.backend` (op ``"render"``): ``"auto"`` picks numba for CPU inputs, torch for
+CUDA tensors. Importing this module compiles nothing: the kernel module is imported by the
+first numba render.
 """
 
 from __future__ import annotations
 
-import importlib.util
 from typing import Any
 
 import numpy as np
 import torch
 
-from ..errors import BackendError, ConfigError
+from .. import backend as _backend
+from ..errors import ConfigError
 from .options import FormatInfo, RenderOptions, RenderOutput, parse_data_format
 
-__all__ = ["RenderOptions", "RenderOutput", "available_backends", "has_numba", "render_rays",
-           "render_image"]
+__all__ = ["RenderOptions", "RenderOutput", "available_backends", "render_rays", "render_image"]
 
-_BACKENDS = ("numba", "torch")
-
-
-def has_numba() -> bool:
-    """True when numba is importable (the fast CPU kernel can be used)."""
-    return importlib.util.find_spec("numba") is not None
-
-
-def available_backends() -> list[str]:
-    """Backends usable on this machine, fastest first: ``["numba", "torch"]`` or ``["torch"]``."""
-    return (["numba"] if has_numba() else []) + ["torch"]
+def available_backends(device: Any = None) -> list[str]:
+    """Render backends usable here (on ``device`` when given), fastest first."""
+    return _backend.backends("render", device)
 
 
 def _rays_to_numpy_or_torch(name: str, x: Any) -> Any:
@@ -97,20 +89,6 @@ def _vec3(x: Any) -> np.ndarray:
     return np.broadcast_to(np.asarray(x, dtype=np.float64).reshape(-1), (3,)).copy()
 
 
-def _resolve_backend(backend: str, on_cuda: bool) -> str:
-    name = str(backend).lower()
-    if name == "auto":
-        return "torch" if on_cuda or not has_numba() else "numba"
-    if name not in _BACKENDS:
-        raise BackendError(f"unknown render backend {backend!r}; available: "
-                           f"{', '.join(available_backends())}")
-    if name == "numba" and not has_numba():
-        raise BackendError("render backend 'numba' needs the numba package, which is not "
-                           f"installed (pip install numba); available: "
-                           f"{', '.join(available_backends())}")
-    return name
-
-
 def render_rays(tree: Any, origins: Any, dirs: Any, options: RenderOptions | None = None,
                 backend: str = "auto") -> RenderOutput:
     """Render world-space rays through ``tree``.
@@ -121,7 +99,7 @@ def render_rays(tree: Any, origins: Any, dirs: Any, options: RenderOptions | Non
         dirs: ``[..., 3]`` ray directions (any non-zero length; normalised internally).
         options: :class:`RenderOptions`; defaults when ``None``.
         backend: ``"auto"`` (numba for CPU inputs, torch for CUDA tensors), ``"numba"`` or
-            ``"torch"``. The numba backend moves CUDA inputs to the CPU and its outputs back.
+            ``"torch"`` (see :mod:`plenoctree.backend`; numba with CUDA tensors is an error).
 
     Returns:
         :class:`RenderOutput` of torch tensors ``rgb [..., 3]``, ``depth [...]`` (world units
@@ -131,7 +109,8 @@ def render_rays(tree: Any, origins: Any, dirs: Any, options: RenderOptions | Non
 
     Raises:
         ConfigError: mismatched or non-(..., 3) shapes, NaN/inf, zero directions, bad options or
-            a malformed tree. BackendError: an unknown or unavailable backend.
+            a malformed tree. BackendError: an unknown backend or one that does not run on the
+            inputs' device.
     """
     opts = (options if options is not None else RenderOptions())
     if not isinstance(opts, RenderOptions):
@@ -143,43 +122,55 @@ def render_rays(tree: Any, origins: Any, dirs: Any, options: RenderOptions | Non
     info = _tree_info(tree)
     device = next((x.device for x in (origins, dirs) if isinstance(x, torch.Tensor)),
                   torch.device("cpu"))
-    name = _resolve_backend(backend, device.type == "cuda")
+    name = _backend.resolve("render", backend, device)
     batch = tuple(origins.shape[:-1])
-    offset, inv = _vec3(tree.offset), _vec3(tree.invradius)
-    extra = getattr(tree, "extra_data", None)
-    if isinstance(extra, torch.Tensor):
-        extra = extra.detach().cpu().numpy()
-
-    if name == "numba":
-        from . import _render_numba
-
-        def to_np(x: Any) -> np.ndarray:
-            return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x
-
-        child = to_np(tree.child)
-        data = to_np(tree.data)
-        rgb, depth, alpha = _render_numba.render_rays_numba(
-            child, data, offset, inv, info, extra, to_np(origins).reshape(-1, 3),
-            to_np(dirs).reshape(-1, 3), opts)
-        out = RenderOutput(torch.from_numpy(rgb), torch.from_numpy(depth),
-                           torch.from_numpy(alpha))
-    else:
-        from ._torch_impl import render_rays_torch
-
-        data = tree.data
-        if isinstance(data, torch.Tensor):
-            data = data.to(device)
-        else:
-            data = torch.from_numpy(np.ascontiguousarray(data)).to(device)
-        if data.dtype not in (torch.float32, torch.float64):
-            data = data.float()
-        o = origins if isinstance(origins, torch.Tensor) else torch.from_numpy(origins)
-        d = dirs if isinstance(dirs, torch.Tensor) else torch.from_numpy(dirs)
-        out = render_rays_torch(tree.child, data, offset, inv, info.name, extra,
-                                o.reshape(-1, 3), d.reshape(-1, 3), opts)
+    # The numba kernel marches the pixels of an image in 2-D tiles when it knows the width.
+    hint = {"width": int(batch[-1])} if name == "numba" and len(batch) >= 2 else {}
+    out = _backend.implementation("render", name)(
+        tree, info, origins.reshape(-1, 3), dirs.reshape(-1, 3), opts, device, **hint)
     return RenderOutput(rgb=out.rgb.reshape(*batch, 3).to(device),
                         depth=out.depth.reshape(batch).to(device),
                         alpha=out.alpha.reshape(batch).to(device))
+
+
+def _numba_render(tree: Any, info: FormatInfo, origins: Any, dirs: Any, opts: RenderOptions,
+                  device: Any, width: int = 0) -> RenderOutput:
+    """The numba kernel on CPU inputs ``origins, dirs [N, 3]`` (numpy or CPU tensors);
+    ``width``: the image width when the rays are an image's pixels in row-major order."""
+    from . import _render_numba
+
+    def to_np(x: Any) -> np.ndarray:
+        return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x
+
+    rgb, depth, alpha = _render_numba.render_rays_numba(
+        to_np(tree.child), to_np(tree.data), _vec3(tree.offset), _vec3(tree.invradius), info,
+        _extra(tree), to_np(origins), to_np(dirs), opts, width=width)
+    return RenderOutput(torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(alpha))
+
+
+def _render_torch(tree: Any, info: FormatInfo, origins: Any, dirs: Any, opts: RenderOptions,
+                  device: Any) -> RenderOutput:
+    """The torch twin on ``device`` (``origins, dirs [N, 3]``)."""
+    from ._torch_impl import render_rays_torch
+
+    data = tree.data
+    if isinstance(data, torch.Tensor):
+        data = data.to(device)
+    else:
+        data = torch.from_numpy(np.ascontiguousarray(data)).to(device)
+    if data.dtype not in (torch.float32, torch.float64):
+        data = data.float()
+    o = origins if isinstance(origins, torch.Tensor) else torch.from_numpy(origins)
+    d = dirs if isinstance(dirs, torch.Tensor) else torch.from_numpy(dirs)
+    return render_rays_torch(tree.child, data, _vec3(tree.offset), _vec3(tree.invradius),
+                             info.name, _extra(tree), o, d, opts)
+
+
+def _extra(tree: Any) -> Any:
+    extra = getattr(tree, "extra_data", None)
+    if isinstance(extra, torch.Tensor):
+        extra = extra.detach().cpu().numpy()
+    return extra
 
 
 def render_image(tree: Any, cameras: Any, index: int, options: RenderOptions | None = None,

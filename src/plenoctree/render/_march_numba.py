@@ -14,8 +14,9 @@ How a ray marches (tree space ``p(t) = o' + t d'``, ``t`` in world units):
   root-to-leaf path stay on a stack: when the ray leaves a leaf, the highest bit that differs
   between the old and the new integer point names the deepest common ancestor and the descent
   restarts there (most exits cross into a sibling or a cousin: one or two levels, not the
-  whole depth). The descent never goes below ``max_level`` (the tree depth limit: a deeper
-  tree cannot write past the stack).
+  whole depth). The descent never goes below ``max_level`` (``octree.limits.MAX_DEPTH``: a
+  deeper tree cannot write past the stack), and every kernel stops a ray after
+  ``octree.limits.max_steps(depth)`` segments (no geometry can make a ray march forever).
 
 State between calls lives in ``st`` (int64 ``[4]``: level, previous integer point; set
 ``st[1] = -1`` at the start of every ray) and ``stack`` (int64 ``[STACK_SIZE]``, ``max_level < STACK_SIZE``).
@@ -28,14 +29,19 @@ import math
 from numba import njit
 
 from .. import sh as _sh
+from ..octree.limits import MAX_DEPTH, max_steps
 from .options import KIND_SG, KIND_SH, QUANT_BITS
 
-__all__ = ["ray_start", "next_leaf", "basis_values", "STACK_SIZE", "MAX_LEVEL"]
+__all__ = ["ray_start", "next_leaf", "basis_values", "STACK_SIZE", "MAX_LEVEL", "MAX_STEPS"]
 
-#: Deepest node level a descent reaches (cells deeper than this are never looked up).
-MAX_LEVEL = QUANT_BITS - 1
+#: Deepest node level a descent reaches (= the deepest cell depth a tree may have; deeper
+#: cells are never looked up, so no tree can make a descent write past the stack).
+MAX_LEVEL = MAX_DEPTH
 #: Entries of the path stack (levels ``0..MAX_LEVEL`` plus one spare).
 STACK_SIZE = MAX_LEVEL + 2
+#: Segments one ray may march at most (``octree.limits.max_steps`` of the deepest tree any
+#: loader accepts): only rays that could never finish are cut.
+MAX_STEPS = max_steps(MAX_DEPTH)
 
 _SCALE = float(2 ** QUANT_BITS)
 _INV_SCALE = 1.0 / _SCALE

@@ -1,0 +1,44 @@
+"""Hard limits every tree must respect, stated once for every reader, writer and renderer.
+
+``MAX_DEPTH``
+    The deepest **cell depth** a tree may have (as in :attr:`Octree.depth_limit`: the root's
+    cells have depth 0, the leaves of a ``2^d`` grid have depth ``d - 1``; a tree of cell depth
+    ``D`` has ``D + 1`` levels of nodes). 21 is what every renderer supports:
+
+    * the WebGL page descends at most 22 levels (float32 positions; ``MAX_VIEWER_DEPTH`` in
+      ``viewer/static/tree.js``), i.e. cell depth <= 21: the tightest limit;
+    * the torch twin descends at most ``QUANT_BITS - 1 = 29`` levels;
+    * the numba renderer and fine-tuning kernels keep the root-to-leaf path on a
+      ``QUANT_BITS + 1 = 31``-entry stack (a deeper chain would write past it).
+
+    A 512³ extraction has cell depth 8, so adaptive refinement has 13 levels of headroom.
+    (Cells deeper than ~18 are smaller than the default ``RenderOptions.step_eps = 1e-6`` tree
+    units; they render, but a ray may step over them.) Checked by
+    :meth:`Octree.check_integrity`, hence by every load and save (native, svox, ``.plnz``).
+    Kernels must also guard their descent loops with it: ``level <= MAX_DEPTH``.
+
+``MAX_STEPS_CAP`` / :func:`max_steps`
+    The most segments one ray may march, as the WebGL shader caps it: a ray crosses at most
+    about ``3 * 2^(D + 1)`` cells of a tree of cell depth ``D``; ``+ 64`` slack, and never more
+    than ``MAX_STEPS_CAP = 2^20``. Every renderer stops a ray after ``max_steps(D)`` steps, so no
+    input (however extreme its geometry) can make a ray march forever.
+
+``MAX_ABS_BOX``
+    Bound on ``|invradius|``, ``|offset|`` and ``1 / invradius`` (the world radius) accepted at
+    load: ``1e15``. Real scenes are many orders of magnitude inside it; beyond it the world ↔ tree
+    transform loses all precision (a ray would never advance, or the step epsilon overflows).
+"""
+
+from __future__ import annotations
+
+__all__ = ["MAX_DEPTH", "MAX_STEPS_CAP", "MAX_ABS_BOX", "max_steps"]
+
+MAX_DEPTH = 21
+MAX_STEPS_CAP = 1 << 20
+MAX_ABS_BOX = 1e15
+
+
+def max_steps(depth: int) -> int:
+    """Most segments a ray may march through a tree of cell depth ``depth`` (``<= 2^20``)."""
+    d = min(max(int(depth), 0), MAX_DEPTH)
+    return int(min(3 * 2 ** (d + 1) + 64, MAX_STEPS_CAP))
