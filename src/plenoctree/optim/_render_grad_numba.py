@@ -334,38 +334,48 @@ def step_touched(data, sig, grad3, flags, touched, n_touched, opt, lr, m1, m2, b
             cell = touched[c, j]
             if flags[c, cell] == 0:
                 continue
-            for d in range(dim):
-                g = 0.0
-                for k in range(c, n_chunks):
-                    if flags[k, cell] != 0:
-                        g += grad3[k, cell, d]
-                        grad3[k, cell, d] = 0.0
-                if opt == OPT_SGD:
-                    v = data[cell, d] - lr * g
-                elif opt == OPT_ADAM:
-                    a = beta1 * m1[cell, d] + (1.0 - beta1) * g
-                    b = beta2 * m2[cell, d] + (1.0 - beta2) * g * g
+            g = grad3[c, cell]
+            # Fold the later slabs that hold this cell into slab c (0 + a + b, as before), so
+            # the update loops below are flag-free and vectorise over the D values.
+            for k in range(c + 1, n_chunks):
+                if flags[k, cell] != 0:
+                    gk = grad3[k, cell]
+                    for d in range(dim):
+                        g[d] += gk[d]
+                        gk[d] = 0.0
+                    flags[k, cell] = 0
+            row = data[cell]
+            if opt == OPT_SGD:
+                for d in range(dim):
+                    row[d] -= lr * g[d]
+            elif opt == OPT_ADAM:
+                for d in range(dim):
+                    a = beta1 * m1[cell, d] + (1.0 - beta1) * g[d]
+                    b = beta2 * m2[cell, d] + (1.0 - beta2) * g[d] * g[d]
                     if abs(a) < 1e-30:
                         a = 0.0
                     if b < 1e-30:
                         b = 0.0
                     m1[cell, d] = a
                     m2[cell, d] = b
-                    v = data[cell, d] - lr * (a / bc1) / (math.sqrt(b / bc2) + eps)
-                else:
-                    b = beta2 * m2[cell, d] + (1.0 - beta2) * g * g
+                    row[d] -= lr * (a / bc1) / (math.sqrt(b / bc2) + eps)
+            else:
+                for d in range(dim):
+                    b = beta2 * m2[cell, d] + (1.0 - beta2) * g[d] * g[d]
                     if b < 1e-30:
                         b = 0.0
                     m2[cell, d] = b
-                    v = data[cell, d] - lr * g / (math.sqrt(b) + eps)
-                if not math.isfinite(v):
-                    bad += 1
-                data[cell, d] = v
-            for k in range(c, n_chunks):
-                flags[k, cell] = 0
-            if data[cell, dim - 1] < 0.0:
-                data[cell, dim - 1] = 0.0
-            sig[cell] = data[cell, dim - 1]
+                    row[d] -= lr * g[d] / (math.sqrt(b) + eps)
+            nonfinite = 0
+            for d in range(dim):
+                g[d] = 0.0
+                if not math.isfinite(row[d]):
+                    nonfinite += 1
+            bad += nonfinite
+            flags[c, cell] = 0
+            if row[dim - 1] < 0.0:
+                row[dim - 1] = 0.0
+            sig[cell] = row[dim - 1]
         n_touched[c] = 0
     return bad
 
