@@ -36,7 +36,9 @@ import torch  # noqa: E402
 from plenoctree.datasets import load_dataset  # noqa: E402
 from plenoctree.nerf import load_nerf, preset, train  # noqa: E402
 from plenoctree.nerf.evaluate import evaluate_views  # noqa: E402
-from plenoctree.nerf.trainer import resolve_amp, setup_threads  # noqa: E402
+from plenoctree.runtime import resolve_amp, setup_threads, tune_malloc  # noqa: E402
+
+tune_malloc()          # what the CLI's runtime.configure() does; train() no longer does it
 
 LEGO = Path(__file__).resolve().parents[2] / "shared" / "data" / "nerf_synthetic" / "lego"
 

@@ -1,11 +1,27 @@
 """Test-session set-up.
 
 torch and numba each load an OpenMP runtime whose idle threads spin; on two cores they spin
-against each other's work (see ``plenoctree.nerf.trainer.RUNTIME_ENV``). The CLI re-executes
-itself with ``OMP_WAIT_POLICY=PASSIVE``; tests call the CLI in-process, so the policy is set
-here, before either runtime is loaded (``./run test`` also exports it).
+against each other's work (see ``plenoctree.runtime``). The CLI sets ``OMP_WAIT_POLICY=PASSIVE``
+before either loads; tests import torch before calling the CLI in-process, so the policy is
+set here, before either runtime is loaded (``./run test`` also exports it).
 """
 
 import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    """A 16x16 procedural Blender dataset (2 train, 1 val, 3 test views) and its 32^3 tree:
+    ``root / "data"``, ``root / "tree.npz"``."""
+    from plenoctree.datasets.procedural import procedural_tree, write_procedural_dataset
+    from plenoctree.octree import save_tree
+
+    root = tmp_path_factory.mktemp("scene")
+    write_procedural_dataset(root / "data", n_train=2, n_val=1, n_test=3, width=16, height=16)
+    save_tree(procedural_tree(32), root / "tree.npz", precision="fp32")
+    return root

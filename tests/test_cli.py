@@ -12,14 +12,6 @@ from plenoctree.datasets.procedural import procedural_tree, write_procedural_dat
 from plenoctree.octree import save_tree
 
 
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("scene")
-    write_procedural_dataset(root / "data", n_train=2, n_val=1, n_test=3, width=16, height=16)
-    save_tree(procedural_tree(32), root / "tree.npz", precision="fp32")
-    return root
-
-
 def test_render_writes_pngs_and_metrics(tiny_scene, tmp_path, capsys):
     out = tmp_path / "r"
     rc = main(["render", str(tiny_scene / "tree.npz"), "--data", str(tiny_scene / "data"),

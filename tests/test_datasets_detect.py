@@ -55,7 +55,9 @@ def test_format_forces_the_loader(tmp_path):
     assert len(data) == 7 and data.images.shape[1:3] == (3, 4) and data.cameras.ndc
     with pytest.raises(DatasetError, match="transforms.json: missing or empty 'frames'"):
         load_dataset(root, format="nerfstudio")
-    with pytest.raises(ConfigError, match="unknown dataset format 'colmap'"):
+    with pytest.raises(ConfigError, match="unknown dataset format 'colmap2'"):
+        load_dataset(root, format="colmap2")
+    with pytest.raises(DatasetError, match="ff: no COLMAP model"):
         load_dataset(root, format="colmap")
     with pytest.raises(ConfigError, match="nsvf loader.*llffhold"):
         load_dataset(root, format="nsvf", llffhold=8)

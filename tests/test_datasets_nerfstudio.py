@@ -149,12 +149,13 @@ def test_prescaled_image_folders(ns_root, tmp_path):
 
 
 @pytest.mark.parametrize("edit, match", [
-    (lambda o: o.update(camera_model="OPENCV_FISHEYE"), "camera model 'OPENCV_FISHEYE' is not supported"),
     (lambda o: o.update(camera_model="EQUIRECTANGULAR"), "'EQUIRECTANGULAR' is not supported"),
-    (lambda o: o.update(k1=0.05), "lens distortion k1 = 0.05 is not supported"),
-    (lambda o: o["frames"][3].update(p2=-0.01), r"frames\[3\]: lens distortion p2"),
+    (lambda o: o.update(camera_model="SIMPLE_RADIAL", k2=0.05),
+     "k2 = 0.05 is not part of the SIMPLE_RADIAL camera model"),
+    (lambda o: o["frames"][3].update(camera_model="OPENCV_FISHEYE", p2=-0.01),
+     r"frames\[3\]: distortion coefficient p2"),
     (lambda o: o["frames"][2].update(camera_model="FISHEYE"), r"frames\[2\]: camera model"),
-    (lambda o: o.update(is_fisheye=True), "fisheye"),
+    (lambda o: o.update(k1="x"), "k1 must be a finite number"),
     (lambda o: [o.pop(k) for k in ("fl_x", "fl_y")], "missing intrinsics"),
     (lambda o: o.update(w=21), "w = 21 but the image is 20x16"),
     (lambda o: o["frames"][4].update(transform_matrix=[[1, 0, 0, "x"]] * 4), r"frames\[4\]"),

@@ -104,10 +104,13 @@ def test_torch_twin_backend_takes_the_same_steps(scene):
     views = ViewSet.from_dataset(load_dataset(scene / "data", "train"))
     opts = RenderOptions()
     d2 = tree.data.reshape(-1, tree.data_dim)
-    for optimizer, lr, chunks in (("sgd", 2e4, 3), ("adam", 1e-2, 1), ("adam", 1e-2, 3),
-                                  ("rmsprop", 1e-3, 2)):
-        fast = NumbaStepper(d2.copy(), kernel_args(tree, opts), optimizer, lr, n_chunks=chunks)
-        twin = TorchStepper(d2.copy(), tree, opts, optimizer, lr, device="cpu")
+    for optimizer, lr, chunks, slr in (("sgd", 2e4, 3, None), ("adam", 1e-2, 1, None),
+                                       ("adam", 1e-2, 3, None), ("rmsprop", 1e-3, 2, None),
+                                       ("sgd", 2e4, 2, 6e4), ("adam", 1e-2, 3, 0.5),
+                                       ("rmsprop", 1e-3, 1, 0.2)):
+        fast = NumbaStepper(d2.copy(), kernel_args(tree, opts), optimizer, lr, n_chunks=chunks,
+                            sigma_lr=slr)
+        twin = TorchStepper(d2.copy(), tree, opts, optimizer, lr, device="cpu", sigma_lr=slr)
         rng = np.random.default_rng(1)
         for _ in range(3):
             o, d, t = views.rays(views.tile_pixels(rng.choice(views.n_tiles(2), 256, False), 2))
@@ -219,7 +222,7 @@ def test_cli_prints_psnr_before_and_after(scene, tmp_path, capsys):
 
     rc = main(["finetune", str(scene / "noisy.npz"), "--data", str(scene / "data"), "--out",
                str(tmp_path / "cli.npz"), "--epochs", "2", "--optimizer", "adam", "--lr", "0.02",
-               "--batch-rays", "4096", "--quiet", "--progress", "off"])
+               "--batch-rays", "4096", "--quiet", "--no-progress"])
     out = capsys.readouterr().out
     assert rc == 0
     assert "test PSNR before" in out and "after" in out
@@ -230,3 +233,20 @@ def test_cli_prints_psnr_before_and_after(scene, tmp_path, capsys):
     rc = main(["finetune", str(scene / "noisy.npz"), "--data", str(tmp_path / "nope"),
                "--out", str(tmp_path / "cli2.npz")])
     assert rc == 1 and "error" in capsys.readouterr().err
+
+
+def test_default_finetune_ends_at_or_above_its_start_on_the_procedural_scene(tmp_path):
+    """The defaults (no lr, no optimizer given) on a tree extracted from the procedural NeRF-SH:
+    validation and test PSNR end at or above the extracted tree's (validation strictly)."""
+    from plenoctree.convert import AnalyticField, ExtractConfig, extract
+    from plenoctree.datasets.procedural import write_procedural_dataset
+
+    data = tmp_path / "data"
+    write_procedural_dataset(data, n_train=12, n_val=2, n_test=2, width=32, height=32)
+    extract(ExtractConfig(out=str(tmp_path / "t.npz"), data=str(data), grid=32, eval=False,
+                          show_progress=False), field=AnalyticField())
+    res = finetune(FinetuneConfig(tree=tmp_path / "t.npz", data=data, out=tmp_path / "ft.npz",
+                                  epochs=4, batch_rays=1024, verbose=False,
+                                  show_progress=False))    # 12 steps an epoch
+    assert res.val_psnr_best > res.val_psnr_before and res.best_epoch > 0, res
+    assert res.test_psnr_after >= res.test_psnr_before, res

@@ -8,6 +8,7 @@ import pytest
 
 from plenoctree.cli import main
 from plenoctree.datasets.procedural import write_procedural_dataset
+from plenoctree.errors import ConfigError
 from plenoctree.pipeline import PipelineConfig, PipelineError, run_pipeline
 
 # A tiny network and budget: the chain's plumbing, not its quality, is under test here.
@@ -41,22 +42,28 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path):
     out = tmp_path / "run"
     logs: list[str] = []
     s = run_pipeline(_tiny_cfg(scene, out), log=logs.append)
-    for name in ("nerf/checkpoint.pt", "tree.npz", "tree_ft.npz", "tree_ft.plnz",
+    for name in ("nerf/checkpoint.pt", "tree.npz", "tree_refined.npz", "tree_ft.npz", "tree_ft.plnz",
                  "eval_ft/eval.json", "web/index.html", "orbit.mp4", "summary.json",
-                 "summary.md", "nerf_eval.json"):
+                 "summary.md", "nerf_eval.json", "stages.png"):
         assert (out / name).exists(), name
     stages = [r["stage"] for r in s["rows"]]
-    assert stages == ["NeRF-SH", "PlenOctree", "PlenOctree fine-tuned", "compressed"]
+    assert stages == ["NeRF-SH", "PlenOctree", "PlenOctree refined", "PlenOctree fine-tuned",
+                      "compressed"]
     assert all(r["psnr"] is not None and r["psnr"] > 5 for r in s["rows"])
     # The table says how many test views each row scored (NeRF-SH: nerf_eval_views).
-    assert [r["views"] for r in s["rows"]] == [1, 2, 2, 2]
-    assert "| test views |" in (out / "summary.md").read_text()
+    assert [r["views"] for r in s["rows"]] == [1, 2, 2, 2, 2]
+    md = (out / "summary.md").read_text()
+    assert "| test views |" in md
+    # the summary states fine-tuning's gain and, when it kept its input tree, why
+    ft = s["finetune"]
+    assert ft["test_gain_db"] is not None and "Fine-tuning:" in md
+    assert ft["stop_reason"] and (ft["best_epoch"] > 0 or "input tree was kept" in md)
     assert s["speedup_over_nerf"] and s["speedup_over_nerf"] > 0
     assert not s["skipped"]
 
     logs.clear()
     s2 = run_pipeline(_tiny_cfg(scene, out), log=logs.append)
-    assert set(s2["skipped"]) >= {"train", "extract", "finetune", "compress", "eval_ft"}
+    assert set(s2["skipped"]) >= {"train", "extract", "refine", "finetune", "compress", "eval_ft"}
 
     # Changing a fine-tuning setting reruns fine-tuning and what depends on it only.
     logs.clear()
@@ -65,11 +72,34 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path):
     assert "finetune" not in s3["skipped"] and "compress" not in s3["skipped"]
 
 
-def test_failing_stage_names_itself_keeps_artefacts_and_resumes(scene, tmp_path):
+def test_bad_stage_options_fail_before_training(scene, tmp_path):
+    out = tmp_path / "early"
+    with pytest.raises(ConfigError, match="--grid must be a power of two"):
+        run_pipeline(_tiny_cfg(scene, out, grid=3), log=lambda *_: None)
+    with pytest.raises(ConfigError, match="finetune: optimizer"):
+        run_pipeline(_tiny_cfg(scene, out, extra={"finetune": {"optimizer": "lbfgs"}}),
+                     log=lambda *_: None)
+    with pytest.raises(ConfigError, match="--extract: unknown option 'gird'"):
+        run_pipeline(_tiny_cfg(scene, out, extra={"extract": {"gird": 64}}),
+                     log=lambda *_: None)
+    assert not (out / "nerf").exists()
+
+
+def test_failing_stage_names_itself_keeps_artefacts_and_resumes(scene, tmp_path, monkeypatch):
+    import sys
+
+    import plenoctree.convert.extract  # noqa: F401  (the attribute is the function)
+
+    ex = sys.modules["plenoctree.convert.extract"]
+
+    def broken(cfg, field=None):
+        raise ConfigError("extraction broke")
+
     out = tmp_path / "run"
-    bad = _tiny_cfg(scene, out, grid=3)  # not a power of two: extraction fails
+    monkeypatch.setattr(ex, "extract", broken)
     with pytest.raises(PipelineError, match="stage 'extract' failed") as e:
-        run_pipeline(bad, log=lambda *_: None)
+        run_pipeline(_tiny_cfg(scene, out), log=lambda *_: None)
+    monkeypatch.undo()
     assert "rerun the same command to resume" in str(e.value)
     assert (out / "nerf" / "checkpoint.pt").exists() and not (out / "tree.npz").exists()
     logs: list[str] = []
@@ -90,7 +120,7 @@ def test_demo_cli_tiny(tmp_path, capsys):
             "--finetune-epochs", "1", "--video-frames", "0"]
     assert main(args) == 0
     s = json.loads((out / "summary.json").read_text())
-    assert len(s["rows"]) == 4 and (out / "tree_ft.plnz").exists()
+    assert len(s["rows"]) == 5 and (out / "tree_ft.plnz").exists()
     text = capsys.readouterr().out
     assert "PlenOctree fine-tuned" in text and "plenoctree view" in text
     assert main(args) == 0

@@ -91,6 +91,9 @@ def test_too_deep_tree_is_refused_everywhere(tmp_path, depth):
     with np.load(tmp_path / "ok.plnz") as z:
         carr = {k: z[k] for k in z.files}
     carr["child"] = deep.child
+    cheader = json.loads(str(carr["header"]))
+    cheader["n_nodes"] = deep.n_nodes
+    carr["header"] = np.array(json.dumps(cheader))
     carr["sigma"] = np.ones((deep.n_nodes, 2, 2, 2), np.float16)
     carr["quant_map"] = np.zeros((1, deep.n_nodes, 2, 2, 2), np.uint16)
     p = _write_npz(tmp_path / "deep.plnz", carr)
@@ -111,3 +114,18 @@ def test_svox_depth_limit_is_clamped_for_shallow_trees(tmp_path):
     arrays["depth_limit"] = np.int64(40)        # svox's refinement cap, not the tree's depth
     p = _write_npz(tmp_path / "s40.npz", arrays)
     assert import_svox(p).depth_limit == MAX_DEPTH
+
+
+def test_hostile_deep_svox_chain_fails_fast(tmp_path):
+    import time
+
+    n = 200_000                                     # one level per node: was a long level walk
+    child = np.zeros((n, 2, 2, 2), dtype=np.int32)
+    child[:-1, 0, 0, 0] = 1
+    p = _write_npz(tmp_path / "chain.npz", dict(
+        child=child, data=np.zeros((n, 2, 2, 2, 4), np.float16), data_format=np.array("RGBA"),
+        invradius3=np.full(3, 0.5, np.float32), offset=np.full(3, 0.5, np.float32)))
+    t0 = time.perf_counter()
+    with pytest.raises(TreeFormatError, match="MAX_DEPTH"):
+        import_svox(p)
+    assert time.perf_counter() - t0 < 30

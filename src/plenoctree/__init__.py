@@ -1,57 +1,62 @@
 """plenoctree: PlenOctrees for real-time rendering of neural radiance fields.
 
-The flat public API; every name in ``__all__`` is tested to resolve. Importing the package
-compiles nothing (numba kernels compile on first use and are cached on disk).
+The flat public API; every name in ``__all__`` is tested to resolve. Importing the package is
+lazy (PEP 562): it imports neither torch nor numba and compiles nothing; each name loads its
+module on first use (numba kernels compile on first call and are cached on disk).
+
+The stages of the chain, photos to viewer::
+
+    train(TrainConfig(...))            -> run directory with a NeRF-SH checkpoint
+    load_nerf(run_dir)                 -> NeRFModel
+    extract(ExtractConfig(...))        -> ExtractResult (.tree: an Octree)
+    finetune(FinetuneConfig(...))      -> FinetuneResult
+    compress(tree) / decompress(ctree) -> CompressedTree / Octree
+    load_any_tree(path)                -> Octree (native, svox, .plnz)
+    evaluate_tree(tree, dataset)       -> EvalResult (PSNR, SSIM, LPIPS, FPS)
+    export_web(tree_path, out_dir)     -> a static WebGL viewer bundle
+    run_pipeline(PipelineConfig(...))  -> every stage, with summary.md
+
+Library functions change no process-wide setting (threads, malloc, OpenMP) unless a config
+asks (``threads``); :func:`plenoctree.runtime.configure` is what the CLI calls.
 """
 
 from __future__ import annotations
 
+from ._lazy import lazy_package
+from .errors import BackendError, ConfigError, DatasetError, PlenOctreeError, TreeFormatError
+
 __version__ = "0.1.0"
 
-from .errors import BackendError, ConfigError, DatasetError, PlenOctreeError, TreeFormatError
-from .octree import Octree, export_svox, import_svox, load_tree, save_tree
-from .sh import eval_sg_bases, eval_sh_bases, num_sh_bases, sh_degree_from_bases
-from .datasets import Cameras, Dataset, generate_rays, load_blender, load_dataset
-from .datasets.procedural import procedural_grid, procedural_tree, write_procedural_dataset
-from .metrics import lpips, lpips_available, psnr, ssim
-from .render import RenderOptions, RenderOutput, available_backends, render_image, render_rays
-
-__all__ = [
-    "__version__",
-    "PlenOctreeError",
-    "DatasetError",
-    "TreeFormatError",
-    "BackendError",
-    "ConfigError",
+_LAZY = {
     # sh
-    "eval_sh_bases",
-    "eval_sg_bases",
-    "num_sh_bases",
-    "sh_degree_from_bases",
+    "eval_sh_bases": ".sh", "eval_sg_bases": ".sh", "num_sh_bases": ".sh",
+    "sh_degree_from_bases": ".sh",
     # datasets
-    "Cameras",
-    "Dataset",
-    "generate_rays",
-    "load_blender",
-    "load_dataset",
-    "write_procedural_dataset",
-    "procedural_grid",
-    "procedural_tree",
+    "Cameras": ".datasets", "Dataset": ".datasets", "generate_rays": ".datasets",
+    "load_blender": ".datasets", "load_dataset": ".datasets",
+    "write_procedural_dataset": ".datasets.procedural", "procedural_grid": ".datasets.procedural",
+    "procedural_tree": ".datasets.procedural",
     # metrics
-    "psnr",
-    "ssim",
-    "lpips",
-    "lpips_available",
+    "psnr": ".metrics", "ssim": ".metrics", "lpips": ".metrics", "lpips_available": ".metrics",
     # octree
-    "Octree",
-    "save_tree",
-    "load_tree",
-    "export_svox",
-    "import_svox",
+    "Octree": ".octree", "save_tree": ".octree", "load_tree": ".octree",
+    "export_svox": ".octree", "import_svox": ".octree",
     # render
-    "RenderOptions",
-    "RenderOutput",
-    "render_rays",
-    "render_image",
-    "available_backends",
-]
+    "RenderOptions": ".render", "RenderOutput": ".render", "render_rays": ".render",
+    "render_image": ".render", "available_backends": ".render",
+    # stages
+    "TrainConfig": ".nerf.config", "train": ".nerf.trainer", "load_nerf": ".nerf.checkpoint",
+    "ExtractConfig": ".convert.extract", "extract": ".convert.extract",
+    "FinetuneConfig": ".optim.finetune", "finetune": ".optim.finetune",
+    "CompressOptions": ".compress.codec", "compress": ".compress.codec",
+    "decompress": ".compress.codec", "save_compressed": ".compress.fileio",
+    "load_compressed": ".compress.fileio", "load_any_tree": ".compress.fileio",
+    "evaluate_tree": ".evaluation", "EvalConfig": ".evaluation",
+    "eval_tree_file": ".evaluation", "export_web": ".viewer.export",
+    "PipelineConfig": ".pipeline", "run_pipeline": ".pipeline",
+}
+
+lazy_package(__name__, _LAZY)
+
+__all__ = ["__version__", "PlenOctreeError", "DatasetError", "TreeFormatError", "BackendError",
+           "ConfigError", *_LAZY]

@@ -13,8 +13,9 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from ._util import atomic_save_json
+from ._util import atomic_save_json, check_output_dir, run_lock
 from .errors import ConfigError
+from .optim.finetune import DEFAULT_EPOCHS
 
 __all__ = ["DemoConfig", "run_demo"]
 
@@ -40,7 +41,7 @@ class DemoConfig:
     """NeRF-SH training steps (0 = the time budget decides)"""
     grid: int = 128
     """octree finest resolution at extraction (power of two)"""
-    finetune_epochs: int = 10
+    finetune_epochs: int = DEFAULT_EPOCHS
     """maximum fine-tuning epochs"""
     video_frames: int = 40
     """frames of the orbit video (0 = none)"""
@@ -51,18 +52,28 @@ class DemoConfig:
 
 
 def run_demo(cfg: DemoConfig, log=print) -> dict:
-    """Write the procedural dataset (once) and run the pipeline on it; returns its summary."""
-    from .datasets.procedural import write_procedural_dataset
-    from .pipeline import PipelineConfig, run_pipeline
+    """Write the procedural dataset (once) and run the pipeline on it; returns its summary.
 
+    Holds the lock of ``cfg.out`` (:func:`plenoctree._util.run_lock`) throughout.
+    """
     if cfg.image_size < 8:
         raise ConfigError(f"--image-size must be >= 8, got {cfg.image_size}")
     if cfg.grid < 2 or cfg.grid & (cfg.grid - 1):
         raise ConfigError(f"--grid must be a power of two >= 2, got {cfg.grid}")
     out = Path(cfg.out)
+    check_output_dir(out)
     out.mkdir(parents=True, exist_ok=True)
-    if cfg.data:
-        return _run_on_dataset(cfg, out, log)
+    with run_lock(out, "demo"):     # run_pipeline nests the same lock
+        if cfg.data:
+            return _run_on_dataset(cfg, out, log)
+        return _run_procedural(cfg, out, log)
+
+
+def _run_procedural(cfg: DemoConfig, out: Path, log) -> dict:
+    """The demo chain on the procedural scene (dataset written once)."""
+    from .datasets.procedural import write_procedural_dataset
+    from .pipeline import PipelineConfig, run_pipeline
+
     data_dir = out / "data"
     settings = {"size": cfg.image_size, "n_train": cfg.n_train, "n_test": cfg.n_test,
                 "seed": cfg.seed}

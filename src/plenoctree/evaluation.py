@@ -17,7 +17,8 @@ from .datasets import Dataset
 from .metrics import lpips as lpips_score
 from .metrics import psnr, ssim
 from .octree import Octree
-from .render import RenderOptions, render_image
+
+# The renderer (torch) is imported inside the functions: EvalConfig is read by `--help`.
 
 __all__ = ["EvalConfig", "EvalResult", "depth_to_image", "eval_markdown", "eval_tree_file",
            "evaluate_tree", "metrics_markdown"]
@@ -109,6 +110,27 @@ def depth_to_image(depth: np.ndarray, alpha: np.ndarray, near: float, far: float
     return img
 
 
+def save_view_images(out: Path, name: str, rgb: np.ndarray, gt: np.ndarray, depth: np.ndarray,
+                     alpha: np.ndarray, near: float, far: float,
+                     background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> None:
+    """Write one view's pictures under ``out`` (atomically):
+
+    ``<name>.png`` render; ``<name>_depth.png`` depth as a Turbo colour map over
+    ``[near, far]`` (near red, far blue, nothing hit = background); ``<name>_depth.npy`` raw
+    float32 depth ``[H, W]`` (world units along the unit ray, NDC units for NDC cameras; 0 where
+    nothing was hit) and ``<name>_alpha.npy`` (float32 opacity); ``<name>_compare.png`` ground
+    truth | render | error map (mean |Δ| per pixel, Turbo, ``plots.ERROR_VMAX`` = dark red).
+    """
+    from .plots import comparison_image, depth_colormap
+
+    save_png(out / f"{name}.png", rgb)
+    save_png(out / f"{name}_depth.png", depth_colormap(depth, alpha, near, far, background))
+    for suffix, arr in (("depth", depth), ("alpha", alpha)):
+        with atomic_write(out / f"{name}_{suffix}.npy", "wb") as f:
+            np.save(f, np.asarray(arr, dtype=np.float32), allow_pickle=False)
+    save_png(out / f"{name}_compare.png", comparison_image(gt, rgb))
+
+
 def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None,
                   options: RenderOptions | None = None, backend: str = "auto",
                   warmup: bool = True, show_progress: bool | None = None,
@@ -119,8 +141,9 @@ def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None
         tree: the octree to render.
         data: dataset split; its cameras give the rays, its images the ground truth
             ([N, H, W, 3] in [0, 1]). Its background is used unless ``options`` sets one.
-        out_dir: if given, writes ``<name>.png`` (colour), ``<name>_depth.png`` and
-            ``metrics.json`` there (atomically).
+        out_dir: if given, writes each view's pictures there (:func:`save_view_images`:
+            render, depth colour map + raw ``.npy``, ground truth | render | error) and
+            ``metrics.json`` / ``metrics.md`` (atomically).
         options: renderer options; default: stop at T < 0.01, the dataset's background.
         backend: ``"auto"``, ``"numba"`` or ``"torch"``.
         warmup: render the first view once untimed first (JIT compilation).
@@ -131,6 +154,8 @@ def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None
     Returns:
         An :class:`EvalResult` with PSNR/SSIM/ms (and LPIPS) per view.
     """
+    from .render import RenderOptions, render_image
+
     if options is None:
         options = RenderOptions(background=tuple(float(b) for b in data.background))
     cams = data.cameras
@@ -154,10 +179,9 @@ def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None
         if lpips_net is not None:
             res.lpips.append(float(lpips_score(rgb, gt, lpips_net)))
         if out is not None:
-            save_png(out / f"{name}.png", rgb)
-            depth = depth_to_image(o.depth.detach().cpu().numpy(), o.alpha.detach().cpu().numpy(),
-                                   data.near, data.far)
-            save_png(out / f"{name}_depth.png", depth)
+            save_view_images(out, name, rgb, gt, o.depth.detach().cpu().numpy(),
+                             o.alpha.detach().cpu().numpy(), data.near, data.far,
+                             options.background)
     if out is not None:
         atomic_save_json(out / "metrics.json", res.to_json())
         with atomic_write(out / "metrics.md", "w") as f:
@@ -203,7 +227,8 @@ class EvalConfig:
     json_path: str | Path | None = None
     """Also write the JSON report to this file."""
     save_images: bool = False
-    """Also write the renders and depth maps as PNGs under ``<out>/renders/``."""
+    """Also write each view's render, depth (colour PNG + raw .npy) and ground truth | render |
+    error image under ``<out>/renders/``."""
     backend: str = "auto"
     """Renderer backend: auto, numba or torch."""
     stop_thresh: float = 0.01
@@ -269,6 +294,8 @@ def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
     problem = _lpips_problem(cfg.lpips_net)
     if problem is not None:
         log(f"LPIPS skipped: {problem}")
+    from .render import RenderOptions
+
     options = RenderOptions(stop_thresh=float(cfg.stop_thresh), background=bg)
     res = evaluate_tree(tree, data, out / "renders" if cfg.save_images else None, options,
                         backend, show_progress=cfg.show_progress,

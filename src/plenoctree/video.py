@@ -31,7 +31,8 @@ from .errors import BackendError, ConfigError, TreeFormatError
 
 __all__ = ["PATHS", "MODES", "UP_AXES", "VideoConfig", "VideoResult", "axis_vector",
            "detect_up_axis", "fit_radius", "orbit_poses", "orbit_cameras", "resize_cameras", "depth_bounds",
-           "compose_frame", "pad_even", "write_video", "video_cameras", "make_video"]
+           "compose_frame", "pad_even", "write_video", "video_cameras", "make_video",
+           "render_path_images"]
 
 PATHS = ("orbit", "dataset", "spiral")
 MODES = ("color", "depth", "both")
@@ -118,9 +119,7 @@ def resize_cameras(cams: Cameras, width: int, height: int) -> Cameras:
     """``cams`` rendered at ``width`` x ``height``: intrinsics scaled per axis (the field of
     view is kept)."""
     _check_size(width, height)
-    sx, sy = width / cams.width, height / cams.height
-    return dataclasses.replace(cams, fx=cams.fx * sx, fy=cams.fy * sy, cx=cams.cx * sx,
-                               cy=cams.cy * sy, width=int(width), height=int(height))
+    return cams.resized(int(width), int(height))
 
 
 def _check_frames(n: object) -> None:
@@ -169,18 +168,18 @@ def depth_bounds(tree, cams: Cameras, grid: int = 9) -> tuple[float, float]:
 
 def compose_frame(out, mode: str, near: float, far: float) -> np.ndarray:
     """Frame float32 in [0, 1] from a :class:`~plenoctree.render.RenderOutput` of one image:
-    ``color`` ``[H, W, 3]``, ``depth`` ``[H, W, 3]`` grey (near white, far / empty black, see
-    :func:`~plenoctree.evaluation.depth_to_image`), ``both`` ``[H, 2W, 3]`` side by side."""
-    from .evaluation import depth_to_image
+    ``color`` ``[H, W, 3]``, ``depth`` ``[H, W, 3]`` Turbo colour map (near red, far blue,
+    empty black, see :func:`~plenoctree.plots.depth_colormap`), ``both`` ``[H, 2W, 3]`` side by
+    side."""
+    from .plots import depth_colormap
 
     if mode not in MODES:
         raise ConfigError(f"--mode: expected one of {', '.join(MODES)}, got {mode!r}")
     rgb = out.rgb.detach().cpu().numpy().astype(np.float32)
     if mode == "color":
         return rgb
-    depth = depth_to_image(out.depth.detach().cpu().numpy(), out.alpha.detach().cpu().numpy(),
-                           near, far).astype(np.float32)
-    depth = np.repeat(depth[..., None], 3, axis=-1)
+    depth = depth_colormap(out.depth.detach().cpu().numpy(), out.alpha.detach().cpu().numpy(),
+                           near, far, background=(0.0, 0.0, 0.0))
     return depth if mode == "depth" else np.concatenate([rgb, depth], axis=1)
 
 
@@ -299,8 +298,8 @@ class VideoConfig:
     frames: int | None = None
     """Number of frames; default 120 (orbit, spiral) or every camera (dataset path; fewer are
     picked evenly)."""
-    fps: float = 30.0
-    """Frames per second of the video."""
+    fps: float | None = None
+    """Frames per second of the video; default the camera path file's ``fps``, else 30."""
     width: int | None = None
     """Frame width in pixels (with height); default the dataset's, else 800."""
     height: int | None = None
@@ -314,6 +313,12 @@ class VideoConfig:
     """Orbit up axis: auto (from the dataset's cameras, else +z), or +x, -x, +y, -y, +z, -z."""
     fov: float | None = None
     """Orbit horizontal field of view in degrees; default the dataset's, else 39.6 (Blender)."""
+    camera_path: str | Path | None = None
+    """nerfstudio camera-path JSON to follow instead of ``path`` (see
+    :mod:`plenoctree.camera_path`); ``width``/``height`` override its render size."""
+    dataparser_transforms: str | Path | None = None
+    """nerfstudio ``dataparser_transforms.json``: maps a nerfstudio-viewer path back to the
+    dataset's world."""
     mode: str = "color"
     """color, depth, or both (side by side)."""
     depth_range: tuple[float, float] | None = None
@@ -335,7 +340,7 @@ class VideoResult:
     """What :func:`make_video` wrote and how fast it rendered."""
 
     out: Path
-    path: str                 # orbit | dataset | spiral
+    path: str                 # orbit | dataset | spiral | camera_path
     mode: str
     n_frames: int
     width: int                # video frame size (side by side and even padding included)
@@ -379,6 +384,18 @@ def video_cameras(cfg: VideoConfig, tree) -> tuple[Cameras, dict]:
         _check_size(cfg.width, cfg.height)
     if cfg.up not in UP_AXES:
         raise ConfigError(f"--up: expected one of {', '.join(UP_AXES)}, got {cfg.up!r}")
+    if cfg.camera_path is not None:
+        from .camera_path import load_camera_path
+
+        if cfg.path is not None:
+            raise ConfigError("give either --path or --camera-path, not both")
+        cp = load_camera_path(cfg.camera_path, cfg.width, cfg.height, cfg.dataparser_transforms)
+        if cfg.frames is not None and cfg.frames != len(cp):
+            raise ConfigError(f"--frames {cfg.frames}: the camera path {cfg.camera_path} has "
+                              f"{len(cp)} frames (leave --frames out)")
+        return cp.cameras, {"path": "camera_path", "up": None, "radius": None, "fps": cp.fps}
+    elif cfg.dataparser_transforms is not None:
+        raise ConfigError("--dataparser-transforms goes with --camera-path")
     fmt = None
     if cfg.data is not None:
         fmt = cfg.format or detect_format(cfg.data)
@@ -482,12 +499,48 @@ def make_video(cfg: VideoConfig, log=print) -> VideoResult:
             ms.append((time.perf_counter() - t0) * 1e3)
             yield img
 
-    n, w, h = write_video(out, frames(), cfg.fps, cfg.quality)
+    fps = float(cfg.fps or info.get("fps") or 30.0)
+    if not fps > 0:
+        raise ConfigError(f"--fps must be positive, got {cfg.fps}")
+    n, w, h = write_video(out, frames(), fps, cfg.quality)
     timed = ms[1:] if len(ms) > 1 else ms
     res = VideoResult(out=out, path=kind, mode=cfg.mode, n_frames=n, width=w, height=h,
-                      render_width=cams.width, render_height=cams.height, fps=float(cfg.fps),
+                      render_width=cams.width, render_height=cams.height, fps=fps,
                       render_seconds=sum(ms) / 1e3, render_fps=1000.0 / float(np.median(timed)),
                       depth_range=(near, far), up=info["up"], radius=info["radius"])
     if (w, h) != ((2 if cfg.mode == "both" else 1) * cams.width, cams.height):
         log(f"note: frames padded to even size {w}x{h} for H.264")
     return res
+
+
+def render_path_images(tree, cams: Cameras, out_dir: str | Path, options=None,
+                       backend: str = "auto", depth_range: tuple[float, float] | None = None,
+                       show_progress: bool | None = None) -> list[Path]:
+    """Render every camera of ``cams`` into ``out_dir`` (no ground truth: no scores).
+
+    Per frame ``i``: ``frame_<i:05d>.png`` colour, ``frame_<i>_depth.png`` Turbo depth over
+    ``depth_range`` (default :func:`depth_bounds`), ``frame_<i>_depth.npy`` raw float32 depth
+    (0 where nothing was hit). All written atomically. Returns the colour PNG paths.
+    """
+    from ._util import save_png
+    from .plots import depth_colormap
+    from .render import RenderOptions, render_image
+
+    options = options or RenderOptions()
+    out = Path(out_dir)
+    near, far = depth_range if depth_range is not None else depth_bounds(tree, cams)
+    paths = []
+    for i in progress(range(len(cams)), desc="render", unit="view",
+                      disable=None if show_progress is None else not show_progress):
+        o = render_image(tree, cams, i, options, backend)
+        depth, alpha = o.depth.detach().cpu().numpy(), o.alpha.detach().cpu().numpy()
+        stem = out / f"frame_{i:05d}"
+        save_png(stem.with_suffix(".png"), o.rgb.detach().cpu().numpy())
+        save_png(stem.with_name(stem.name + "_depth.png"),
+                 depth_colormap(depth, alpha, near, far, options.background))
+        from ._util import atomic_write
+
+        with atomic_write(stem.with_name(stem.name + "_depth.npy"), "wb") as f:
+            np.save(f, depth.astype(np.float32), allow_pickle=False)
+        paths.append(stem.with_suffix(".png"))
+    return paths

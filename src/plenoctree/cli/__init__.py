@@ -44,6 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="plenoctree",
         description="PlenOctrees: train NeRF-SH, convert to an octree, fine-tune, render, view.",
     )
+    from .. import __version__
+
+    parser.add_argument("--version", action="version", version=f"plenoctree {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in _group_modules():
         importlib.import_module(f"{__name__}.{name}").register(sub)
@@ -57,11 +60,11 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    # Every command may run torch and numba together: restart once with the OpenMP/malloc
-    # settings that must precede both runtimes (a no-op when called in-process, e.g. tests).
-    from .train import reexec_with_runtime_env
+    # Every command may run torch and numba together: the OpenMP/malloc settings must precede
+    # both runtimes, and nothing has imported them yet (the package root is lazy).
+    from .. import runtime
 
-    reexec_with_runtime_env(args.command)
+    runtime.configure()
     try:
         return int(args.func(args) or 0)
     except PlenOctreeError as e:

@@ -130,8 +130,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("lod", help="a smaller tree for the web (SH degree, depth, pruning, size)",
                        description="Reduce a tree: keep SH bands up to --sh-degree, merge cells "
                        "below --max-depth, empty leaves with opacity below --prune-alpha. With "
-                       "--target-mb, reduce further step by step (prune 1%%, SH degree 2, prune "
-                       "5%%, shallower depths, SH 1, SH 0) until the file fits.")
+                       "--target-mb, reduce further step by step (prune 1 %, SH degree 2, prune "
+                       "5 %, shallower depths, SH 1, SH 0) until the file fits.")
     p.add_argument("tree", help="tree file (.npz or .plnz)")
     p.add_argument("--out", required=True, help="output: .plnz (compressed) or .npz (float16)")
     p.add_argument("--target-mb", type=float, default=None, help="largest output size in MB")

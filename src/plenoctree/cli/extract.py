@@ -7,65 +7,28 @@ Every option is a field of :class:`plenoctree.convert.ExtractConfig`; its docstr
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 from ..errors import ConfigError
 
-_POSITIONAL = ("run_dir",)
-_SKIP = ("show_progress",)
-_SHORT = {"out": "-o"}
+def _add_config_args(p: argparse.ArgumentParser) -> list[str]:
+    from ..convert.extract import ExtractConfig
+    from ._options import add_config, add_config_file
 
-
-def _flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
-
-
-def _add_config_args(p: argparse.ArgumentParser) -> None:
-    from ..convert import ExtractConfig
-    from ..nerf.config import field_docs
-
-    docs = field_docs(ExtractConfig)
-    for f in dataclasses.fields(ExtractConfig):
-        if f.name in _SKIP:
-            continue
-        default = f.default
-        help_ = docs.get(f.name, "").replace("%", "%%")
-        if f.name in _POSITIONAL:
-            p.add_argument(f.name, metavar=f.name.upper(), help=help_)
-            continue
-        flags = [_flag(f.name)] + ([_SHORT[f.name]] if f.name in _SHORT else [])
-        if isinstance(default, bool):
-            p.add_argument(*flags, dest=f.name, action=argparse.BooleanOptionalAction,
-                           default=default, help=help_)
-        elif f.name == "center":
-            p.add_argument(*flags, dest=f.name, type=float, nargs=3, metavar=("X", "Y", "Z"),
-                           default=None, help=help_)
-        elif f.name == "radius":
-            p.add_argument(*flags, dest=f.name, type=float, nargs="+", metavar="R",
-                           default=None, help=help_)
-        else:
-            kind = type(default)
-            p.add_argument(*flags, dest=f.name, type=kind, default=default,
-                           help=f"{help_} (default: {default!r})" if default != "" else help_)
-    p.add_argument("--progress", dest="show_progress", action=argparse.BooleanOptionalAction,
-                   default=None, help="progress bars (default: when stderr is a terminal)")
+    add_config_file(p)
+    return add_config(p, ExtractConfig, positional=("run_dir",), short={"out": "-o"},
+                      rename={"show_progress": "progress"})
 
 
 def config_from_args(args: argparse.Namespace):
-    """Build an :class:`~plenoctree.convert.ExtractConfig` from parsed arguments."""
-    from ..convert import ExtractConfig
+    """Build an :class:`~plenoctree.convert.ExtractConfig` from parsed arguments (defaults,
+    then ``--config FILE``, then the flags given)."""
+    from ..convert.extract import ExtractConfig
+    from ._options import layered
 
-    kw = {}
-    for f in dataclasses.fields(ExtractConfig):
-        v = getattr(args, f.name, None)
-        if f.name in ("center", "radius"):
-            v = tuple(v) if v else ()
-        elif v is None and f.name != "show_progress":
-            continue
-        kw[f.name] = v
-    if len(kw.get("radius", ())) not in (0, 1, 3):
-        raise ConfigError(f"--radius needs 1 or 3 numbers, got {list(kw['radius'])}")
-    return ExtractConfig(**kw)
+    cfg = layered(args, ExtractConfig(), "extract")
+    if len(cfg.radius) not in (0, 1, 3):
+        raise ConfigError(f"--radius needs 1 or 3 numbers, got {list(cfg.radius)}")
+    return cfg
 
 
 def _mb(n: float) -> str:
@@ -116,5 +79,4 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Convert a trained NeRF-SH (RUN_DIR/checkpoint.pt) into a "
                        "PlenOctree (paper section 4.2): auto box, sigma grid, visibility filter "
                        "over the training views, per-voxel sampling, octree, test PSNR.")
-    _add_config_args(p)
-    p.set_defaults(func=_run)
+    p.set_defaults(func=_run, _dests=_add_config_args(p))

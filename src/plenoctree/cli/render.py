@@ -9,22 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-
-
-def parse_background(text: str) -> tuple[float, float, float]:
-    """Parse ``white``, ``black`` or ``R,G,B`` (floats in [0, 1]) into an RGB tuple."""
-    named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
-    if text.lower() in named:
-        return named[text.lower()]
-    try:
-        vals = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        vals = ()
-    if len(vals) == 1:
-        vals = vals * 3
-    if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
-        raise ConfigError(f"--background: expected white, black or R,G,B in [0,1], got {text!r}")
-    return vals  # type: ignore[return-value]
+from ._options import parse_background  # noqa: F401  (re-exported: eval, video, compress)
 
 
 def resize_dataset(data, width: int, height: int):
@@ -34,10 +19,7 @@ def resize_dataset(data, width: int, height: int):
     """
     from PIL import Image
 
-    cams = data.cameras
-    sx, sy = width / cams.width, height / cams.height
-    new_cams = dataclasses.replace(cams, fx=cams.fx * sx, fy=cams.fy * sy, cx=cams.cx * sx,
-                                   cy=cams.cy * sy, width=width, height=height)
+    new_cams = data.cameras.resized(width, height)
     def resample(plane: np.ndarray) -> np.ndarray:
         img = Image.fromarray(np.ascontiguousarray(plane, dtype=np.float32), mode="F")
         return np.asarray(img.resize((width, height), Image.Resampling.BOX))
@@ -74,6 +56,12 @@ def _run(args: argparse.Namespace) -> int:
     from ..evaluation import evaluate_tree
     from ..compress import load_any_tree
 
+    if args.camera_path:
+        return _run_camera_path(args)
+    if not args.data:
+        from ._provenance import data_from_provenance
+
+        args.data = data_from_provenance(args.tree, "render")
     tree = load_any_tree(args.tree)
     bg = parse_background(args.background) if args.background else (1.0, 1.0, 1.0)
     data = load_dataset(args.data, split=args.split, format=args.format,
@@ -94,13 +82,44 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_camera_path(args: argparse.Namespace) -> int:
+    """``render TREE --camera-path JSON``: frames along a nerfstudio camera path, no scores."""
+    from ..camera_path import load_camera_path
+    from ..compress import load_any_tree
+    from ..video import render_path_images
+
+    if (args.width is None) != (args.height is None):
+        raise ConfigError("--width and --height must be given together")
+    if args.data is not None:
+        raise ConfigError("--camera-path renders its own cameras: leave out --data")
+    cp = load_camera_path(args.camera_path, args.width, args.height, args.dataparser_transforms)
+    tree = load_any_tree(args.tree)
+    options = render_options_from_args(args, (1.0, 1.0, 1.0))
+    out = Path(args.out) if args.out else Path(args.tree).parent / (
+        Path(args.tree).stem + f"_render_{Path(args.camera_path).stem}")
+    cams = cp.cameras
+    if args.limit is not None:
+        cams = cams.select(np.arange(min(args.limit, len(cams))))
+    paths = render_path_images(tree, cams, out, options, args.backend)
+    print(f"{len(paths)} frames at {cams.width}x{cams.height} along {args.camera_path} -> {out}")
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``render`` command."""
     from ..datasets import FORMATS
+    from ._output import add_views
 
     p = sub.add_parser("render", help="render a tree over a dataset split (PNGs + metrics.json)")
     p.add_argument("tree", help="tree file (.npz native or svox layout, or compressed .plnz)")
-    p.add_argument("--data", required=True, help="dataset folder")
+    p.add_argument("--data", default=None,
+                   help="dataset folder (default: the one recorded next to the tree)")
+    p.add_argument("--camera-path", default=None, metavar="JSON",
+                   help="render along a nerfstudio camera-path JSON instead (frames, depth; "
+                        "no scores); --width/--height override its size")
+    p.add_argument("--dataparser-transforms", default=None, metavar="JSON",
+                   help="with --camera-path: nerfstudio's dataparser_transforms.json, mapping "
+                        "nerfstudio-viewer poses back to the dataset's world")
     p.add_argument("--split", default="test", help="dataset split (default: test)")
     p.add_argument("--format", default=None, choices=FORMATS,
                    help="dataset format (default: detected)")
@@ -108,6 +127,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--downscale", type=int, default=1, help="integer area downscale of the images")
     p.add_argument("--width", type=int, default=None, help="render width (with --height)")
     p.add_argument("--height", type=int, default=None, help="render height (with --width)")
-    p.add_argument("--limit", type=int, default=None, help="only the first N views")
+    add_views(p, dest="limit", legacy="--limit")
     add_render_options(p)
     p.set_defaults(func=_run)

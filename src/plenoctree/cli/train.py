@@ -9,75 +9,42 @@ reports PSNR / SSIM and seconds per frame.
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import os
-import sys
 from pathlib import Path
 
 from ..errors import ConfigError
 
-# Flags with their own, shorter names (flag -> config field).
-_ALIASES = {"steps": "max_steps", "batch_size": "batch_rays"}
-_SKIP = {"data", "out", "preset", "model", "background"}
-
-
-def _field_types():
-    from ..nerf.config import ModelConfig, TrainConfig, field_docs
-
-    out = []
-    for cls in (TrainConfig, ModelConfig):
-        docs = field_docs(cls)
-        for f in dataclasses.fields(cls):
-            if f.name in _SKIP:
-                continue
-            out.append((cls.__name__, f.name, f.type, docs.get(f.name, "")))
-    return out
-
-
-def _bool(text: str) -> bool:
-    t = text.lower()
-    if t in ("1", "true", "yes", "on"):
-        return True
-    if t in ("0", "false", "no", "off"):
-        return False
-    raise argparse.ArgumentTypeError(f"expected true/false, got {text!r}")
-
-
-_TYPES = {"int": int, "float": float, "str": str, "bool": _bool}
-
-
-def _add_config_flags(p: argparse.ArgumentParser) -> None:
-    inverse = {v: k for k, v in _ALIASES.items()}
-    g = p.add_argument_group("configuration overrides (default: the preset's value)")
-    for owner, name, typ, doc in _field_types():
-        flag = "--" + inverse.get(name, name).replace("_", "-")
-        extra = " [alias of " + name + "]" if name in inverse else ""
-        if name == "batch_rays":
-            doc += " With the occupancy sampler it also caps the adaptive rays per step."
-        g.add_argument(flag, dest=f"cfg_{name}", type=_TYPES[str(typ)], default=None,
-                       metavar=str(typ).upper(), help=doc.replace("%", "%%") + extra)
+_TRAIN_SKIP = ("out", "preset", "model")
 
 
 def register(sub) -> None:
     """Add ``train`` and ``render-nerf`` to the CLI."""
+    from ..datasets.dataset import FORMATS
+    from ..nerf.config import ModelConfig, TrainConfig, preset
+    from ._options import add_config, add_config_file
+
     p = sub.add_parser("train", help="train a NeRF-SH (paper §4.1) on posed images",
                        description="Train a NeRF-SH. Presets: 'cpu' (hash grid + occupancy "
                        "grid, most quality per minute on a few cores) and 'paper' (the "
                        "paper's 8x256 NeRF-SH, 64+128 samples; for GPUs). A killed run "
-                       "continues from its last checkpoint with --resume.")
-    p.add_argument("--data", help="dataset folder (Blender / NeRF-synthetic layout)")
+                       "continues from its last checkpoint with --resume. Every option below "
+                       "is a TrainConfig/ModelConfig field; defaults shown are the cpu "
+                       "preset's.")
     p.add_argument("--out", required=True, help="run directory (checkpoint, logs, curve.png)")
-    p.add_argument("--preset", choices=["cpu", "paper"], default="cpu",
-                   help="starting configuration (default: cpu)")
+    p.add_argument("--preset", choices=["cpu", "paper"], default=None,
+                   help="starting configuration (default: cpu, or --config's)")
+    add_config_file(p)
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out from its checkpoint (its configuration is "
                         "kept; model options may not change)")
-    p.add_argument("--background", default=None, help="white, black or R,G,B (default white)")
     p.add_argument("--print-config", action="store_true",
                    help="print the resolved configuration as JSON and exit")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    _add_config_flags(p)
-    p.set_defaults(func=run_train)
+    shown = preset("cpu")
+    dests = add_config(p, TrainConfig, shown=shown, skip=_TRAIN_SKIP,
+                       title="training (TrainConfig)", choices={"format": FORMATS})
+    dests += add_config(p, ModelConfig, dest_prefix="model.", shown=shown.model,
+                        title="network (ModelConfig)")
+    p.set_defaults(func=run_train, _dests=dests)
 
     r = sub.add_parser("render-nerf", help="render a split with a trained NeRF-SH (the baseline)",
                        description="Render views with the network itself (no octree), in "
@@ -102,66 +69,37 @@ def register(sub) -> None:
     r.set_defaults(func=run_render_nerf)
 
 
-def reexec_with_runtime_env(command: str) -> None:
-    """Re-run this command line with :data:`plenoctree.nerf.trainer.RUNTIME_ENV` set.
-
-    The OpenMP and malloc settings only take effect when set before torch loads, so a
-    ``plenoctree`` command started without them replaces itself (``execve``)
-    with the same command line and those variables added (values already in the environment
-    win). Skipped when ``PLENOCTREE_NO_REEXEC`` is set, when everything is already set, off
-    POSIX, or when the command was not started from the command line (e.g. ``main([...])``).
-    """
-    from ..nerf.trainer import RUNTIME_ENV
-
-    if os.name != "posix" or os.environ.get("PLENOCTREE_NO_REEXEC"):
-        return
-    if all(k in os.environ for k in RUNTIME_ENV):
-        return
-    if sys.argv[1:2] != [command] or Path(sys.argv[0]).name not in ("plenoctree", "__main__.py"):
-        return
-    env = {**RUNTIME_ENV, **os.environ, "PLENOCTREE_NO_REEXEC": "1"}
-    sys.stdout.flush()
-    sys.stderr.flush()
-    try:
-        os.execve(sys.executable, [sys.executable, "-m", "plenoctree.cli", *sys.argv[1:]], env)
-    except OSError:  # pragma: no cover - keep going without the tuned runtime
-        return
-
-
 def build_config(args: argparse.Namespace):
-    """The :class:`TrainConfig` of parsed ``train`` arguments (preset + overrides)."""
+    """The :class:`TrainConfig` of parsed ``train`` arguments: preset, then ``--config FILE``,
+    then the flags given. Returns ``(config, given flags)``."""
     from ..nerf.config import preset, validate
-    from .render import parse_background
+    from ._options import apply, given, load_config_file
 
-    cfg = preset(args.preset)
-    cfg.data = args.data or ""
+    file = load_config_file(args._config_file)
+    cfg = preset(args.preset or file.get("preset", "cpu"))
+    apply(cfg, {k: v for k, v in file.items() if k != "preset"},
+          where=str(args._config_file or "config"))
     cfg.out = args.out
-    if args.background:
-        cfg.background = parse_background(args.background)
-    model_fields = {f.name for f in dataclasses.fields(cfg.model)}
-    given = {k[4:]: v for k, v in vars(args).items() if k.startswith("cfg_") and v is not None}
-    for name, val in given.items():
-        setattr(cfg.model if name in model_fields else cfg, name, val)
-    if "batch_rays" in given and "max_rays" not in given:
+    flags = given(args, args._dests)
+    apply(cfg, flags, where="train")
+    flat = {**flags, **flags.get("model", {})}
+    if "batch_rays" in flat and "max_rays" not in flat:
         cfg.max_rays = cfg.batch_rays
-    if "minutes" in given and "max_steps" not in given:
+    if "minutes" in flat and "max_steps" not in flat:
         cfg.max_steps = 10**9
-    return validate(cfg), given
+    return validate(cfg), flags
 
 
 def _resume_config(args: argparse.Namespace, given: dict):
     """The checkpoint's configuration with the flags given on this command line applied."""
     from ..nerf.checkpoint import CHECKPOINT_NAME, read_checkpoint
     from ..nerf.config import validate
+    from ._options import apply
 
     ck = read_checkpoint(Path(args.out) / CHECKPOINT_NAME)
     cfg = ck["config"]
     cfg.out = args.out
-    if args.data:
-        cfg.data = args.data
-    model_fields = {f.name for f in dataclasses.fields(cfg.model)}
-    for name, val in given.items():
-        setattr(cfg.model if name in model_fields else cfg, name, val)
+    apply(cfg, given, where="train")
     if "minutes" in given and "max_steps" not in given:
         cfg.max_steps = 10**9
     return validate(cfg)

@@ -26,7 +26,8 @@ def _run(args: argparse.Namespace) -> int:
         tree=args.tree, out=args.out, data=args.data, path=args.path, split=args.split,
         format=args.format, downscale=args.downscale, frames=args.frames, fps=args.fps,
         width=args.width, height=args.height, radius=args.radius, elevation=args.elevation,
-        up=args.up, fov=args.fov, mode=args.mode, depth_range=_depth_range(args.depth_range),
+        up=args.up, fov=args.fov, camera_path=args.camera_path,
+        dataparser_transforms=args.dataparser_transforms, mode=args.mode, depth_range=_depth_range(args.depth_range),
         backend=args.backend, stop_thresh=args.stop_thresh,
         background=parse_background(args.background) if args.background else None,
         quality=args.quality)
@@ -54,13 +55,20 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "cameras; needed by --path dataset and spiral")
     p.add_argument("--path", default=None, choices=PATHS,
                    help="camera path (default: spiral for LLFF data, else orbit)")
+    p.add_argument("--camera-path", default=None, metavar="JSON",
+                   help="follow a nerfstudio camera-path JSON (the viewer's Render export: "
+                        "poses, vertical fov, render size, fps) instead of --path")
+    p.add_argument("--dataparser-transforms", default=None, metavar="JSON",
+                   help="nerfstudio's dataparser_transforms.json, to map a camera path made in "
+                        "the nerfstudio viewer back to the dataset's world")
     p.add_argument("--split", default="test", help="dataset split whose cameras are used")
     p.add_argument("--format", default=None, choices=FORMATS,
                    help="dataset format (default: detected)")
     p.add_argument("--downscale", type=int, default=1, help="integer downscale of the cameras")
     p.add_argument("--frames", type=int, default=None,
                    help="number of frames (default 120; dataset path: every camera)")
-    p.add_argument("--fps", type=float, default=30.0, help="video frame rate (default 30)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="video frame rate (default: the camera path's, else 30)")
     p.add_argument("--width", type=int, default=None,
                    help="frame width (with --height; default: the dataset's, else 800)")
     p.add_argument("--height", type=int, default=None, help="frame height (with --width)")

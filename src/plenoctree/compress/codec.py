@@ -150,10 +150,15 @@ class CompressedTree:
             fail(f"'child' must have shape [n_nodes, 2, 2, 2], got {list(self.child.shape)}")
         if self.child.dtype.kind not in "iu":
             fail(f"'child' must be an integer array, got {self.child.dtype}")
-        from ..octree.check import check_child
+        from ..octree.check import check_box, check_child
         from ..octree.limits import MAX_DEPTH
 
         check_child(self.child, MAX_DEPTH if self.depth_limit == -1 else self.depth_limit, name)
+        for key in ("offset", "invradius"):
+            v = np.asarray(getattr(self, key))
+            if v.shape != (3,) or v.dtype.kind != "f" or not np.isfinite(v).all():
+                fail(f"{key!r} must be 3 finite floats, got {v.dtype} {v.tolist()}")
+        check_box(self.offset, self.invradius, name)
         cells = (n, 2, 2, 2)
         if self.sigma.shape != cells:
             fail(f"'sigma' must have shape {list(cells)}, got {list(self.sigma.shape)}")

@@ -156,6 +156,34 @@ def _format_of(r: NpzReader, header: dict, n_bases: int) -> str:
     return fmt
 
 
+# Header keys written by _arrays and the JSON types they must have when present.
+_HEADER_TYPES = {"format": str, "data_format": str, "basis_dim": int, "bits": int, "retain": int,
+                 "sigma_thresh": (int, float), "n_nodes": int, "n_kept": int, "bbox": list,
+                 "depth_limit": int, "package_version": str}
+
+
+def _check_header(r: NpzReader, header: dict) -> None:
+    """Types and ranges of the ``.plnz`` header fields (a bad header is one clear error)."""
+    for key, typ in _HEADER_TYPES.items():
+        if key in header:
+            v = header[key]
+            if isinstance(v, bool) or not isinstance(v, typ):
+                name = typ.__name__ if isinstance(typ, type) else "number"
+                r.fail(f"header {key!r} must be a JSON {name}, got {v!r}")
+    if header.get("format", "plenoctree-compressed") != "plenoctree-compressed":
+        r.fail(f"header format {header['format']!r} is not 'plenoctree-compressed'")
+    thr = header.get("sigma_thresh", 0.0)
+    if not (math.isfinite(thr) and thr >= 0):
+        r.fail(f"header 'sigma_thresh' must be a finite number >= 0, got {thr!r}")
+    for key in ("basis_dim", "bits", "n_nodes", "n_kept", "depth_limit"):
+        if header.get(key, 0) < 0:
+            r.fail(f"header {key!r} must be >= 0, got {header[key]!r}")
+    if "n_nodes" in header and "child" in r and len(r.shape("child")) == 4 \
+            and header["n_nodes"] != r.shape("child")[0]:
+        r.fail(f"header n_nodes={header['n_nodes']} does not match 'child' "
+               f"({r.shape('child')[0]} nodes)")
+
+
 def load_compressed(path: str | os.PathLike) -> CompressedTree:
     """Read a ``.plnz`` file (or an original PlenOctree compressed ``.npz``).
 
@@ -175,6 +203,7 @@ def load_compressed(path: str | os.PathLike) -> CompressedTree:
                 r.fail(f"unknown plnz_version {version} (this plenoctree reads version "
                        f"{PLNZ_VERSION}; a newer plenoctree may read it)")
             header = r.json("header")
+            _check_header(r, header)
         r.require("child")
         cs, cd = r.shape("child"), r.dtype("child")
         if cd.kind not in "iu" or len(cs) != 4 or cs[1:] != (2, 2, 2) or cs[0] < 1:
@@ -201,7 +230,10 @@ def load_compressed(path: str | os.PathLike) -> CompressedTree:
         extra = None
         if fmt.startswith("SG"):
             r.require("extra_data")
-            extra = r.read("extra_data").astype(np.float32)
+            b = qcs[0] + retained.shape[0]
+            extra = _read_float(r, "extra_data", (b, 4)).astype(np.float32)
+            if not np.isfinite(extra).all():
+                r.fail("'extra_data' holds NaN or infinite values")
         depth_limit = r.scalar_int("depth_limit") if "depth_limit" in r else -1
         if not header and depth_limit > MAX_DEPTH:     # svox: only caps future refinement
             depth_limit = MAX_DEPTH

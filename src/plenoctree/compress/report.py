@@ -29,27 +29,15 @@ __all__ = ["orbit_cameras", "compression_report", "format_report"]
 
 def orbit_cameras(tree: Octree, n: int = 4, size: int = 128, elevation_deg: float = 30.0,
                   distance: float = 2.6, fov_x: float = 0.6911112070083618) -> Cameras:
-    """``n`` cameras on a 30° turntable around the tree's box, z up (Blender convention).
+    """``n`` cameras on a 30° turntable around the tree's box, z up (Blender convention):
+    :func:`plenoctree.video.orbit_cameras` (the one orbit) at ``distance`` times the box's
+    largest radius (lego: radius 1.5, cameras at ~4), horizontal field of view ``fov_x``
+    radians (NeRF-synthetic's camera_angle_x), ``size`` x ``size`` pixels."""
+    from ..video import orbit_cameras as orbit
 
-    Args:
-        distance: camera distance from the box centre in units of the box's largest radius
-            (lego: radius 1.5, cameras at ~4).
-        fov_x: horizontal field of view, radians (NeRF-synthetic's camera_angle_x).
-    """
-    from ..datasets.procedural import look_at
-
-    center = tree.center
     r = float(np.max(tree.radius)) * float(distance)
-    el = math.radians(elevation_deg)
-    c2w = []
-    for i in range(n):
-        az = 2.0 * math.pi * (i + 0.5) / n
-        eye = center + r * np.array([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el),
-                                     math.sin(el)])
-        c2w.append(look_at(eye, center))
-    f = 0.5 * size / math.tan(0.5 * fov_x)
-    return Cameras(c2w=np.stack(c2w).astype(np.float32), fx=f, fy=f, cx=size / 2, cy=size / 2,
-                   width=size, height=size)
+    return orbit(np.asarray(tree.center, dtype=np.float64), r, n, size, size, fov_x=fov_x,
+                 elevation_deg=elevation_deg, up="+z")
 
 
 def _renders(tree: Octree, cams: Cameras, options: RenderOptions, backend: str) -> list[np.ndarray]:

@@ -15,14 +15,34 @@ and the pipeline (``extract``). Importing this package compiles nothing.
 
 from __future__ import annotations
 
-from .bbox import BoxResult, auto_bbox, fixed_bbox
-from .extract import ExtractConfig, ExtractResult, estimate_grid_memory, extract
-from .field import AnalyticField, AnalyticPlainField, NeRFField, RadianceField, as_field
-from .grid import GridSpec, evaluate_density_grid
-from .memory import StageMonitor
-from .projection import project_sh, random_directions
-from .sampling import sample_cells
-from .visibility import candidates, max_ray_weights, sigma_mask, visibility_weights, weight_mask
+from .._lazy import lazy_package
+
+_LAZY = {
+    'BoxResult': '.bbox',
+    'auto_bbox': '.bbox',
+    'fixed_bbox': '.bbox',
+    'ExtractConfig': '.extract',
+    'ExtractResult': '.extract',
+    'estimate_grid_memory': '.extract',
+    'extract': '.extract',
+    'AnalyticField': '.field',
+    'AnalyticPlainField': '.field',
+    'NeRFField': '.field',
+    'RadianceField': '.field',
+    'as_field': '.field',
+    'GridSpec': '.grid',
+    'evaluate_density_grid': '.grid',
+    'StageMonitor': '.memory',
+    'project_sh': '.projection',
+    'random_directions': '.projection',
+    'sample_cells': '.sampling',
+    'candidates': '.visibility',
+    'max_ray_weights': '.visibility',
+    'sigma_mask': '.visibility',
+    'visibility_weights': '.visibility',
+    'weight_mask': '.visibility',
+}
+lazy_package(__name__, _LAZY)
 
 __all__ = [
     "ExtractConfig",

@@ -284,6 +284,10 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
     from ..octree import Octree, save_tree
 
     _validate(cfg)
+    if cfg.out:                     # before any work: never overwrite an unrelated file
+        from .._util import check_output_file
+
+        check_output_file(Path(cfg.out) / "tree.npz" if Path(cfg.out).is_dir() else cfg.out)
     _set_threads(cfg.threads)
     mon = StageMonitor()
     limit = memory_limit(cfg.memory_gb)

@@ -75,6 +75,8 @@ def project_sh(field: Any, points: np.ndarray, degree: int, n_dirs: int,
     b = num_sh_bases(degree)
     dirs = random_directions(int(n_dirs), rng)
     sigma, raw = field_directions(field, points, dirs)
-    y = eval_sh_bases(degree, dirs).astype(np.float32)                # [N, B]
-    coeffs = np.einsum("pnc,nb->pcb", raw, y, optimize=True) * np.float32(4.0 * math.pi / n_dirs)
+    y = eval_sh_bases(degree, dirs).astype(np.float64)                # [N, B]
+    # Accumulate in float64: a float32 sum over thousands of directions drifts by ~1e-4
+    # relative (seen with numpy 2.4's einsum), more than the estimator's own bias allows.
+    coeffs = np.einsum("pnc,nb->pcb", raw, y, optimize=True) * (4.0 * math.pi / n_dirs)
     return sigma, coeffs.reshape(len(points), 3 * b).astype(np.float32)

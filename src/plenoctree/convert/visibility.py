@@ -132,15 +132,10 @@ def auto_ray_scale(cameras: Any, spec: GridSpec) -> float:
 
 def rescale_cameras(cameras: Any, scale: float) -> Any:
     """The same cameras with images ``scale`` times as wide and high (more, finer rays)."""
-    import dataclasses
-
     if scale == 1.0:
         return cameras
-    w = max(1, int(round(cameras.width * scale)))
-    h = max(1, int(round(cameras.height * scale)))
-    sx, sy = w / cameras.width, h / cameras.height
-    return dataclasses.replace(cameras, fx=cameras.fx * sx, fy=cameras.fy * sy,
-                               cx=cameras.cx * sx, cy=cameras.cy * sy, width=w, height=h)
+    return cameras.resized(max(1, int(round(cameras.width * scale))),
+                           max(1, int(round(cameras.height * scale))))
 
 
 def _backend(name: str) -> str:

@@ -1,5 +1,5 @@
-"""Posed-image datasets: cameras and ray generation (incl. NDC), the Blender, LLFF, NSVF and
-nerfstudio loaders, format detection, the procedural scene.
+"""Posed-image datasets: cameras and ray generation (incl. NDC), the Blender, LLFF, NSVF,
+nerfstudio and COLMAP loaders, format detection, the procedural scene.
 
 ``from plenoctree.datasets import Cameras, generate_rays, Dataset, load_dataset, ...``.
 The procedural scene lives in :mod:`plenoctree.datasets.procedural`, its forward-facing (LLFF)
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from .blender import load_blender
 from .cameras import Cameras, generate_rays
+from .colmap import load_colmap
 from .dataset import FORMATS, Dataset, detect_format, load_dataset
 from .llff import llff_render_cameras, load_llff
 from .ndc import to_ndc_rays
@@ -17,5 +18,6 @@ from .nerfstudio import load_nerfstudio
 from .nsvf import load_nsvf
 
 __all__ = ["Cameras", "generate_rays", "Dataset", "load_blender", "load_dataset", "detect_format",
-           "FORMATS", "load_llff", "load_nsvf", "load_nerfstudio", "llff_render_cameras",
+           "FORMATS", "load_colmap", "load_llff", "load_nsvf", "load_nerfstudio",
+           "llff_render_cameras",
            "to_ndc_rays"]

@@ -1,8 +1,8 @@
 """Shared helpers of the LLFF, NSVF and nerfstudio loaders: threaded image / mask loading,
 image listing, near/far bounds from a box.
 
-Decoding and area downscaling are the Blender loader's (:func:`blender._decode`,
-:func:`blender._composite_into`), so every format treats PNG/JPEG, alpha and downscaling alike.
+Decoding and area downscaling are :mod:`._files`' (:func:`_files._decode`,
+:func:`_files._composite_into`), so every format treats PNG/JPEG, alpha and downscaling alike.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import DatasetError
-from .blender import _composite_into, _decode
-from .blender import _run_parallel as _run
+from ._files import _composite_into, _decode
+from ._files import _run_parallel as _run
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 

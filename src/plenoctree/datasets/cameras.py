@@ -11,6 +11,8 @@ normalised, then rotated into world space by ``c2w[:3, :3]``; the origin is ``c2
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 from dataclasses import dataclass
 from typing import Any, Sequence
@@ -44,7 +46,24 @@ def _check_c2w(c2w: np.ndarray, batched: bool) -> np.ndarray:
         raise ConfigError(f"c2w: expected shape {want}, got {list(arr.shape)}")
     if not np.all(np.isfinite(arr)):
         raise ConfigError("c2w: contains NaN or infinite values")
+    bad = degenerate_rotations(arr.reshape(-1, 4, 4))
+    if bad.size:
+        raise ConfigError(f"c2w{f'[{int(bad[0])}]' if batched else ''}: the rotation part "
+                          "c2w[:3, :3] is singular (e.g. all zeros); every camera needs three "
+                          "independent axes")
     return arr
+
+
+def degenerate_rotations(c2w: np.ndarray) -> np.ndarray:
+    """Indices of the ``[N, 4, 4]`` matrices whose ``[:3, :3]`` block is singular.
+
+    Scale-invariant: ``|det R| <= 1e-6 · Π |column|`` (an all-zero, rank-deficient or
+    nearly flat rotation); scaled or mirrored rotations pass.
+    """
+    r = np.asarray(c2w, dtype=np.float64)[:, :3, :3]
+    norms = np.linalg.norm(r, axis=1).prod(axis=-1)
+    det = np.abs(np.linalg.det(r))
+    return np.flatnonzero(~(det > 1e-6 * norms) | (norms == 0))
 
 
 def generate_rays(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float,
@@ -288,6 +307,16 @@ class Cameras:
         f = float(factor)
         return Cameras(self.c2w.copy(), self.fx / f, self.fy / f, self.cx / f, self.cy / f,
                        self.width // factor, self.height // factor, self.ndc, self.ndc_near)
+
+    def resized(self, width: int, height: int) -> "Cameras":
+        """The same cameras rendering ``width`` x ``height`` images: focal lengths and
+        principal point scale per axis with the size (the field of view is kept). The one
+        intrinsics rescale (:meth:`scaled` is the integer-downscale case, exact to the bit)."""
+        if width == self.width and height == self.height:
+            return self
+        sx, sy = width / self.width, height / self.height
+        return dataclasses.replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx,
+                                   cy=self.cy * sy, width=int(width), height=int(height))
 
     def select(self, indices: Sequence[int] | np.ndarray | slice) -> "Cameras":
         """A new :class:`Cameras` holding the cameras ``c2w[indices]`` (and their intrinsics)."""

@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import DatasetError
 from .cameras import Cameras
 
-__all__ = ["Dataset", "load_dataset", "detect_format", "FORMATS"]
+__all__ = ["Dataset", "load_dataset", "detect_format", "has_split", "FORMATS"]
 
 
 @dataclass
@@ -66,7 +66,7 @@ class Dataset:
         return len(self.cameras)
 
 
-FORMATS = ("blender", "llff", "nsvf", "nerfstudio")
+FORMATS = ("blender", "llff", "nsvf", "nerfstudio", "colmap")
 """Dataset formats :func:`load_dataset` reads (values of its ``format`` argument)."""
 
 _SIGNATURES = {
@@ -74,6 +74,7 @@ _SIGNATURES = {
     "nerfstudio": "transforms.json",
     "llff": "poses_bounds.npy",
     "nsvf": "intrinsics.txt + pose/",
+    "colmap": "sparse/0/cameras.bin|txt",
 }
 
 
@@ -87,6 +88,10 @@ def _matches(root: Path) -> list[str]:
         found.append("llff")
     if (root / "intrinsics.txt").is_file() and (root / "pose").is_dir():
         found.append("nsvf")
+    from .colmap_model import find_colmap_model
+
+    if find_colmap_model(root) is not None:
+        found.append("colmap")
     return found
 
 
@@ -94,7 +99,8 @@ def detect_format(root: str | os.PathLike) -> str:
     """Name of the dataset format of folder ``root`` (one of :data:`FORMATS`).
 
     Signatures: Blender ``transforms_<split>.json``; nerfstudio / instant-ngp
-    ``transforms.json``; LLFF ``poses_bounds.npy``; NSVF ``intrinsics.txt`` and ``pose/``.
+    ``transforms.json``; LLFF ``poses_bounds.npy``; NSVF ``intrinsics.txt`` and ``pose/``;
+    COLMAP a model folder ``sparse/0`` (or ``sparse``, or the folder itself) with ``cameras``.
     Raises :class:`DatasetError` when none or several match (then pass ``format=``).
     """
     root = Path(root)
@@ -122,7 +128,8 @@ def load_dataset(root: str | os.PathLike, split: str = "train", format: str | No
             ``limit`` and ``num_threads`` (see :func:`~plenoctree.datasets.blender.load_blender`,
             :func:`~plenoctree.datasets.llff.load_llff` (``llffhold``, ``ndc``, ``spherify``,
             ...), :func:`~plenoctree.datasets.nsvf.load_nsvf`,
-            :func:`~plenoctree.datasets.nerfstudio.load_nerfstudio`).
+            :func:`~plenoctree.datasets.nerfstudio.load_nerfstudio`,
+            :func:`~plenoctree.datasets.colmap.load_colmap` (``scene``)).
     """
     from ..errors import ConfigError
 
@@ -139,6 +146,8 @@ def load_dataset(root: str | os.PathLike, split: str = "train", format: str | No
         from .llff import load_llff as loader
     elif fmt == "nsvf":
         from .nsvf import load_nsvf as loader
+    elif fmt == "colmap":
+        from .colmap import load_colmap as loader
     else:
         from .nerfstudio import load_nerfstudio as loader
     try:
@@ -147,3 +156,32 @@ def load_dataset(root: str | os.PathLike, split: str = "train", format: str | No
         if "unexpected keyword argument" in str(e):
             raise ConfigError(f"{fmt} loader: {e}") from None
         raise
+
+
+def has_split(root: str | os.PathLike, split: str, format: str | None = None) -> bool:
+    """Whether the dataset at ``root`` has a non-empty split ``split``, by its loader's rules:
+    Blender ``transforms_<split>.json``; LLFF ``train`` and ``test`` (every ``llffhold``-th
+    image; its ``val`` is the test set, so not a separate split); NSVF images named ``0_`` /
+    ``1_`` / ``2_`` (test falls back to ``1_``); nerfstudio ``<split>_filenames`` or the 90 %
+    rule; COLMAP the held-out views. A broken dataset still raises its ``DatasetError``."""
+    root = Path(root)
+    fmt = format or detect_format(root)
+    if fmt == "blender":
+        return (root / f"transforms_{split}.json").is_file()
+    if fmt == "llff":
+        return split in ("train", "test")
+    if fmt == "nsvf":
+        from .nsvf import NSVF_SPLIT_PREFIX
+
+        names = [p.name for p in (root / "rgb").iterdir()] if (root / "rgb").is_dir() else []
+        prefixes = [NSVF_SPLIT_PREFIX[split]] if split in NSVF_SPLIT_PREFIX else []
+        if split == "test":
+            prefixes.append(NSVF_SPLIT_PREFIX["val"])
+        return any(n.startswith(p) for n in names for p in prefixes)
+    try:
+        load_dataset(root, split, format=fmt, limit=1)
+    except DatasetError as e:
+        if f"split {split!r} is empty" in str(e):
+            return False
+        raise
+    return True

@@ -39,7 +39,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import image_files, load_images, probe_size
-from .blender import _check_options
+from ._files import _check_options
 from .cameras import Cameras
 from .dataset import Dataset
 from .ndc import ndc_bounds

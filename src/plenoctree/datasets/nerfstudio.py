@@ -11,10 +11,12 @@ Layout::
 are read per frame, a frame's own ``fl_x``/``fl_y``/``cx``/``cy``/``w``/``h`` overriding the
 top-level ones; ``camera_angle_x``/``camera_angle_y`` (instant-ngp) stand in for a missing
 ``fl_x``/``fl_y``, ``fl_y`` defaults to ``fl_x`` and the principal point to the image centre.
-Only undistorted pinhole cameras are supported: ``camera_model`` PINHOLE / SIMPLE_PINHOLE, or
-OPENCV / SIMPLE_RADIAL / RADIAL with every distortion coefficient (``k1..k4``, ``p1``, ``p2``)
-zero; anything else (fisheye, equirectangular, real distortion) is refused with a message
-saying to undistort the images first.
+Camera models: PINHOLE / SIMPLE_PINHOLE, and the distorting OPENCV (``k1, k2, p1, p2``, and
+``k3`` through COLMAP's FULL_OPENCV), OPENCV_FISHEYE (``k1..k4``; also instant-ngp's
+``is_fisheye``), RADIAL (``k1, k2``) and SIMPLE_RADIAL (``k1``): images with non-zero
+coefficients are undistorted on load by COLMAP's undistorter
+(:mod:`plenoctree.datasets.undistort`, needs ``plenoctree[colmap]``) into the pinhole camera
+COLMAP chooses; other models (equirectangular, ...) are refused.
 
 Scene box: with instant-ngp's ``aabb_scale`` ``s`` (and ``scale`` = 0.33, ``offset`` = 0.5 by
 default), the box is instant-ngp's ``[0.5 - s/2, 0.5 + s/2]^3`` mapped back to the file's
@@ -35,21 +37,24 @@ import json
 import math
 import os
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, Sequence
 
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, load_masks, near_far_from_box
-from .blender import _check_options, _finite_number, _frame_file_path, _image_path, _matrix
+from ._files import (_check_options, _finite_number, _frame_file_path, _image_path, _matrix,
+                     check_inside_dataset)
 from .cameras import Cameras
 from .dataset import Dataset
 
 __all__ = ["load_nerfstudio", "read_nerfstudio", "write_nerfstudio", "PINHOLE_MODELS",
            "TRAIN_FRACTION"]
 
-PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIAL")
-"""Camera models accepted (the distorting ones only with all coefficients zero)."""
+PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIAL",
+                  "OPENCV_FISHEYE")
+"""Camera models accepted (the distorting ones are undistorted on load)."""
 TRAIN_FRACTION = 0.9
 _DISTORTION = ("k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2")
 _INTR_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
@@ -60,31 +65,43 @@ def _frame_camera(where: str, glob: dict, fr: dict) -> tuple[float | None, ...]:
     model = fr.get("camera_model", glob.get("camera_model", "PINHOLE"))
     if not isinstance(model, str):
         raise DatasetError(f"{where}: camera_model must be a string, got {model!r}")
-    if model.upper() not in PINHOLE_MODELS:
-        raise DatasetError(f"{where}: camera model {model!r} is not supported: only undistorted "
-                           f"pinhole cameras ({', '.join(PINHOLE_MODELS)} without distortion) "
-                           "are; undistort the images first (e.g. COLMAP image_undistorter)")
+    model = model.upper()
     if fr.get("is_fisheye", glob.get("is_fisheye", False)):
-        raise DatasetError(f"{where}: fisheye cameras (is_fisheye) are not supported; undistort "
-                           "the images first")
+        model = "OPENCV_FISHEYE"
+    if model not in PINHOLE_MODELS:
+        raise DatasetError(f"{where}: camera model {model!r} is not supported (supported: "
+                           f"{', '.join(PINHOLE_MODELS)})")
+    coef = {}
     for key in _DISTORTION:
         v = fr.get(key, glob.get(key, 0.0))
         if not _finite_number(v):
             raise DatasetError(f"{where}: {key} must be a finite number, got {v!r}")
-        if v != 0:
-            raise DatasetError(f"{where}: lens distortion {key} = {v:g} is not supported (pinhole "
-                               "cameras without distortion only); undistort the images first")
+        coef[key] = float(v)
+    used = {"PINHOLE": (), "SIMPLE_PINHOLE": (), "SIMPLE_RADIAL": ("k1",),
+            "RADIAL": ("k1", "k2"), "OPENCV": ("k1", "k2", "k3", "p1", "p2"),
+            "OPENCV_FISHEYE": ("k1", "k2", "k3", "k4")}[model]
+    for key, v in coef.items():
+        if v != 0 and key not in used:
+            raise DatasetError(f"{where}: distortion coefficient {key} = {v:g} is not part of "
+                               f"the {model} camera model (it uses {', '.join(used) or 'none'})")
     vals = []
     for key in _INTR_KEYS:
         v = fr.get(key, glob.get(key))
         if v is not None and not _finite_number(v):
             raise DatasetError(f"{where}: {key} must be a finite number, got {v!r}")
         vals.append(None if v is None else float(v))
-    return tuple(vals)
+    dist = None
+    if any(coef[k] != 0 for k in used):
+        if model == "OPENCV_FISHEYE":
+            dist = (model, [coef[k] for k in used])
+        else:           # SIMPLE_RADIAL / RADIAL are OPENCV with the other coefficients zero
+            c = [coef["k1"], coef["k2"], coef["p1"], coef["p2"]]
+            dist = ("FULL_OPENCV", c + [coef["k3"], 0.0, 0.0, 0.0]) if coef["k3"] else ("OPENCV", c)
+    return tuple(vals) + (dist,)
 
 
 def _intrinsics(where: str, raw: tuple, width: int, height: int) -> tuple[float, ...]:
-    fl_x, fl_y, cx, cy, w, h, ax, ay = raw
+    fl_x, fl_y, cx, cy, w, h, ax, ay = raw[:8]
     for key, v, actual in (("w", w, width), ("h", h, height)):
         if v is not None and int(round(v)) != actual:
             raise DatasetError(f"{where}: {key} = {v:g} but the image is {width}x{height}")
@@ -131,6 +148,8 @@ def read_nerfstudio(path: str | os.PathLike) -> tuple[dict, list[dict]]:
         mp = fr.get("mask_path")
         if mp is not None and (not isinstance(mp, str) or not mp.strip() or "\x00" in mp):
             raise DatasetError(f"{where}: mask_path must be a non-empty string")
+        if mp is not None:
+            check_inside_dataset(mp, f"{where}: mask_path")
         m = fr["transform_matrix"]
         if isinstance(m, list) and len(m) == 3:       # 3x4 accepted
             m = m + [[0, 0, 0, 1]]
@@ -246,8 +265,16 @@ def load_nerfstudio(root: str | os.PathLike, split: str = "train", downscale: in
         sx, sy = w / full[0], h / full[1]
         intr.append((k[0] * sx, k[1] * sy, k[2] * sx, k[3] * sy))
     intr = np.array(intr)
+    dists = [frames[i]["raw"][8] for i in idx]
+    if any(d is not None for d in dists):
+        images, intr = _undistort(images, intr, dists, paths)
+        alphas = None
+        h, w = images.shape[1:3]
     masks = None
     if any(frames[i]["mask_path"] for i in idx):
+        if any(d is not None for d in dists):
+            raise DatasetError(f"{path}: masks (mask_path) with lens distortion are not "
+                               "supported; undistort the images and masks first")
         mpaths: list[Path | None] = []
         for i in idx:
             mp = frames[i]["mask_path"]
@@ -269,6 +296,20 @@ def load_nerfstudio(root: str | os.PathLike, split: str = "train", downscale: in
                    split=split, root=root, background=tuple(float(v) for v in bg),
                    names=[Path(frames[i]["file_path"]).stem for i in idx], alphas=alphas,
                    masks=masks)
+
+
+def _undistort(images: np.ndarray, intr: np.ndarray, dists: list, paths: list[Path]
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Undistort loaded images (their pinhole part ``intr [N, 4]`` at the loaded size)."""
+    from .undistort import undistort_images
+
+    h, w = images.shape[1:3]
+    cams = []
+    for k, d in zip(intr, dists):
+        model, coef = d if d is not None else ("OPENCV", [0.0] * 4)
+        cams.append(SimpleNamespace(model=model, params=np.concatenate([k, coef]),
+                                    width=w, height=h))
+    return undistort_images(images, cams, 1.0, paths)
 
 
 def _prescaled(root: Path, rel: str, factor: int, image: bool) -> Path | None:

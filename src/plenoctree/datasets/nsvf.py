@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import image_files, load_images, near_far_from_box
-from .blender import _check_options
+from ._files import _check_options
 from .cameras import Cameras
 from .dataset import Dataset
 

@@ -14,14 +14,28 @@ marching) are imported on first use.
 
 from __future__ import annotations
 
-from .checkpoint import CheckpointError, load_nerf, read_checkpoint
-from .config import ModelConfig, TrainConfig, preset
-from .encoding import HashGridEncoding, PositionalEncoding
-from .evaluate import evaluate_views
-from .model import NeRFModel, RadianceField
-from .occupancy import OccupancyGrid
-from .renderer import render_image, render_rays
-from .trainer import TrainingError, TrainResult, train
+from .._lazy import lazy_package
+
+_LAZY = {
+    'CheckpointError': '.checkpoint',
+    'load_nerf': '.checkpoint',
+    'read_checkpoint': '.checkpoint',
+    'ModelConfig': '.config',
+    'TrainConfig': '.config',
+    'preset': '.config',
+    'HashGridEncoding': '.encoding',
+    'PositionalEncoding': '.encoding',
+    'evaluate_views': '.evaluate',
+    'NeRFModel': '.model',
+    'RadianceField': '.model',
+    'OccupancyGrid': '.occupancy',
+    'render_image': '.renderer',
+    'render_rays': '.renderer',
+    'TrainingError': '.trainer',
+    'TrainResult': '.trainer',
+    'train': '.trainer',
+}
+lazy_package(__name__, _LAZY)
 
 __all__ = [
     "ModelConfig",

@@ -82,7 +82,10 @@ class TrainConfig:
     """NeRF-SH training: data, sampling, optimisation, logging, checkpoints."""
 
     data: str = ""
-    """Dataset folder (Blender / NeRF-synthetic layout)."""
+    """Dataset folder (any supported format: Blender, LLFF, NSVF, nerfstudio)."""
+    format: str | None = None
+    """Dataset format (one of ``plenoctree.datasets.FORMATS``; default: detected from the
+    folder's files)."""
     out: str = ""
     """Run directory for checkpoints, logs and plots."""
     preset: str = "cpu"
@@ -118,13 +121,13 @@ class TrainConfig:
     trained (0 = keep every sample)."""
     eval_stop_thresh: float = 1e-4
     """Early ray termination when rendering images (occupancy sampler)."""
-    batch_rays: int = 4096
+    batch_rays: int = field(default=4096, metadata={"flag": "batch-size"})
     """Rays per step (hierarchical sampler; the first steps of the occupancy sampler)."""
     target_samples: int = 1 << 17
     """Occupancy sampler: adapt the rays per step so that about this many samples are trained."""
     max_rays: int = 1 << 16
     """Occupancy sampler: upper bound of the adaptive rays per step."""
-    max_steps: int = 30000
+    max_steps: int = field(default=30000, metadata={"flag": "steps"})
     """Training steps (the run also stops at ``minutes`` when that is set)."""
     minutes: float = 0.0
     """Training-time budget in minutes (0 = none). With a budget the learning-rate schedule
@@ -298,4 +301,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.val_views >= 0 and cfg.chunk >= 1 and cfg.log_every >= 1,
          "val_views >= 0, chunk >= 1 and log_every >= 1 are required")
     need(len(cfg.background) == 3, "background must have 3 components")
+    from ..datasets.dataset import FORMATS
+
+    need(cfg.format in (None, *FORMATS),
+         f"format must be one of {', '.join(FORMATS)}, got {cfg.format!r}")
     return cfg

@@ -64,7 +64,8 @@ def evaluate_views(model: NeRFModel, data: Dataset, cfg: TrainConfig,
         pred = np.clip(r["rgb"], 0.0, 1.0)
         res["names"].append(data.names[i])
         res["psnr"].append(psnr(pred, gt))
-        res["ssim"].append(ssim(pred, gt) if with_ssim else float("nan"))
+        small = min(pred.shape[:2]) < 11             # SSIM's 11x11 window: NaN for tiny images
+        res["ssim"].append(ssim(pred, gt) if with_ssim and not small else float("nan"))
         res["n_samples"].append(int(r["n_samples"]))
         if out is not None:
             save_png(out / f"{data.names[i]}.png", pred)
@@ -103,16 +104,16 @@ def render_nerf_views(run_dir: str | Path, split: str = "test", views: int = 0,
     """
     from ..datasets import load_dataset
     from .checkpoint import load_nerf
-    from .trainer import resolve_amp, resolve_device, setup_threads, tune_malloc
+    from ..runtime import resolve_amp, resolve_device, setup_threads
 
-    tune_malloc()
     setup_threads(threads)
     model = load_nerf(run_dir)
     cfg = model.train_config
     device = resolve_device(cfg.device)
     model = model.to(device)
     use_amp = resolve_amp(amp or cfg.amp, device)
-    dataset = load_dataset(data or cfg.data, split, downscale=downscale or cfg.downscale,
+    dataset = load_dataset(data or cfg.data, split, format=None if data else cfg.format,
+                           downscale=downscale or cfg.downscale,
                            background=cfg.background)
     if indices is not None:
         bad = [i for i in indices if not 0 <= i < len(dataset)]

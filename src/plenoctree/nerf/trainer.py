@@ -16,10 +16,9 @@ written, so the last good checkpoint stays.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import math
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +30,8 @@ import torch
 from .._util import atomic_save_json, atomic_write, progress
 from ..datasets import Dataset, load_dataset
 from ..errors import ConfigError, PlenOctreeError
+from ..runtime import (MALLOC_ENV, RUNTIME_ENV, ThreadTuner, resolve_amp,  # noqa: F401
+                       resolve_device, setup_threads, tune_malloc)
 from .checkpoint import CHECKPOINT_NAME, CheckpointError, model_from_checkpoint, \
     read_checkpoint, save_checkpoint
 from .config import TrainConfig, config_json, validate
@@ -44,114 +45,8 @@ __all__ = ["TrainingError", "TrainResult", "train", "learning_rate", "tune_mallo
            "setup_threads", "resolve_device", "resolve_amp", "flush_tiny_moments",
            "sparsity_loss", "RaySource", "load_val_views"]
 
-MALLOC_ENV = {"MALLOC_MMAP_THRESHOLD_": "1073741824", "MALLOC_TRIM_THRESHOLD_": "2147483647",
-              "MALLOC_TOP_PAD_": "1073741824"}
-RUNTIME_ENV = {"OMP_WAIT_POLICY": "PASSIVE", **MALLOC_ENV}
-"""Environment the ``train`` / ``render-nerf`` commands re-execute themselves with.
-
-torch and numba each bring an OpenMP runtime whose idle threads spin; on two cores they took
-turns spinning against each other's work (a training step measured 3.6 s instead of 0.28 s).
-``OMP_WAIT_POLICY=PASSIVE`` must be set before either runtime loads, hence the re-exec;
-library users set it in the environment themselves."""
-
-
 class TrainingError(PlenOctreeError, RuntimeError):
     """Training cannot continue (non-finite loss); the last good checkpoint is kept."""
-
-
-# ------------------------------------------------------------------ machine set-up
-def tune_malloc() -> bool:
-    """Stop glibc malloc from returning big buffers to the OS after every step.
-
-    Large tensors are otherwise mmap'ed and unmapped each step and page-fault on every touch
-    (measured: the small MLP ran 2x slower). Equivalent to the environment variables
-    ``MALLOC_MMAP_THRESHOLD_=1073741824 MALLOC_TRIM_THRESHOLD_=2147483647
-    MALLOC_TOP_PAD_=1073741824``, applied with ``mallopt`` in-process. Returns False where
-    there is no glibc.
-    """
-    name = ctypes.util.find_library("c")
-    if not name:
-        return False
-    try:
-        libc = ctypes.CDLL(name)
-        m_trim, m_top_pad, m_mmap = -1, -2, -3
-        ok = libc.mallopt(m_mmap, 1 << 30) == 1
-        ok &= libc.mallopt(m_trim, 2**31 - 1) == 1
-        ok &= libc.mallopt(m_top_pad, 1 << 30) == 1
-        return bool(ok)
-    except (OSError, AttributeError):
-        return False
-
-
-def setup_threads(threads: int) -> int:
-    """Use ``threads`` CPU threads (0 or -1 = all cores) in torch and numba; returns the count."""
-    n = threads if threads > 0 else (os.cpu_count() or 1)
-    torch.set_num_threads(n)
-    try:
-        import numba
-
-        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
-    except ImportError:  # pragma: no cover
-        pass
-    return n
-
-
-class ThreadTuner:
-    """``threads = -1``: pick 1 or all cores by measured speed, re-checked periodically.
-
-    On a machine shared with other work, two-thread parallel regions wait for a descheduled
-    thread and can run slower than one thread. Every ``period`` steps, ``trial`` steps run
-    with each candidate count; the one with the fewest seconds per sample is kept until the
-    next check. Thread counts change reduction order, so such runs are not bit-repeatable.
-    """
-
-    def __init__(self, n_all: int, period: int = 400, trial: int = 8):
-        self.cands = [1, n_all] if n_all > 1 else [1]
-        self.period, self.trial = period, trial
-        self.cost = [0.0] * len(self.cands)
-        self.current = self.best = n_all
-
-    def before_step(self, step: int) -> None:
-        k = step % self.period
-        if len(self.cands) > 1 and k < self.trial * len(self.cands):
-            want = self.cands[k // self.trial]
-            if k % self.trial == 0:
-                self.cost[k // self.trial] = 0.0
-        else:
-            want = self.best
-        if want != self.current:
-            setup_threads(want)
-            self.current = want
-
-    def after_step(self, step: int, seconds: float, samples: int) -> None:
-        k = step % self.period
-        if len(self.cands) > 1 and k < self.trial * len(self.cands) and k % self.trial:
-            self.cost[k // self.trial] += seconds / max(samples, 1)   # skip each first step
-        if k == self.trial * len(self.cands) - 1:
-            self.best = self.cands[min(range(len(self.cands)), key=self.cost.__getitem__)]
-
-
-def resolve_device(name: str) -> torch.device:
-    """"auto" -> CUDA when available, else CPU; "cuda" without a GPU is a ConfigError."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device 'cuda' requested but no CUDA GPU is available")
-    return torch.device(name)
-
-
-def resolve_amp(amp: str, device: torch.device) -> bool:
-    """Whether to run the MLP under bf16 autocast ("auto": where the hardware supports bf16)."""
-    if amp == "off":
-        return False
-    if amp == "bf16":
-        return True
-    if device.type == "cuda":
-        return bool(torch.cuda.is_bf16_supported())
-    try:
-        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    except (AttributeError, RuntimeError):  # pragma: no cover
-        return False
 
 
 def learning_rate(cfg: TrainConfig, step: int, progress_frac: float) -> float:
@@ -241,7 +136,7 @@ def load_val_views(cfg: TrainConfig) -> Dataset | None:
     """The ``val_views`` evenly spaced views of split ``val_split`` (None when 0 views)."""
     if cfg.val_views <= 0:
         return None
-    full = load_dataset(cfg.data, cfg.val_split, downscale=cfg.downscale,
+    full = load_dataset(cfg.data, cfg.val_split, format=cfg.format, downscale=cfg.downscale,
                         background=cfg.background)
     idx = evenly_spaced(len(full), cfg.val_views)
     return Dataset(images=full.images[idx].copy(), cameras=full.cameras.select(idx),
@@ -279,6 +174,24 @@ def _prepare_run_dir(cfg: TrainConfig, resume: bool):
 def train(cfg: TrainConfig, resume: bool = False,
           on_step: Callable[[int], None] | None = None, quiet: bool | None = None
           ) -> TrainResult:
+    """Train a NeRF-SH as configured; see :func:`_train` and the module docstring.
+
+    Holds the run-folder lock (:func:`plenoctree._util.run_lock`) while training: a second
+    ``train``/``--resume`` into the same ``--out`` fails at once naming the holder.
+    """
+    from .._util import check_output_dir, run_lock
+
+    validate(cfg)
+    if not cfg.data or not cfg.out:
+        raise ConfigError("training needs a dataset folder (--data) and a run directory (--out)")
+    check_output_dir(cfg.out)
+    with run_lock(cfg.out, "train --resume" if resume else "train"):
+        return _train(cfg, resume, on_step, quiet)
+
+
+def _train(cfg: TrainConfig, resume: bool = False,
+           on_step: Callable[[int], None] | None = None, quiet: bool | None = None
+           ) -> TrainResult:
     """Train a NeRF-SH as configured; see the module docstring for the outputs.
 
     Args:
@@ -295,14 +208,14 @@ def train(cfg: TrainConfig, resume: bool = False,
     validate(cfg)
     if not cfg.data or not cfg.out:
         raise ConfigError("training needs a dataset folder (--data) and a run directory (--out)")
-    tune_malloc()
     n_threads = setup_threads(cfg.threads)
     tuner = ThreadTuner(n_threads) if cfg.threads == -1 else None
     device = resolve_device(cfg.device)
     amp = resolve_amp(cfg.amp, device)
     out, ck = _prepare_run_dir(cfg, resume)
 
-    data = load_dataset(cfg.data, "train", downscale=cfg.downscale, background=cfg.background)
+    data = load_dataset(cfg.data, "train", format=cfg.format, downscale=cfg.downscale,
+                        background=cfg.background)
     val = load_val_views(cfg)
     occ = cfg.sampler == "occupancy"
     torch.manual_seed(cfg.seed)
@@ -384,9 +297,13 @@ def train(cfg: TrainConfig, resume: bool = False,
                         "load": round(os.getloadavg()[0], 2)})
         log.write()
 
-    bar = progress(total=cfg.max_steps if budget_s <= 0 else None, desc="train",
-                   disable=quiet if quiet is not None else None)
-    bar.update(step)
+    # A time budget counts training seconds (its % and ETA are the budget's), else steps.
+    timed = budget_s > 0
+    bar = progress(total=round(budget_s) if timed else cfg.max_steps, desc="train",
+                   unit="s" if timed else "step", disable=quiet if quiet is not None else None,
+                   **({"bar_format": "{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}"
+                       "{postfix}]"} if timed and sys.stderr.isatty() else {}))
+    bar.update(train_s if timed else step)
     try:
         while not finished():
             if tuner is not None:
@@ -451,7 +368,7 @@ def train(cfg: TrainConfig, resume: bool = False,
             win["loss"] += float(loss.detach())
             win["mse"] += float(mse.detach())
             win["n"] += 1
-            bar.update(1)
+            bar.update(dt if timed else 1)
             if step % cfg.log_every == 0 or finished():
                 m = win["mse"] / win["n"]
                 row = {"step": step, "train_s": round(train_s, 3),

@@ -7,18 +7,19 @@ trees (``name="tree"``) and loaded files (``name=<path>``).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import weakref
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..errors import TreeFormatError
-from .limits import MAX_DEPTH
+from .limits import MAX_ABS_BOX, MAX_ABS_VALUE, MAX_DEPTH
 from .tree import parse_data_format
 
 if TYPE_CHECKING:
     from .tree import Octree
 
-__all__ = ["check_tree", "check_child", "expected_data_dim"]
+__all__ = ["check_tree", "check_child", "check_child_cached", "check_box", "expected_data_dim"]
 
 _CHUNK_NODES = 1 << 16     # data is checked in blocks of this many nodes (bounded temporaries)
 
@@ -36,6 +37,24 @@ def _fail(name: str, problem: str) -> None:
 def _cell(flat_index: int) -> str:
     node, c = divmod(int(flat_index), 8)
     return f"[{node}, {c >> 2}, {(c >> 1) & 1}, {c & 1}]"
+
+
+def check_box(offset: np.ndarray, invradius: np.ndarray, name: str = "tree") -> None:
+    """``offset``/``invradius`` (float ``[3]``, finite) within the bounds of ``MAX_ABS_BOX``.
+
+    ``invradius > 0``, ``1 / MAX_ABS_BOX <= invradius <= MAX_ABS_BOX`` and
+    ``|offset| <= MAX_ABS_BOX`` on every axis: beyond them the world <-> tree transform has no
+    precision left and rays stop advancing.
+    """
+    inv = np.asarray(invradius, dtype=np.float64)
+    if not (inv > 0).all():
+        _fail(name, f"invradius must be > 0 on every axis, got {inv.tolist()}")
+    if not ((inv <= MAX_ABS_BOX) & (inv >= 1.0 / MAX_ABS_BOX)).all():
+        _fail(name, f"invradius {inv.tolist()} is outside [{1.0 / MAX_ABS_BOX:g}, "
+                    f"{MAX_ABS_BOX:g}] (tree box radius 0.5 / invradius out of range)")
+    off = np.asarray(offset, dtype=np.float64)
+    if not (np.abs(off) <= MAX_ABS_BOX).all():
+        _fail(name, f"offset {off.tolist()} is outside [-{MAX_ABS_BOX:g}, {MAX_ABS_BOX:g}]")
 
 
 def _check_arrays(tree: Octree, name: str) -> int:
@@ -67,8 +86,7 @@ def _check_arrays(tree: Octree, name: str) -> int:
                         f"{getattr(v, 'dtype', type(v))} {list(getattr(v, 'shape', ()))}")
         if not np.isfinite(v).all():
             _fail(name, f"{key} has non-finite values {v.tolist()}")
-    if not (tree.invradius > 0).all():
-        _fail(name, f"invradius must be > 0 on every axis, got {tree.invradius.tolist()}")
+    check_box(tree.offset, tree.invradius, name)
     kind, b = parse_data_format(tree.data_format)
     extra = tree.extra_data
     if kind == "SG":
@@ -146,11 +164,16 @@ def _check_values(tree: Octree, name: str, n: int) -> None:
     """Finite data and σ >= 0 in every cell (checked in blocks of nodes)."""
     for start in range(0, n, _CHUNK_NODES):
         block = tree.data[start:start + _CHUNK_NODES]
-        finite = np.isfinite(block)
+        if block.dtype == np.float16:                   # float16 cannot exceed the bound
+            finite = np.isfinite(block)
+        else:
+            finite = np.abs(block) <= MAX_ABS_VALUE    # False for NaN and inf too
         if not finite.all():
             f = np.argwhere(~finite)[0]
-            _fail(name, f"data[{start + f[0]}, {f[1]}, {f[2]}, {f[3]}, {f[4]}] = "
-                        f"{block[tuple(f)]} is not finite")
+            v = block[tuple(f)]
+            what = "is not finite" if not np.isfinite(v) else \
+                f"exceeds MAX_ABS_VALUE = {MAX_ABS_VALUE:g} in magnitude (renders NaN)"
+            _fail(name, f"data[{start + f[0]}, {f[1]}, {f[2]}, {f[3]}, {f[4]}] = {v} {what}")
         sig = block[..., -1]
         if (sig < 0).any():
             f = np.argwhere(sig < 0)[0]
@@ -163,11 +186,60 @@ def check_tree(tree: Octree, name: str = "tree") -> None:
 
     Checks, in order: ``child`` int32 ``[n, 2, 2, 2]`` with n >= 1; ``data`` float
     ``[n, 2, 2, 2, D]`` with D matching ``data_format``; ``offset``/``invradius`` finite ``[3]``,
-    ``invradius > 0``; SG ``extra_data [B, 4]`` finite (None otherwise); then
+    ``invradius`` and ``offset`` within :func:`check_box`; SG ``extra_data [B, 4]`` finite (None otherwise); then
     :func:`check_child`: ``0 <= depth_limit <= MAX_DEPTH``, child offsets >= 0 and pointing
     inside the array, every non-root node has exactly one parent (which, with positive
-    offsets, rules out cycles and orphans), cell depth <= ``depth_limit``; data finite; σ >= 0.
+    offsets, rules out cycles and orphans), cell depth <= ``depth_limit``;
+    data finite with ``|value| <= MAX_ABS_VALUE``; σ >= 0.
     """
     n = _check_arrays(tree, name)
     _check_topology(tree, name, n)
     _check_values(tree, name, n)
+
+
+# Trees whose topology passed check_child, with the fingerprint it passed with.
+_CHECKED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _fingerprint(tree: Any) -> tuple:
+    """Identity and version of ``tree.child``: changes when the array is replaced or edited.
+
+    numpy arrays carry no version counter, so their fingerprint includes the wrapped sum of
+    the offsets (one cheap pass; any edit that could break the tree changes it in practice).
+    torch tensors carry ``_version`` (bumped by every in-place op).
+    """
+    child = tree.child
+    if hasattr(child, "_version") and hasattr(child, "data_ptr"):      # torch tensor
+        return ("torch", id(child), child.data_ptr(), tuple(child.shape), child._version)
+    arr = np.asarray(child)
+    return ("numpy", id(child), arr.__array_interface__["data"][0], arr.shape, arr.strides,
+            str(arr.dtype), int(arr.sum(dtype=np.int64)))
+
+
+def check_child_cached(tree: Any, name: str = "tree") -> None:
+    """:func:`check_child` on ``tree.child``, once per tree object and version of ``child``.
+
+    For renderers that receive in-memory trees on every frame: the first call does the full
+    (bounded, vectorised) check, later calls only compare a fingerprint. Depth is checked
+    against ``MAX_DEPTH`` (what the renderers need), not the tree's own ``depth_limit``.
+    Raises ``TreeFormatError``.
+    """
+    key = _fingerprint(tree)
+    try:
+        if _CHECKED.get(tree) == key:
+            return
+    except TypeError:           # not weak-referenceable / unhashable: check every time
+        pass
+    child = tree.child
+    if hasattr(child, "detach"):
+        child = child.detach().cpu().numpy()
+    child = np.asarray(child)
+    if child.dtype.kind not in "iu" or child.ndim != 4 or child.shape[1:] != (2, 2, 2) \
+            or child.shape[0] < 1:
+        _fail(name, f"child must be an int array of shape [n_nodes >= 1, 2, 2, 2], got "
+                    f"{child.dtype} {list(child.shape)}")
+    check_child(child, MAX_DEPTH, name)
+    try:
+        _CHECKED[tree] = key
+    except TypeError:
+        pass

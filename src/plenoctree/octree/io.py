@@ -270,6 +270,9 @@ def _bfs_order(r: NpzReader, child: np.ndarray, allow_orphans: bool) -> np.ndarr
         seen[kids] = True
         total += kids.size
         levels.append(kids)
+        if len(levels) > MAX_DEPTH + 1:     # bounded work on a hostile chain of levels
+            r.fail(f"node {int(kids[0])} has depth {len(levels) - 1}: the tree is deeper than "
+                   f"MAX_DEPTH = {MAX_DEPTH}, the deepest cell depth every renderer supports")
     if total < n and not allow_orphans:
         orphan = int(np.flatnonzero(~seen)[0])
         r.fail(f"node {orphan} is not reachable from the root ({n - total} orphan nodes, "

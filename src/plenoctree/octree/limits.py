@@ -27,15 +27,28 @@
     Bound on ``|invradius|``, ``|offset|`` and ``1 / invradius`` (the world radius) accepted at
     load: ``1e15``. Real scenes are many orders of magnitude inside it; beyond it the world ↔ tree
     transform loses all precision (a ray would never advance, or the step epsilon overflows).
+    Within it, ``|invradius * d|`` neither overflows nor underflows in float64.
+
+``MAX_RAY_ORIGIN``
+    Bound on a ray origin's tree-space coordinates (the box is ``[0, 1]^3``): ``1e8``. Within
+    it ``t + ε_t > t`` always holds in float64 (``ε_t = step_eps / |d'|``, ``t <~ 1e8 / |d'|``),
+    so every step advances; farther origins are refused by ``render_rays``.
+
+``MAX_ABS_VALUE``
+    Bound on ``|data|`` (colour coefficients and σ) accepted at load: ``1e30``. A basis sum of
+    25 such values stays inside float32; larger finite values overflow to ``inf - inf = NaN``.
 """
 
 from __future__ import annotations
 
-__all__ = ["MAX_DEPTH", "MAX_STEPS_CAP", "MAX_ABS_BOX", "max_steps"]
+__all__ = ["MAX_DEPTH", "MAX_STEPS_CAP", "MAX_ABS_BOX", "MAX_ABS_VALUE", "MAX_RAY_ORIGIN",
+           "max_steps"]
 
 MAX_DEPTH = 21
 MAX_STEPS_CAP = 1 << 20
 MAX_ABS_BOX = 1e15
+MAX_RAY_ORIGIN = 1e8
+MAX_ABS_VALUE = 1e30
 
 
 def max_steps(depth: int) -> int:

@@ -11,8 +11,17 @@ first use and are cached on disk.
 
 from __future__ import annotations
 
-from .autograd import OctreeRenderFunction, differentiable_backends, render_rays_differentiable
-from .finetune import FinetuneConfig, FinetuneResult, finetune
+from .._lazy import lazy_package
+
+_LAZY = {
+    'OctreeRenderFunction': '.autograd',
+    'differentiable_backends': '.autograd',
+    'render_rays_differentiable': '.autograd',
+    'FinetuneConfig': '.finetune',
+    'FinetuneResult': '.finetune',
+    'finetune': '.finetune',
+}
+lazy_package(__name__, _LAZY)
 
 __all__ = ["OctreeRenderFunction", "render_rays_differentiable", "differentiable_backends",
            "FinetuneConfig", "FinetuneResult", "finetune"]

@@ -155,6 +155,8 @@ class LoopState:
     train_seconds: float = 0.0
     train_rays: int = 0
     rng_state: dict | None = None
+    lr_scale: float = 1.0        # product of the back-off factors applied so far
+    backoffs: int = 0            # back-offs taken (validation drops and divergences)
 
     def to_json(self) -> str:
         d = dict(self.__dict__)
@@ -201,10 +203,19 @@ def load_checkpoint(path: Path, stepper: Any, best: np.ndarray, fingerprint: dic
         raise ConfigError(f"{path}: unreadable checkpoint ({e})") from None
 
 
+def lr_factor(epoch: int, epochs: int, decay: float) -> float:
+    """Exponential schedule: the learning rate of epoch ``epoch`` (1-based) is the base one
+    times ``decay ** ((epoch - 1) / (epochs - 1))`` (``decay`` at the last epoch)."""
+    if epochs <= 1 or decay == 1.0:
+        return 1.0
+    return float(decay) ** ((epoch - 1) / (epochs - 1))
+
+
 def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, batch_rays: int,
              ray_tile: int, val_every: int, stop_on_decrease: bool, seed: int, checkpoint: Path | None,
              resume: bool, fingerprint: dict, log: Callable[[dict], None],
-             show_progress: bool | None = None) -> tuple[np.ndarray, LoopState]:
+             show_progress: bool | None = None, backoffs: int = 0, backoff_factor: float = 0.5,
+             lr_decay: float = 1.0) -> tuple[np.ndarray, LoopState]:
     """Optimise ``stepper``'s values on ``train``; return ``(best values, final state)``.
 
     One epoch is one pass over every training pixel in a random order: the images are cut into
@@ -212,9 +223,16 @@ def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, 
     takes ``batch_rays / ray_tile²`` of them (``ray_tile = 1``: independent random pixels;
     neighbouring rays of a tile cross the same cells, which makes the kernels 2-3x faster).
 
+    The learning rates (``stepper.lr`` and ``stepper.sigma_lr``) follow :func:`lr_factor` with
+    ``lr_decay`` over the epochs, times the back-off scale.
+
     With ``val`` the PSNR is measured before training and every ``val_every`` epochs; the best
-    values are kept and, with ``stop_on_decrease``, the loop stops at the first drop. Without
-    ``val`` the values after the last epoch are returned. A divergence ends the loop with
+    values are kept. On a drop, with ``stop_on_decrease``: while fewer than ``backoffs``
+    back-offs were taken, the best values are restored and the learning rates multiplied by
+    ``backoff_factor`` (event ``backoff`` in the log); after that the loop stops. Without
+    ``val`` the values after the last epoch are returned. A divergence (non-finite values or a
+    blown-up training error) restores the best values and backs off the same way (by
+    ``backoff_factor²``) while back-offs remain, else ends the loop with
     ``state.stop_reason = "diverged: ..."`` and the best (last good) values restored.
 
     The checkpoint is written after each validation (each ``val_every`` epochs without ``val``)
@@ -255,40 +273,77 @@ def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, 
     first_mse = None
     ema = None
     batches_run = 0
+    base_lr = float(stepper.lr)
+    base_sigma = getattr(stepper, "sigma_lr", None)
+
+    def set_lr(epoch: int) -> None:
+        f = state.lr_scale * lr_factor(epoch, epochs, lr_decay)
+        stepper.lr = base_lr * f
+        if base_sigma is not None:
+            stepper.sigma_lr = float(base_sigma) * f
+
+    def back_off(factor: float, why: str) -> bool:
+        """Restore the best values and lower the learning rates; False when none are left."""
+        if state.backoffs >= backoffs:
+            return False
+        state.backoffs += 1
+        state.lr_scale *= factor
+        stepper.set_values(best)
+        log({"event": "backoff", "epoch": state.epochs_done, "reason": why,
+             "lr_scale": state.lr_scale, "backoffs": state.backoffs})
+        return True
+
+    def run_epoch(epoch: int, perm: np.ndarray) -> float:
+        """One pass over the tiles in order ``perm``; returns the epoch's sum of squared errors."""
+        nonlocal first_mse, ema, batches_run
+        sse_epoch = 0.0
+        for b0 in range(0, n_tiles, tiles_per_batch):
+            idx = train.tile_pixels(perm[b0:b0 + tiles_per_batch], k)
+            o, d, tgt = train.rays(idx)
+            t0 = time.perf_counter()
+            sse, bad = stepper.step(o, d, tgt, scale)
+            state.train_seconds += time.perf_counter() - t0
+            state.train_rays += idx.shape[0]
+            state.steps += 1
+            batches_run += 1
+            mse = sse / (3.0 * idx.shape[0])
+            sse_epoch += sse
+            if bad or not math.isfinite(mse):
+                raise Diverged(f"non-finite values after step {state.steps} (epoch {epoch})")
+            if first_mse is None:
+                first_mse = ema = mse
+                batches_run = 1
+            ema = (1 - _EMA) * ema + _EMA * mse
+            if batches_run >= _MIN_BATCHES and ema > _DIVERGE_FACTOR * first_mse + _DIVERGE_ABS:
+                raise Diverged(f"training MSE rose from {first_mse:.3g} to {ema:.3g} "
+                               f"(epoch {epoch}, step {state.steps})")
+            bar.update(1)
+            bar.set_postfix(epoch=epoch, mse=f"{ema:.2e}")
+        return sse_epoch
+
     try:
         while state.epochs_done < epochs and not state.stop_reason:
             epoch = state.epochs_done + 1
+            set_lr(epoch)
             state.rng_state = rng.bit_generator.state
             perm = rng.permutation(n_tiles)
             sse_epoch, t_epoch, s_epoch = 0.0, time.perf_counter(), state.train_seconds
-            for b0 in range(0, n_tiles, tiles_per_batch):
-                idx = train.tile_pixels(perm[b0:b0 + tiles_per_batch], k)
-                o, d, tgt = train.rays(idx)
-                t0 = time.perf_counter()
-                sse, bad = stepper.step(o, d, tgt, scale)
-                state.train_seconds += time.perf_counter() - t0
-                state.train_rays += idx.shape[0]
-                state.steps += 1
-                batches_run += 1
-                mse = sse / (3.0 * idx.shape[0])
-                sse_epoch += sse
-                if bad or not math.isfinite(mse):
-                    raise Diverged(f"non-finite values after step {state.steps} (epoch {epoch})")
-                if first_mse is None:
-                    first_mse = ema = mse
-                ema = (1 - _EMA) * ema + _EMA * mse
-                if batches_run >= _MIN_BATCHES and ema > _DIVERGE_FACTOR * first_mse + _DIVERGE_ABS:
-                    raise Diverged(f"training MSE rose from {first_mse:.3g} to {ema:.3g} "
-                                   f"(epoch {epoch}, step {state.steps})")
-                bar.update(1)
-                bar.set_postfix(epoch=epoch, mse=f"{ema:.2e}")
+            try:
+                sse_epoch = run_epoch(epoch, perm)
+            except Diverged as e:
+                state.epochs_done = epoch
+                if not back_off(backoff_factor ** 2, f"diverged: {e}"):
+                    raise
+                first_mse = ema = None
+                continue
             state.epochs_done = epoch
             state.rng_state = rng.bit_generator.state
             train_mse = sse_epoch / (3.0 * n_rays)
             rec = {"event": "epoch", "epoch": epoch,
                    "train_psnr": -10 * math.log10(max(train_mse, 1e-20)),
                    "seconds": time.perf_counter() - t_epoch,
-                   "rays_per_s": n_rays / max(state.train_seconds - s_epoch, 1e-9)}
+                   "rays_per_s": n_rays / max(state.train_seconds - s_epoch, 1e-9),
+                   "lr": stepper.lr}
             log(rec)
             due = val_every <= 0 or epoch % val_every == 0 or epoch == epochs
             if val is None:
@@ -303,8 +358,11 @@ def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, 
                     state.best_psnr, state.best_epoch = p, epoch
                     np.copyto(best, stepper.values())
                 elif stop_on_decrease:
-                    state.stop_reason = (f"validation PSNR fell from {state.best_psnr:.3f} dB "
-                                         f"(epoch {state.best_epoch}) to {p:.3f} dB (epoch {epoch})")
+                    why = (f"validation PSNR fell from {state.best_psnr:.3f} dB "
+                           f"(epoch {state.best_epoch}) to {p:.3f} dB (epoch {epoch})")
+                    if not back_off(backoff_factor, why):
+                        state.stop_reason = why + (f" after {state.backoffs} learning-rate "
+                                                   "back-offs" if backoffs else "")
                 if checkpoint is not None and not state.stop_reason:
                     save_checkpoint(checkpoint, stepper, best, state, fingerprint)
     except Diverged as e:
@@ -320,3 +378,4 @@ def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, 
         state.stop_reason = f"finished {state.epochs_done} epochs"
     stepper.set_values(best)
     return best, state
+

@@ -11,6 +11,13 @@ fine-tuning loop passes ``scale = 1 / (3 H W)``, the per-pixel mean of one train
   update rules in torch (SGD dense — identical to the sparse one; Adam/RMSprop lazy over cells
   with a non-zero gradient).
 
+Both take an optional separate σ learning rate ``sigma_lr`` (world σ units; ``None`` = ``lr``):
+scale-free optimisers move every value by about ``lr`` per step, which suits pre-sigmoid colour
+coefficients but not σ, whose values are in 1 / world length (hundreds on lego); the fine-tuner
+sets ``sigma_lr = lr_sigma / h`` (``h`` the finest leaf side) so a step changes a leaf's
+opacity by about ``lr_sigma`` whatever the scene scale and resolution. ``lr`` and ``sigma_lr``
+may be changed between steps (learning-rate schedules and back-off).
+
 After every step σ is projected onto ``σ ≥ 0`` (the renderer uses ``relu(σ)``; nothing that
 renders changes, and the tree stays valid for ``save_tree``).
 """
@@ -48,12 +55,13 @@ class NumbaStepper:
     backend = "numba"
 
     def __init__(self, data2: np.ndarray, args: Any, optimizer: str, lr: float,
-                 n_chunks: int | None = None) -> None:
+                 n_chunks: int | None = None, sigma_lr: float | None = None) -> None:
         from ._render_grad import SparseGrad
 
         if data2.dtype != np.float32 or not data2.flags.c_contiguous:
             raise ConfigError("NumbaStepper: data must be a contiguous float32 [n_cells, D] array")
         self.data2, self.args, self.optimizer, self.lr = data2, args, optimizer, float(lr)
+        self.sigma_lr = None if sigma_lr is None else float(sigma_lr)
         self.buf = SparseGrad(data2.shape[0], data2.shape[1], np.float32, n_chunks)
         self.sig = np.ascontiguousarray(data2[:, -1])
         self.step_count = 0
@@ -68,9 +76,14 @@ class NumbaStepper:
         from . import _render_grad_numba as k
         from ._render_grad import fused_mse_numba
 
+        separate = self.sigma_lr is not None and self.sigma_lr != self.lr
         sse = fused_mse_numba(self.args, self.data2, origins, dirs, targets, scale, self.buf,
-                              sig=self.sig, merge=False)
+                              sig=self.sig, merge=separate)
         b = self.buf
+        if separate:     # merged: slab 0 holds every gradient; keep σ's to redo its update
+            cells = b.touched_cells().copy()
+            g_sig = b.grad[cells, -1].astype(np.float64)
+            s_old = self.data2[cells, -1].astype(np.float64)
         self.last_touched = int(b.n_touched.sum())     # upper bound: lists may overlap
         self.step_count += 1
         opt = {"sgd": k.OPT_SGD, "adam": k.OPT_ADAM, "rmsprop": k.OPT_RMSPROP}[self.optimizer]
@@ -80,7 +93,24 @@ class NumbaStepper:
         m2 = self.m2 if self.m2 is not None else self._dummy
         bad = k.step_touched(self.data2, self.sig, b.grad3, b.flags, b.touched, b.n_touched, opt,
                              self.lr, m1, m2, beta1, beta2, eps, float(self.step_count))
+        if separate:
+            s_new = np.maximum(s_old - self.sigma_lr * self._direction(cells, g_sig), 0.0)
+            bad += int((~np.isfinite(s_new)).sum())
+            self.data2[cells, -1] = s_new
+            self.sig[cells] = self.data2[cells, -1]
         return sse, int(bad)
+
+    def _direction(self, cells: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """The σ update per unit learning rate of the step just taken (moments already updated
+        by the kernel)."""
+        if self.optimizer == "sgd":
+            return g
+        m2 = self.m2[cells, -1].astype(np.float64)
+        if self.optimizer == "rmsprop":
+            return g / (np.sqrt(m2) + _RMS_EPS)
+        t = float(self.step_count)
+        m1 = self.m1[cells, -1].astype(np.float64)
+        return (m1 / (1 - _BETAS[0] ** t)) / (np.sqrt(m2 / (1 - _BETAS[1] ** t)) + _ADAM_EPS)
 
     def render(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """Render rays with the current values (no gradient): float32 ``[N, 3]``."""
@@ -122,13 +152,14 @@ class TorchStepper:
     backend = "torch"
 
     def __init__(self, data2: np.ndarray, tree: Any, options: Any, optimizer: str, lr: float,
-                 device: Any = None) -> None:
+                 device: Any = None, sigma_lr: float | None = None) -> None:
         import torch
 
         self.torch = torch
         self.device = torch.device(device if device is not None else
                                    ("cuda" if torch.cuda.is_available() else "cpu"))
         self.tree, self.options, self.optimizer, self.lr = tree, options, optimizer, float(lr)
+        self.sigma_lr = None if sigma_lr is None else float(sigma_lr)
         self.shape = tuple(tree.child.shape) + (data2.shape[1],)
         self.data = torch.tensor(data2, dtype=torch.float32, device=self.device).reshape(self.shape)
         self.data.requires_grad_(True)
@@ -157,8 +188,11 @@ class TorchStepper:
         with torch.no_grad():
             p = self.data.view(-1, self.shape[-1])
             g = self.data.grad.view(-1, self.shape[-1])
+            lr = torch.full((self.shape[-1],), self.lr, dtype=p.dtype, device=p.device)
+            if self.sigma_lr is not None:
+                lr[-1] = self.sigma_lr
             if self.optimizer == "sgd":
-                p.sub_(self.lr * g)
+                p.sub_(lr * g)
                 rows = None
             else:
                 rows = torch.nonzero((g != 0).any(dim=1)).reshape(-1)
@@ -169,11 +203,11 @@ class TorchStepper:
                     m2 = self.m2[rows].mul_(b2).add_((1 - b2) * gr * gr)
                     self.m1[rows], self.m2[rows] = m1, m2
                     bc1, bc2 = 1 - b1 ** self.step_count, 1 - b2 ** self.step_count
-                    p[rows] -= self.lr * (m1 / bc1) / ((m2 / bc2).sqrt() + _ADAM_EPS)
+                    p[rows] -= lr * (m1 / bc1) / ((m2 / bc2).sqrt() + _ADAM_EPS)
                 else:
                     m2 = self.m2[rows].mul_(_RMS_ALPHA).add_((1 - _RMS_ALPHA) * gr * gr)
                     self.m2[rows] = m2
-                    p[rows] -= self.lr * gr / (m2.sqrt() + _RMS_EPS)
+                    p[rows] -= lr * gr / (m2.sqrt() + _RMS_EPS)
             self.last_touched = int((g != 0).any(dim=1).sum()) if rows is None else int(rows.numel())
             bad = int((~torch.isfinite(p)).sum())
             p[:, -1].clamp_(min=0.0)
@@ -217,7 +251,7 @@ class TorchStepper:
 
 
 def make_stepper(backend: str, data2: np.ndarray, tree: Any, options: Any, optimizer: str,
-                 lr: float | None) -> NumbaStepper | TorchStepper:
+                 lr: float | None, sigma_lr: float | None = None) -> NumbaStepper | TorchStepper:
     """Build the stepper for ``backend`` (op ``"finetune"`` of :mod:`plenoctree.backend`).
 
     ``"auto"`` fine-tunes where the work runs fastest: on the GPU (the torch twin) when CUDA
@@ -238,11 +272,12 @@ def make_stepper(backend: str, data2: np.ndarray, tree: Any, options: Any, optim
 
         device = "cuda" if torch.cuda.is_available() else "cpu"
     name = _backend.resolve("finetune", name, device)
-    return _backend.implementation("finetune", name)(data2, tree, options, optimizer, lr)
+    kw = {} if sigma_lr is None else {"sigma_lr": float(sigma_lr)}
+    return _backend.implementation("finetune", name)(data2, tree, options, optimizer, lr, **kw)
 
 
 def _numba_stepper(data2: np.ndarray, tree: Any, options: Any, optimizer: str,
-                   lr: float) -> NumbaStepper:
+                   lr: float, sigma_lr: float | None = None) -> NumbaStepper:
     from ._render_grad import kernel_args
 
-    return NumbaStepper(data2, kernel_args(tree, options), optimizer, lr)
+    return NumbaStepper(data2, kernel_args(tree, options), optimizer, lr, sigma_lr=sigma_lr)

@@ -79,6 +79,17 @@ def _check_data(data: Any, tree: Any) -> torch.Tensor:
         raise ConfigError(f"data: expected shape {want} (the tree's data), got {tuple(data.shape)}")
     if data.dtype not in (torch.float32, torch.float64):
         raise ConfigError(f"data: expected float32 or float64, got {data.dtype}")
+    from ..errors import TreeFormatError
+    from ..octree.check import check_box, check_child_cached
+
+    try:                         # in-memory trees: topology once per tree object and version
+        off, inv = (np.broadcast_to(np.asarray(v.detach().cpu() if hasattr(v, "detach") else v,
+                                               np.float64).reshape(-1), (3,))
+                    for v in (tree.offset, tree.invradius))
+        check_box(off, inv, "render: tree")
+        check_child_cached(tree, "render: tree")
+    except TreeFormatError as e:
+        raise ConfigError(str(e)) from None
     return data
 
 

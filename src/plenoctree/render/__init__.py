@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from .. import backend as _backend
-from ..errors import ConfigError
+from ..errors import ConfigError, TreeFormatError
 from .options import FormatInfo, RenderOptions, RenderOutput, parse_data_format
 
 __all__ = ["RenderOptions", "RenderOutput", "available_backends", "render_rays", "render_image"]
@@ -62,6 +62,27 @@ def _check_rays(origins: Any, dirs: Any) -> None:
         raise ConfigError("dirs: contains zero-length directions")
 
 
+def _check_origins(origins: Any, offset: np.ndarray, inv: np.ndarray) -> None:
+    """Ray origins within ``MAX_RAY_ORIGIN`` tree units of the box (else steps cannot advance)."""
+    from ..octree.limits import MAX_RAY_ORIGIN
+
+    if isinstance(origins, torch.Tensor):
+        lo, hi = origins.detach().reshape(-1, 3).aminmax(dim=0) if origins.numel() else (None, None)
+        if lo is None:
+            return
+        lo, hi = lo.cpu().double().numpy(), hi.cpu().double().numpy()
+    else:
+        if origins.size == 0:
+            return
+        flat = origins.reshape(-1, 3)
+        lo, hi = flat.min(0).astype(np.float64), flat.max(0).astype(np.float64)
+    far = np.maximum(np.abs(offset + inv * lo), np.abs(offset + inv * hi))
+    if not (far <= MAX_RAY_ORIGIN).all():
+        raise ConfigError(f"origins: a ray starts at tree coordinate {far.max():.3g} (the tree "
+                          f"box is [0, 1]^3; at most {MAX_RAY_ORIGIN:g}: farther, a float64 "
+                          "step cannot advance); move the camera closer")
+
+
 def _tree_info(tree: Any) -> FormatInfo:
     for attr in ("child", "data", "offset", "invradius", "data_format"):
         if not hasattr(tree, attr):
@@ -80,6 +101,12 @@ def _tree_info(tree: Any) -> FormatInfo:
         raise ConfigError(f"tree.invradius: expected 3 values, got shape {inv.shape}")
     if not (np.isfinite(inv).all() and (inv > 0).all()):
         raise ConfigError(f"tree.invradius: must be finite and > 0, got {inv.tolist()}")
+    from ..octree.check import check_box, check_child_cached
+    try:
+        check_box(_vec3(tree.offset), inv if inv.size == 3 else np.repeat(inv, 3), "render: tree")
+        check_child_cached(tree, "render: tree")        # once per tree object and child version
+    except TreeFormatError as e:
+        raise ConfigError(str(e)) from None
     return parse_data_format(tree.data_format, data.shape[-1], getattr(tree, "extra_data", None))
 
 
@@ -124,6 +151,7 @@ def render_rays(tree: Any, origins: Any, dirs: Any, options: RenderOptions | Non
                   torch.device("cpu"))
     name = _backend.resolve("render", backend, device)
     batch = tuple(origins.shape[:-1])
+    _check_origins(origins, _vec3(tree.offset), _vec3(tree.invradius))
     # The numba kernel marches the pixels of an image in 2-D tiles when it knows the width.
     hint = {"width": int(batch[-1])} if name == "numba" and len(batch) >= 2 else {}
     out = _backend.implementation("render", name)(

@@ -16,10 +16,13 @@ Algorithm (both backends; the numba kernel in ``_render_numba`` computes the sam
 3. Starting at ``t = t0``: locate the leaf containing ``p(t + ε_t)``, ``ε_t = step_eps / |d'|``
    (points are quantised to integer coordinates ``floor(p * 2**QUANT_BITS)``; the bit
    ``QUANT_BITS - 1 - l`` of each coordinate picks the cell at level ``l``); the segment ends at
-   ``t' = min(max(exit(leaf), t + ε_t), t1)``, with ``δ = t' - t`` in world units.
+   ``t' = min(max(exit(leaf), t + ε_t), t1)``, with ``δ = t' - t`` in world units (and
+   ``t' > t`` by at least one float64 ulp: every step advances).
 4. A segment with σ > 0 adds weight ``w = T (1 - exp(-σ δ))``, colour ``c`` and depth ``t_mid``;
    ``T *= exp(-σ δ)``; the ray stops when ``T < stop_thresh`` or ``t' = t1``. σ ≤ 0 adds
    nothing (and has zero gradient).
+   A ray also stops after ``max_steps(D)`` segments (``octree.limits``: ``3·2^(D+1) + 64``,
+   at most ``2^20``; D = deepest cell depth met so far), as the WebGL shader caps it.
 5. ``rgb = Σ w c + T·background``, ``depth = Σ w t_mid / max(Σ w, 1e-10)``, ``alpha = 1 - T``.
 
 Colour ``c = sigmoid(Σ_{b in [sh_min, sh_max]} k_b Y_b(d))`` per channel: SH bases, SG bases
@@ -34,6 +37,7 @@ import numpy as np
 import torch
 
 from ..sh import eval_sg_bases, eval_sh_bases
+from ..octree.limits import MAX_DEPTH, max_steps
 from .options import (KIND_RGBA, KIND_SG, KIND_SH, QUANT_BITS, FormatInfo, RenderOptions,
                       RenderOutput, parse_data_format)
 
@@ -75,6 +79,16 @@ def box_intersect_torch(o_t: torch.Tensor, d_t: torch.Tensor) -> tuple[torch.Ten
     t0 = torch.clamp(lo.amax(dim=-1), min=0.0)
     t1 = hi.amin(dim=-1)
     return t0, t1
+
+
+def _norm_no_overflow(v: torch.Tensor) -> torch.Tensor:
+    """``|v|`` over the last axis, scaled where squaring would overflow or underflow."""
+    n = torch.linalg.vector_norm(v, dim=-1)
+    bad = ~torch.isfinite(n) | (n == 0)
+    if bool(bad.any()):
+        m = v.abs().amax(dim=-1, keepdim=True).clamp_min(torch.finfo(v.dtype).tiny)
+        n = torch.where(bad, m[..., 0] * torch.linalg.vector_norm(v / m, dim=-1), n)
+    return n
 
 
 def _as_tensor(x: Any, dtype: torch.dtype | None, device: torch.device) -> torch.Tensor:
@@ -128,7 +142,7 @@ def render_rays_torch(child: Any, data: Any, offset: Any, invradius: Any, data_f
 
     o_t = offset_t + inv_t * o
     d_t = inv_t * d
-    eps_t = opts.step_eps / torch.linalg.vector_norm(d_t, dim=-1)
+    eps_t = opts.step_eps / _norm_no_overflow(d_t)
     t0, t1 = box_intersect_torch(o_t, d_t)
     d_safe = torch.where(d_t == 0, torch.full_like(d_t, 1.0 / _BIG), d_t)
     inv_d = 1.0 / d_safe
@@ -145,8 +159,14 @@ def render_rays_torch(child: Any, data: Any, offset: Any, invradius: Any, data_f
     t = t0[idx]
     trans = torch.ones(idx.shape[0], dtype=dtype, device=device)
     shifts = torch.tensor([4, 2, 1], device=device)
-    max_levels = QUANT_BITS - 1
+    max_levels = MAX_DEPTH + 1          # cell depths 0..MAX_DEPTH (check_integrity enforces it)
+    deepest, steps = 0, 0
+    inf_t = torch.tensor(float("inf"), dtype=geo, device=device)
     while idx.numel() > 0:
+        if steps >= max_steps(deepest):     # the shader's cap: no input marches forever
+            t_final = t_final.index_copy(0, idx, trans)
+            break
+        steps += 1
         # Locate the leaf holding p(t + eps_t): batched descent from the root.
         q = o_t[idx] + (t + eps_t[idx])[:, None] * d_t[idx]
         qi = torch.clamp(q * _SCALE, 0.0, _SCALE - 1.0).to(torch.int64)  # trunc = floor (>= 0)
@@ -161,14 +181,17 @@ def render_rays_torch(child: Any, data: Any, offset: Any, invradius: Any, data_f
             node = node + step
             level = level + (step != 0).to(torch.int64)
         else:
-            raise ValueError(f"octree deeper than {max_levels} levels is not supported")
+            raise ValueError(f"octree deeper than MAX_DEPTH = {MAX_DEPTH} is not supported")
+        deepest = max(deepest, int(level.max()))
         # Exit distance of the leaf's box (tree units -> world t through d_t).
         cell_shift = (QUANT_BITS - 1 - level)[:, None]
         lo = ((qi >> cell_shift) << cell_shift).to(geo) / _SCALE
         size = torch.pow(2.0, -(level + 1).to(geo))[:, None]
         bound = torch.where(positive[idx], lo + size, lo)
         t_exit = ((bound - o_t[idx]) * inv_d[idx]).amin(dim=-1)
-        t_end = torch.minimum(torch.maximum(t_exit, t + eps_t[idx]), t1[idx])
+        # Forced progress: at least one float64 ulp even where t + eps_t rounds back to t.
+        t_next = torch.maximum(t + eps_t[idx], torch.nextafter(t, inf_t))
+        t_end = torch.minimum(torch.maximum(t_exit, t_next), t1[idx])
         delta = (t_end - t).to(dtype)
 
         vals = data_flat[cell]                                      # [n, D]

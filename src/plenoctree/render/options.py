@@ -7,7 +7,6 @@ same :class:`RenderOptions` and the same :class:`FormatInfo`.
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -126,29 +125,23 @@ _SH_DEGREE = {1: 0, 4: 1, 9: 2, 16: 3, 25: 4}
 
 def parse_data_format(data_format: str, data_dim: int | None = None,
                       extra_data: Any = None) -> FormatInfo:
-    """Parse ``"SH1".."SH25"``, ``"SG<B>"`` or ``"RGBA"``; check ``data_dim`` and ``extra_data``.
+    """Parse ``"SH1".."SH25"``, ``"SG<B>"`` or ``"RGBA"`` (the names
+    :func:`plenoctree.octree.parse_data_format` accepts, exactly) and check ``data_dim`` and
+    ``extra_data`` against it.
 
     Raises :class:`TreeFormatError` naming the problem when the format is unknown or
     inconsistent with the data (``data_dim`` must be ``3 * B + 1``; SG needs ``extra_data`` of
     shape ``[B, 4]``).
     """
-    fmt = str(data_format).strip().upper()
-    if fmt == "RGBA":
-        info = FormatInfo(fmt, KIND_RGBA, 1)
+    from ..octree.tree import parse_data_format as parse_name    # the one naming rule
+
+    kind, b = parse_name(data_format)
+    if kind == "RGBA":
+        info = FormatInfo(data_format, KIND_RGBA, 1)
+    elif kind == "SH":
+        info = FormatInfo(data_format, KIND_SH, b, _SH_DEGREE[b])
     else:
-        m = re.fullmatch(r"(SH|SG)(\d+)", fmt)
-        if not m or int(m.group(2)) < 1:
-            raise TreeFormatError(
-                f"unknown data format {data_format!r} "
-                "(expected SH1/SH4/SH9/SH16/SH25, SG<B> or RGBA)")
-        b = int(m.group(2))
-        if m.group(1) == "SH":
-            if b not in _SH_DEGREE:
-                raise TreeFormatError(
-                    f"data format {data_format!r}: SH basis count must be 1, 4, 9, 16 or 25")
-            info = FormatInfo(fmt, KIND_SH, b, _SH_DEGREE[b])
-        else:
-            info = FormatInfo(fmt, KIND_SG, b)
+        info = FormatInfo(data_format, KIND_SG, b)
     if data_dim is not None and int(data_dim) != info.data_dim:
         raise TreeFormatError(
             f"data format {info.name} needs data_dim {info.data_dim}, but the data has {data_dim}")

@@ -8,7 +8,11 @@ Bound to 127.0.0.1. The URL space is a fixed table built at start-up:
 
 Any other path, including every path with ``..``, a backslash, a NUL or an encoded slash, is
 answered 404 or 400 without touching the file system; there is no directory listing. Only GET
-and HEAD are allowed.
+and HEAD are allowed. Requests whose ``Host`` header is not this server's loopback address
+are refused (403: DNS rebinding); files are opened with ``O_NOFOLLOW`` (a tree swapped for a
+symlink is not followed). The listen backlog holds ``BACKLOG`` connections and an idle
+connection is closed after ``IDLE_TIMEOUT_S`` seconds. The tree is validated before serving
+(:func:`check_servable`): the page would refuse what the loaders refuse.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import json
 import os
 import re
 import shutil
+import stat
 import threading
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -27,7 +32,12 @@ from urllib.parse import unquote, urlsplit
 from ..errors import ConfigError
 from .budget import DEFAULT_MAX_MB
 
-__all__ = ["ViewerServer", "static_dir", "static_files", "viewer_config"]
+__all__ = ["ViewerServer", "static_dir", "static_files", "viewer_config", "check_servable",
+           "BACKLOG", "IDLE_TIMEOUT_S"]
+
+BACKLOG = 1024           # queued connections (the kernel caps it at net.core.somaxconn)
+IDLE_TIMEOUT_S = 20.0    # a connection silent this long (slow or idle client) is closed
+_O_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 
 _SAFE_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
 _TYPES = {
@@ -67,6 +77,31 @@ def viewer_config(tree_name: str, title: str | None = None,
     }
 
 
+def check_servable(path: str | os.PathLike) -> None:
+    """Raise :class:`~plenoctree.errors.TreeFormatError` (naming the file) unless the page can
+    show the tree: the full loader checks (topology, ``MAX_DEPTH`` = the page's 22 levels,
+    finite values, codebook indices). Loads (and drops) the tree once."""
+    from ..compress.fileio import load_any_tree
+
+    load_any_tree(path)
+
+
+def _open_regular(path: Path) -> Any:
+    """Open ``path`` for reading without following a symlink; None if it is not a regular file."""
+    try:
+        fd = os.open(path, os.O_RDONLY | _O_NOFOLLOW)
+    except OSError:
+        return None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            return None
+    except OSError:
+        os.close(fd)
+        return None
+    return os.fdopen(fd, "rb")
+
+
 def _tree_name(path: Path) -> str:
     name = path.name
     if not _SAFE_NAME.match(name):
@@ -77,6 +112,7 @@ def _tree_name(path: Path) -> str:
 class _Handler(BaseHTTPRequestHandler):
     server: _Server
     protocol_version = "HTTP/1.1"
+    timeout = IDLE_TIMEOUT_S     # socket timeout: idle keep-alive and slow clients are dropped
 
     def log_message(self, fmt: str, *args: Any) -> None:      # quiet unless asked
         if self.server.verbose:
@@ -108,16 +144,25 @@ class _Handler(BaseHTTPRequestHandler):
             return None
         return entry
 
+    def _host_ok(self) -> bool:
+        host = self.headers.get("Host")
+        if host is None or host.strip().lower() in self.server.hosts:
+            return True
+        self._error(HTTPStatus.FORBIDDEN, "unexpected Host header (this server answers only "
+                                          f"127.0.0.1:{self.server.server_address[1]})")
+        return False
+
     def _send(self, head_only: bool) -> None:
+        if not self._host_ok():
+            return
         entry = self._resolve()
         if entry is None:
             return
         body, ctype = entry
         if isinstance(body, Path):
-            try:
-                f = open(body, "rb")
-            except OSError:
-                self._error(HTTPStatus.NOT_FOUND, "file is gone")
+            f = _open_regular(body)
+            if f is None:
+                self._error(HTTPStatus.NOT_FOUND, "file is gone (or replaced by a symlink)")
                 return
             with f:
                 size = os.fstat(f.fileno()).st_size
@@ -155,8 +200,14 @@ class _Handler(BaseHTTPRequestHandler):
 class _Server(ThreadingHTTPServer):
     daemon_threads = True
     allow_reuse_address = False
+    request_queue_size = BACKLOG
     routes: dict[str, tuple[bytes | Path, str]]
+    hosts: set[str]
     verbose: bool
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        if self.verbose:             # a client that vanished or timed out: not our error
+            super().handle_error(request, client_address)
 
 
 class ViewerServer:
@@ -168,18 +219,22 @@ class ViewerServer:
         title: page title (default: the tree's file name).
         max_mb: the page's texture budget in MB (it refuses larger trees with a hint).
         verbose: log every request to stderr.
+        check: validate the tree first (:func:`check_servable`; ``TreeFormatError``).
 
     Use :meth:`start` (background thread) / :meth:`stop`, or :meth:`serve_forever`; or as a
     context manager. :attr:`url` is the page's address.
     """
 
     def __init__(self, tree_path: str | os.PathLike, port: int = 8000, title: str | None = None,
-                 max_mb: float = DEFAULT_MAX_MB, verbose: bool = False) -> None:
+                 max_mb: float = DEFAULT_MAX_MB, verbose: bool = False,
+                 check: bool = True) -> None:
         tree = Path(tree_path)
         if not tree.is_file():
             raise ConfigError(f"{tree}: no such tree file")
         if not 0 <= int(port) <= 65535:
             raise ConfigError(f"port must be in 0..65535, got {port}")
+        if check:
+            check_servable(tree)
         self.tree_path = tree.resolve()
         self.tree_name = _tree_name(tree)
         routes: dict[str, tuple[bytes | Path, str]] = {}
@@ -196,6 +251,8 @@ class ViewerServer:
                               "--port 0 to pick a free port") from None
         self.httpd.routes = routes
         self.httpd.verbose = verbose
+        p = self.port
+        self.httpd.hosts = {f"127.0.0.1:{p}", f"localhost:{p}", "127.0.0.1", "localhost"}
         self._thread: threading.Thread | None = None
 
     @property

@@ -5,7 +5,10 @@
 import { NpzArchive, FormatError } from "./npz.js";
 import { packTree, LimitError } from "./tree.js";
 import { Renderer, GLError } from "./renderer.js";
-import { OrbitCamera } from "./camera.js";
+import { OrbitCamera, UP, applyHeldKeys, isMoveKey } from "./camera.js";
+import { drawFrustums } from "./overlay.js";
+import { probeRay, lumisphere } from "./probe.js";
+import { MeshPass, parseObj, parseGlb, toSceneUp } from "./mesh.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -63,6 +66,28 @@ const api = {
     return times[Math.floor(times.length / 2)];
   },
   camera: () => camera,
+  // The interactive camera's view for a width x height target ({c2w row-major, fx, ...}).
+  currentView: (w, h) => camera.view(w, h),
+  resetView() { resetView(); },
+  cameras: () => (config.cameras ? config.cameras.c2w.length : 0),
+  jumpToCamera(i) { jumpToCamera(i); },
+  setFov(deg) { setFov(deg); },
+  dismissMessage() { dismissMessage(); },
+  // Radiance probe along a world ray: {leaf, point, sigma, coeffs, weight, image (base64 RGBA
+  // size x size lumisphere seen with the current view's rotation)} or null.
+  probeRay(origin, dir, size = 128) { return runProbe(origin, dir, size); },
+  // Probe the pixel (x, y) of the canvas (CSS pixels from the top-left).
+  probe(x, y) { return probePixel(x, y); },
+  // Insert a mesh: OBJ text, or GLB bytes as base64 (name ending in .glb).
+  addMesh(data, name = "mesh.obj") {
+    if (/\.glb$/i.test(name) && typeof data === "string") {
+      const bin = atob(data), buf = new Uint8Array(bin.length);
+      for (let i = 0; i < bin.length; i++) buf[i] = bin.charCodeAt(i);
+      data = buf.buffer;
+    }
+    return addMesh(data, name);
+  },
+  clearMeshes() { if (meshPass) meshPass.clear(); invalidate(); },
 };
 window.viewer = api;
 
@@ -86,16 +111,204 @@ function showError(err) {
   } else {
     title = "Unexpected error";
   }
+  if (err && err.title) title = err.title;
   const text = err && err.message ? err.message : String(err);
   $("message-title").textContent = title;
   $("message-text").textContent = text;
   $("message-hint").textContent = hint;
   $("message").hidden = false;
+  $("message-close").hidden = !(renderer && renderer.tree);
   setStatus("");
   api.state = "error";
   api.message = `${title}: ${text}${hint ? "\n" + hint : ""}`;
   rejectReady(new Error(api.message));
   console.error(api.message);
+}
+
+// Close the message card; the page keeps working with the tree it had (if any).
+function dismissMessage() {
+  $("message").hidden = true;
+  if (renderer && renderer.tree) {
+    api.state = "ready";
+    api.message = "";
+    invalidate();
+  }
+}
+
+// ---------------------------------------------------------------- views
+let initialView = null;
+let meshPass = null;
+
+// Insert a mesh (OBJ text or GLB bytes; world coordinates, GLB +Y up turned onto the scene's
+// up axis). Returns {vertices, triangles}.
+function addMesh(data, name) {
+  if (!renderer) throw new Error("the viewer is not ready");
+  const mesh = /\.glb$/i.test(name) || data instanceof ArrayBuffer && new Uint32Array(data.slice(0, 4))[0] === 0x46546c67
+    ? toSceneUp(parseGlb(data instanceof ArrayBuffer ? data : new TextEncoder().encode(data).buffer, name), camera.up)
+    : parseObj(typeof data === "string" ? data : new TextDecoder().decode(data), name);
+  if (!meshPass) meshPass = new MeshPass(renderer.gl);
+  meshPass.add(mesh);
+  invalidate();
+  return { vertices: mesh.positions.length / 3, triangles: mesh.indices.length / 3 };
+}
+
+function sceneCenter(t) { return [0, 1, 2].map((i) => (0.5 - t.offset[i]) / t.invradius[i]); }
+
+// Vertical fov (degrees) of training camera i.
+function cameraFovY(i) {
+  const c = config.cameras;
+  const fy = Array.isArray(c.fy) ? c.fy[i] : c.fy;
+  return 2 * Math.atan(0.5 * c.height / fy) * 180 / Math.PI;
+}
+
+// First view: like the dataset cameras when the bundle has them (camera 0's direction and fov,
+// their median distance to the scene centre, their up axis), else the scene's bounding sphere
+// (half the box diagonal) fitted into the view with a 5 % margin.
+function frameInitialView(t) {
+  const center = sceneCenter(t);
+  const cams = config.cameras;
+  if (config.up && UP[config.up]) camera.up = config.up;
+  if (config.ndc) {
+    // forward-facing: the NDC reference camera (identity pose at the origin, looking down -z)
+    const n = config.ndc;
+    camera.up = "+y";
+    camera.fovY = 2 * Math.atan(0.5 * n.height / n.fy) * 180 / Math.PI;
+    camera.lookFrom([0, 0, 0], [0, 0, -1]);
+    camera.pose = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1];
+  } else if (cams && cams.c2w.length) {
+    const dists = cams.c2w.map((m) => Math.hypot(m[3] - center[0], m[7] - center[1], m[11] - center[2]));
+    dists.sort((a, b) => a - b);
+    const median = dists[Math.floor(dists.length / 2)];
+    const m = cams.c2w[0];
+    const eye = [m[3], m[7], m[11]];
+    const v = [eye[0] - center[0], eye[1] - center[1], eye[2] - center[2]];
+    const l = Math.hypot(...v) || 1;
+    camera.fovY = cameraFovY(0);
+    camera.lookFrom(center.map((c, k) => c + v[k] / l * median), center);
+  } else {
+    const r = Math.hypot(...t.invradius.map((v) => 0.5 / v));
+    const aspect = Math.max(canvas.clientWidth, 1) / Math.max(canvas.clientHeight, 1);
+    const halfY = 0.5 * camera.fovY * Math.PI / 180;
+    const half = Math.min(halfY, Math.atan(Math.tan(halfY) * aspect));
+    camera.target = center;
+    camera.distance = (config.camera_distance ? config.camera_distance * r : 1.05 * r / Math.sin(half));
+    camera.pose = null;
+  }
+  initialView = camera.state();
+  $("fov").value = String(Math.round(camera.fovY));
+  $("fov_out").textContent = $("fov").value;
+  $("up").value = camera.up;
+}
+
+function resetView() {
+  if (initialView) camera.setState(initialView);
+  fixedView = null;
+  $("fov").value = String(Math.round(camera.fovY));
+  $("fov_out").textContent = $("fov").value;
+  $("up").value = camera.up;
+  invalidate();
+}
+
+function setFov(deg) {
+  const v = Math.max(10, Math.min(120, Number(deg)));
+  camera.fovY = v;
+  $("fov").value = String(Math.round(v));
+  $("fov_out").textContent = $("fov").value;
+  invalidate();
+}
+
+function jumpToCamera(i) {
+  const cams = config.cameras;
+  if (!cams || !cams.c2w.length || !renderer || !renderer.tree) return;
+  const n = cams.c2w.length;
+  i = ((Math.round(i) % n) + n) % n;
+  // (NDC trees: orbit about a point 2 near-plane distances in front of the camera)
+  const pivot = config.ndc ? [cams.c2w[i][3] - 2 * cams.c2w[i][2], cams.c2w[i][7] - 2 * cams.c2w[i][6],
+    cams.c2w[i][11] - 2 * cams.c2w[i][10]] : sceneCenter(renderer.tree);
+  camera.setPose(cams.c2w[i], cameraFovY(i), pivot);
+  fixedView = null;
+  $("camera_select").value = String(i);
+  $("fov").value = String(Math.round(camera.fovY));
+  $("fov_out").textContent = $("fov").value;
+  invalidate();
+}
+
+// Frustums of the training cameras on the overlay canvas (see overlay.js).
+function drawCameras(view) {
+  const show = config.cameras && $("show_cameras").checked && !fixedView;
+  drawFrustums($("overlay"), view, show ? config.cameras : null,
+    Number($("camera_select").value), treeRadius() * 0.12);
+}
+
+// ---------------------------------------------------------------- radiance probe
+function runProbe(origin, dir, size = 128) {
+  if (!renderer || !renderer.tree) return null;
+  const l = Math.hypot(...dir) || 1;
+  let d = dir.map((v) => v / l);
+  let o = origin;
+  if (opts.ndc) {                         // the same world -> NDC ray map as the shader
+    if (!(d[2] < 0)) return null;
+    const n = opts.ndc, ax = -2 * n.fx / n.width, ay = -2 * n.fy / n.height;
+    const t = -(n.near + o[2]) / d[2];
+    const on = o.map((v, k) => v + t * d[k]);
+    const rx = on[0] / on[2], ry = on[1] / on[2];
+    o = [ax * rx, ay * ry, 1 + 2 * n.near / on[2]];
+    const d2 = [ax * (d[0] / d[2] - rx), ay * (d[1] / d[2] - ry), -2 * n.near / on[2]];
+    const l2 = Math.hypot(...d2);
+    d = d2.map((v) => v / l2);
+  }
+  const hit = probeRay(renderer.tree, o, d);
+  const info = $("probe_info");
+  const cv = $("probe_canvas");
+  const ctx = cv.getContext("2d");
+  ctx.clearRect(0, 0, cv.width, cv.height);
+  if (!hit) { info.textContent = "nothing along this ray"; return null; }
+  const view = fixedView || camera.view(size, size);
+  const img = lumisphere(renderer.tree, hit.coeffs, view.c2w, size);
+  const shown = size === cv.width ? img : lumisphere(renderer.tree, hit.coeffs, view.c2w, cv.width);
+  ctx.putImageData(new ImageData(shown, cv.width, cv.width), 0, 0);
+  info.textContent = `leaf ${hit.leaf} at (${hit.point.map((v) => v.toFixed(3)).join(", ")}), `
+    + `sigma ${hit.sigma.toFixed(2)}, weight ${hit.weight.toFixed(2)}; the sphere shows the colour `
+    + "seen from each direction (as oriented in the current view)";
+  let s = "";
+  for (let i = 0; i < img.length; i += 0x8000) s += String.fromCharCode.apply(null, img.subarray(i, i + 0x8000));
+  return { leaf: hit.leaf, point: hit.point, sigma: hit.sigma, weight: hit.weight,
+    coeffs: hit.coeffs, image: btoa(s) };
+}
+
+function probePixel(x, y) {
+  const w = Math.max(1, canvas.clientWidth), h = Math.max(1, canvas.clientHeight);
+  const view = fixedView ? { ...fixedView } : camera.view(w, h);
+  const sx = view.width / w, sy = view.height / h;
+  const m = view.c2w;
+  const dc = [(x * sx - view.cx) / view.fx, -(y * sy - view.cy) / view.fy, -1];
+  const dir = [0, 1, 2].map((k) => m[4 * k] * dc[0] + m[4 * k + 1] * dc[1] + m[4 * k + 2] * dc[2]);
+  $("probe_box").open = true;
+  return runProbe([m[3], m[7], m[11]], dir);
+}
+
+// ---------------------------------------------------------------- keyboard fly
+const held = new Set();
+let lastKeyTime = null;
+// Advance the held keys by dt seconds (camera.js: fly 0.5 scene radii per second, turn 60°/s).
+function applyKeys(dt) {
+  if (held.size && renderer && renderer.tree) applyHeldKeys(camera, held, dt, treeRadius());
+}
+
+function onKey(e, down) {
+  const tag = (e.target && e.target.tagName) || "";
+  if (["INPUT", "SELECT", "TEXTAREA"].includes(tag) && e.target.type !== "checkbox" && e.target.type !== "range") return;
+  if (isMoveKey(e.code)) {
+    e.preventDefault();
+    if (down) held.add(e.code); else held.delete(e.code);
+    return;
+  }
+  if (!down) return;
+  if (e.code === "KeyR") resetView();
+  else if (e.code === "BracketRight") jumpToCamera(Number($("camera_select").value) + 1);
+  else if (e.code === "BracketLeft") jumpToCamera(Number($("camera_select").value) - 1);
+  else if (e.key === "?" || e.code === "KeyH") $("hints").hidden = !$("hints").hidden;
+  else if (e.code === "Escape") dismissMessage();
 }
 
 function describe(t) {
@@ -120,15 +333,19 @@ function renderOnce(scale = scaleMode === "auto" ? 1 : Number(scaleMode)) {
   if (!renderer || !renderer.tree) throw new Error("no tree loaded");
   const [w, h] = targetSize(scale);
   const view = fixedView || camera.view(w, h);
-  if (!fixedView) {
+  if (opts.ndc) {
+    opts.depth_range = [0, 2.5];          // NDC lengths (the cube is 2 deep)
+  } else if (!fixedView) {
     const c = camera.target, e = camera.eye();
     const dist = Math.hypot(e[0] - c[0], e[1] - c[1], e[2] - c[2]);
     const r = treeRadius() * Math.sqrt(3);
     opts.depth_range = [Math.max(0, dist - r), dist + r];
   }
   const t0 = performance.now();
-  renderer.draw(view, opts);
+  const meshTex = meshPass && meshPass.meshes.length && !opts.ndc ? meshPass.draw(view) : null;
+  renderer.draw(view, opts, meshTex);
   renderer.finish();
+  drawCameras(view);
   const ms = performance.now() - t0;
   lastFrameMs = ms;
   if (scaleMode === "auto" && !fixedView) {
@@ -146,6 +363,8 @@ function treeRadius() {
 
 function loop() {
   const now = performance.now();
+  if (lastKeyTime !== null && api.state === "ready") applyKeys(Math.min((now - lastKeyTime) / 1000, 0.1));
+  lastKeyTime = now;
   const continuous = $("continuous").checked;
   try {
     if (api.state === "ready" && (dirty || continuous)) {
@@ -246,6 +465,7 @@ function buildControls() {
     $("message").hidden = true;
     api.state = "loading";
     try { await loadBuffer(await f.arrayBuffer(), f.name); } catch (err) { showError(err); }
+    $("file").value = "";
   });
   canvas.addEventListener("webglcontextlost", (e) => {
     e.preventDefault();
@@ -254,6 +474,32 @@ function buildControls() {
     showError(err);
   });
   window.addEventListener("resize", () => { invalidate(); });
+  window.addEventListener("keydown", (e) => onKey(e, true));
+  window.addEventListener("keyup", (e) => onKey(e, false));
+  window.addEventListener("blur", () => held.clear());
+  $("message-close").addEventListener("click", dismissMessage);
+  $("hints-close").addEventListener("click", () => { $("hints").hidden = true; });
+  $("reset_view").addEventListener("click", resetView);
+  $("fov").addEventListener("input", () => setFov($("fov").value));
+  $("camera_select").addEventListener("change", () => jumpToCamera(Number($("camera_select").value)));
+  $("camera_prev").addEventListener("click", () => jumpToCamera(Number($("camera_select").value) - 1));
+  $("camera_next").addEventListener("click", () => jumpToCamera(Number($("camera_select").value) + 1));
+  $("show_cameras").addEventListener("change", () => invalidate());
+  $("mesh_file").addEventListener("change", async () => {
+    const f = $("mesh_file").files[0];
+    if (!f) return;
+    try {
+      const r = addMesh(/\.glb$/i.test(f.name) ? await f.arrayBuffer() : await f.text(), f.name);
+      $("mesh_info").textContent = `${f.name}: ${r.vertices.toLocaleString()} vertices, ${r.triangles.toLocaleString()} triangles`;
+    } catch (err) { showError(err); }
+    $("mesh_file").value = "";
+  });
+  $("mesh_clear").addEventListener("click", () => { api.clearMeshes(); $("mesh_info").textContent = ""; });
+  canvas.addEventListener("click", (e) => {
+    if (!(e.altKey || $("probe_mode").checked) || api.state !== "ready") return;
+    const r = canvas.getBoundingClientRect();
+    probePixel(e.clientX - r.left, e.clientY - r.top);
+  });
   camera.onChange = () => { invalidate(); };
   camera.attach(canvas);
 }
@@ -294,12 +540,8 @@ async function loadBuffer(buffer, name) {
   const packed = await packTree(archive, limits, setStatus);
   setStatus("Uploading textures...");
   renderer.upload(packed);
-  const r = treeRadius();
-  const center = [0, 1, 2].map((i) => (0.5 - packed.offset[i]) / packed.invradius[i]);
-  camera.target = center;
-  camera.distance = (config.camera_distance || 2.6) * r;
-  if (config.up) camera.up = config.up;
-  $("up").value = camera.up;
+  opts.ndc = config.ndc || null;
+  frameInitialView(packed);
   opts.sh_min = 0;
   opts.sh_max = -1;
   syncControls();
@@ -312,13 +554,36 @@ async function loadBuffer(buffer, name) {
   resolveReady(d);
 }
 
+function fillCameraList() {
+  const cams = config.cameras;
+  const sel = $("camera_select");
+  sel.textContent = "";
+  const n = cams ? cams.c2w.length : 0;
+  $("cameras_box").hidden = n === 0;
+  for (let i = 0; i < n; i++) {
+    const o = document.createElement("option");
+    o.value = String(i);
+    o.textContent = cams.names && cams.names[i] ? `${i}: ${cams.names[i]}` : `camera ${i}`;
+    sel.appendChild(o);
+  }
+}
+
 async function main() {
   buildControls();
+  if (location.protocol === "file:" && !params.get("tree")) {
+    const err = new FormatError("this page was opened from the disk (file://), where browsers do not "
+      + "let it read the tree. Serve the folder over HTTP and open the address it prints:\n"
+      + "  python -m http.server --bind 127.0.0.1 8000 --directory <this folder>\n"
+      + "or run: plenoctree view TREE");
+    err.title = "Open this viewer through a web server";
+    throw err;
+  }
   try {
     const cfg = await fetch("config.json");
     if (cfg.ok) config = await cfg.json();
   } catch (err) { /* no config: ?tree= or the file picker */ }
   if (config.title) document.title = config.title;
+  fillCameraList();
   const treeUrl = params.get("tree") || config.tree;
   renderer = new Renderer(canvas, {
     maxTextureSize: Number(params.get("max_texture")) || undefined,

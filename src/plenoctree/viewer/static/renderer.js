@@ -47,6 +47,11 @@ uniform vec3 u_background;
 uniform int u_mode;               // 0 rgb, 1 depth, 2 alpha
 uniform vec2 u_depth_range;       // world distances mapped to white .. black
 uniform int u_max_steps;
+uniform int u_mesh;               // 1: inserted meshes (mesh.js) occlude the volume
+uniform sampler2D u_mesh_color;   // their unlit colour and world distance along each ray
+uniform sampler2D u_mesh_dist;
+uniform int u_ndc;                // 1: the tree lives in NDC space (forward-facing scene)
+uniform vec4 u_ndc_cam;           // NDC reference camera: 2 fx / W, 2 fy / H, near, unused
 out vec4 frag_color;
 
 // Index of the highest set bit of v > 0 (findMSB is not in GLSL ES 3.00).
@@ -119,6 +124,22 @@ void main() {
   vec3 dcam = vec3((px - u_intrinsics.z) / u_intrinsics.x, -(py - u_intrinsics.w) / u_intrinsics.y, -1.0);
   vec3 dir = normalize(mat3(u_c2w) * dcam);
   vec3 origin = u_c2w[3].xyz;
+  bool behind = false;
+  if (u_ndc == 1) {
+    // world ray -> NeRF NDC ray (plenoctree.datasets.ndc.to_ndc_rays, unit direction)
+    if (dir.z < 0.0) {
+      float near = u_ndc_cam.z;
+      vec3 on = origin + (-(near + origin.z) / dir.z) * dir;
+      vec2 r = on.xy / on.z;
+      vec3 o2 = vec3(-u_ndc_cam.x * r.x, -u_ndc_cam.y * r.y, 1.0 + 2.0 * near / on.z);
+      vec3 d2 = vec3(-u_ndc_cam.x * (dir.x / dir.z - r.x), -u_ndc_cam.y * (dir.y / dir.z - r.y),
+                     -2.0 * near / on.z);
+      origin = o2;
+      dir = normalize(d2);
+    } else {
+      behind = true;                // never reaches the NDC cube
+    }
+  }
 
   float bv[MAX_BASIS];
   basis_values(dir, bv);
@@ -135,10 +156,20 @@ void main() {
   float t1 = min(min(hi3.x, hi3.y), hi3.z);
   vec3 positive = step(0.0, d);
 
+  vec3 background = u_background;
+  if (u_mesh == 1 && u_ndc == 0) {
+    // a mesh surface ends the ray there and replaces the background behind the volume
+    ivec2 pix = ivec2(gl_FragCoord.xy);
+    float tm = texelFetch(u_mesh_dist, pix, 0).r;
+    if (tm < 1e29) {
+      t1 = min(t1, tm);
+      background = texelFetch(u_mesh_color, pix, 0).rgb;
+    }
+  }
   vec3 rgb = vec3(0.0);
   float T = 1.0, wsum = 0.0, wtsum = 0.0;
   float t = t0;
-  if (t0 < t1) {
+  if (t0 < t1 && !behind) {
     // stack[l] = node holding the level-l cell of the current point; a step restarts the
     // descent at the deepest node it shares with the previous point (same high bits).
     int stack[QBITS];
@@ -198,13 +229,17 @@ void main() {
   }
   float alpha = 1.0 - T;
   if (u_mode == 0) {
-    frag_color = vec4(rgb + T * u_background, 1.0);
+    frag_color = vec4(rgb + T * background, 1.0);
   } else if (u_mode == 1) {
     float depth = wtsum / max(wsum, 1e-10);
     float g = 1.0 - clamp((depth - u_depth_range.x) / max(u_depth_range.y - u_depth_range.x, 1e-6), 0.0, 1.0);
     frag_color = vec4(vec3(g) * alpha + T * u_background, 1.0);
   } else {
-    frag_color = vec4(vec3(alpha) + T * u_background, 1.0);
+    // opacity drawn in the colour that contrasts with the background (white on dark, black
+    // on light), so it shows on the default white background too
+    float lum = dot(u_background, vec3(0.299, 0.587, 0.114));
+    vec3 ink = lum > 0.5 ? vec3(0.0) : vec3(1.0);
+    frag_color = vec4(mix(u_background, ink, alpha), 1.0);
   }
 }`;
 
@@ -295,7 +330,8 @@ export class Renderer {
   //          fx, fy, cx, cy, width, height}
   // opts: {stop_thresh, step_eps, background[3], sh_min, sh_max, box_min[3], box_max[3],
   //        mode: "rgb"|"depth"|"alpha", depth_range[2]}
-  draw(camera, opts) {
+  // meshTex: [colour, distance] textures of MeshPass.draw for this camera, or null.
+  draw(camera, opts, meshTex = null) {
     const gl = this.gl, L = this.loc, t = this.tree;
     if (!t) throw new GLError("no tree loaded");
     if (this.canvas.width !== camera.width || this.canvas.height !== camera.height) {
@@ -311,6 +347,15 @@ export class Renderer {
     gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.dataTex);
     gl.uniform1i(L.u_child, 0);
     gl.uniform1i(L.u_data, 1);
+    if (meshTex) {
+      gl.activeTexture(gl.TEXTURE2);
+      gl.bindTexture(gl.TEXTURE_2D, meshTex[0]);
+      gl.activeTexture(gl.TEXTURE3);
+      gl.bindTexture(gl.TEXTURE_2D, meshTex[1]);
+    }
+    if (L.u_mesh_color) gl.uniform1i(L.u_mesh_color, 2);
+    if (L.u_mesh_dist) gl.uniform1i(L.u_mesh_dist, 3);
+    if (L.u_mesh) gl.uniform1i(L.u_mesh, meshTex ? 1 : 0);
     gl.uniform3i(L.u_child_layout, t.child.log2PerRow, t.child.log2h, t.child.perItem);
     gl.uniform3i(L.u_data_layout, t.data.log2PerRow, t.data.log2h, t.data.perItem);
     const B = t.format.basisDim;
@@ -342,6 +387,10 @@ export class Renderer {
     gl.uniform2fv(L.u_depth_range, opts.depth_range || [0, 1]);
     // a ray crosses at most ~3 * 2^(depth+1) finest cells; the cap keeps bad input from hanging
     gl.uniform1i(L.u_max_steps, Math.min(3 * 2 ** (t.maxDepth + 1) + 64, 1 << 20));
+    const ndc = opts.ndc;          // {fx, fy, width, height, near} of the NDC reference camera
+    gl.uniform1i(L.u_ndc, ndc ? 1 : 0);
+    gl.uniform4f(L.u_ndc_cam, ndc ? 2 * ndc.fx / ndc.width : 0, ndc ? 2 * ndc.fy / ndc.height : 0,
+      ndc ? ndc.near : 1, 0);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
   }
 

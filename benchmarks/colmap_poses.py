@@ -1,0 +1,175 @@
+"""Camera poses recovered by ``plenoctree process`` (COLMAP) against the lego ground truth.
+
+Method: the 100 lego training photos are area-downscaled to ``--size`` (400²), composited on
+white and written as PNGs under ``--work`` (never the repository); ``plenoctree.process``
+(the command's own code path, default options unless ``--camera-model`` etc. are given)
+recovers the poses; the recovered camera centres are aligned to the true ones by the
+least-squares similarity (Umeyama); then per registered image the rotation error (angle of
+``R_true^T R_aligned``, degrees) and the centre error (percent of that camera's true
+distance to the scene centre) are reported: median, max, the number of outliers (rotation
+error > 5°), the registered count and the wall time, with the machine and its load average
+(the machine may be shared: wall-clock minutes and the process's CPU minutes are both given). ``--baseline`` also runs pycolmap's
+defaults (SIMPLE_RADIAL camera per image, exhaustive matching, no guided matching, default
+mapper) on the same photos in the same run.
+
+    python benchmarks/colmap_poses.py --size 400 --json /tmp/colmap/poses.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from plenoctree._util import atomic_save_json
+
+_HERE = Path(__file__).resolve().parents[1]          # the checkout (a worktree: one deeper)
+LEGO = next((d / "shared/data/nerf_synthetic/lego" for d in (_HERE.parent, _HERE.parent.parent)
+             if (d / "shared/data/nerf_synthetic/lego").is_dir()),
+            _HERE.parent / "shared/data/nerf_synthetic/lego")
+OUTLIER_DEG = 5.0
+
+
+def prepare(size: int, out: Path) -> dict[str, np.ndarray]:
+    """Write the training photos at ``size``² on white; return name -> true OpenGL c2w."""
+    from PIL import Image
+
+    meta = json.loads((LEGO / "transforms_train.json").read_text())
+    out.mkdir(parents=True, exist_ok=True)
+    gt = {}
+    for fr in meta["frames"]:
+        name = Path(fr["file_path"]).name + ".png"
+        gt[name] = np.array(fr["transform_matrix"], dtype=np.float64)
+        if (out / name).is_file():
+            continue
+        im = Image.open(LEGO / (fr["file_path"] + ".png")).convert("RGBA")
+        im = im.resize((size, size), Image.BOX)
+        a = np.asarray(im).astype(np.float32) / 255.0
+        rgb = a[..., :3] * a[..., 3:] + (1.0 - a[..., 3:])
+        Image.fromarray(np.round(rgb * 255).astype(np.uint8)).save(out / name)
+    return gt
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity ``(s, R, t)`` minimising ``sum |s R src_i + t - dst_i|^2`` (``[N, 3]``)."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    u, sig, vt = np.linalg.svd(xd.T @ xs / len(src))
+    d = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        d[2, 2] = -1
+    r = u @ d @ vt
+    s = float(np.trace(np.diag(sig) @ d) / xs.var(0).sum())
+    return s, r, mu_d - s * r @ mu_s
+
+
+def pose_errors(est: np.ndarray, ref: np.ndarray) -> dict:
+    """Errors of OpenGL c2w ``est [N, 4, 4]`` against ``ref`` after a similarity alignment
+    (fitted on all cameras, then refitted without the outliers so that one flipped camera
+    does not tilt the others; the outliers stay in the max figures and are counted)."""
+    keep = np.ones(len(est), bool)
+    for _ in range(2):
+        s, r, t = umeyama(est[keep, :3, 3], ref[keep, :3, 3])
+        centres = (s * (r @ est[:, :3, 3].T)).T + t
+        cerr = (np.linalg.norm(centres - ref[:, :3, 3], axis=1)
+                / np.linalg.norm(ref[:, :3, 3], axis=1))
+        cos = (np.einsum("nij,nij->n", r @ est[:, :3, :3], ref[:, :3, :3]) - 1) / 2
+        rerr = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+        keep = rerr <= OUTLIER_DEG
+        if keep.sum() < 3:
+            break
+    return {"rot_median_deg": float(np.median(rerr)), "rot_max_deg": float(rerr.max()),
+            "centre_median_pct": float(100 * np.median(cerr)),
+            "centre_max_pct": float(100 * cerr.max()),
+            "outliers": int((rerr > OUTLIER_DEG).sum())}
+
+
+def run_process(images: Path, out: Path, sfm) -> tuple[dict, np.ndarray, list[str], float]:
+    from plenoctree.process import ProcessConfig, process
+
+    import resource
+
+    shutil.rmtree(out, ignore_errors=True)
+    t0 = time.perf_counter()
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    summary = process(ProcessConfig(images=str(images), out=str(out), sfm=sfm, overwrite=True),
+                      log=lambda m: print("  " + m, flush=True))
+    minutes = (time.perf_counter() - t0) / 60
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    summary["cpu_minutes"] = (r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime) / 60
+    tj = json.loads((out / "transforms.json").read_text())
+    c2w = np.array([f["transform_matrix"] for f in tj["frames"]])
+    return summary, c2w, [f["colmap_name"] for f in tj["frames"]], minutes
+
+
+def main(argv: list[str] | None = None) -> int:
+    from plenoctree.process import SfmOptions
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--size", type=int, default=400)
+    ap.add_argument("--work", default="/tmp/colmap_poses")
+    ap.add_argument("--json", default="/tmp/colmap_poses/poses.json")
+    ap.add_argument("--camera-model", default=None)
+    ap.add_argument("--no-guided", action="store_true")
+    ap.add_argument("--baseline", action="store_true",
+                    help="also run pycolmap's defaults on the same photos")
+    args = ap.parse_args(argv)
+    if not (LEGO / "transforms_train.json").is_file():
+        print(f"lego not found at {LEGO}", file=sys.stderr)
+        return 2
+    work = Path(args.work)
+    gt = prepare(args.size, work / f"images_{args.size}")
+    runs = {}
+    ours = SfmOptions()
+    if args.camera_model:
+        ours.camera_model = args.camera_model
+    if args.no_guided:
+        ours.guided_matching = False
+    variants = [("process defaults", ours)]
+    if args.baseline:
+        variants.append(("pycolmap defaults", SfmOptions(
+            camera_model="SIMPLE_RADIAL", single_camera=False, guided_matching=False,
+            mapper={})))
+    load_before = os.getloadavg()
+    for name, opts in variants:
+        print(f"{name}: {opts}", flush=True)
+        summary, c2w, names, minutes = run_process(work / f"images_{args.size}",
+                                                   work / name.replace(" ", "_"), opts)
+        ref = np.stack([gt[n] for n in names])
+        row = {"registered": len(names), "images": len(gt), "models": summary["n_models"],
+               "minutes": minutes, "cpu_minutes": summary["cpu_minutes"],
+               "kind": summary["kind"], **pose_errors(c2w, ref),
+               "options": {k: v for k, v in vars(opts).items()}, "seconds": summary["seconds"]}
+        runs[name] = row
+    load_after = os.getloadavg()
+    hdr = (f"{'run':<20} {'reg':>7} {'rot med':>8} {'rot max':>8} {'ctr med%':>9} "
+           f"{'ctr max%':>9} {'outl':>5} {'min':>6} {'cpu min':>7}")
+    print(hdr)
+    for name, r in runs.items():
+        print(f"{name:<20} {r['registered']:>3}/{r['images']:<3} {r['rot_median_deg']:8.3f} "
+              f"{r['rot_max_deg']:8.3f} {r['centre_median_pct']:9.3f} {r['centre_max_pct']:9.3f} "
+              f"{r['outliers']:5d} {r['minutes']:6.2f} {r['cpu_minutes']:7.2f}")
+    print(f"load average before {load_before[0]:.1f}, after {load_after[0]:.1f} on "
+          f"{os.cpu_count()} cores")
+    import pycolmap
+
+    atomic_save_json(args.json, {
+        "size": args.size, "runs": runs, "pycolmap": pycolmap.__version__,
+        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
+                    "python": platform.python_version()},
+        "load_avg_before": load_before, "load_avg_after": load_after,
+        "goals": {"rot_median_deg": 0.5, "centre_pct": 1.0, "outliers": 0,
+                  "registered_frac": 0.95, "minutes": 10}})
+    print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,7 @@
+"""``python -m plenoctree`` = the ``plenoctree`` command."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())

@@ -1,0 +1,76 @@
+"""Dataclass configs: help text, layering of option values, config files.
+
+Used by the CLI's flag generator (:mod:`plenoctree.cli._options`) and by the pipeline (stage
+overrides); imports nothing heavy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+from .errors import ConfigError
+
+__all__ = ["apply", "field_help", "load_config_file", "config_dict"]
+
+
+def field_help(cls: type) -> dict[str, str]:
+    """Help text of each field of dataclass ``cls``: ``metadata["help"]``, else the docstring
+    written under the field (searched through the base classes)."""
+    from .nerf.config import field_docs
+
+    docs: dict[str, str] = {}
+    for klass in reversed([c for c in cls.__mro__ if dataclasses.is_dataclass(c)]):
+        try:
+            docs.update(field_docs(klass))
+        except (OSError, TypeError, IndexError, SyntaxError):  # pragma: no cover - no source
+            pass
+    for f in dataclasses.fields(cls):
+        if "help" in f.metadata:
+            docs[f.name] = str(f.metadata["help"])
+    return docs
+
+
+def apply(cfg: Any, values: dict[str, Any], where: str = "config") -> Any:
+    """Set ``values`` (nested dicts for nested dataclasses) on dataclass ``cfg``; returns it.
+
+    Unknown names raise :class:`ConfigError` naming ``where``; lists become tuples where the
+    field's default is a tuple (JSON has no tuples)."""
+    names = {f.name: f for f in dataclasses.fields(cfg)}
+    for key, value in values.items():
+        if key not in names:
+            raise ConfigError(f"{where}: unknown option {key!r}; known: "
+                              f"{', '.join(sorted(names))}")
+        cur = getattr(cfg, key)
+        if dataclasses.is_dataclass(cur) and isinstance(value, dict):
+            apply(cur, value, f"{where}.{key}")
+            continue
+        ann = str(names[key].type)
+        if isinstance(value, list) and (isinstance(cur, tuple) or ann.startswith("tuple")
+                                        or key == "background"):
+            value = tuple(value)
+        setattr(cfg, key, value)
+    return cfg
+
+
+def load_config_file(path: str | Path | None) -> dict[str, Any]:
+    """The options of ``--config FILE`` (``{}`` without one); bad files raise ConfigError."""
+    if not path:
+        return {}
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read the config file ({e.strerror})") from None
+    except ValueError as e:
+        raise ConfigError(f"{p}: not a JSON config file ({e})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{p}: expected a JSON object of options, got {type(data).__name__}")
+    return data
+
+
+def config_dict(cfg: Any) -> dict[str, Any]:
+    """A dataclass config as JSON-able dict (tuples as lists, paths as strings)."""
+    return json.loads(json.dumps(dataclasses.asdict(cfg), default=str))

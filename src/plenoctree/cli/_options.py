@@ -1,0 +1,210 @@
+"""Config dataclass → command-line flags: the one mechanism every command uses.
+
+A command describes its options as a dataclass (``TrainConfig``, ``ExtractConfig``,
+``FinetuneConfig``, ``EvalConfig``, ``PipelineConfig``...). :func:`add_config` turns every
+field into a flag; a new field becomes a flag with no other edit:
+
+- flag ``--<prefix><field-name>`` (``_`` → ``-``), e.g. ``--batch-rays`` or, for a nested stage
+  config of ``run``, ``--finetune.batch-rays``; the parsed value lands at dest
+  ``<prefix><field_name>`` (``finetune.batch_rays``);
+- help = the docstring under the field (or its ``metadata["help"]``), followed by the real
+  default (``default: 0.01``; nothing when the default is ``None``/empty and the text says
+  what happens then);
+- type from the annotation: ``bool`` → ``--x/--no-x``; ``int``/``float``/``str`` (``| None``
+  allowed); tuples of numbers → ``--x 1 2 3``; ``dict``/``list`` → a JSON value; a field
+  named ``background`` → ``white``, ``black`` or ``R,G,B``;
+- field metadata (``field(metadata={...})``) may add ``"choices"``, ``"flag"`` (another flag
+  name, e.g. ``"steps"``), ``"positional": True``, ``"cli": False`` (no flag), ``"metavar"``.
+
+Flags default to "not given" (``None``), so values layer: the dataclass default or preset, then
+``--config FILE`` (JSON, the ``config.json`` a run saves), then the flags given. :func:`given`
+collects what was given (nested by prefix); :func:`apply` sets it on a config, checking names.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import re
+from pathlib import Path
+from typing import Any, Iterable
+
+from .._config import apply, field_help, load_config_file
+from ..errors import ConfigError
+
+__all__ = ["add_config", "given", "layered", "apply", "field_help", "load_config_file", "parse_background",
+           "add_config_file", "config_to_json", "format_default"]
+
+
+def parse_background(text: str) -> tuple[float, float, float]:
+    """``white``, ``black``, ``R,G,B`` or one grey value, floats in [0, 1] -> an RGB tuple;
+    anything else raises :class:`ConfigError`."""
+    t = str(text).strip().lower()
+    named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+    if t in named:
+        return named[t]
+    try:
+        vals = tuple(float(v) for v in t.split(","))
+    except ValueError:
+        vals = ()
+    if len(vals) == 1:
+        vals = vals * 3
+    if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
+        raise ConfigError(f"--background: expected white, black or R,G,B in [0,1], got {text!r}")
+    return vals  # type: ignore[return-value]
+
+
+def _background_arg(text: str) -> tuple[float, float, float]:
+    try:
+        return parse_background(text)
+    except ConfigError as e:
+        raise argparse.ArgumentTypeError(str(e).split(": ", 1)[1]) from None
+
+
+def _kind(f: dataclasses.Field) -> tuple[str, Any]:
+    """``(kind, parser)`` of a field from its annotation string and default."""
+    ann = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+    parts = [p.strip() for p in re.split(r"\|", ann.replace("Optional[", "").rstrip("]"))]
+    parts = [p for p in parts if p not in ("None", "NoneType")]
+    base = parts[0] if parts else "str"
+    default = f.default if f.default is not dataclasses.MISSING else None
+    if f.name == "background":
+        return "background", _background_arg
+    if base == "bool":
+        return "bool", None
+    if base.startswith("tuple") or isinstance(default, tuple):
+        return "tuple", (int if "int" in base and "float" not in base else float)
+    if base == "int":
+        return "int", int
+    if base == "float":
+        return "float", float
+    if base in ("dict", "list") or base.startswith(("dict", "list")):
+        return "json", json.loads
+    return "str", str
+
+
+def format_default(value: Any) -> str | None:
+    """How a default reads in ``--help`` (``None`` = not shown)."""
+    if value is None or value == "" or value == () or value == {}:
+        return None
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, tuple):
+        return ",".join(format_default(v) or "" for v in value)
+    return str(value)
+
+
+def _default_of(f: dataclasses.Field) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+        return f.default_factory()  # type: ignore[misc]
+    return None
+
+
+def add_config(p: argparse.ArgumentParser | Any, cls: type, *, prefix: str = "",
+               dest_prefix: str | None = None, shown: Any = None,
+               skip: Iterable[str] = (), title: str | None = None,
+               positional: Iterable[str] = (), short: dict[str, str] | None = None,
+               rename: dict[str, str] | None = None,
+               aliases: dict[str, str] | None = None,
+               choices: dict[str, Iterable[str]] | None = None) -> list[str]:
+    """Add one flag per field of dataclass ``cls`` to parser (or group) ``p``.
+
+    ``prefix``: flag and dest prefix (``"finetune."`` → ``--finetune.epochs``, dest
+    ``finetune.epochs``); ``dest_prefix`` overrides the dest prefix alone (``"model."`` for
+    ``ModelConfig`` fields shown as plain ``--grid-levels``). ``shown``: an instance whose
+    values ``--help`` shows as the defaults (a preset); default: the dataclass defaults.
+    ``skip``: fields without a flag. ``positional``: fields taken as positional arguments
+    (required). ``short``: extra short flags (``{"out": "-o"}``). ``rename``: flag names
+    differing from the field's (``{"show_progress": "progress"}``). ``aliases``: an older
+    flag name kept working (``{"limit": "--limit"}``). ``choices``: allowed values of
+    fields (as the ``"choices"`` metadata). Returns the dests added.
+    """
+    choices = choices or {}
+    positional, short, rename, aliases = set(positional), short or {}, rename or {}, aliases or {}
+    dprefix = prefix if dest_prefix is None else dest_prefix
+    docs = field_help(cls)
+    target = p.add_argument_group(title) if title else p
+    skip = set(skip)
+    dests = []
+    for f in dataclasses.fields(cls):
+        if f.name in skip or not f.metadata.get("cli", True) or dataclasses.is_dataclass(
+                _default_of(f)):
+            continue
+        kind, parse = _kind(f)
+        default = getattr(shown, f.name) if shown is not None else _default_of(f)
+        text = docs.get(f.name, "")
+        shown_default = format_default(default)
+        if shown_default is not None and kind != "json":
+            text = f"{text} (default: {shown_default})" if text else f"default: {shown_default}"
+        text = text.replace("%", "%%")
+        dest = dprefix + f.name
+        if f.metadata.get("positional") or f.name in positional:
+            target.add_argument(dest, metavar=f.name.upper(), help=text)
+            dests.append(dest)
+            continue
+        names = ["--" + prefix + rename.get(f.name, f.name).replace("_", "-")]
+        if "flag" in f.metadata:
+            names.insert(0, "--" + prefix + f.metadata["flag"])
+        if f.name in short and not prefix:
+            names.append(short[f.name])
+        if f.name in aliases and not prefix:
+            names.append(aliases[f.name])
+        kw: dict[str, Any] = {"dest": dest, "default": None, "help": text}
+        if kind == "bool":
+            kw["action"] = argparse.BooleanOptionalAction
+        else:
+            kw["type"] = parse
+            if kind == "tuple":
+                kw["nargs"] = "+"
+            if "choices" in f.metadata or f.name in choices:
+                kw["choices"] = list(choices.get(f.name) or f.metadata["choices"])
+            kw["metavar"] = f.metadata.get("metavar") or {
+                "tuple": "X", "background": "COLOUR", "json": "JSON"}.get(kind, f.name.upper())
+            if "choices" in kw:
+                kw.pop("metavar")
+        target.add_argument(*names, **kw)
+        dests.append(dest)
+    return dests
+
+
+def layered(args: argparse.Namespace, base: Any, where: str) -> Any:
+    """``base`` (a config instance: defaults or a preset) with ``--config FILE`` and then the
+    flags of ``args._dests`` applied: the one layering rule of every command."""
+    apply(base, load_config_file(getattr(args, "_config_file", None)),
+          where=str(getattr(args, "_config_file", None) or where))
+    return apply(base, given(args, args._dests), where=where)
+
+
+def given(args: argparse.Namespace, dests: Iterable[str], prefix: str = "") -> dict[str, Any]:
+    """The values of ``dests`` (from :func:`add_config`) given on the command line, with
+    ``prefix`` removed and nested by the remaining dots (``None`` = not given):
+    ``{"epochs": 3, "model": {"net_width": 32}}``."""
+    out: dict[str, Any] = {}
+    for key in dests:
+        value = getattr(args, key, None)
+        if value is None or not key.startswith(prefix):
+            continue
+        parts = key[len(prefix):].split(".")
+        node = out
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = value
+    return out
+
+
+def add_config_file(p: argparse.ArgumentParser) -> None:
+    """Add ``--config FILE``: a JSON file of option values (e.g. a run's saved config.json),
+    applied before the flags given on the command line."""
+    p.add_argument("--config", dest="_config_file", metavar="FILE", default=None,
+                   help="JSON file of options (a run's saved config.json); flags given on the "
+                        "command line override it")
+
+
+def config_to_json(cfg: Any) -> str:
+    """A dataclass config as indented JSON (tuples as lists, paths as strings)."""
+    return json.dumps(dataclasses.asdict(cfg), indent=2, default=str)

@@ -1,0 +1,53 @@
+"""``plenoctree plot``: the stage plot of a run, or the curve of a fine-tuning log, as a PNG."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from ..errors import ConfigError
+
+
+def _run(args: argparse.Namespace) -> int:
+    from ..plots import plot_finetune_curve, plot_stages
+
+    src = Path(args.file)
+    if not src.is_file():
+        raise ConfigError(f"{src}: no such file")
+    if src.name.endswith(".jsonl"):
+        out = Path(args.out) if args.out else src.with_name(src.name.removesuffix(".log.jsonl")
+                                                            .removesuffix(".jsonl") + ".curve.png")
+        ok = plot_finetune_curve(src, out, title=args.title)
+        what = "fine-tuning curve"
+    else:
+        try:
+            obj = json.loads(src.read_text())
+        except (OSError, UnicodeDecodeError, ValueError) as e:
+            raise ConfigError(f"{src}: not a JSON file ({e})") from None
+        rows = obj.get("rows") if isinstance(obj, dict) else obj
+        if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+            raise ConfigError(f"{src}: expected a run's summary.json (or a list of rows with "
+                              "stage, psnr, fps, mb)")
+        out = Path(args.out) if args.out else src.with_name("stages.png")
+        ok = plot_stages(rows, out, title=args.title)
+        what = "stage plot"
+    if not ok:
+        raise ConfigError(f"{src}: nothing to plot (no values), or matplotlib is missing "
+                          "(pip install 'plenoctree[plot]')")
+    print(f"{what} -> {out}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``plot`` command."""
+    p = sub.add_parser("plot", help="plot a run's stages (PSNR vs FPS and MB) or a fine-tuning "
+                       "log's PSNR curve",
+                       description="FILE: a run's summary.json (or a JSON list of rows with "
+                       "stage, psnr, fps, mb) -> stage plot; a fine-tuning <tree>.log.jsonl -> "
+                       "train/validation PSNR per epoch. Needs matplotlib (the plot extra).")
+    p.add_argument("file", help="summary.json or <tree>.log.jsonl")
+    p.add_argument("--out", default=None,
+                   help="PNG (default: stages.png beside the summary, <tree>.curve.png)")
+    p.add_argument("--title", default=None, help="plot title")
+    p.set_defaults(func=_run)

@@ -1,0 +1,186 @@
+"""File and value helpers shared by every dataset loader (Blender, LLFF, NSVF, nerfstudio,
+COLMAP): number and matrix checks, frame file paths, image decoding (PNG/JPEG, alpha, the
+truncation check), area downscaling with compositing, option checks, a thread pool.
+
+They lived in ``blender.py``; the other loaders imported them from there (and ``_images``
+imported ``blender``, a small cycle). Every problem raises ``DatasetError`` naming the file, or
+``ConfigError`` for bad option values.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+import re
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConfigError, DatasetError
+from .cameras import degenerate_rotations
+
+_PNG_END = b"IEND\xaeB`\x82"   # the last 8 bytes of every complete PNG
+_MAX_PIXELS = 1 << 27          # refuse absurd image headers before allocating anything
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _finite_number(v: Any) -> bool:
+    try:
+        return _is_number(v) and math.isfinite(v)
+    except OverflowError:      # int too large for a float
+        return False
+
+
+def _matrix(value: Any, where: str) -> np.ndarray:
+    """A finite 4x4 float64 matrix from nested JSON lists, or DatasetError."""
+    if not (isinstance(value, list) and len(value) == 4
+            and all(isinstance(row, list) and len(row) == 4 for row in value)):
+        raise DatasetError(f"{where}: transform_matrix must be a 4x4 list of numbers")
+    if not all(_is_number(v) for row in value for v in row):
+        raise DatasetError(f"{where}: transform_matrix must contain only numbers")
+    if not all(_finite_number(v) for row in value for v in row):
+        raise DatasetError(f"{where}: transform_matrix contains non-finite values")
+    m = np.array(value, dtype=np.float64)
+    if np.abs(m).max() > 1e30:
+        raise DatasetError(f"{where}: transform_matrix has non-finite (float32 overflowing) values")
+    if degenerate_rotations(m[None]).size:
+        raise DatasetError(f"{where}: transform_matrix rotation (the upper-left 3x3) is singular "
+                           "(e.g. all zeros); a camera needs three independent axes")
+    return m
+
+
+def _frame_file_path(fr: Any, where: str) -> str:
+    """Check one ``frames[i]`` entry (an object with ``file_path`` and ``transform_matrix``)
+    and return its ``file_path``; DatasetError prefixed with ``where`` otherwise."""
+    if not isinstance(fr, dict):
+        raise DatasetError(f"{where}: expected an object")
+    for key in ("file_path", "transform_matrix"):
+        if key not in fr:
+            raise DatasetError(f"{where}: missing key {key!r}")
+    fp = fr["file_path"]
+    if not isinstance(fp, str) or not fp.strip() or "\x00" in fp:
+        raise DatasetError(f"{where}: file_path must be a non-empty string")
+    check_inside_dataset(fp, f"{where}: file_path")
+    return fp
+
+
+def check_inside_dataset(rel: str, where: str) -> None:
+    """A path listed in a dataset file must stay inside the dataset folder (DatasetError).
+
+    Lexical: absolute paths and paths whose normal form starts with ``..`` are refused
+    (symlinks inside the folder are the user's choice and are followed).
+    """
+    norm = os.path.normpath(rel.replace("\\", "/"))
+    if os.path.isabs(norm) or norm == ".." or norm.startswith(".." + os.sep) \
+            or re.match(r"^[A-Za-z]:", norm):
+        raise DatasetError(f"{where} {rel!r} points outside the dataset folder; paths must "
+                           "be relative and inside it (move or link the files there)")
+
+
+def _image_path(root: Path, file_path: str) -> Path:
+    p = root / file_path
+    return p if p.suffix.lower() in (".png", ".jpg", ".jpeg") else p.with_name(p.name + ".png")
+
+
+def _decode(path: Path, expect: tuple[int, int] | None) -> np.ndarray:
+    """Decode one PNG (or JPEG) image to uint8 ``[H, W, 4]`` (alpha 255 when the file has none).
+
+    ``expect`` = (width, height) the image must have; raises DatasetError naming ``path``.
+    """
+    from PIL import Image
+
+    try:
+        raw = path.read_bytes()
+        with Image.open(io.BytesIO(raw), formats=("PNG", "JPEG")) as im:
+            if im.format == "PNG" and not raw.endswith(_PNG_END):
+                raise DatasetError(f"{path}: truncated PNG (no IEND chunk at the end)")
+            w, h = im.size
+            if w * h > _MAX_PIXELS or w <= 0 or h <= 0:
+                raise DatasetError(f"{path}: implausible image size {w}x{h}")
+            if expect is not None and (w, h) != expect:
+                raise DatasetError(f"{path}: image is {w}x{h}, expected {expect[0]}x{expect[1]} "
+                                   "like the other images of the split")
+            im.load()
+            mode = im.mode
+            if mode == "RGBA":
+                arr = np.asarray(im)
+            elif mode == "RGB":
+                arr = np.asarray(im)
+                arr = np.concatenate([arr, np.full(arr.shape[:2] + (1,), 255, np.uint8)], -1)
+            elif mode.startswith("I"):      # 16/32-bit grey
+                g = np.asarray(im).astype(np.float64)
+                scale = 65535.0 if mode.startswith("I;16") or g.max(initial=0) > 255 else 255.0
+                g = np.clip(np.round(g / scale * 255.0), 0, 255).astype(np.uint8)
+                arr = np.stack([g, g, g, np.full_like(g, 255)], -1)
+            else:
+                arr = np.asarray(im.convert("RGBA"))
+    except DatasetError:
+        raise
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: image file not found") from None
+    except Exception as e:  # noqa: BLE001 - any decoder failure means an unreadable file
+        raise DatasetError(f"{path}: unreadable image ({type(e).__name__}: {e})") from None
+    if arr.shape != (h, w, 4):
+        raise DatasetError(f"{path}: decoded to shape {list(arr.shape)}, expected {[h, w, 4]}")
+    return arr
+
+
+def _composite_into(arr: np.ndarray, factor: int, bg: np.ndarray,
+                    out_rgb: np.ndarray, out_alpha: np.ndarray) -> None:
+    """Area-downscale ``arr`` (uint8 RGBA) by ``factor`` and composite it onto ``bg``.
+
+    Premultiplied colour and alpha are averaged over ``factor x factor`` blocks, then
+    ``rgb = premult + (1 - alpha) bg`` is written to ``out_rgb [h, w, 3]``, alpha to
+    ``out_alpha [h, w]``.
+    """
+    a = arr[..., 3:4].astype(np.float32) * np.float32(1.0 / 255.0)
+    pre = arr[..., :3].astype(np.float32) * np.float32(1.0 / 255.0) * a
+    if factor > 1:
+        h, w = out_alpha.shape
+        pre = pre.reshape(h, factor, w, factor, 3).mean(axis=(1, 3), dtype=np.float32)
+        a = a.reshape(h, factor, w, factor, 1).mean(axis=(1, 3), dtype=np.float32)
+    np.add(pre, (1.0 - a) * bg, out=out_rgb)
+    np.clip(out_rgb, 0.0, 1.0, out=out_rgb)
+    out_alpha[...] = a[..., 0]
+
+
+def _check_options(split: Any, downscale: Any, background: Any, limit: Any) -> np.ndarray:
+    if not isinstance(split, str) or not split or any(c in split for c in "/\\\x00"):
+        raise ConfigError(f"split must be a plain name like 'train', got {split!r}")
+    if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
+        raise ConfigError(f"downscale must be a positive integer, got {downscale!r}")
+    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, (int, np.integer))
+                              or limit < 1):
+        raise ConfigError(f"limit must be None or a positive integer, got {limit!r}")
+    try:
+        bg = np.broadcast_to(np.asarray(background, dtype=np.float32), (3,)).copy()
+    except (TypeError, ValueError):
+        raise ConfigError(f"background must be an RGB triple in [0, 1], got {background!r}") from None
+    if not np.all((bg >= 0) & (bg <= 1)):
+        raise ConfigError(f"background must be an RGB triple in [0, 1], got {background!r}")
+    return bg
+
+
+def _run_parallel(n: int, work, num_threads: int | None) -> None:
+    """Call ``work(i)`` for ``i < n`` on up to ``num_threads`` threads (default: cores, ≤ 8);
+    the first exception cancels the rest and is re-raised."""
+    threads = num_threads or min(8, os.cpu_count() or 1)
+    if threads <= 1 or n <= 1:
+        for i in range(n):
+            work(i)
+        return
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        futures = [pool.submit(work, i) for i in range(n)]
+        try:
+            for fut in futures:
+                fut.result()
+        except BaseException:
+            for fut in futures:
+                fut.cancel()
+            raise

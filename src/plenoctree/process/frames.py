@@ -1,0 +1,141 @@
+"""Input images for ``process``: listing and checking photos, picking sharp frames of a video.
+
+:func:`list_photos` returns the image files of a folder after decoding each (one clear error
+for an empty folder, a folder of non-images, a corrupt file, mixed sizes under one camera).
+:func:`video_frames` reads a video with imageio-ffmpeg (``plenoctree[video]``), takes
+``ceil(n / (1 - drop))`` frames evenly spaced over its length and drops the ``drop`` fraction
+with the lowest sharpness (variance of the Laplacian of the grey image), keeping time order.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .sfm import ProcessError
+
+__all__ = ["list_photos", "video_frames", "sharpness", "is_video", "VIDEO_SUFFIXES",
+           "PHOTO_SUFFIXES"]
+
+PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
+
+
+def is_video(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a file with a video suffix."""
+    p = Path(path)
+    return p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES
+
+
+def list_photos(folder: str | os.PathLike, single_camera: bool = True) -> list[Path]:
+    """The photos (PNG / JPEG, sorted by name) of ``folder``, each fully decoded once.
+
+    Raises:
+        ProcessError: folder missing or empty, no image among its files, fewer than 3
+            photos, a corrupt / truncated image (named), mixed sizes with ``single_camera``.
+    """
+    from PIL import Image
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ProcessError(f"{folder}: not a folder of photos or a video file "
+                           f"({', '.join(VIDEO_SUFFIXES)})")
+    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    photos = [p for p in files if p.suffix.lower() in PHOTO_SUFFIXES]
+    if not files:
+        raise ProcessError(f"{folder}: the folder is empty (put the photos there: PNG or JPEG)")
+    if not photos:
+        raise ProcessError(f"{folder}: none of its {len(files)} files is a photo (PNG or JPEG; "
+                           f"e.g. {files[0].name})")
+    if len(photos) < 3:
+        raise ProcessError(f"{folder}: {len(photos)} photo(s); camera poses need at least 3 "
+                           "overlapping photos (20-200 recommended)")
+    size = None
+    for p in photos:
+        try:
+            with Image.open(p) as im:
+                im.load()
+                s = im.size
+        except Exception as e:  # noqa: BLE001 - any decoder failure means a corrupt file
+            raise ProcessError(f"{p}: unreadable or corrupt image ({type(e).__name__}: {e}); "
+                               "remove or replace it") from None
+        if size is None:
+            size, first = s, p
+        elif s != size and single_camera:
+            raise ProcessError(f"{p}: {s[0]}x{s[1]} pixels but {first.name} is "
+                               f"{size[0]}x{size[1]}; one shared camera needs one size "
+                               "(use --no-single-camera for photos from several cameras)")
+    return photos
+
+
+def sharpness(rgb: np.ndarray) -> float:
+    """Variance of the 4-neighbour Laplacian of the grey image (higher = sharper)."""
+    g = np.asarray(rgb, dtype=np.float32)
+    g = g[..., :3].mean(-1) if g.ndim == 3 else g
+    lap = (g[1:-1, :-2] + g[1:-1, 2:] + g[:-2, 1:-1] + g[2:, 1:-1] - 4.0 * g[1:-1, 1:-1])
+    return float(lap.var())
+
+
+def video_frames(video: str | os.PathLike, out_dir: str | os.PathLike, n_frames: int = 150,
+                 drop: float = 0.1, log: Callable[[str], None] = print) -> list[Path]:
+    """Write ``n_frames`` sharp, evenly spread frames of ``video`` as ``out_dir/frame_NNNNN.png``
+    (``NNNNN``: the frame's number in the video, from 0).
+
+    Returns the frame files in time order. Raises :class:`ProcessError` for an unreadable
+    video, one with fewer than 3 frames, or a missing imageio-ffmpeg.
+    """
+    from PIL import Image
+
+    from .._util import progress
+
+    video, out = Path(video), Path(out_dir)
+    if not 0 <= drop < 1:
+        raise ProcessError(f"drop fraction must be in [0, 1), got {drop}")
+    if n_frames < 3:
+        raise ProcessError(f"--frames must be at least 3, got {n_frames}")
+    try:
+        import imageio.v2 as iio
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        raise ProcessError("reading videos needs imageio-ffmpeg: pip install "
+                           "'plenoctree[video]'") from None
+    try:
+        reader = iio.get_reader(str(video), format="FFMPEG")
+        total = reader.count_frames()
+    except Exception as e:  # noqa: BLE001 - any decoder failure
+        raise ProcessError(f"{video}: unreadable video ({type(e).__name__}: {e})") from None
+    if total < 3:
+        raise ProcessError(f"{video}: {total} frame(s); need at least 3")
+    n_cand = min(total, math.ceil(n_frames / (1.0 - drop)))
+    want = np.unique(np.linspace(0, total - 1, n_cand).round().astype(int))
+    frames, scores = [], []
+    try:
+        with progress(total=len(want), desc="video frames", unit="frame") as bar:
+            wanted = set(want.tolist())
+            for i, fr in enumerate(reader):
+                if i in wanted:
+                    frames.append(np.asarray(fr)[..., :3].copy())
+                    scores.append(sharpness(frames[-1]))
+                    bar.update(1)
+                if i >= want[-1]:
+                    break
+    except Exception as e:  # noqa: BLE001
+        raise ProcessError(f"{video}: decoding failed ({type(e).__name__}: {e})") from None
+    finally:
+        reader.close()
+    keep = min(n_frames, len(frames))
+    order = np.argsort(scores)[::-1][:keep]          # sharpest first
+    chosen = np.sort(order)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for k in chosen:                                 # named by the video frame number
+        p = out / f"frame_{int(want[k]):05d}.png"
+        Image.fromarray(frames[k]).save(p)
+        paths.append(p)
+    log(f"video: {len(paths)} of {total} frames kept ({len(frames) - len(paths)} blurriest "
+        "of the evenly spaced candidates dropped)")
+    return paths

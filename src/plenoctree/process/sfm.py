@@ -1,0 +1,275 @@
+"""Structure from motion with pycolmap: SIFT features, matching, incremental mapping.
+
+:func:`run_sfm` turns a folder of images into a COLMAP reconstruction (the largest model when
+COLMAP returns several). Each COLMAP stage shows a progress bar: extraction and matching run
+in chunks of images / image pairs, mapping reports every registered image. Every failure a user
+can cause (too few images, too few matches, nothing registered) raises
+:class:`~plenoctree.errors.ProcessError` naming what to try.
+
+Defaults chosen by measurement on the lego training photos (``benchmarks/colmap_poses.py``):
+one camera shared by every image (``single_camera``), exhaustive matching with guided matching
+(re-matching along the epipolar geometry once the two-view geometry is known), and a stricter
+mapper (:data:`MAPPER_DEFAULTS`: an image is registered only with >= 100 inliers, >= 50 %
+inlier ratio and <= 4 px error; observations over 2 px are filtered; no structure-less
+fallback registration), then :func:`drop_weak_images`. With COLMAP's own mapper settings one
+lego photo was registered on the wrong side of the nearly symmetric object (165° off); the
+stricter ones alone still did so in one of two runs (multi-threaded matching is not
+deterministic), with ~5x fewer 3D points than the median photo, which the filter removes.
+A final global bundle adjustment refines the chosen model.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+from ..errors import ConfigError, PlenOctreeError
+
+__all__ = ["SfmOptions", "SfmResult", "run_sfm", "require_pycolmap", "ProcessError"]
+
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV",
+                 "OPENCV_FISHEYE")
+
+
+MAPPER_DEFAULTS = {"structure_less_registration_fallback": False,
+                   "mapper.abs_pose_min_num_inliers": 100, "mapper.abs_pose_max_error": 4.0,
+                   "mapper.abs_pose_min_inlier_ratio": 0.5, "mapper.filter_max_reproj_error": 2.0,
+                   "mapper.init_min_tri_angle": 8.0}
+"""Mapper settings changed from COLMAP's (chosen on lego by ``benchmarks/colmap_poses.py``)."""
+
+
+class ProcessError(PlenOctreeError, RuntimeError):
+    """Structure from motion or the dataset writing failed; the message says what to try."""
+
+
+def require_pycolmap() -> Any:
+    """Import pycolmap or raise :class:`ProcessError` naming the extra to install."""
+    try:
+        import pycolmap
+    except ImportError:
+        raise ProcessError("camera poses from photos need pycolmap: pip install "
+                           "'plenoctree[colmap]' (or pip install pycolmap)") from None
+    return pycolmap
+
+
+@dataclass
+class SfmOptions:
+    """Options of :func:`run_sfm` (the ``plenoctree process`` flags)."""
+
+    camera_model: str = "SIMPLE_RADIAL"
+    """COLMAP camera model (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, ...)"""
+    single_camera: bool = True
+    """one camera (intrinsics) shared by every image; off: one per image"""
+    matcher: str = "auto"
+    """exhaustive, sequential (videos) or auto (sequential for video frames / > 300 images)"""
+    max_features: int = 8192
+    """SIFT features per image"""
+    guided_matching: bool = True
+    """re-match along the estimated epipolar geometry (more, cleaner matches)"""
+    max_image_size: int = 1600
+    """longest image side used for features (larger images are downscaled for SIFT only)"""
+    sequential_overlap: int = 20
+    """neighbours matched per frame by the sequential matcher"""
+    num_threads: int = -1
+    """threads (-1: all cores)"""
+    seed: int = 0
+    """random seed of COLMAP's RANSAC and mapper"""
+    focal_factor: float = 1.2
+    """initial focal length / longest side when the images carry no EXIF focal length"""
+    mapper: dict = field(default_factory=lambda: dict(MAPPER_DEFAULTS))
+    """IncrementalPipelineOptions fields ("mapper.<name>" for its mapper's), on top of COLMAP's"""
+
+
+@dataclass
+class SfmResult:
+    """The largest COLMAP model and what happened on the way."""
+
+    reconstruction: Any
+    """pycolmap.Reconstruction"""
+    n_images: int
+    n_registered: int
+    n_models: int
+    seconds: dict
+
+
+def _disable(show_progress: bool | None) -> bool | None:
+    """tqdm's ``disable`` for ``show_progress`` (None: only on a terminal)."""
+    return None if show_progress is None else not show_progress
+
+
+def _chunks(seq: Sequence, n: int) -> list[Sequence]:
+    return [seq[i:i + n] for i in range(0, len(seq), n)]
+
+
+def _check(opts: SfmOptions) -> None:
+    if opts.camera_model not in CAMERA_MODELS:
+        raise ConfigError(f"camera model must be one of {', '.join(CAMERA_MODELS)}, got "
+                          f"{opts.camera_model!r}")
+    if opts.matcher not in ("auto", "exhaustive", "sequential"):
+        raise ConfigError(f"matcher must be auto, exhaustive or sequential, got {opts.matcher!r}")
+    if opts.max_features < 100 or opts.max_image_size < 64:
+        raise ConfigError("max_features must be >= 100 and max_image_size >= 64")
+
+
+def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Sequence[str],
+            opts: SfmOptions | None = None, sequential: bool = False,
+            log: Callable[[str], None] = print, show_progress: bool | None = None) -> SfmResult:
+    """Features, matches and an incremental reconstruction of ``names`` in ``image_dir``.
+
+    Args:
+        image_dir: folder of the images; ``names``: their file names in it (>= 2, in capture
+            order for videos).
+        work_dir: scratch folder for ``database.db`` (created; emptied of an old database).
+        sequential: the images are video frames (``matcher="auto"`` then matches neighbours).
+
+    Returns:
+        :class:`SfmResult` with the model holding the most registered images.
+
+    Raises:
+        ProcessError: pycolmap missing, too few images, no model, too few registered images.
+    """
+    pycolmap = require_pycolmap()
+    from .._util import progress
+
+    opts = opts or SfmOptions()
+    _check(opts)
+    names = list(names)
+    if len(names) < 3:
+        raise ProcessError(f"{image_dir}: {len(names)} image(s); structure from motion needs at "
+                           "least 3 overlapping photos (20+ recommended)")
+    work = Path(work_dir)
+    work.mkdir(parents=True, exist_ok=True)
+    db = work / "database.db"
+    for p in (db, work / "database.db-wal", work / "database.db-shm"):
+        p.unlink(missing_ok=True)
+    pycolmap.set_random_seed(int(opts.seed))
+    pycolmap.logging.minloglevel = 2          # COLMAP's own log: errors only
+    times: dict[str, float] = {}
+
+    # 1. Features (in chunks, for a progress bar).
+    t0 = time.perf_counter()
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = opts.camera_model
+    reader.default_focal_length_factor = float(opts.focal_factor)
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.num_threads = int(opts.num_threads)
+    ext.max_image_size = int(opts.max_image_size)
+    ext.sift.max_num_features = int(opts.max_features)
+    mode = pycolmap.CameraMode.SINGLE if opts.single_camera else pycolmap.CameraMode.PER_IMAGE
+    chunk = max(8, len(names) // 20)
+    with progress(total=len(names), desc="colmap features", unit="img",
+                  disable=_disable(show_progress)) as bar:
+        for k, part in enumerate(_chunks(names, chunk)):
+            pycolmap.extract_features(db, image_dir, image_names=list(part), camera_mode=mode,
+                                      reader_options=reader, extraction_options=ext,
+                                      device=pycolmap.Device.cpu)
+            if k == 0 and opts.single_camera:     # later chunks share the first chunk's camera
+                with pycolmap.Database.open(db) as d:
+                    reader.existing_camera_id = int(d.read_all_cameras()[0].camera_id)
+            bar.update(len(part))
+    times["features"] = time.perf_counter() - t0
+
+    # 2. Matching.
+    t0 = time.perf_counter()
+    use_seq = opts.matcher == "sequential" or (opts.matcher == "auto"
+                                               and (sequential or len(names) > 300))
+    mopt = pycolmap.FeatureMatchingOptions()
+    mopt.num_threads = int(opts.num_threads)
+    mopt.guided_matching = bool(opts.guided_matching)
+    ver = pycolmap.TwoViewGeometryOptions()
+    ver.ransac.random_seed = int(opts.seed)
+    if use_seq:
+        pairs = [(i, j) for i in range(len(names))
+                 for j in range(i + 1, min(len(names), i + 1 + opts.sequential_overlap))]
+    else:
+        pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
+    _match_pairs(pycolmap, db, work, names, pairs, mopt, ver, show_progress,
+                 "colmap matching (sequential)" if use_seq else "colmap matching")
+    times["matching"] = time.perf_counter() - t0
+
+    # 3. Incremental mapping (progress: one tick per registered image).
+    t0 = time.perf_counter()
+    popt = pycolmap.IncrementalPipelineOptions()
+    popt.num_threads = int(opts.num_threads)
+    popt.random_seed = int(opts.seed)
+    for k, v in opts.mapper.items():
+        obj, name = (popt.mapper, k[7:]) if k.startswith("mapper.") else (popt, k)
+        if not hasattr(obj, name):
+            raise ConfigError(f"unknown COLMAP mapper option {k!r}")
+        setattr(obj, name, v)
+    sparse = work / "sparse"
+    sparse.mkdir(exist_ok=True)
+    with progress(total=len(names), desc="colmap mapping", unit="img",
+                  disable=_disable(show_progress)) as bar:
+        models = pycolmap.incremental_mapping(db, image_dir, sparse, options=popt,
+                                              next_image_callback=lambda: bar.update(1))
+    times["mapping"] = time.perf_counter() - t0
+    if not models:
+        raise ProcessError(f"{image_dir}: COLMAP could not reconstruct any cameras from the "
+                           f"{len(names)} images (too few matches). Try more photos with more "
+                           "overlap (each part of the scene seen from 3+ nearby views), "
+                           "sharper or more textured images, or --matcher exhaustive")
+    best = max(models.values(), key=lambda r: r.num_reg_images())
+    weak = drop_weak_images(best, WEAK_IMAGE_FRACTION)
+    if weak:
+        log(f"colmap: {len(weak)} weakly supported image(s) left out: {', '.join(weak)}")
+    # A final global bundle adjustment of the chosen model.
+    pycolmap.logging.minloglevel = 2          # (the mapper resets COLMAP's log level)
+    t0 = time.perf_counter()
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.print_summary = False
+    pycolmap.bundle_adjustment(best, ba)
+    times["final_ba"] = time.perf_counter() - t0
+    n_reg = best.num_reg_images()
+    log(f"colmap: {n_reg} of {len(names)} images registered"
+        + (f" (largest of {len(models)} models)" if len(models) > 1 else ""))
+    if n_reg < 3:
+        raise ProcessError(f"{image_dir}: only {n_reg} of {len(names)} images could be "
+                           "registered; take more overlapping photos of the scene")
+    return SfmResult(best, len(names), n_reg, len(models), times)
+
+
+WEAK_IMAGE_FRACTION = 0.35
+"""Images seeing fewer than this fraction of the median image's 3D points are deregistered."""
+
+
+def drop_weak_images(rec: Any, fraction: float) -> list[str]:
+    """Deregister the images of ``rec`` that observe fewer than ``fraction`` x the median
+    number of 3D points per image; returns their names.
+
+    Measured on lego (``benchmarks/colmap_poses.py``): a photo registered on the wrong side of
+    the nearly symmetric object (165-170° off) keeps ~110 points where correctly registered
+    ones keep 210-670 (median ~500), so these are cut; in a model without such a camera none
+    is cut.
+    """
+    counts = {iid: im.num_points3D for iid, im in rec.images.items() if im.has_pose}
+    if len(counts) < 5:
+        return []
+    limit = fraction * float(sorted(counts.values())[len(counts) // 2])
+    weak = [iid for iid, n in counts.items() if n < limit]
+    names = sorted(rec.images[iid].name for iid in weak)
+    for iid in weak:
+        rec.deregister_frame(rec.images[iid].frame_id)
+    return names
+
+
+def _match_pairs(pycolmap: Any, db: Path, work: Path, names: list[str], pairs: list,
+                 mopt: Any, ver: Any, show_progress: bool | None, desc: str) -> None:
+    """Match image pairs in chunks through a pairs file (one progress tick per pair)."""
+    from .._util import progress
+
+    pair_file = work / "pairs.txt"
+    chunk = max(200, len(pairs) // 25)
+    with progress(total=len(pairs), desc=desc, unit="pair",
+                  disable=_disable(show_progress)) as bar:
+        for part in _chunks(pairs, chunk):
+            pair_file.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in part))
+            popt = pycolmap.ImportedPairingOptions()
+            popt.match_list_path = pair_file
+            pycolmap.match_image_pairs(db, matching_options=mopt, pairing_options=popt,
+                                       verification_options=ver, device=pycolmap.Device.cpu)
+            bar.update(len(part))
+    pair_file.unlink(missing_ok=True)

@@ -1,0 +1,153 @@
+"""The config → CLI mechanism and the CLI's shared conventions (issue 14 CLI/packaging items)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from plenoctree.cli import build_parser, main
+from plenoctree.datasets.procedural import procedural_tree, write_procedural_dataset
+from plenoctree.octree import save_tree
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(action.choices)
+
+
+def test_version_and_python_dash_m(capsys):
+    from plenoctree import __version__
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"plenoctree {__version__}"
+    out = subprocess.run([sys.executable, "-m", "plenoctree", "--help"], capture_output=True,
+                         text=True, check=True).stdout
+    assert "finetune" in out and "COMMAND" in out
+
+
+def test_every_help_shows_real_defaults():
+    for name, sub in _subparsers(build_parser()).items():
+        text = sub.format_help()
+        assert "(default None)" not in text and "default: None" not in text, name
+        assert "%%" not in text, name
+    run_help = _subparsers(build_parser())["run"].format_help()
+    assert "--finetune.epochs" in run_help and "--train.net-width" in run_help
+    assert "--extract.bbox-scale" in run_help
+    train_help = _subparsers(build_parser())["train"].format_help()
+    assert "(default: 0.01)" in train_help            # lr_init of the cpu preset
+
+
+def test_a_new_config_field_becomes_a_flag_with_no_other_edit():
+    from plenoctree._config import apply
+    from plenoctree.cli._options import add_config, given
+
+    @dataclasses.dataclass
+    class Cfg:
+        epochs: int = 20
+        """Passes over the data."""
+        lr: float | None = None
+        """Learning rate (default: the optimiser's)."""
+        box: tuple = ()
+        """Box centre x y z."""
+        smooth: bool = False
+        """Smooth the result."""
+        background: tuple = (1.0, 1.0, 1.0)
+        """Background colour."""
+
+    p = argparse.ArgumentParser()
+    dests = add_config(p, Cfg, prefix="stage.")
+    args = p.parse_args(["--stage.epochs", "3", "--stage.box", "1", "2", "3", "--stage.smooth",
+                         "--stage.background", "black"])
+    values = given(args, dests, prefix="stage.")
+    assert values == {"epochs": 3, "box": [1.0, 2.0, 3.0], "smooth": True,
+                      "background": (0.0, 0.0, 0.0)}
+    cfg = apply(Cfg(), values)
+    assert cfg.box == (1.0, 2.0, 3.0) and cfg.lr is None and cfg.epochs == 3
+    assert "Passes over the data. (default: 20)" in p.format_help()
+    with pytest.raises(SystemExit):
+        p.parse_args(["--stage.background", "pink"])
+
+
+def test_train_config_file_then_flags(tmp_path, capsys):
+    cfg_file = tmp_path / "c.json"
+    cfg_file.write_text(json.dumps({"preset": "paper", "lr_init": 1e-3,
+                                    "model": {"net_width": 128}}))
+    assert main(["train", "--out", str(tmp_path / "r"), "--config", str(cfg_file),
+                 "--net-width", "96", "--format", "blender", "--print-config"]) == 0
+    cfg = json.loads(capsys.readouterr().out)
+    assert cfg["preset"] == "paper" and cfg["lr_init"] == 1e-3 and cfg["format"] == "blender"
+    assert cfg["model"]["net_width"] == 96 and cfg["model"]["net_depth"] == 8
+    cfg_file.write_text(json.dumps({"lr_inti": 1.0}))
+    assert main(["train", "--out", str(tmp_path / "r"), "--config", str(cfg_file),
+                 "--print-config"]) == 1
+    assert "unknown option 'lr_inti'" in capsys.readouterr().err
+
+
+def test_run_nested_stage_flags_presets_and_saved_config(tmp_path, capsys):
+    args = ["run", "--data", str(tmp_path), "--out", str(tmp_path / "o"), "--preset", "quick",
+            "--finetune.epochs", "3", "--train.net-width", "32", "--extract.center", "0", "0",
+            "0", "--print-config"]
+    assert main(args) == 0
+    cfg = json.loads(capsys.readouterr().out)
+    assert cfg["grid"] == 128 and cfg["video_frames"] == 0                 # the quick preset
+    assert cfg["extra"] == {"finetune": {"epochs": 3}, "train": {"model": {"net_width": 32}},
+                            "extract": {"center": [0.0, 0.0, 0.0]}}
+    saved = tmp_path / "config.json"
+    saved.write_text(json.dumps(cfg))
+    assert main(["run", "--config", str(saved), "--grid", "64", "--print-config"]) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert again["grid"] == 64 and again["extra"]["finetune"] == {"epochs": 3}
+
+
+def test_run_checks_the_video_extra_first(tmp_path, monkeypatch, capsys):
+    import importlib.util
+
+    from plenoctree.pipeline import PipelineConfig, check_extras
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "imageio_ffmpeg" else real(name, *a))
+    with pytest.raises(Exception, match=r"plenoctree\[video\]'.*--video-frames 0"):
+        check_extras(PipelineConfig(video_frames=10))
+    check_extras(PipelineConfig(video_frames=0))
+    write_procedural_dataset(tmp_path / "d", n_train=1, n_val=1, n_test=1, width=8, height=8)
+    assert main(["run", "--data", str(tmp_path / "d"), "--out", str(tmp_path / "o")]) == 1
+    assert "plenoctree[video]" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "nerf").exists()
+
+
+def test_eval_and_render_take_data_from_the_trees_provenance(tiny_scene, tmp_path, capsys):
+    tree = tmp_path / "tree.npz"
+    tree.write_bytes((tiny_scene / "tree.npz").read_bytes())
+    assert main(["eval", str(tree), "--views", "1"]) == 1
+    assert "--data is needed" in capsys.readouterr().err
+    (tmp_path / "tree.extract.json").write_text(json.dumps(
+        {"config": {"data": str(tiny_scene / "data"), "run_dir": ""}}))
+    assert main(["eval", str(tree), "--views", "1", "--out", str(tmp_path / "e"),
+                 "--json", str(tmp_path / "e.json")]) == 0
+    out = capsys.readouterr().out
+    assert f"--data {tiny_scene / 'data'}" in out
+    assert json.loads((tmp_path / "e.json").read_text())["dataset"]["n_views"] == 1
+    assert main(["render", str(tree), "--limit", "1", "--out", str(tmp_path / "r")]) == 0
+    assert (tmp_path / "r" / "metrics.json").exists()
+
+
+def test_info_describes_a_tree(tiny_scene, capsys):
+    assert main(["info", str(tiny_scene / "tree.npz"), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["data_format"] == "SH16" and info["n_leaves"] > 0 and info["max_depth"] >= 1
+    assert main(["info", str(tiny_scene / "missing.npz")]) == 1
+
+
+def test_license_is_an_spdx_string():
+    text = (ROOT / "pyproject.toml").read_text()
+    assert 'license = "MIT"' in text and "license = {" not in text

@@ -1,0 +1,56 @@
+"""datasets.has_split: the loaders' own split rules, which the fine-tuner uses for val/test."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from plenoctree.datasets.dataset import has_split, load_dataset
+from plenoctree.datasets.nsvf import write_nsvf
+from plenoctree.datasets.procedural import look_at, write_procedural_dataset
+from plenoctree.errors import DatasetError
+
+
+def _poses(n):
+    return np.stack([look_at([3.0 * np.cos(a), 3.0 * np.sin(a), 1.0])
+                     for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]).astype(np.float32)
+
+
+def _imgs(n):
+    return np.full((n, 8, 8, 3), 0.5, np.float32)
+
+
+def test_blender_and_nsvf_splits(tmp_path):
+    root = write_procedural_dataset(tmp_path / "b", n_train=2, n_val=1, n_test=1, width=8,
+                                    height=8)
+    assert [has_split(root, s) for s in ("train", "val", "test")] == [True, True, True]
+    (root / "transforms_val.json").unlink()
+    assert not has_split(root, "val")
+    full = write_nsvf(tmp_path / "n", {"train": (_poses(3), _imgs(3)),
+                                       "val": (_poses(2), _imgs(2))}, 8, 8, 4, 4)
+    assert [has_split(full, s) for s in ("train", "val", "test")] == [True, True, True]
+    assert len(load_dataset(full, "test")) == 2             # the loader's fallback to 1_
+    only = write_nsvf(tmp_path / "o", {"train": (_poses(3), _imgs(3))}, 8, 8, 4, 4)
+    assert [has_split(only, s) for s in ("train", "val", "test")] == [True, False, False]
+
+
+def test_nerfstudio_splits_follow_its_filenames_lists(tmp_path):
+    src = write_procedural_dataset(tmp_path / "b", n_train=3, n_val=1, n_test=1, width=8,
+                                   height=8)
+    meta = json.loads((src / "transforms_train.json").read_text())
+    frames = [{"file_path": f["file_path"] + ".png", "transform_matrix": f["transform_matrix"]}
+              for f in meta["frames"]]
+    obj = {"camera_angle_x": meta["camera_angle_x"], "w": 8, "h": 8, "frames": frames,
+           "train_filenames": [f["file_path"] for f in frames[:2]],
+           "test_filenames": [frames[2]["file_path"]], "val_filenames": []}
+    ns = tmp_path / "ns"
+    ns.mkdir()
+    (ns / "train").symlink_to(src / "train", target_is_directory=True)
+    (ns / "transforms.json").write_text(json.dumps(obj))
+    assert has_split(ns, "train", "nerfstudio") and has_split(ns, "test", "nerfstudio")
+    assert not has_split(ns, "val", "nerfstudio")
+    (ns / "transforms.json").write_text("{not json")
+    with pytest.raises(DatasetError):
+        has_split(ns, "val", "nerfstudio")

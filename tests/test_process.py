@@ -1,0 +1,227 @@
+"""``plenoctree process``: bad inputs, SfM failure, no half-written output, video frames."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from plenoctree.cli import main
+from plenoctree.errors import ConfigError
+from plenoctree.process import ProcessConfig, ProcessError, process
+from plenoctree.process.frames import sharpness, video_frames
+
+pytest.importorskip("pycolmap")
+
+_HERE = Path(__file__).resolve().parents[1]          # the checkout (a worktree: one deeper)
+LEGO = next((d / "shared/data/nerf_synthetic/lego" for d in (_HERE.parent, _HERE.parent.parent)
+             if (d / "shared/data/nerf_synthetic/lego").is_dir()),
+            _HERE.parent / "shared/data/nerf_synthetic/lego")
+
+
+def _noise(path, size=(48, 40), seed=0):
+    rng = np.random.default_rng(seed)
+    Image.fromarray(rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8)).save(path)
+
+
+def _no_output(out: Path):
+    assert not out.exists()
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(f".{out.name}.")]
+
+
+def test_empty_folder(tmp_path):
+    (tmp_path / "imgs").mkdir()
+    with pytest.raises(ProcessError, match="imgs: the folder is empty"):
+        process(ProcessConfig(images=str(tmp_path / "imgs"), out=str(tmp_path / "out")))
+    _no_output(tmp_path / "out")
+
+
+def test_one_image(tmp_path):
+    (tmp_path / "imgs").mkdir()
+    _noise(tmp_path / "imgs" / "a.png")
+    with pytest.raises(ProcessError, match=r"imgs: 1 photo\(s\); camera poses need at least 3"):
+        process(ProcessConfig(images=str(tmp_path / "imgs"), out=str(tmp_path / "out")))
+    _no_output(tmp_path / "out")
+
+
+def test_non_images(tmp_path):
+    (tmp_path / "imgs").mkdir()
+    (tmp_path / "imgs" / "notes.txt").write_text("hello")
+    (tmp_path / "imgs" / "data.bin").write_bytes(b"\x00" * 10)
+    with pytest.raises(ProcessError, match="none of its 2 files is a photo"):
+        process(ProcessConfig(images=str(tmp_path / "imgs"), out=str(tmp_path / "out")))
+    _no_output(tmp_path / "out")
+
+
+def test_corrupt_jpeg_is_named(tmp_path):
+    d = tmp_path / "imgs"
+    d.mkdir()
+    for i in range(4):
+        Image.fromarray(np.full((32, 32, 3), 40 * i, np.uint8)).save(d / f"{i}.jpg")
+    data = (d / "2.jpg").read_bytes()
+    (d / "2.jpg").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ProcessError, match=r"2\.jpg: unreadable or corrupt image"):
+        process(ProcessConfig(images=str(d), out=str(tmp_path / "out")))
+    _no_output(tmp_path / "out")
+
+
+def test_mixed_sizes_and_existing_output(tmp_path):
+    d = tmp_path / "imgs"
+    d.mkdir()
+    for i in range(3):
+        _noise(d / f"{i}.png", (32, 32) if i else (40, 32), seed=i)
+    with pytest.raises(ProcessError, match=r"1\.png: 32x32 pixels but 0\.png is 40x32"):
+        process(ProcessConfig(images=str(d), out=str(tmp_path / "out")))
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "keep.txt").write_text("x")
+    with pytest.raises(ConfigError, match="not empty; choose another --out or pass --overwrite"):
+        process(ProcessConfig(images=str(d), out=str(tmp_path / "out")))
+
+
+def test_sfm_failure_leaves_nothing(tmp_path, capsys):
+    """Unrelated noise images: nothing registers; one clear error, no output, via the CLI."""
+    d = tmp_path / "imgs"
+    d.mkdir()
+    for i in range(4):
+        _noise(d / f"{i}.png", (64, 48), seed=10 + i)
+    out = tmp_path / "out"
+    rc = main(["process", str(d), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 1
+    assert "plenoctree process: error:" in err and "Traceback" not in err
+    assert "could not reconstruct" in err or "could be registered" in err
+    _no_output(out)
+
+
+def test_missing_pycolmap_names_the_extra(tmp_path, monkeypatch):
+    d = tmp_path / "imgs"
+    d.mkdir()
+    for i in range(3):
+        _noise(d / f"{i}.png", seed=i)
+    monkeypatch.setitem(sys.modules, "pycolmap", None)
+    with pytest.raises(ProcessError, match=r"pip install 'plenoctree\[colmap\]'"):
+        process(ProcessConfig(images=str(d), out=str(tmp_path / "out")))
+    _no_output(tmp_path / "out")
+
+
+def test_video_frames_even_and_blurriest_dropped(tmp_path):
+    iio = pytest.importorskip("imageio.v2")
+    pytest.importorskip("imageio_ffmpeg")
+    yy, xx = np.mgrid[0:64, 0:64]
+    frames, blurry = [], {5, 12}
+    for i in range(20):
+        f = np.where(((xx + 2 * i) // 8 + yy // 8) % 2 == 0, 230.0, 25.0)   # moving checkerboard
+        f[48:] = 10 * i + 20          # a strip whose grey level tells the frame index
+        if i in blurry:               # a box blur
+            f = sum(np.roll(np.roll(f, a, 0), b, 1) for a in range(-2, 3) for b in range(-2, 3)) / 25
+        frames.append(np.repeat(np.clip(f, 0, 255).astype(np.uint8)[..., None], 3, -1))
+    video = tmp_path / "v.mp4"
+    iio.mimwrite(video, frames, fps=10, quality=10, macro_block_size=16)
+    assert sharpness(frames[5]) < 0.5 * sharpness(frames[4])
+    # 18 frames kept of 20 evenly spaced candidates: the two blurred ones go
+    paths = video_frames(video, tmp_path / "f", n_frames=18, drop=0.1, log=lambda *_: None)
+    assert len(paths) == 18
+    idx = [int(round((np.asarray(Image.open(p))[52:60, 8:56].mean() - 20) / 10)) for p in paths]
+    assert idx == [i for i in range(20) if i not in blurry]
+
+
+@pytest.mark.lego
+@pytest.mark.slow
+@pytest.mark.skipif(not (LEGO / "transforms_test.json").is_file(), reason="lego data not found")
+def test_lego_video_end_to_end(tmp_path):
+    """A video of the lego test orbit → frames → COLMAP → a dataset; the registered frames'
+    poses agree with the truth. (This synthetic orbit on white is hard for SIFT: ~800
+    features per 320² frame, so only a part of the 60 frames registers into one model.)"""
+    iio = pytest.importorskip("imageio.v2")
+    import sys as _sys
+
+    meta = json.loads((LEGO / "transforms_test.json").read_text())
+    frames, gt = [], []
+    for fr in meta["frames"][::3]:                 # 67 frames, 5.4° apart around the orbit
+        im = Image.open(LEGO / (fr["file_path"] + ".png")).convert("RGBA").resize((320, 320),
+                                                                               Image.BOX)
+        a = np.asarray(im).astype(np.float32) / 255
+        frames.append(np.round((a[..., :3] * a[..., 3:] + 1 - a[..., 3:]) * 255).astype(np.uint8))
+        gt.append(np.array(fr["transform_matrix"]))
+    video = tmp_path / "lego.mp4"
+    iio.mimwrite(video, frames, fps=10, quality=9, macro_block_size=16)
+    out = tmp_path / "data"
+    s = process(ProcessConfig(images=str(video), out=str(out), frames=60, drop_blurry=0.1),
+                log=lambda *_: None)
+    assert s["format"] == "nerfstudio" and s["kind"] == "360" and s["video"]
+    assert s["n_images"] == 60 and s["n_registered"] >= 12
+    from plenoctree.datasets import load_dataset
+
+    data = load_dataset(out, "all")
+    assert len(data) == s["n_registered"] and data.images.shape[1:3] == (320, 320)
+    assert (out / "images_2").is_dir() and (out / "colmap" / "sparse" / "0").is_dir()
+    _sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from colmap_poses import pose_errors
+
+    tj = json.loads((out / "transforms.json").read_text())
+    est = np.array([f["transform_matrix"] for f in tj["frames"]])
+    ref = np.stack([gt[int(f["colmap_name"][6:11])] for f in tj["frames"]])
+    err = pose_errors(est, ref)
+    assert err["outliers"] == 0 and err["rot_median_deg"] < 1.0, err
+
+
+def test_run_images_stage_reports_bad_photos(tmp_path):
+    """`run --images` runs `process` first; a bad folder stops it in that stage, no OUT/data."""
+    from plenoctree.pipeline import PipelineConfig, PipelineError, run_pipeline
+
+    d = tmp_path / "imgs"
+    d.mkdir()
+    _noise(d / "only.png")
+    with pytest.raises(PipelineError, match=r"stage 'process' failed: .*imgs: 1 photo"):
+        run_pipeline(PipelineConfig(images=str(d), out=str(tmp_path / "run")), log=lambda *_: None)
+    assert not (tmp_path / "run" / "data").exists()
+    with pytest.raises(ConfigError, match="either --data .* or --images"):
+        run_pipeline(PipelineConfig(images=str(d), data=str(d), out=str(tmp_path / "run")))
+
+
+@pytest.mark.parametrize("scene", ["360", "forward"])
+def test_dataset_writing_from_a_reconstruction(tmp_path, scene):
+    """The output half of `process` on a synthetic COLMAP model: the loaders read it back
+    with the model's poses (up to the normalisation) and every image."""
+    import pycolmap
+
+    from plenoctree.datasets import detect_format, load_dataset
+    from plenoctree.process import _write_dataset
+    from plenoctree.process.sfm import SfmResult
+
+    o = pycolmap.SyntheticDatasetOptions()
+    o.num_rigs, o.num_cameras_per_rig, o.num_frames_per_rig, o.num_points3D = 1, 1, 9, 80
+    o.camera_model_id = pycolmap.CameraModelId.SIMPLE_PINHOLE
+    o.camera_params, o.camera_width, o.camera_height = [80.0, 40.0, 32.0], 80, 64
+    rec = pycolmap.synthesize_dataset(o)
+    if scene == "forward":      # move the cameras onto a small grid, all looking along +z
+        for k, fid in enumerate(sorted(rec.frames)):
+            c = np.array([0.3 * (k % 3 - 1), 0.3 * (k // 3 - 1), -6.0])
+            rec.frames[fid].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(), -c)
+    img = tmp_path / "img"
+    img.mkdir()
+    pycolmap.synthesize_images(pycolmap.SyntheticImageOptions(), rec, img)
+    names = sorted(im.name for im in rec.images.values())
+    stage, work = tmp_path / "out", tmp_path / "work"
+    stage.mkdir()
+    res = SfmResult(rec, len(names), len(names), 1, {})
+    s = _write_dataset(res, img, names, stage, work, ProcessConfig(scene=scene),
+                       log=lambda *_: None)
+    assert s["kind"] == scene and s["n_registered"] == 9 and s["image_size"] == [80, 64]
+    assert detect_format(stage) == ("nerfstudio" if scene == "360" else "llff")
+    data = load_dataset(stage, "all")
+    assert len(data) == 9 and data.cameras.ndc == (scene == "forward")
+    assert data.images.shape == (9, 64, 80, 3)
+    half = load_dataset(stage, "all", downscale=2)
+    assert half.images.shape == (9, 32, 40, 3)
+    if scene == "360":       # relative camera geometry preserved up to the similarity
+        c = np.stack([rec.images[i].projection_center() for i in sorted(
+            rec.images, key=lambda i: rec.images[i].name)])
+        got = data.cameras.c2w[:, :3, 3]
+        d0 = np.linalg.norm(c[:, None] - c[None], axis=-1)
+        d1 = np.linalg.norm(got[:, None] - got[None], axis=-1)
+        np.testing.assert_allclose(d1 / d1.max(), d0 / d0.max(), atol=1e-4)

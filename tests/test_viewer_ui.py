@@ -1,0 +1,394 @@
+"""Viewer page controls in real Chromium (Playwright, SwiftShader): first-view framing, reset,
+training cameras (listed, drawn, jumped to), keyboard fly, field of view, hints, dismissable
+errors, file:// message, opacity mode on white. Pictures with a right answer are compared with
+the CPU renderer at 128 px (same tolerance as tests/test_viewer_browser.py)."""
+
+from __future__ import annotations
+
+import base64
+import functools
+import math
+import threading
+from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+
+import numpy as np
+import pytest
+
+from test_viewer_browser import CHROMIUM, FLAGS, _close, playwright_api  # noqa: F401 (skips)
+
+from plenoctree.datasets.cameras import Cameras, generate_rays
+from plenoctree.datasets.procedural import procedural_cameras, procedural_tree
+from plenoctree.octree.io import save_tree
+from plenoctree.render import RenderOptions, render_rays
+from plenoctree.viewer import ViewerServer, export_web
+
+SIZE = 128
+FOV_X = 0.6911112070083618
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with playwright_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=FLAGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ui")
+    tree = procedural_tree(32)
+    save_tree(tree, d / "proc.npz", precision="fp16")
+    f = 0.5 * 64 / math.tan(0.5 * FOV_X)
+    cams = Cameras(c2w=procedural_cameras(6, "random", seed=3).astype(np.float32), fx=f, fy=f,
+                   cx=32.0, cy=32.0, width=64, height=64)
+    return {"dir": d, "tree": tree.astype(np.float16).astype(np.float32), "path": d / "proc.npz",
+            "cams": cams}
+
+
+class _Static:
+    """A plain static HTTP server over a folder (as a user would serve a bundle)."""
+
+    def __init__(self, folder):
+        handler = functools.partial(SimpleHTTPRequestHandler, directory=str(folder))
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), handler)
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/"
+
+    def close(self):
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+@pytest.fixture(scope="module")
+def bundle(scene, browser):
+    out = export_web(scene["path"], scene["dir"] / "site", cameras=scene["cams"],
+                     camera_names=[f"cam{i}" for i in range(6)])
+    srv = _Static(out)
+    page = browser.new_page(viewport={"width": 640, "height": 400})
+    page.goto(srv.url)
+    page.wait_for_function("window.viewer && window.viewer.state !== 'loading'", timeout=90_000)
+    assert page.evaluate("window.viewer.state") == "ready", page.evaluate("window.viewer.message")
+    yield page
+    page.close()
+    srv.close()
+
+
+def _pixels(page, view) -> np.ndarray:
+    page.evaluate("v => window.viewer.setView(v)", view)
+    page.evaluate("window.viewer.render()")
+    raw = base64.b64decode(page.evaluate("window.viewer.pixels()"))
+    page.evaluate("window.viewer.clearView()")
+    h, w = view["height"], view["width"]
+    return np.frombuffer(raw, np.uint8).reshape(h, w, 4)[..., :3].astype(np.float64) / 255
+
+
+def _cpu(tree, view, **opts) -> np.ndarray:
+    c2w = np.asarray(view["c2w"], np.float32).reshape(4, 4)
+    o, d = generate_rays(c2w, view["fx"], view["fy"], view["cx"], view["cy"], view["width"],
+                         view["height"])
+    return render_rays(tree, o, d, RenderOptions(**opts)).rgb.numpy()
+
+
+def _view(page):
+    return page.evaluate(f"window.viewer.currentView({SIZE}, {SIZE})")
+
+
+def test_first_view_is_framed_like_the_training_cameras(bundle, scene):
+    """Camera 0's direction at the cameras' median distance (all at 4), their fov, +z up."""
+    view = _view(bundle)
+    c0 = scene["cams"].c2w[0]
+    np.testing.assert_allclose(np.reshape(view["c2w"], (4, 4)), c0, atol=2e-5)
+    fy = 0.5 * SIZE / math.tan(0.5 * FOV_X)        # square images: vertical fov = horizontal
+    assert view["fy"] == pytest.approx(fy, rel=1e-4)
+    _close(_pixels(bundle, view), _cpu(scene["tree"], view), "first view")
+    assert bundle.evaluate("window.viewer.cameras()") == 6
+    assert bundle.locator("#camera_select option").count() == 6
+    assert bundle.locator("#camera_select option").nth(2).inner_text() == "2: cam2"
+
+
+def test_jump_to_training_camera_next_key_and_reset(bundle, scene):
+    first = _view(bundle)
+    bundle.evaluate("window.viewer.jumpToCamera(3)")
+    view = _view(bundle)
+    np.testing.assert_allclose(np.reshape(view["c2w"], (4, 4)), scene["cams"].c2w[3], atol=1e-6)
+    _close(_pixels(bundle, view), _cpu(scene["tree"], view), "training camera 3")
+    bundle.locator("#canvas").focus()
+    bundle.keyboard.press("BracketRight")
+    assert bundle.locator("#camera_select").input_value() == "4"
+    np.testing.assert_allclose(np.reshape(_view(bundle)["c2w"], (4, 4)), scene["cams"].c2w[4],
+                               atol=1e-6)
+    bundle.keyboard.press("KeyR")                   # reset = the first view again
+    np.testing.assert_allclose(_view(bundle)["c2w"], first["c2w"], atol=1e-6)
+    bundle.evaluate("window.viewer.jumpToCamera(1)")
+    bundle.locator("#reset_view").click()
+    np.testing.assert_allclose(_view(bundle)["c2w"], first["c2w"], atol=1e-6)
+
+
+def test_training_cameras_are_drawn_and_can_be_hidden(bundle):
+    count = ("() => { const c = document.getElementById('overlay'); const d = c.getContext('2d')"
+             ".getImageData(0, 0, c.width, c.height).data; let n = 0;"
+             " for (let i = 3; i < d.length; i += 4) n += d[i] > 0; return n; }")
+    bundle.evaluate("window.viewer.clearView(); window.viewer.render()")
+    assert bundle.evaluate(count) > 50
+    bundle.locator("#show_cameras").uncheck()
+    bundle.evaluate("window.viewer.render()")
+    assert bundle.evaluate(count) == 0
+    bundle.locator("#show_cameras").check()
+
+
+def test_keyboard_fly_turn_and_fov(bundle):
+    bundle.evaluate("window.viewer.resetView()")
+    bundle.locator("#canvas").focus()
+    v0 = _view(bundle)
+    eye0 = np.reshape(v0["c2w"], (4, 4))[:3, 3]
+    fwd0 = -np.reshape(v0["c2w"], (4, 4))[:3, 2]
+    bundle.keyboard.down("KeyW")
+    bundle.wait_for_timeout(400)
+    bundle.keyboard.up("KeyW")
+    m1 = np.reshape(_view(bundle)["c2w"], (4, 4))
+    step = m1[:3, 3] - eye0
+    assert np.linalg.norm(step) > 0.05                       # moved ...
+    np.testing.assert_allclose(step / np.linalg.norm(step), fwd0, atol=1e-4)   # ... forward
+    np.testing.assert_allclose(m1[:3, :3], np.reshape(v0["c2w"], (4, 4))[:3, :3], atol=1e-5)
+    bundle.keyboard.down("KeyE")
+    bundle.wait_for_timeout(300)
+    bundle.keyboard.up("KeyE")
+    m2 = np.reshape(_view(bundle)["c2w"], (4, 4))
+    up = (m2[:3, 3] - m1[:3, 3]) / np.linalg.norm(m2[:3, 3] - m1[:3, 3])
+    np.testing.assert_allclose(up, m1[:3, 1], atol=1e-4)    # E: along the camera's up
+    bundle.keyboard.down("ArrowLeft")
+    bundle.wait_for_timeout(300)
+    bundle.keyboard.up("ArrowLeft")
+    m3 = np.reshape(_view(bundle)["c2w"], (4, 4))
+    np.testing.assert_allclose(m3[:3, 3], m2[:3, 3], atol=1e-4)   # turning keeps the eye
+    assert np.linalg.norm(m3[:3, 2] - m2[:3, 2]) > 0.05
+    bundle.locator("#fov").fill("60")
+    assert _view(bundle)["fy"] == pytest.approx(0.5 * SIZE / math.tan(math.radians(30)), rel=1e-6)
+    bundle.evaluate("window.viewer.resetView()")
+
+
+def test_control_hints_are_visible_and_toggle(bundle):
+    hints = bundle.locator("#hints")
+    assert hints.is_visible()
+    box, stage = hints.bounding_box(), bundle.locator("#stage").bounding_box()
+    assert box["y"] + box["height"] <= stage["y"] + stage["height"]      # above the fold
+    assert "W A S D" in hints.inner_text()
+    bundle.locator("#canvas").focus()
+    bundle.keyboard.press("KeyH")
+    assert not hints.is_visible()
+    bundle.keyboard.press("KeyH")
+    assert hints.is_visible()
+
+
+def test_opacity_mode_shows_on_white(bundle, scene):
+    view = _view(bundle)
+    bundle.evaluate("window.viewer.setOptions({mode: 'alpha', background: [1, 1, 1]})")
+    gpu = _pixels(bundle, view)
+    bundle.evaluate("window.viewer.setOptions({mode: 'rgb'})")
+    c2w = np.asarray(view["c2w"], np.float32).reshape(4, 4)
+    o, d = generate_rays(c2w, view["fx"], view["fy"], view["cx"], view["cy"], SIZE, SIZE)
+    alpha = render_rays(scene["tree"], o, d, RenderOptions()).alpha.numpy()
+    assert np.abs(gpu - (1 - alpha)[..., None]).mean() <= 1 / 255      # black ink on white
+    assert gpu.std() > 0.1
+
+
+def test_bounding_sphere_framing_without_cameras(browser, scene):
+    with ViewerServer(scene["path"], port=0) as srv:
+        page = browser.new_page(viewport={"width": 640, "height": 400})
+        page.goto(srv.url)
+        page.wait_for_function("window.viewer && window.viewer.state !== 'loading'",
+                               timeout=90_000)
+        w, h = page.evaluate("[document.getElementById('canvas').clientWidth,"
+                             " document.getElementById('canvas').clientHeight]")
+        view = page.evaluate(f"window.viewer.currentView({w}, {h})")
+        page.close()
+    m = np.reshape(view["c2w"], (4, 4))
+    tree = scene["tree"]
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
+    corners = tree.bbox[0] + corners * (tree.bbox[1] - tree.bbox[0])
+    cam = (corners - m[:3, 3]) @ m[:3, :3]
+    u = view["cx"] + view["fx"] * cam[:, 0] / -cam[:, 2]
+    v = view["cy"] - view["fy"] * cam[:, 1] / -cam[:, 2]
+    assert np.all(cam[:, 2] < 0) and np.all((u > 0) & (u < w) & (v > 0) & (v < h)), (u, v)
+    # the bounding sphere just fits the vertical fov (5 % margin), not 2.6 r as before
+    r = np.linalg.norm(tree.radius)
+    dist = np.linalg.norm(m[:3, 3] - tree.center)
+    assert dist == pytest.approx(1.05 * r / math.sin(0.5 * math.radians(40)), rel=1e-4)
+
+
+def test_error_card_can_be_dismissed_and_the_canvas_works_again(browser, scene, tmp_path):
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip at all")
+    with ViewerServer(scene["path"], port=0) as srv:
+        page = browser.new_page(viewport={"width": 640, "height": 400})
+        page.goto(srv.url)
+        page.wait_for_function("window.viewer && window.viewer.state === 'ready'", timeout=90_000)
+        view = _view(page)
+        before = _pixels(page, view)
+        page.set_input_files("#file", str(bad))
+        page.wait_for_function("window.viewer.state === 'error'", timeout=30_000)
+        assert page.locator("#message").is_visible()
+        assert "bad.npz" in page.locator("#message").inner_text()
+        page.locator("#message-close").click()
+        assert not page.locator("#message").is_visible()
+        assert page.evaluate("window.viewer.state") == "ready"
+        after = _pixels(page, view)                          # the previous tree renders again
+        np.testing.assert_array_equal(after, before)
+        page.evaluate("window.viewer.jumpToCamera(0)")       # no cameras here: a no-op
+        page.close()
+
+
+def test_file_url_says_to_serve_the_folder(browser, scene):
+    out = export_web(scene["path"], scene["dir"] / "site_file")
+    page = browser.new_page()
+    page.goto((out / "index.html").as_uri())
+    page.wait_for_function("window.viewer && window.viewer.state === 'error'", timeout=30_000)
+    msg = page.locator("#message")
+    assert msg.is_visible()
+    assert "web server" in msg.inner_text() and "http.server" in msg.inner_text()
+    assert page.locator("#status").inner_text() == ""
+    page.close()
+
+
+def test_radiance_probe_matches_the_tree(bundle, scene):
+    """The probe picks the max-weight leaf along the ray (checked by the same march in numpy)
+    and its lumisphere shows sigmoid(sum k Y(-n)) for each sphere normal n."""
+    from plenoctree.export import point_colors
+
+    tree = scene["tree"]
+    bundle.evaluate("window.viewer.resetView()")
+    origin = np.array([0.05, 3.0, -0.15])             # from above onto the glossy sphere
+    target = np.array([0.0, 0.35, -0.2])
+    d = (target - origin) / np.linalg.norm(target - origin)
+    S = 32
+    hit = bundle.evaluate("([o, d, s]) => window.viewer.probeRay(o, d, s)",
+                          [origin.tolist(), d.tolist(), S])
+    assert hit is not None and hit["sigma"] > 0 and hit["weight"] > 0.05
+    # the same uniform march in numpy
+    o_t = tree.world_to_tree(origin)
+    d_t = d * tree.invradius
+    with np.errstate(divide="ignore"):
+        a, b = (0 - o_t) / d_t, (1 - o_t) / d_t
+    t0, t1 = max(0.0, np.minimum(a, b).max()), np.maximum(a, b).min()
+    n = 2048
+    t = t0 + (np.arange(n) + 0.5) * (t1 - t0) / n
+    sig = np.maximum(tree.query(origin + t[:, None] * d)[:, -1], 0)
+    alpha = 1 - np.exp(-sig * (t1 - t0) / n)
+    T = np.concatenate([[1.0], np.cumprod(1 - alpha)[:-1]])
+    w = T * alpha
+    w[T <= 1e-3] = 0
+    i = int(np.argmax(w))
+    assert hit["weight"] == pytest.approx(w[i], rel=1e-3)
+    want = tree.query(origin + t[i] * d)
+    got = np.asarray(hit["coeffs"], np.float64).T.reshape(-1)        # [B][3] -> channel-major
+    np.testing.assert_allclose(got, want[:-1], atol=1e-6)
+    np.testing.assert_allclose(hit["point"], origin + hit["t"] * d if "t" in hit else
+                               origin + t[i] * d, atol=1e-3)
+    # lumisphere pixels
+    img = np.frombuffer(base64.b64decode(hit["image"]), np.uint8).reshape(S, S, 4)
+    rot = np.reshape(_view(bundle)["c2w"], (4, 4))[:3, :3]
+    u = (np.arange(S) + 0.5) * 2 / S - 1
+    x, y = np.meshgrid(u, -u)
+    inside = x ** 2 + y ** 2 <= 1
+    z = np.sqrt(np.clip(1 - x ** 2 - y ** 2, 0, 1))
+    nrm = np.stack([x, y, z], -1)[inside] @ rot.T
+    col = point_colors(tree, np.broadcast_to(want[:-1], (len(nrm), want.size - 1)), -nrm)
+    assert np.abs(img[inside][:, :3].astype(float) - col * 255).max() <= 1.0
+    assert (img[~inside][:, 3] == 0).all()
+    assert np.ptp(img[inside][:, :3].astype(float), 0).max() > 5     # view-dependent colour
+
+
+def test_alt_click_probes_the_scene(bundle):
+    bundle.evaluate("window.viewer.resetView()")
+    box = bundle.locator("#canvas").bounding_box()
+    bundle.locator("#canvas").click(position={"x": box["width"] / 2, "y": box["height"] / 2},
+                                    modifiers=["Alt"])
+    info = bundle.evaluate("document.getElementById('probe_info').textContent")
+    assert "sigma" in info, info
+    assert bundle.locator("#probe_box").get_attribute("open") is not None
+
+
+def test_ndc_forward_facing_tree_matches_cpu(browser, tmp_path):
+    """An LLFF (NDC) tree: the page maps world rays to NDC like Cameras(ndc=True).rays()."""
+    from plenoctree.datasets import load_dataset
+    from plenoctree.datasets.forward_facing import forward_facing_tree, write_forward_facing_dataset
+
+    root = write_forward_facing_dataset(tmp_path / "ff", n_images=9, width=48, height=36,
+                                        n_samples=64)
+    tree = forward_facing_tree(root, 32)
+    save_tree(tree, tmp_path / "ff.npz", precision="fp16")
+    tree = tree.astype(np.float16).astype(np.float32)
+    data = load_dataset(root, "train")
+    assert data.cameras.ndc
+    out = export_web(tmp_path / "ff.npz", tmp_path / "ffsite", cameras=data.cameras)
+    srv = _Static(out)
+    try:
+        page = browser.new_page(viewport={"width": 640, "height": 400})
+        page.goto(srv.url)
+        page.wait_for_function("window.viewer && window.viewer.state !== 'loading'",
+                               timeout=90_000)
+        assert page.evaluate("window.viewer.state") == "ready", page.evaluate("window.viewer.message")
+        first = page.evaluate("window.viewer.currentView(48, 36)")
+        np.testing.assert_allclose(np.reshape(first["c2w"], (4, 4)), np.eye(4), atol=1e-6)
+        cams = data.cameras
+        for i in (0, 3):
+            fx, fy, cx, cy = cams.intrinsics(i)
+            view = {"c2w": cams.c2w[i].reshape(-1).tolist(), "fx": fx, "fy": fy, "cx": cx,
+                    "cy": cy, "width": cams.width, "height": cams.height}
+            gpu = _pixels(page, view)
+            o, d = cams.rays(i)
+            cpu = render_rays(tree, o, d, RenderOptions()).rgb.numpy()
+            diff = np.abs(gpu - np.clip(cpu, 0, 1))
+            assert diff.mean() <= 1 / 255 and np.percentile(diff, 99) <= 3 / 255, \
+                (i, diff.mean() * 255, np.percentile(diff, 99) * 255)
+            assert gpu.std() > 0.05
+        page.close()
+    finally:
+        srv.close()
+
+
+def _plane_obj(x0=0.0, color=(0.2, 0.6, 0.3), half=4.0) -> str:
+    c = " ".join(str(v) for v in color)
+    vs = [(x0, -half, -half), (x0, half, -half), (x0, half, half), (x0, -half, half)]
+    return "\n".join([f"v {x} {y} {z} {c}" for x, y, z in vs] + ["f 1 2 3 4", ""])
+
+
+def test_inserted_mesh_is_occluded_by_the_volume(bundle, scene):
+    """A plane at world x = 0 (a cell boundary of the tree): in front of it the volume
+    composites over the plane's colour, behind it nothing shows; equals the CPU render of the
+    tree with its x < 0 half emptied over a background of the plane's colour."""
+    tree = scene["tree"]
+    view = {"c2w": np.linalg.inv(np.linalg.inv(
+        __import__("plenoctree.datasets.procedural", fromlist=["look_at"]).look_at(
+            np.array([2.6, 1.7, 1.6])))).reshape(-1).tolist(),
+            "fx": 0.5 * SIZE / math.tan(0.5 * FOV_X), "fy": 0.5 * SIZE / math.tan(0.5 * FOV_X),
+            "cx": SIZE / 2, "cy": SIZE / 2, "width": SIZE, "height": SIZE}
+    color = (0.2, 0.6, 0.3)
+    info = bundle.evaluate("t => window.viewer.addMesh(t, 'plane.obj')", _plane_obj(0.0, color))
+    assert info == {"vertices": 4, "triangles": 2}
+    try:
+        gpu = _pixels(bundle, view)
+    finally:
+        bundle.evaluate("window.viewer.clearMeshes()")
+    cut = tree.copy()
+    node, i, j, k = cut.leaf_indices()
+    behind = cut.leaf_centers()[:, 0] < 0
+    cut.data[node[behind], i[behind], j[behind], k[behind], -1] = 0
+    cpu = _cpu(cut, view, background=color)
+    _close(gpu, cpu, "mesh occlusion")
+    plain = _pixels(bundle, view)                      # removed again: the plain render
+    _close(plain, _cpu(tree, view), "after clearMeshes")
+    assert np.abs(gpu - plain).max() > 0.2
+
+
+def test_exported_glb_mesh_loads_into_the_viewer(bundle, tmp_path):
+    pytest.importorskip("trimesh")
+    from plenoctree.export import export_mesh
+
+    tree = procedural_tree(16)
+    mesh = export_mesh(tree, tmp_path / "m.glb")
+    b64 = base64.b64encode((tmp_path / "m.glb").read_bytes()).decode()
+    info = bundle.evaluate("b => window.viewer.addMesh(b, 'm.glb')", b64)
+    bundle.evaluate("window.viewer.clearMeshes()")
+    assert info == {"vertices": len(mesh.vertices), "triangles": len(mesh.faces)}
