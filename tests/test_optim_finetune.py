@@ -95,7 +95,7 @@ def test_finetune_recovers_the_known_tree(scene, tmp_path, optimizer, lr):
 
 
 def test_torch_twin_backend_takes_the_same_steps(scene):
-    from plenoctree.optim._fast import kernel_args
+    from plenoctree.optim._render_grad import kernel_args
     from plenoctree.optim._loop import ViewSet
     from plenoctree.optim._steppers import NumbaStepper, TorchStepper
     from plenoctree.datasets import load_dataset
