@@ -3,8 +3,9 @@
 Usage: ``python benchmarks/finetune_speed.py [--tree T.npz] [--batch 65536] [--ray-tile 4]
 [--repeat 5] [--twin-batch 16384] [--out benchmarks/results/finetune_speed.json]``
 
-Default tree: the procedural scene's 256³ SH-degree-3 tree (built once, cached under
-``benchmarks/results/cache``). Rays: random pixels of 32 cameras (800×800, the NeRF-synthetic
+Default tree: the real lego tree when ``shared/data/runs/lego_cpu_400`` is found above the
+repository (extracted once into ``benchmarks/results/cache``), else the procedural scene's 256³
+SH-degree-3 tree; ``--tree lego | procedural | ff | PATH`` (see ``benchmarks/_trees.py``). Rays: random pixels of 32 cameras (800×800, the NeRF-synthetic
 field of view) on a sphere around the tree's box looking at its centre, drawn as the
 fine-tuning loop draws them (random ``--ray-tile``² pixel tiles); targets random colours (every
 ray then has a gradient, so the backward does its full work).
@@ -14,6 +15,9 @@ of ``--repeat`` steps:
 
 - ``fast``: the fine-tuning path (one fused numba kernel: forward + analytic backward into
   per-thread slabs, merge, sparse SGD step) with all numba threads;
+- ``baseline``: the same step with the kernels as they were before issue 12 (frozen in
+  ``benchmarks/baseline/grad_kernel.py``), timed interleaved with ``fast``; the JSON gives the
+  ratio ``speedup_fast_over_baseline``;
 - ``fast_1thread``: the same with one thread and one slab (what the race-free scatter costs /
   buys);
 - ``fast_tile1``: ``fast`` on independent random pixels (``--ray-tile 1``);
@@ -35,7 +39,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -43,19 +46,32 @@ from pathlib import Path
 import numpy as np
 import torch
 
-_CACHE = Path("benchmarks/results/cache")
+from _trees import load_bench_tree, machine_info
 
 
-def default_tree():
-    from plenoctree.datasets.procedural import procedural_tree
-    from plenoctree.octree import load_tree, save_tree
+def baseline_step(st, o, d, tgt, scale):
+    """``NumbaStepper.step`` (SGD) with the frozen pre-issue-12 kernels."""
+    import numba
 
-    path = _CACHE / "procedural_256_sh16.npz"
-    if path.exists():
-        return load_tree(path), str(path)
-    tree = procedural_tree(256)
-    save_tree(tree, path)
-    return tree, f"procedural_tree(256) (cached at {path})"
+    from baseline import grad_kernel as bk
+
+    b, a = st.buf, st.args
+    o = np.ascontiguousarray(o, np.float32)
+    d = np.ascontiguousarray(d, np.float32)
+    t = np.ascontiguousarray(tgt, np.float64)
+    rgb = np.empty((o.shape[0], 3), np.float64)
+    b.sse[:] = 0.0
+    old = numba.get_parallel_chunksize()
+    numba.set_parallel_chunksize(2)
+    try:
+        bk.grad_kernel(a.child, st.sig, st.data2, a.offset, a.invr, o, d, t, 1, float(scale),
+                       a.info.kind, a.info.basis_dim, a.sg, a.b_lo, a.b_hi, a.bg, a.stop, a.eps,
+                       a.cap0, rgb, b.grad3, b.flags, b.touched, b.n_touched, b.sse)
+    finally:
+        numba.set_parallel_chunksize(old)
+    st.step_count += 1
+    bk.step_touched(st.data2, st.sig, b.grad3, b.flags, b.touched, b.n_touched, bk.OPT_SGD,
+                    st.lr, st._dummy, st._dummy, 0.0, 0.0, 0.0, float(st.step_count))
 
 
 def camera_rays(tree, n_cams: int, size: int, batch: int, tile: int, rng):
@@ -99,14 +115,14 @@ def timed(fn, repeat: int, warmup: bool = True) -> tuple[float, float]:
 def main() -> None:
     import numba
 
-    from plenoctree.octree import load_tree
     from plenoctree.optim import render_rays_differentiable
-    from plenoctree.optim._fast import forward_numba, kernel_args
+    from plenoctree.optim._render_grad import forward_numba, kernel_args
     from plenoctree.optim._steppers import NumbaStepper, TorchStepper
     from plenoctree.render import RenderOptions, render_rays
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--tree", default=None, help="tree .npz (default: procedural 256³ SH16)")
+    ap.add_argument("--tree", default=None,
+                    help="lego | procedural | ff | PATH.npz (default: lego when found)")
     ap.add_argument("--batch", type=int, default=1 << 16, help="rays per step (fast paths)")
     ap.add_argument("--ray-tile", type=int, default=4, help="rays drawn as k x k pixel tiles")
     ap.add_argument("--twin-batch", type=int, default=1 << 14, help="rays per step (twin)")
@@ -115,10 +131,13 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=800, help="camera image size (pixels)")
     ap.add_argument("--stop-thresh", type=float, default=0.01)
     ap.add_argument("--skip-twin", action="store_true")
-    ap.add_argument("--out", default="benchmarks/results/finetune_speed.json")
+    ap.add_argument("--out", default=None,
+                    help="JSON (default benchmarks/results/finetune_speed_<tree>.json)")
     args = ap.parse_args()
 
-    tree, tree_name = (load_tree(args.tree), args.tree) if args.tree else default_tree()
+    load_before = os.getloadavg()
+    tree, desc = load_bench_tree(args.tree, 256)
+    tree_name = desc["source"]
     opts = RenderOptions(stop_thresh=args.stop_thresh)
     rng = np.random.default_rng(0)
     views, idx, o, d = camera_rays(tree, 32, args.size, args.batch, args.ray_tile, rng)
@@ -144,8 +163,21 @@ def main() -> None:
     sec, sp = timed(lambda: forward_numba(kargs, data2, o, d), args.repeat)
     add("forward_only", sec, sp, n)
     st = NumbaStepper(data2, kargs, "sgd", lr)
-    sec, sp = timed(lambda: st.step(o, d, tgt, scale), args.repeat)
-    add("fast", sec, sp, n)
+    sb = NumbaStepper(data2.copy(), kargs, "sgd", lr)
+    st.step(o, d, tgt, scale)                                    # warm-up (compilation)
+    baseline_step(sb, o, d, tgt, scale)
+    both = {"fast": ([], []), "baseline": ([], [])}
+    for _ in range(args.repeat):                                 # interleaved passes
+        for name, fn in (("fast", lambda: st.step(o, d, tgt, scale)),
+                         ("baseline", lambda: baseline_step(sb, o, d, tgt, scale))):
+            c0, t0 = time.process_time(), time.perf_counter()
+            fn()
+            both[name][0].append(time.perf_counter() - t0)
+            both[name][1].append(time.process_time() - c0)
+    for name, (ts, cs) in both.items():
+        _CPU.append(statistics.median(cs))
+        add(name, statistics.median(ts), (max(ts) - min(ts)) / 2, n)
+    del sb
     rows["fast"]["touched_cells"] = st.last_touched
     numba.set_num_threads(1)
     try:
@@ -183,6 +215,7 @@ def main() -> None:
         del tw
 
     speedup = rows["fast"]["rays_per_s"] / rows["twin"]["rays_per_s"] if "twin" in rows else None
+    vs_base = rows["fast"]["rays_per_s"] / rows["baseline"]["rays_per_s"]
     print(f"tree: {tree_name}: {tree.n_leaves} leaves, {tree.data_format}, "
           f"{tree.data.nbytes / 2**20:.0f} MiB; {n_threads} numba threads; stop_thresh "
           f"{args.stop_thresh}; rays in {args.ray_tile}x{args.ray_tile} tiles")
@@ -194,16 +227,17 @@ def main() -> None:
               f"{r['rays_per_cpu_s'] / 1e6:>12.3f}")
     if speedup:
         print(f"fast / twin speed-up: {speedup:.1f}x")
-    machine = dict(cpus=os.cpu_count(), numba_threads=n_threads, platform=platform.platform(),
-                   python=platform.python_version(), numpy=np.__version__,
-                   torch=torch.__version__, numba=numba.__version__,
-                   torch_threads=torch.get_num_threads())
-    out = Path(args.out)
+    print(f"fast / baseline (pre-issue-12 kernels, same run): {vs_base:.2f}x; load average "
+          f"before {load_before[0]:.2f}, after {os.getloadavg()[0]:.2f}")
+    machine = {**machine_info(), "loadavg_before": list(load_before),
+               "loadavg_after": list(os.getloadavg())}
+    out = Path(args.out or f"benchmarks/results/finetune_speed_{desc['kind']}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(dict(machine=machine, tree=tree_name, n_leaves=tree.n_leaves,
+    out.write_text(json.dumps(dict(machine=machine, tree=desc, n_leaves=tree.n_leaves,
                                    data_format=tree.data_format, stop_thresh=args.stop_thresh,
                                    ray_tile=args.ray_tile,
-                                   results=rows, speedup_fast_over_twin=speedup), indent=2) + "\n")
+                                   results=rows, speedup_fast_over_twin=speedup,
+                                   speedup_fast_over_baseline=vs_base), indent=2) + "\n")
     print(f"wrote {out}")
 
 

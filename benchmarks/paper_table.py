@@ -1,6 +1,8 @@
-"""Lego at 400² on this CPU next to the paper's lego numbers (Table 5 / Figure 5).
+"""Lego at 400² (or 800², ``--size 800``) on this CPU next to the paper's lego numbers
+(Table 5 / Figure 5).
 
-Rows: NeRF-SH (our CPU preset, hash grid), PlenOctree before and after fine-tuning, the
+Rows: NeRF-SH (our CPU preset, hash grid), PlenOctree raw, adaptively refined
+(``plenoctree refine``; "–" when no refined tree is given) and fine-tuned, the
 compressed ``.plnz``, and the fine-tuned tree truncated to SH degree 1 and 2 — each with PSNR,
 SSIM, FPS at 400² and 800², MB on disk and the wall time of the stage that made it; next to
 the paper's lego figures. The speed-up over NeRF-SH is measured in the same run against two
@@ -19,6 +21,10 @@ Modes:
   :func:`plenoctree.pipeline.run_pipeline` into ``DIR`` (resumable), then measures as above::
 
       .venv/bin/python benchmarks/paper_table.py --full --out runs/lego_paper_table
+      .venv/bin/python benchmarks/paper_table.py --full --size 800 --out runs/lego_paper_800
+
+  (``--size 800`` trains, extracts, fine-tunes and scores at 800², the paper's protocol.) The
+  per-stage wall minutes and peak RSS then come from the pipeline's ``summary.json``.
 
 Scores: the first ``--views`` test views at 400² (default 200 = all). FPS: 1000 / median
 per-view render ms (numba, after one warm-up render) on ``--fps-views`` views at 400² and 800².
@@ -54,6 +60,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 PAPER = {
     "nerf_sh": {"psnr": 32.77, "ssim": 0.966, "fps": 0.051, "mb": None},
     "raw": {"psnr": 32.12, "ssim": 0.965, "fps": None, "mb": None},
+    "refined": {"psnr": None, "ssim": None, "fps": None, "mb": None},
     "ft": {"psnr": 32.95, "ssim": 0.971, "fps": 186.8, "mb": 2067.0},
     "compressed": {"psnr": None, "ssim": None, "fps": None, "mb": None},
     "sh1": {"psnr": None, "ssim": None, "fps": None, "mb": None},
@@ -65,13 +72,15 @@ PAPER_MEAN_FPS = {"nerf_sh": 0.051, "plenoctree": 167.68}
 ROWS = [
     ("nerf_sh", "NeRF-SH (CPU preset, hash grid)"),
     ("raw", "PlenOctree from NeRF-SH (raw)"),
+    ("refined", "PlenOctree adaptively refined"),
     ("ft", "PlenOctree after fine-tuning"),
     ("compressed", "PlenOctree compressed (.plnz)"),
     ("sh2", "ft, SH degree 2 (SH9)"),
     ("sh1", "ft, SH degree 1 (SH4)"),
 ]
 
-_SHORT = {"nerf_sh": "NeRF-SH (ours, CPU preset)", "raw": "raw", "ft": "fine-tuned",
+_SHORT = {"nerf_sh": "NeRF-SH (ours, CPU preset)", "raw": "raw", "refined": "refined",
+          "ft": "fine-tuned",
           "compressed": "compressed", "sh2": "ft SH9", "sh1": "ft SH4"}
 
 
@@ -94,14 +103,15 @@ def machine() -> dict:
 
 
 # --- measurements -----------------------------------------------------------------------
-def measure_tree(path: Path, data: Path, views: int, fps_views: int, work: Path) -> dict:
-    """PSNR/SSIM of tree file ``path`` on the first ``views`` test views at 400², FPS at 400²
-    (median over those views) and at 800² (``fps_views`` views), MB on disk."""
+def measure_tree(path: Path, data: Path, views: int, fps_views: int, work: Path,
+                 downscale: int = 2) -> dict:
+    """PSNR/SSIM of tree file ``path`` on the first ``views`` test views at 800/``downscale``²,
+    FPS at that size (median over those views) and at 800² (``fps_views`` views), MB on disk."""
     from plenoctree.evaluation import EvalConfig, eval_tree_file
 
     quiet = lambda *a, **k: None  # noqa: E731
     t0 = time.perf_counter()
-    r4 = eval_tree_file(EvalConfig(tree=path, data=data, downscale=2, limit=views,
+    r4 = eval_tree_file(EvalConfig(tree=path, data=data, downscale=downscale, limit=views,
                                    out=work / f"{path.stem}_400", show_progress=False), log=quiet)
     r8 = eval_tree_file(EvalConfig(tree=path, data=data, downscale=1, limit=fps_views,
                                    out=work / f"{path.stem}_800", show_progress=False), log=quiet)
@@ -113,12 +123,12 @@ def measure_tree(path: Path, data: Path, views: int, fps_views: int, work: Path)
             "measure_s": time.perf_counter() - t0}
 
 
-def measure_nerf_cpu(run: Path, views: int, work: Path) -> dict:
+def measure_nerf_cpu(run: Path, views: int, work: Path, downscale: int = 2) -> dict:
     """Our CPU-preset NeRF-SH: PSNR/SSIM and s/frame on ``views`` evenly spaced test views at
     400², and s/frame of one full 800² frame."""
     from plenoctree.nerf.evaluate import render_nerf_views
 
-    r4 = render_nerf_views(run, "test", views=views, downscale=2, out=work / "nerf_400")
+    r4 = render_nerf_views(run, "test", views=views, downscale=downscale, out=work / "nerf_400")
     r8 = render_nerf_views(run, "test", views=1, downscale=1, out=work / "nerf_800",
                            with_ssim=False)
     return {"psnr": r4["mean_psnr"], "ssim": r4["mean_ssim"], "views": r4["n_views"],
@@ -168,6 +178,16 @@ def read_stage_times(nerf_run: Path, tree: Path, tree_ft: Path) -> dict:
         out["extract_s"] = sum(v["seconds"] for k, v in e.get("stages", {}).items()
                                if k != "eval")
         out["raw_psnr_all_views"] = e.get("test_psnr")
+    jl = tree_ft.with_name(tree_ft.stem + ".log.jsonl")      # the fine-tuner's JSON-lines log
+    if jl.is_file():
+        for line in jl.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                continue
+            if rec.get("event") == "end":
+                out["finetune_s"] = rec.get("wall_seconds")
+                out["ft_psnr_all_views"] = rec.get("test_psnr_after")
     for log in (tree_ft.parent / "log.txt", tree_ft.with_suffix(".log.txt")):
         if log.is_file():
             m = re.findall(r"([\d.]+) s, [\d.]+ M rays/s", log.read_text())
@@ -191,15 +211,21 @@ def markdown_table(res: dict) -> str:
     if missing:
         raise ConfigError(f"paper table: result has no row for {', '.join(missing)}")
     views = res.get("views", "?")
-    lines = [f"| lego, {views} test views at 400² | PSNR | SSIM | FPS 400² | FPS 800² | MB | "
-             "stage wall s | paper PSNR | paper SSIM | paper FPS (800², V100) | paper MB |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    size = res.get("size", 400)
+    lines = [f"| lego, {views} test views at {size}² | PSNR | SSIM | LPIPS | FPS 400² | FPS 800² "
+             "| leaves | MB | stage min | peak RSS MB | paper PSNR | paper SSIM | "
+             "paper FPS (800², V100) | paper MB |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for key, label in ROWS:
         r, p = res["rows"][key], PAPER[key]
-        stage = "–" if r.get("stage_s") is None else f"{r['stage_s']:.0f} ({r['stage_src']})"
+        stage = ("–" if r.get("stage_s") is None
+                 else f"{r['stage_s'] / 60:.1f} ({r['stage_src']})")
         lines.append(f"| {label} | {_fmt(r['psnr'], '.2f')} | {_fmt(r['ssim'], '.3f')} | "
+                     f"{_fmt(r.get('lpips'), '.3f')} | "
                      f"{_fmt(r['fps_400'], '.3g')} | {_fmt(r['fps_800'], '.3g')} | "
-                     f"{_fmt(r['mb'], '.1f')} | {stage} | {_fmt(p['psnr'], '.2f')} | "
+                     f"{_fmt(r.get('n_leaves'), ',d')} | "
+                     f"{_fmt(r['mb'], '.1f')} | {stage} | {_fmt(r.get('peak_rss_mb'), '.0f')} | "
+                     f"{_fmt(p['psnr'], '.2f')} | "
                      f"{_fmt(p['ssim'], '.3f')} | {_fmt(p['fps'], '.4g')} | "
                      f"{_fmt(p['mb'], '.0f')} |")
     sp = res["speedup"]
@@ -267,15 +293,28 @@ def table3_variants(path: Path) -> dict:
 
 
 # --- driver -----------------------------------------------------------------------------
-def run_full(out: Path, data: Path, views: int) -> tuple[Path, Path, Path, Path | None]:
-    """Run the whole chain on lego 400² into ``out`` (resumable); return the artefact paths."""
+def run_full(out: Path, data: Path, views: int, downscale: int = 2
+             ) -> tuple[Path, Path, Path, Path | None, dict]:
+    """Run the whole chain on lego at 800/``downscale``² into ``out`` (resumable, with the
+    ``plenoctree run`` defaults); return the artefact paths and the pipeline's summary."""
     from plenoctree.pipeline import PipelineConfig, run_pipeline
 
-    run_pipeline(PipelineConfig(data=str(data), out=str(out), downscale=2, preset="cpu",
-                                eval_views=views, video_frames=0, web=False))
+    summary = run_pipeline(PipelineConfig(data=str(data), out=str(out), downscale=downscale,
+                                          preset="cpu", eval_views=views, video_frames=0,
+                                          web=False))
     # the layout documented by run_pipeline
     plnz = out / "tree_ft.plnz"
-    return out / "nerf", out / "tree.npz", out / "tree_ft.npz", plnz if plnz.is_file() else None
+    return (out / "nerf", out / "tree.npz", out / "tree_ft.npz",
+            plnz if plnz.is_file() else None, summary)
+
+
+def pipeline_stage_figures(summary: dict) -> dict:
+    """``{row key: (seconds, peak RSS MB)}`` of the stage that made each row, from a pipeline
+    summary (``times_s`` / ``peak_rss_mb``)."""
+    times, peaks = summary.get("times_s", {}), summary.get("peak_rss_mb", {})
+    stage = {"nerf_sh": "train", "raw": "extract", "refined": "refine", "ft": "finetune",
+             "compressed": "compress"}
+    return {k: (times.get(v), peaks.get(v)) for k, v in stage.items()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -287,7 +326,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", default=str(LEGO))
     ap.add_argument("--nerf-run", default=str(ROOT / "runs/lego_cpu"))
     ap.add_argument("--tree", default=str(ROOT / "runs/lego_cpu_extract/tree.npz"))
+    ap.add_argument("--tree-refined", default="", help="adaptively refined tree (optional)")
     ap.add_argument("--tree-ft", default=str(ROOT / "runs/lego_ft/tree_ft.npz"))
+    ap.add_argument("--size", type=int, choices=(400, 800), default=400,
+                    help="image size of training (--full) and scoring")
     ap.add_argument("--plnz", default="", help="compressed ft tree (default: compress here)")
     ap.add_argument("--views", type=int, default=200, help="test views scored at 400²")
     ap.add_argument("--fps-views", type=int, default=3, help="views timed at 800²")
@@ -301,14 +343,19 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     data = Path(a.data)
     meta = machine()
+    down = 800 // a.size
+    stage_figs: dict = {}
     if a.full:
-        nerf_run, tree, tree_ft, plnz = run_full(Path(a.out), data, a.views)
+        nerf_run, tree, tree_ft, plnz, summary = run_full(Path(a.out), data, a.views, down)
+        tree_ref = Path(a.out) / "tree_refined.npz"
+        stage_figs = pipeline_stage_figures(summary)
     else:
         nerf_run, tree, tree_ft = Path(a.nerf_run), Path(a.tree), Path(a.tree_ft)
+        tree_ref = Path(a.tree_refined) if a.tree_refined else None
         plnz = Path(a.plnz) if a.plnz else None
     read = read_stage_times(nerf_run, tree, tree_ft)
     work = Path(tempfile.mkdtemp(prefix="paper_table_"))
-    res = {"mode": "full" if a.full else "from-artefacts", "views": a.views,
+    res = {"mode": "full" if a.full else "from-artefacts", "views": a.views, "size": a.size,
            "fps_views": a.fps_views, "machine": meta, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
            "read_from_artefacts": read,
            "inputs": {"nerf_run": str(nerf_run), "tree": str(tree), "tree_ft": str(tree_ft)},
@@ -316,15 +363,24 @@ def main(argv: list[str] | None = None) -> int:
     rows = res["rows"]
 
     print("NeRF-SH (CPU preset) ...", flush=True)
-    rows["nerf_sh"] = {**measure_nerf_cpu(nerf_run, a.nerf_views, work),
+    rows["nerf_sh"] = {**measure_nerf_cpu(nerf_run, a.nerf_views, work, down),
                        "stage_s": read.get("train_s"), "stage_src": "read: training"}
     print("paper-architecture NeRF-SH timing ...", flush=True)
     res["paper_nerf"] = measure_nerf_paper(data, a.paper_rows)
     print("raw tree ...", flush=True)
-    rows["raw"] = {**measure_tree(tree, data, a.views, a.fps_views, work),
+    rows["raw"] = {**measure_tree(tree, data, a.views, a.fps_views, work, down),
                    "stage_s": read.get("extract_s"), "stage_src": "read: extraction"}
+    if tree_ref is not None and tree_ref.is_file():
+        print("refined tree ...", flush=True)
+        rj = tree_ref.with_name(tree_ref.stem + ".refine.json")
+        ref_s = json.loads(rj.read_text()).get("seconds") if rj.is_file() else None
+        rows["refined"] = {**measure_tree(tree_ref, data, a.views, a.fps_views, work, down),
+                           "stage_s": ref_s, "stage_src": "read: refinement"}
+    else:
+        rows["refined"] = {"psnr": None, "ssim": None, "fps_400": None, "fps_800": None,
+                           "mb": None, "stage_s": None, "stage_src": "not run"}
     print("fine-tuned tree ...", flush=True)
-    rows["ft"] = {**measure_tree(tree_ft, data, a.views, a.fps_views, work),
+    rows["ft"] = {**measure_tree(tree_ft, data, a.views, a.fps_views, work, down),
                   "stage_s": read.get("finetune_s"), "stage_src": "read: fine-tuning"}
 
     from plenoctree.compress import CompressOptions, compress, load_any_tree, save_compressed
@@ -341,17 +397,22 @@ def main(argv: list[str] | None = None) -> int:
         cj = plnz.parent / "compress.json"
         c_s = json.loads(cj.read_text()).get("compress_s") if cj.is_file() else None
         c_src = "read: compression" if c_s is not None else "given .plnz"
-    rows["compressed"] = {**measure_tree(plnz, data, a.views, a.fps_views, work),
+    rows["compressed"] = {**measure_tree(plnz, data, a.views, a.fps_views, work, down),
                           "stage_s": c_s, "stage_src": c_src}
     for deg in (2, 1):
         print(f"SH degree {deg} ...", flush=True)
         t0 = time.perf_counter()
         p = work / f"tree_ft_sh{deg}.npz"
         write_tree_file(truncate_sh(ft_tree, deg), p)
-        rows[f"sh{deg}"] = {**measure_tree(p, data, a.views, a.fps_views, work),
+        rows[f"sh{deg}"] = {**measure_tree(p, data, a.views, a.fps_views, work, down),
                             "stage_s": time.perf_counter() - t0,
                             "stage_src": "measured: truncate+save"}
     del ft_tree
+    for key, (sec, peak) in stage_figs.items():      # --full: the pipeline's own figures
+        if key in rows and sec is not None:
+            rows[key]["stage_s"], rows[key]["stage_src"] = sec, "pipeline"
+        if key in rows:
+            rows[key]["peak_rss_mb"] = peak
 
     ft, nerf, pn = rows["ft"], rows["nerf_sh"], res["paper_nerf"]
     res["speedup"] = {

@@ -1,32 +1,36 @@
-"""Octree rendering speed: numba kernel vs its root-descent baseline vs the torch twin.
+"""Octree rendering speed on a real tree: today's numba kernel vs the frozen baseline kernel,
+where a ray's time goes, and the torch twin for accuracy.
 
-Method: a fixed set of orbit views (30° elevation, distance 4, the procedural scene's field of
-view) is rendered at each resolution with each backend in the same run. Rays are generated
-before timing (ray generation is not part of the renderer). Each backend gets a warm-up render
-(JIT compile / cache load), then ``--repeats`` timed passes over all views; we report the median
-time per frame and the spread (min, max) over passes.
+Method: a fixed set of orbit views (30° elevation, distance 4, the NeRF-synthetic field of view;
+for the forward-facing tree, the LLFF capture's own NDC cameras at 504×378) is rendered at each
+size by each path in the same run. Rays are generated before timing (their cost is reported on
+its own). Each path gets a warm-up render (JIT compile / cache load), then ``--repeats`` timed
+passes over all views; we report the median time per frame, the spread (min, max) over passes
+and the process CPU time per frame (all threads: robust to other jobs sharing the cores).
 
-Backends:
-- ``numba``: the public :func:`plenoctree.render_rays` with the default kernel (ancestor-stack
-  traversal), input checks included.
-- ``numba-root``: the same kernel re-descending from the root at every step (the "plain kernel"
-  baseline of docs/reference measurements), called directly.
-- ``torch``: the torch twin (float32) on a strided subset of the pixels of ``--twin-views`` views
-  (it is far slower); its time per frame is extrapolated per ray and marked ``extrapolated``
-  (the twin pays a fixed Python overhead per marching step; with few rays that overhead is
-  spread thin and the per-ray cost is overstated, so keep ``--twin-rays`` large).
+Paths:
+- ``numba``: the public :func:`plenoctree.render_rays` (input checks, cached packed layout,
+  kernel) — what ``render``/``eval``/``video``/``view`` get;
+- ``kernel``: the same kernel called with prepared arrays (so ``numba - kernel`` is the time per
+  frame spent outside the kernel);
+- ``baseline``: the kernel as it was before issue 12 (``benchmarks/baseline/render_kernel.py``,
+  frozen), called with prepared arrays: the ratio ``numba / baseline`` is the speed-up;
+- ``torch``: the twin (float32) on a strided subset of ``--twin-views`` views, per-ray time
+  extrapolated; it gives max |Δ rgb| against ``numba`` (the spec: ≤ 1e-4).
 
-Besides wall-clock time, each entry records the process CPU time per frame (all threads): when
-other jobs share the cores, wall time inflates while CPU time stays close to the quiet figure.
+Per-ray counters (the same march, :func:`plenoctree.render._render_numba.ray_stats_numba`):
+leaves visited, σ > 0 leaves, σ > 0 segments of negligible weight (< 1e-4), ``child`` reads of
+the descents, share of rays hitting the box and stopping early — so the distance to a frame
+rate goal is explained by numbers.
 
-Accuracy: max |Δ colour| between numba and the twin on the twin's rays (all views).
+Usage (each ≤ 2-3 min on 2 loaded cores)::
 
-Usage::
+    .venv/bin/python benchmarks/render_speed.py                  # lego when ../shared is there
+    .venv/bin/python benchmarks/render_speed.py --tree procedural
+    .venv/bin/python benchmarks/render_speed.py --tree ff        # forward-facing NDC, 504x378
+    .venv/bin/python benchmarks/render_speed.py --tree my.npz --sizes 400
 
-    .venv/bin/python benchmarks/render_speed.py                 # procedural scene, 256^3 tree
-    .venv/bin/python benchmarks/render_speed.py --tree my.npz --sizes 400 --repeats 3
-
-Writes ``benchmarks/results/render_speed.json`` (``--out``) and prints a markdown table.
+Writes ``benchmarks/results/render_speed_<tree>.json`` (``--out``) and prints markdown tables.
 """
 
 from __future__ import annotations
@@ -34,7 +38,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import platform
 import statistics
 import sys
 import time
@@ -42,65 +45,32 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-import torch
 
-import plenoctree
-from plenoctree._util import atomic_save_json
-from plenoctree.datasets import generate_rays
-from plenoctree.datasets.procedural import CAMERA_ANGLE_X, CAMERA_DISTANCE, procedural_cameras
-from plenoctree.render import RenderOptions, render_rays
-from plenoctree.render.options import parse_data_format
-
-ROOT = Path(__file__).resolve().parent
+from _trees import ROOT, load_bench_tree, machine_info
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+def orbit_views(tree: Any, n_views: int, size: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    from plenoctree.datasets import generate_rays
+    from plenoctree.datasets.procedural import CAMERA_ANGLE_X, CAMERA_DISTANCE, look_at
 
-
-def machine_info() -> dict[str, Any]:
-    import numba
-
-    try:
-        layer = numba.threading_layer()
-    except ValueError:
-        layer = "not initialised"
-    return {
-        "cpu_model": cpu_model(),
-        "cpu_count": os.cpu_count(),
-        "cpus_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-        "numba_threads": numba.config.NUMBA_NUM_THREADS,
-        "numba_threading_layer": layer,
-        "torch_threads": torch.get_num_threads(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "torch": torch.__version__,
-        "numba": numba.__version__,
-        "plenoctree": plenoctree.__version__,
-        "platform": platform.platform(),
-    }
-
-
-def load_or_build_tree(path: str | None, resolution: int):
-    if path:
-        from plenoctree.octree.io import load_tree
-
-        return load_tree(path), str(path)
-    from plenoctree.datasets.procedural import procedural_tree
-
-    return procedural_tree(resolution), f"procedural_tree({resolution})"
-
-
-def orbit_views(n_views: int, size: int) -> list[tuple[np.ndarray, np.ndarray]]:
     fx = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
-    c2ws = procedural_cameras(n_views, "orbit", distance=CAMERA_DISTANCE)
-    return [generate_rays(c, fx, fx, size / 2.0, size / 2.0, size, size) for c in c2ws]
+    out = []
+    for i in range(n_views):
+        a = 2 * math.pi * i / n_views
+        el = math.radians(30.0)
+        eye = CAMERA_DISTANCE * np.array([math.cos(el) * math.cos(a), math.cos(el) * math.sin(a),
+                                          math.sin(el)])
+        out.append(generate_rays(look_at(eye, np.zeros(3)), fx, fx, size / 2.0, size / 2.0,
+                                 size, size))
+    return out
+
+
+def ff_views(root: str, n_views: int) -> tuple[list, int, int]:
+    from plenoctree.datasets.llff import load_llff
+
+    cams = load_llff(root, split="all").cameras
+    idx = np.linspace(0, len(cams) - 1, n_views).round().astype(int)
+    return [cams.rays(int(i)) for i in idx], cams.width, cams.height
 
 
 def time_passes(fn: Callable[[], Any], repeats: int) -> tuple[list[float], list[float]]:
@@ -117,125 +87,177 @@ def time_passes(fn: Callable[[], Any], repeats: int) -> tuple[list[float], list[
 def summarise(per_frame_s: list[float], cpu_per_frame_s: list[float],
               rays_per_frame: int) -> dict[str, Any]:
     med = statistics.median(per_frame_s)
-    return {
-        "ms_per_frame": 1e3 * med,
-        "ms_min": 1e3 * min(per_frame_s),
-        "ms_max": 1e3 * max(per_frame_s),
-        "fps": 1.0 / med,
-        "mrays_per_s": rays_per_frame / med / 1e6,
-        # CPU time summed over threads: robust to other processes sharing the cores.
-        "cpu_ms_per_frame": 1e3 * statistics.median(cpu_per_frame_s),
-        "repeats": len(per_frame_s),
-    }
+    return {"ms_per_frame": 1e3 * med, "ms_min": 1e3 * min(per_frame_s),
+            "ms_max": 1e3 * max(per_frame_s), "fps": 1.0 / med,
+            "mrays_per_s": rays_per_frame / med / 1e6,
+            "cpu_ms_per_frame": 1e3 * statistics.median(cpu_per_frame_s),
+            "repeats": len(per_frame_s)}
+
+
+def ray_counters(tree: Any, views: list, opts: Any) -> dict[str, float]:
+    from plenoctree.render._render_numba import STAT_NAMES, ray_stats_numba
+
+    s = np.concatenate([ray_stats_numba(tree.child, tree.data, tree.offset, tree.invradius,
+                                        o.reshape(-1, 3), d.reshape(-1, 3), opts)
+                        for o, d in views])
+    col = {n: s[:, k] for k, n in enumerate(STAT_NAMES)}
+    hit = col["hit"] > 0
+    n_hit = max(1, int(hit.sum()))
+    per_hit = {f"{n}_per_hit_ray": float(col[n][hit].sum() / n_hit)
+               for n in ("leaves", "sigma_leaves", "negligible", "descent")}
+    return {"rays": int(len(s)), "hit_fraction": float(hit.mean()),
+            "stopped_fraction_of_hit": float(col["stopped"][hit].sum() / n_hit),
+            **{f"{n}_per_ray": float(col[n].mean())
+               for n in ("leaves", "sigma_leaves", "negligible", "descent")}, **per_hit}
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--tree", help="a saved tree (.npz); default: the procedural scene")
-    ap.add_argument("--resolution", type=int, default=256, help="procedural tree resolution")
-    ap.add_argument("--sizes", type=int, nargs="+", default=[400, 800], help="image sizes (px)")
-    ap.add_argument("--views", type=int, default=4, help="orbit views per pass")
-    ap.add_argument("--repeats", type=int, default=5, help="timed passes per backend and size")
-    ap.add_argument("--twin-rays", type=int, default=40000,
+    ap.add_argument("--tree", default=None,
+                    help="lego | procedural | ff | PATH.npz (default: lego when found)")
+    ap.add_argument("--resolution", type=int, default=256, help="procedural/ff tree resolution")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[400, 800],
+                    help="image sizes (px; orbit views)")
+    ap.add_argument("--views", type=int, default=4, help="views per pass")
+    ap.add_argument("--repeats", type=int, default=5, help="timed passes per path and size")
+    ap.add_argument("--twin-rays", type=int, default=8000,
                     help="rays per view rendered by the torch twin (strided subset)")
-    ap.add_argument("--twin-views", type=int, default=2, help="views rendered by the twin")
+    ap.add_argument("--twin-views", type=int, default=1, help="views rendered by the twin")
+    ap.add_argument("--no-baseline", action="store_true", help="skip the frozen kernel")
     ap.add_argument("--stop-thresh", type=float, default=0.01)
-    ap.add_argument("--out", default=str(ROOT / "results" / "render_speed.json"))
+    ap.add_argument("--out", default=None,
+                    help="JSON path (default benchmarks/results/render_speed_<tree>.json)")
     args = ap.parse_args(argv)
 
+    from plenoctree.render import RenderOptions, render_rays
+    from plenoctree.render import _render_numba as kern
+    from plenoctree.render.options import parse_data_format
+
     load_before = os.getloadavg()
-    t0 = time.perf_counter()
-    tree, tree_name = load_or_build_tree(args.tree, args.resolution)
-    build_s = time.perf_counter() - t0
+    tree, desc = load_bench_tree(args.tree, args.resolution,
+                                 log=lambda m: print(m, file=sys.stderr))
     info = parse_data_format(tree.data_format, tree.data_dim, tree.extra_data)
     opts = RenderOptions(stop_thresh=args.stop_thresh)
-    from plenoctree.render import _numba_impl
+    if desc["kind"] == "forward_facing":
+        sets = {}
+        views, w, h = ff_views(desc["data"], args.views)
+        sets[f"{w}x{h}"] = (views, w * h)
+    else:
+        sets = {f"{s}x{s}": (None, s * s) for s in args.sizes}
 
-    results: dict[str, dict[str, Any]] = {"numba": {}, "numba-root": {}, "torch": {}}
-    max_diff: dict[str, float] = {}
-    for size in args.sizes:
-        views = orbit_views(args.views, size)
-        n_px = size * size
-        key = str(size)
+    paths = ["numba", "kernel"] + ([] if args.no_baseline else ["baseline"])
+    results: dict[str, dict[str, Any]] = {p: {} for p in paths + ["torch"]}
+    counters, breakdown, max_diff = {}, {}, {}
+    for key, (views, n_px) in sets.items():
+        t0 = time.perf_counter()
+        if views is None:
+            size = int(key.split("x")[0])
+            views = orbit_views(tree, args.views, size)
+        raygen_ms = 1e3 * (time.perf_counter() - t0) / len(views)
+        flat = [(o.reshape(-1, 3), d.reshape(-1, 3)) for o, d in views]
 
-        def run_numba():
+        def run_public():
             for o, d in views:
                 render_rays(tree, o, d, opts, backend="numba")
 
-        def run_root():
-            for o, d in views:
-                _numba_impl.render_rays_numba(tree.child, tree.data, tree.offset,
-                                              tree.invradius, info, tree.extra_data,
-                                              o.reshape(-1, 3), d.reshape(-1, 3), opts,
-                                              use_stack=False)
+        prepared = kern.prepare(tree, info, opts)
+        outs = [kern.empty_outputs(len(o)) for o, _ in flat]
+
+        width = views[0][0].shape[1]
+
+        def run_kernel():
+            for (o, d), out in zip(flat, outs):
+                kern.render_prepared(prepared, o, d, out, width=width)
+
+        fns: dict[str, Callable[[], Any]] = {"numba": run_public, "kernel": run_kernel}
+        if "baseline" in paths:
+            from baseline import render_kernel as base
+
+            def run_base():
+                for o, d in flat:
+                    base.render_rays_numba(tree.child, tree.data, tree.offset, tree.invradius,
+                                           info, tree.extra_data, o, d, opts)
+
+            fns["baseline"] = run_base
+        for name in paths:
+            fns[name]()                                             # warm-up
+        for _ in range(args.repeats):                               # interleaved passes
+            for name in paths:
+                wall, cpu = time_passes(fns[name], 1)
+                results[name].setdefault(key, ([], []))
+                results[name][key][0].append(wall[0] / len(views))
+                results[name][key][1].append(cpu[0] / len(views))
+        for name in paths:
+            results[name][key] = summarise(*results[name][key], n_px)
 
         stride = max(1, n_px // max(1, args.twin_rays))
-        subsets = [(o.reshape(-1, 3)[::stride], d.reshape(-1, 3)[::stride])
-                   for o, d in views[:max(1, args.twin_views)]]
+        subsets = [(o[::stride], d[::stride]) for o, d in flat[:max(1, args.twin_views)]]
         n_sub = sum(len(o) for o, _ in subsets)
-
-        def run_twin():
-            return [render_rays(tree, o, d, opts, backend="torch").rgb for o, d in subsets]
-
-        for name, fn in (("numba", run_numba), ("numba-root", run_root)):
-            fn()                                                    # warm-up
-            wall, cpu = time_passes(fn, args.repeats)
-            results[name][key] = summarise([p / len(views) for p in wall],
-                                           [p / len(views) for p in cpu], n_px)
-        twin_rgb = run_twin()                                       # warm-up
-        wall, cpu = time_passes(run_twin, max(1, min(args.repeats, 3)))
-        results["torch"][key] = summarise([p / n_sub * n_px for p in wall],
-                                          [p / n_sub * n_px for p in cpu], n_px)
+        c0, t0 = time.process_time(), time.perf_counter()    # one pass: it is slow
+        twin = [render_rays(tree, o, d, opts, backend="torch").rgb for o, d in subsets]
+        wall, cpu = [time.perf_counter() - t0], [time.process_time() - c0]
+        results["torch"][key] = summarise([w / n_sub * n_px for w in wall],
+                                          [c / n_sub * n_px for c in cpu], n_px)
         results["torch"][key].update(extrapolated=True, rays_timed=n_sub)
-        diffs = [float((render_rays(tree, o, d, opts, backend="numba").rgb - ref).abs().max())
-                 for (o, d), ref in zip(subsets, twin_rgb)]
-        max_diff[key] = max(diffs)
-        print(f"[{size}x{size}] numba {results['numba'][key]['ms_per_frame']:.1f} ms, "
-              f"root {results['numba-root'][key]['ms_per_frame']:.1f} ms, "
-              f"twin {results['torch'][key]['ms_per_frame']:.0f} ms (extrapolated)",
-              file=sys.stderr)
+        max_diff[key] = max(float((render_rays(tree, o, d, opts, backend="numba").rgb
+                                   - ref).abs().max()) for (o, d), ref in zip(subsets, twin))
+        counters[key] = ray_counters(tree, views, opts)
+        pub, ker = results["numba"][key]["ms_per_frame"], results["kernel"][key]["ms_per_frame"]
+        breakdown[key] = {"raygen_ms": raygen_ms, "outside_kernel_ms": pub - ker,
+                          "kernel_ms": ker,
+                          "kernel_ns_per_ray_core": ker * 1e6 / n_px * (os.cpu_count() or 1)}
+        print(f"[{key}] numba {pub:.1f} ms, kernel {ker:.1f} ms"
+              + (f", baseline {results['baseline'][key]['ms_per_frame']:.1f} ms"
+                 if "baseline" in paths else ""), file=sys.stderr)
 
-    speedup = {k: results["torch"][k]["ms_per_frame"] / results["numba"][k]["ms_per_frame"]
-               for k in results["numba"]}
-    speedup_root = {k: results["numba-root"][k]["ms_per_frame"]
-                    / results["numba"][k]["ms_per_frame"] for k in results["numba"]}
+    ratio = ({k: results["baseline"][k]["ms_per_frame"] / results["numba"][k]["ms_per_frame"]
+              for k in sets} if "baseline" in paths else {})
     report = {
-        "benchmark": "render_speed",
-        "tree": {"source": tree_name, "data_format": tree.data_format,
-                 "n_nodes": tree.n_nodes, "n_leaves": tree.n_leaves,
-                 "depth_limit": tree.depth_limit, "data_mb": tree.data.nbytes / 2**20,
-                 "build_s": build_s},
-        "views": args.views, "sizes": args.sizes, "repeats": args.repeats,
+        "benchmark": "render_speed", "tree": desc, "views": args.views,
+        "sets": list(sets), "repeats": args.repeats,
         "options": {"stop_thresh": opts.stop_thresh, "background": list(opts.background)},
-        "results": results,
-        "speedup_numba_over_torch": speedup,
-        "speedup_stack_over_root_descent": speedup_root,
+        "results": results, "ray_counters": counters, "time_breakdown": breakdown,
+        "speedup_numba_over_baseline": ratio,
         "max_abs_diff_rgb_numba_vs_torch": max_diff,
-        "machine": {**machine_info(), "loadavg_before": load_before,
-                    "loadavg_after": os.getloadavg()},
+        "machine": {**machine_info(), "loadavg_before": list(load_before),
+                    "loadavg_after": list(os.getloadavg())},
     }
-    atomic_save_json(args.out, report)
+    out = Path(args.out or ROOT / "results" / f"render_speed_{desc['kind']}.json")
+    from plenoctree._util import atomic_save_json
 
-    print(f"\nOctree render speed — {tree_name}, {tree.data_format}, {tree.n_leaves} leaves, "
-          f"{args.views} orbit views, stop_thresh {opts.stop_thresh}\n")
-    print("| backend | size | ms/frame (median) | spread (min–max) | FPS | M rays/s "
-          "| CPU ms/frame |")
+    atomic_save_json(out, report)
+
+    print(f"\nOctree render speed — {desc['source']}: {tree.data_format}, {tree.n_leaves} "
+          f"leaves, max depth {tree.max_depth}, {args.views} views, stop_thresh "
+          f"{opts.stop_thresh}\n")
+    print("| path | size | ms/frame (median) | spread | FPS | M rays/s | CPU ms/frame |")
     print("|---|---|---|---|---|---|---|")
-    for name, per_size in results.items():
-        for k, r in per_size.items():
+    for name, per in results.items():
+        for k, r in per.items():
             note = " (extrapolated)" if r.get("extrapolated") else ""
-            print(f"| {name}{note} | {k}² | {r['ms_per_frame']:.1f} | {r['ms_min']:.1f}–"
+            print(f"| {name}{note} | {k} | {r['ms_per_frame']:.1f} | {r['ms_min']:.1f}–"
                   f"{r['ms_max']:.1f} | {r['fps']:.2f} | {r['mrays_per_s']:.2f} | "
                   f"{r['cpu_ms_per_frame']:.1f} |")
+    print("\n| size | hit rays | leaves/hit ray | σ>0 leaves | negligible (w<1e-4) | child reads "
+          "| stopped early | raygen ms | outside kernel ms | kernel ns/ray/core |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for k in sets:
+        c, b = counters[k], breakdown[k]
+        print(f"| {k} | {c['hit_fraction']:.1%} | {c['leaves_per_hit_ray']:.1f} | "
+              f"{c['sigma_leaves_per_hit_ray']:.1f} | {c['negligible_per_hit_ray']:.1f} | "
+              f"{c['descent_per_hit_ray']:.1f} | {c['stopped_fraction_of_hit']:.1%} | "
+              f"{b['raygen_ms']:.1f} | {b['outside_kernel_ms']:.1f} | "
+              f"{b['kernel_ns_per_ray_core']:.0f} |")
     print()
-    for k in speedup:
-        print(f"{k}²: numba is {speedup[k]:.0f}x the torch twin, {speedup_root[k]:.2f}x the "
-              f"root-descent kernel; max |Δ rgb| numba vs twin = {max_diff[k]:.2e}")
+    for k in sets:
+        sp = f"{ratio[k]:.2f}x the baseline kernel; " if ratio else ""
+        print(f"{k}: numba {results['numba'][k]['fps']:.1f} FPS, {sp}max |Δ rgb| numba vs "
+              f"twin = {max_diff[k]:.2e}")
     m = report["machine"]
     print(f"\nmachine: {m['cpu_model']}, {m['cpu_count']} cores, numba {m['numba']} "
-          f"({m['numba_threading_layer']}, {m['numba_threads']} threads), torch {m['torch']}; "
-          f"load average before {load_before[0]:.2f}, after {m['loadavg_after'][0]:.2f}")
-    print(f"wrote {args.out}")
+          f"({m['numba_threading_layer']}, {m['numba_threads']} threads); load average before "
+          f"{load_before[0]:.2f}, after {m['loadavg_after'][0]:.2f}")
+    print(f"wrote {out}")
     return 0
 
 

@@ -98,3 +98,42 @@ def test_depth_limit_and_bad_options(coarse):
         refine_tree(tree, f, max_fraction=0)
     with pytest.raises(ConfigError, match="passes"):
         refine_tree(tree, f, passes=-1)
+
+
+def test_refine_cli_on_a_run(tmp_path, capsys):
+    """``plenoctree refine TREE --run-dir RUN``: a tiny (untrained) NeRF-SH run, its extracted
+    tree, the refined tree saved with its JSON record; a bad option names itself."""
+    import torch
+
+    from plenoctree.cli import main
+    from plenoctree.datasets import procedural
+    from plenoctree.nerf.checkpoint import save_checkpoint
+    from plenoctree.nerf.config import ModelConfig, preset
+    from plenoctree.nerf.model import NeRFModel
+
+    data = procedural.write_procedural_dataset(tmp_path / "data", n_train=3, n_val=0, n_test=2,
+                                               width=16, height=16, n_samples=64)
+    cfg = preset("cpu")
+    cfg.data, cfg.out, cfg.occ_res = str(data), str(tmp_path / "run"), 8
+    cfg.model = ModelConfig(encoding="posenc", pe_freqs=2, net_depth=1, net_width=16)
+    torch.manual_seed(0)
+    model = NeRFModel(cfg.model, [[-1.5] * 3, [1.5] * 3], occ_res=cfg.occ_res)
+    save_checkpoint(tmp_path / "run" / "checkpoint.pt", config=cfg, step=0, train_time_s=0.0,
+                    wall_time_s=0.0, model=model, optimizer=None, rng=None, trainer={},
+                    log={"train": [], "val": []})
+    tree = tmp_path / "tree.npz"
+    assert main(["extract", str(tmp_path / "run"), "--out", str(tree), "--grid", "16",
+                 "--samples", "2", "--bbox", "fixed", "--masking", "sigma",
+                 "--mask-alpha-thresh", "1e-12", "--no-eval", "--no-progress"]) == 0
+    out = tmp_path / "ref.npz"
+    assert main(["refine", str(tree), "--run-dir", str(tmp_path / "run"), "--out", str(out),
+                 "--threshold", "0", "--max-fraction", "0.1", "--eval-views", "1"]) == 0
+    text = capsys.readouterr().out
+    assert "leaves" in text and "test PSNR before" in text
+    before, after = load_tree(tree), load_tree(out)
+    after.check_integrity()
+    assert after.n_leaves > before.n_leaves and after.max_depth == before.max_depth + 1
+    assert (tmp_path / "ref.refine.json").exists()
+    assert main(["refine", str(tree), "--run-dir", str(tmp_path / "run"),
+                 "--max-fraction", "2"]) == 1
+    assert "max-fraction" in capsys.readouterr().err

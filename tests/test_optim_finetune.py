@@ -95,7 +95,7 @@ def test_finetune_recovers_the_known_tree(scene, tmp_path, optimizer, lr):
 
 
 def test_torch_twin_backend_takes_the_same_steps(scene):
-    from plenoctree.optim._fast import kernel_args
+    from plenoctree.optim._render_grad import kernel_args
     from plenoctree.optim._loop import ViewSet
     from plenoctree.optim._steppers import NumbaStepper, TorchStepper
     from plenoctree.datasets import load_dataset
@@ -233,3 +233,20 @@ def test_cli_prints_psnr_before_and_after(scene, tmp_path, capsys):
     rc = main(["finetune", str(scene / "noisy.npz"), "--data", str(tmp_path / "nope"),
                "--out", str(tmp_path / "cli2.npz")])
     assert rc == 1 and "error" in capsys.readouterr().err
+
+
+def test_default_finetune_ends_at_or_above_its_start_on_the_procedural_scene(tmp_path):
+    """The defaults (no lr, no optimizer given) on a tree extracted from the procedural NeRF-SH:
+    validation and test PSNR end at or above the extracted tree's (validation strictly)."""
+    from plenoctree.convert import AnalyticField, ExtractConfig, extract
+    from plenoctree.datasets.procedural import write_procedural_dataset
+
+    data = tmp_path / "data"
+    write_procedural_dataset(data, n_train=12, n_val=2, n_test=2, width=32, height=32)
+    extract(ExtractConfig(out=str(tmp_path / "t.npz"), data=str(data), grid=32, eval=False,
+                          show_progress=False), field=AnalyticField())
+    res = finetune(FinetuneConfig(tree=tmp_path / "t.npz", data=data, out=tmp_path / "ft.npz",
+                                  epochs=4, batch_rays=1024, verbose=False,
+                                  show_progress=False))    # 12 steps an epoch
+    assert res.val_psnr_best > res.val_psnr_before and res.best_epoch > 0, res
+    assert res.test_psnr_after >= res.test_psnr_before, res

@@ -10,7 +10,7 @@ import torch
 
 from plenoctree.octree import dense_tree, tree_from_grid
 from plenoctree.optim import OctreeRenderFunction, render_rays_differentiable
-from plenoctree.optim._fast import (SparseGrad, backward_numba, forward_numba, fused_mse_numba,
+from plenoctree.optim._render_grad import (SparseGrad, backward_numba, forward_numba, fused_mse_numba,
                                     kernel_args)
 from plenoctree.render import RenderOptions, render_rays
 

@@ -43,16 +43,19 @@ def test_table_has_every_row_and_paper_numbers(pt):
         assert len(row) == 1, f"no table row for {key}"
     ft = next(ln for ln in lines if ln.startswith("| PlenOctree after fine-tuning |"))
     cells = [c.strip() for c in ft.strip("|").split("|")]
-    assert cells[1] == "30.50" and cells[3] == "7" and cells[5] == "300.0"
-    assert cells[6] == "30 (read: fake)"
-    assert cells[7] == "32.95" and cells[9] == "186.8"     # paper lego, Table 5
+    i = [k for k, _ in pt.ROWS].index("ft")
+    assert cells[1] == f"{30.0 + 0.25 * i:.2f}" and cells[4] == f"{5 + i}"
+    assert cells[7] == f"{100.0 * (i + 1):.1f}"
+    assert cells[8] == f"{10.0 * (i + 1) / 60:.1f} (read: fake)"        # minutes
+    assert cells[10] == "32.95" and cells[12] == "186.8"     # paper lego, Table 5
+    assert "| leaves |" in md and "| peak RSS MB |" in md
     nerf = next(ln for ln in lines if ln.startswith("| NeRF-SH (CPU preset"))
     assert "| 32.77 |" in nerf and "| 0.051 |" in nerf
     assert "| 1750× | 3500× |" in md and "| 7× | 14× |" in md
     assert "lego, 7 test views" in md
 
 
-@pytest.mark.parametrize("drop", ["nerf_sh", "raw", "ft", "compressed", "sh1", "sh2"])
+@pytest.mark.parametrize("drop", ["nerf_sh", "raw", "refined", "ft", "compressed", "sh1", "sh2"])
 def test_missing_row_is_an_error(pt, drop):
     res = copy.deepcopy(_fake(pt))
     del res["rows"][drop]

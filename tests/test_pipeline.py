@@ -42,22 +42,28 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path):
     out = tmp_path / "run"
     logs: list[str] = []
     s = run_pipeline(_tiny_cfg(scene, out), log=logs.append)
-    for name in ("nerf/checkpoint.pt", "tree.npz", "tree_ft.npz", "tree_ft.plnz",
+    for name in ("nerf/checkpoint.pt", "tree.npz", "tree_refined.npz", "tree_ft.npz", "tree_ft.plnz",
                  "eval_ft/eval.json", "web/index.html", "orbit.mp4", "summary.json",
                  "summary.md", "nerf_eval.json", "stages.png"):
         assert (out / name).exists(), name
     stages = [r["stage"] for r in s["rows"]]
-    assert stages == ["NeRF-SH", "PlenOctree", "PlenOctree fine-tuned", "compressed"]
+    assert stages == ["NeRF-SH", "PlenOctree", "PlenOctree refined", "PlenOctree fine-tuned",
+                      "compressed"]
     assert all(r["psnr"] is not None and r["psnr"] > 5 for r in s["rows"])
     # The table says how many test views each row scored (NeRF-SH: nerf_eval_views).
-    assert [r["views"] for r in s["rows"]] == [1, 2, 2, 2]
-    assert "| test views |" in (out / "summary.md").read_text()
+    assert [r["views"] for r in s["rows"]] == [1, 2, 2, 2, 2]
+    md = (out / "summary.md").read_text()
+    assert "| test views |" in md
+    # the summary states fine-tuning's gain and, when it kept its input tree, why
+    ft = s["finetune"]
+    assert ft["test_gain_db"] is not None and "Fine-tuning:" in md
+    assert ft["stop_reason"] and (ft["best_epoch"] > 0 or "input tree was kept" in md)
     assert s["speedup_over_nerf"] and s["speedup_over_nerf"] > 0
     assert not s["skipped"]
 
     logs.clear()
     s2 = run_pipeline(_tiny_cfg(scene, out), log=logs.append)
-    assert set(s2["skipped"]) >= {"train", "extract", "finetune", "compress", "eval_ft"}
+    assert set(s2["skipped"]) >= {"train", "extract", "refine", "finetune", "compress", "eval_ft"}
 
     # Changing a fine-tuning setting reruns fine-tuning and what depends on it only.
     logs.clear()
@@ -114,7 +120,7 @@ def test_demo_cli_tiny(tmp_path, capsys):
             "--finetune-epochs", "1", "--video-frames", "0"]
     assert main(args) == 0
     s = json.loads((out / "summary.json").read_text())
-    assert len(s["rows"]) == 4 and (out / "tree_ft.plnz").exists()
+    assert len(s["rows"]) == 5 and (out / "tree_ft.plnz").exists()
     text = capsys.readouterr().out
     assert "PlenOctree fine-tuned" in text and "plenoctree view" in text
     assert main(args) == 0

@@ -233,7 +233,7 @@ def test_numba_matches_twin(fmt, stop):
 
 
 def test_stack_traversal_equals_root_descent():
-    from plenoctree.render import _numba_impl
+    from plenoctree.render import _render_numba
     from plenoctree.render.options import parse_data_format
 
     tree = _random_tree("SH4", seed=11, res=32, occupancy=0.05)
@@ -241,8 +241,8 @@ def test_stack_traversal_equals_root_descent():
     info = parse_data_format(tree.data_format, tree.data_dim)
     args = (tree.child, tree.data, tree.offset, tree.invradius, info, None, o, d,
             RenderOptions(stop_thresh=0.0))
-    a = _numba_impl.render_rays_numba(*args, use_stack=True)
-    b = _numba_impl.render_rays_numba(*args, use_stack=False)
+    a = _render_numba.render_rays_numba(*args, use_stack=True)
+    b = _render_numba.render_rays_numba(*args, use_stack=False)
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x, y)
 
@@ -415,7 +415,7 @@ def test_public_api_and_lazy_kernel():
                  "available_backends"):
         assert name in plenoctree.__all__ and getattr(plenoctree, name) is not None
     code = ("import sys, plenoctree, plenoctree.render; "
-            "assert 'plenoctree.render._numba_impl' not in sys.modules")
+            "assert 'plenoctree.render._render_numba' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
 
 

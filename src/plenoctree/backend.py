@@ -185,7 +185,7 @@ def run(op: str, requested: str, device: Any, *args: Any, **kwargs: Any) -> Any:
 # Built-in backends: numba kernels (CPU, required dependency) and their torch twins (any device).
 _NUMBA, _TORCH = 10, 0
 for _op, _numba, _torch in (
-    ("render", "plenoctree.render:_render_numba", "plenoctree.render:_render_torch"),
+    ("render", "plenoctree.render:_numba_render", "plenoctree.render:_render_torch"),
     ("render_grad", "plenoctree.optim.autograd:_grad_numba",
      "plenoctree.optim.autograd:_grad_torch"),
     ("finetune", "plenoctree.optim._steppers:_numba_stepper",

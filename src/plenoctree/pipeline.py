@@ -24,7 +24,8 @@ from .optim.finetune import DEFAULT_EPOCHS
 __all__ = ["PipelineConfig", "PipelineError", "run_pipeline", "STAGES", "PRESETS",
            "pipeline_preset", "check_extras"]
 
-STAGES = ("train", "nerf_eval", "extract", "finetune", "eval", "compress", "web", "video")
+STAGES = ("train", "nerf_eval", "extract", "refine", "finetune", "eval", "compress", "web",
+          "video")
 
 
 class PipelineError(PlenOctreeError, RuntimeError):
@@ -58,10 +59,15 @@ class PipelineConfig:
     """random samples averaged per leaf at extraction"""
     weight_thresh: float = 0.001
     """visibility threshold τ_w on the maximum ray weight of a voxel"""
+    refine_passes: int = 1
+    """adaptive refinement passes after extraction: subdivide leaves where the NeRF-SH varies
+    inside them (0 = off; see `plenoctree refine`)"""
+    refine_threshold: float = 0.1
+    """refinement: subdivide leaves whose sample spread is at least this (pixel units)"""
     finetune_epochs: int = DEFAULT_EPOCHS
-    """maximum fine-tuning epochs (stops at the first validation drop)"""
+    """maximum fine-tuning epochs (the learning rate backs off on a validation drop)"""
     finetune_lr: float | None = None
-    """fine-tuning learning rate (default: the fine-tuner's SGD default)"""
+    """fine-tuning learning rate (default: the fine-tuner's, Adam 1e-2)"""
     compress_bits: int = 16
     """median-cut codebook bits per SH basis"""
     eval_views: int = 0
@@ -85,7 +91,7 @@ class PipelineConfig:
     "finetune": {...}} (the CLI's --train.*, --extract.*, --finetune.* flags)"""
 
 
-STAGE_OPTIONS = ("train", "extract", "finetune")
+STAGE_OPTIONS = ("train", "extract", "refine", "finetune")
 """Stages whose every config field ``extra`` may set (``plenoctree run --<stage>.<field>``)."""
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -146,6 +152,7 @@ class _Runner:
         self.out, self.log = out, log
         self.stamps = out / ".stages"
         self.times: dict[str, float] = {}
+        self.peaks: dict[str, float] = {}     # peak RSS (MB) of each stage
         self.skipped: list[str] = []
 
     def stage(self, name: str, settings: dict, inputs: list[Path], outputs: list[Path],
@@ -161,12 +168,18 @@ class _Runner:
         if old is not None and old.get("stamp") == stamp and all(p.exists() for p in outputs):
             self.log(f"[{name}] up to date, skipped")
             self.times[name] = float(old.get("seconds", 0.0))
+            if old.get("peak_rss_mb") is not None:
+                self.peaks[name] = float(old["peak_rss_mb"])
             self.skipped.append(name)
             return False
         self.log(f"[{name}] running")
+        from .convert.memory import StageMonitor
+
+        mon = StageMonitor()
         t0 = time.perf_counter()
         try:
-            fn()
+            with mon.stage(name):
+                fn()
         except PlenOctreeError as e:
             raise PipelineError(
                 f"stage '{name}' failed: {e}\n  finished artefacts are kept in {self.out}; "
@@ -176,7 +189,9 @@ class _Runner:
             raise
         seconds = time.perf_counter() - t0
         self.times[name] = seconds
-        atomic_save_json(path, {"stamp": stamp, "seconds": seconds})
+        self.peaks[name] = float(mon.to_json()[name]["peak_rss_mb"])
+        atomic_save_json(path, {"stamp": stamp, "seconds": seconds,
+                                "peak_rss_mb": self.peaks[name]})
         self.log(f"[{name}] done in {seconds:.1f} s")
         return True
 
@@ -192,8 +207,9 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
     """Run (or resume) the whole chain; returns the summary also written to ``summary.json``.
 
     Artefacts in ``cfg.out``: ``nerf/`` (run directory), ``nerf_eval.json``, ``tree.npz`` (raw
-    extracted octree), ``tree_ft.npz`` (fine-tuned), ``tree_ft.plnz`` (compressed),
-    ``eval_{raw,ft,compressed}/eval.json`` (the fine-tuned tree's renders and depth maps in
+    extracted octree), ``tree_refined.npz`` (adaptively refined, when ``refine_passes``),
+    ``tree_ft.npz`` (fine-tuned, with ``tree_ft.log.jsonl``), ``tree_ft.plnz`` (compressed),
+    ``eval_{raw,refined,ft,compressed}/eval.json`` (the fine-tuned tree's renders and depth maps in
     ``eval_ft/renders/``), ``web/`` (viewer bundle), ``orbit.mp4``,
     ``summary.json`` and ``summary.md``.
     """
@@ -248,7 +264,17 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
     apply(ecfg, cfg.extra.get("extract", {}), where="--extract")
     from .optim.finetune import FinetuneConfig, finetune
 
-    fcfg = FinetuneConfig(tree=str(tree_raw), data=str(data), out=str(tree_ft),
+    tree_in, rcfg = tree_raw, None
+    if cfg.refine_passes > 0:
+        from .convert.refine import RefineConfig, refine
+
+        tree_in = out / "tree_refined.npz"
+        rcfg = RefineConfig(tree=str(tree_raw), run_dir=str(run_dir), out=str(tree_in),
+                            passes=cfg.refine_passes, threshold=cfg.refine_threshold,
+                            data=str(data), seed=cfg.seed, show_progress=False)
+        apply(rcfg, cfg.extra.get("refine", {}), where="--refine")
+        rcfg.validated()
+    fcfg = FinetuneConfig(tree=str(tree_in), data=str(data), out=str(tree_ft),
                           epochs=cfg.finetune_epochs, lr=cfg.finetune_lr,
                           downscale=cfg.downscale, precision="fp32", backend=cfg.backend,
                           device=cfg.device,
@@ -292,13 +318,19 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
     r.stage("extract", _config_dict(ecfg), [run_dir / CHECKPOINT_NAME], [tree_raw],
             lambda: extract(ecfg), "change the extraction options (--grid, --weight-thresh)")
 
-    # 4. Fine-tuning of the leaf values on the training photos.
+    # 4. Adaptive refinement against the NeRF-SH.
+    if rcfg is not None:
+        r.stage("refine", _config_dict(rcfg), [tree_raw, run_dir / CHECKPOINT_NAME], [tree_in],
+                lambda: refine(rcfg, log=lambda *_: None),
+                "lower --refine-passes or raise --refine-threshold")
+
+    # 5. Fine-tuning of the leaf values on the training photos.
     ft_settings = {k: v for k, v in _config_dict(fcfg).items()
                    if k not in ("resume", "verbose", "show_progress")}
-    r.stage("finetune", ft_settings, [tree_raw], [tree_ft], lambda: finetune(fcfg),
+    r.stage("finetune", ft_settings, [tree_in], [tree_ft], lambda: finetune(fcfg),
             "lower --finetune-lr or --finetune-epochs")
 
-    # 5. Compression (median cut + DEFLATE).
+    # 6. Compression (median cut + DEFLATE).
     def do_compress():
         from .compress import CompressOptions, compress, save_compressed
         from .octree import load_tree
@@ -309,11 +341,13 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
     r.stage("compress", {"bits": cfg.compress_bits}, [tree_ft], [tree_c], do_compress,
             "try fewer --compress-bits")
 
-    # 6. Scores of every octree stage on the test split (PSNR, SSIM, FPS, MB).
+    # 7. Scores of every octree stage on the test split (PSNR, SSIM, FPS, MB).
     from .evaluation import EvalConfig, eval_tree_file
 
     evals = {}
-    for key, path in (("raw", tree_raw), ("ft", tree_ft), ("compressed", tree_c)):
+    stages = [("raw", tree_raw)] + ([("refined", tree_in)] if tree_in != tree_raw else []) + [
+        ("ft", tree_ft), ("compressed", tree_c)]
+    for key, path in stages:
         ev_dir = out / f"eval_{key}"
         ecfg_ = EvalConfig(tree=str(path), data=str(data), format=cfg.format,
                            downscale=cfg.downscale, limit=cfg.eval_views or None, out=str(ev_dir),
@@ -324,7 +358,7 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
                 "check the tree file")
         evals[key] = _read_json(ev_dir / "eval.json")
 
-    # 7. Static web-viewer bundle and orbit video.
+    # 8. Static web-viewer bundle and orbit video.
     if cfg.web:
         def do_web():
             from .datasets import load_dataset
@@ -351,7 +385,7 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
                 [tree_ft], [out / "orbit.mp4"], do_video, "check the tree file")
 
     summary = _summary(cfg, out, r, evals, _read_json(nerf_json),
-                       _read_json(run_dir / "summary.json"))
+                       _read_json(run_dir / "summary.json"), _finetune_outcome(tree_ft))
     atomic_save_json(out / "summary.json", summary)
     from .plots import plot_stages               # PSNR against FPS and MB (needs matplotlib)
 
@@ -383,27 +417,53 @@ def _config_dict(cfg: Any) -> dict:
     return json.loads(json.dumps(d, default=str))
 
 
+def _finetune_outcome(tree_ft: Path) -> dict:
+    """The fine-tuner's ``end`` record (validation before / best, best epoch, why it stopped,
+    back-offs) from ``<tree_ft stem>.log.jsonl``; ``{}`` when absent."""
+    path = tree_ft.with_name(tree_ft.stem + ".log.jsonl")
+    try:
+        lines = path.read_text().splitlines()
+    except OSError:
+        return {}
+    for line in reversed(lines):
+        try:
+            rec = json.loads(line)
+        except ValueError:
+            continue
+        if rec.get("event") == "end":
+            keys = ("val_psnr_before", "val_psnr_best", "best_epoch", "epochs_run",
+                    "stop_reason", "backoffs", "wall_seconds")
+            return {k: rec.get(k) for k in keys}
+    return {}
+
+
 def _summary(cfg: PipelineConfig, out: Path, r: _Runner, evals: dict, nerf: dict,
-             train_info: dict) -> dict:
+             train_info: dict, ft: dict | None = None) -> dict:
     rows = []
     nerf_mean = nerf.get("mean", {})
     nerf_fps = nerf_mean.get("fps")
     rows.append({"stage": "NeRF-SH", "psnr": nerf_mean.get("psnr"), "ssim": nerf_mean.get("ssim"),
                  "fps": nerf_fps, "mb": nerf.get("model_mb"),
-                 "seconds": r.times.get("train"), "views": nerf.get("n_views")})
-    names = {"raw": "PlenOctree", "ft": "PlenOctree fine-tuned", "compressed": "compressed"}
-    stage_time = {"raw": "extract", "ft": "finetune", "compressed": "compress"}
+                 "seconds": r.times.get("train"), "views": nerf.get("n_views"),
+                 "peak_rss_mb": r.peaks.get("train")})
+    names = {"raw": "PlenOctree", "refined": "PlenOctree refined",
+             "ft": "PlenOctree fine-tuned", "compressed": "compressed"}
+    stage_time = {"raw": "extract", "refined": "refine", "ft": "finetune",
+                  "compressed": "compress"}
     for key, ev in evals.items():
         mean, tree = ev.get("mean", {}), ev.get("tree", {})
         rows.append({"stage": names[key], "psnr": mean.get("psnr"), "ssim": mean.get("ssim"),
                      "fps": mean.get("fps"), "mb": tree.get("file_mb"),
+                     "leaves": tree.get("n_leaves"),
+                     "peak_rss_mb": r.peaks.get(stage_time[key]),
                      "seconds": r.times.get(stage_time[key]),
                      "views": ev.get("dataset", {}).get("n_views")})
     ft_fps = evals.get("ft", {}).get("mean", {}).get("fps")
     speedup = (ft_fps / nerf_fps) if (ft_fps and nerf_fps) else None
     return {"config": _config_dict(cfg), "rows": rows, "times_s": r.times,
-            "skipped": r.skipped, "speedup_over_nerf": speedup,
+            "skipped": r.skipped, "speedup_over_nerf": speedup, "peak_rss_mb": r.peaks,
             "total_s": sum(v for v in r.times.values() if v),
+            "finetune": _finetune_note(evals, ft or {}),
             "web": str(out / "web") if cfg.web else None,
             "video": str(out / "orbit.mp4") if cfg.video_frames else None,
             "train": train_info, "device": _device_json(cfg.device)}
@@ -415,17 +475,48 @@ def _device_json(name: str) -> dict:
     return device_report(resolve_device(name))
 
 
+def _finetune_note(evals: dict, ft: dict) -> dict:
+    """Test-PSNR gain of fine-tuning over its input and, when the input tree was kept, why."""
+    def psnr(key):
+        return evals.get(key, {}).get("mean", {}).get("psnr")
+
+    start = psnr("refined") if "refined" in evals else psnr("raw")
+    after = psnr("ft")
+    note = dict(ft)
+    note["test_gain_db"] = (after - start) if (after is not None and start is not None) else None
+    if ft.get("best_epoch") == 0:
+        note["kept_input"] = ("no fine-tuning epoch raised the validation PSNR above the input "
+                              f"tree's ({ft.get('stop_reason')}), so the input tree was kept")
+    return note
+
+
 def summary_markdown(summary: dict) -> str:
     """One markdown table: PSNR/SSIM, FPS, MB and time per stage, plus the speed-up."""
     def f(v, fmt):
         return format(v, fmt) if isinstance(v, (int, float)) else "–"
 
-    lines = ["| stage | test views | PSNR (dB) | SSIM | FPS | MB | time (s) |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| stage | test views | PSNR (dB) | SSIM | FPS | leaves | MB | time (s) | "
+             "peak RSS (MB) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for row in summary["rows"]:
         lines.append(f"| {row['stage']} | {f(row['views'], 'd')} | {f(row['psnr'], '.2f')} | "
-                     f"{f(row['ssim'], '.4f')} | {f(row['fps'], '.3g')} | {f(row['mb'], '.1f')} "
-                     f"| {f(row['seconds'], '.0f')} |")
+                     f"{f(row['ssim'], '.4f')} | {f(row['fps'], '.3g')} | "
+                     f"{f(row.get('leaves'), ',d')} | {f(row['mb'], '.1f')} "
+                     f"| {f(row['seconds'], '.0f')} | {f(row.get('peak_rss_mb'), '.0f')} |")
+    ft = summary.get("finetune") or {}
+    if ft:
+        lines.append("")
+        gain = ft.get("test_gain_db")
+        text = f"Fine-tuning: {f(gain, '+.2f')} dB on the test views"
+        if ft.get("val_psnr_before") is not None:
+            text += (f" (validation {f(ft.get('val_psnr_before'), '.2f')} → "
+                     f"{f(ft.get('val_psnr_best'), '.2f')} dB, best epoch "
+                     f"{ft.get('best_epoch')} of {ft.get('epochs_run')}, "
+                     f"{ft.get('backoffs') or 0} learning-rate back-offs; "
+                     f"{ft.get('stop_reason')})")
+        lines.append(text + ".")
+        if ft.get("kept_input"):
+            lines.append(f"The fine-tuned tree is the input tree: {ft['kept_input']}.")
     if summary.get("speedup_over_nerf"):
         lines.append("")
         lines.append(f"Render speed-up of the fine-tuned octree over the NeRF-SH: "

@@ -1,5 +1,5 @@
-"""``plenoctree refine TREE --run RUN_DIR``: subdivide leaves where one value cannot represent the
-NeRF-SH, merge siblings that agree (:mod:`plenoctree.convert.refine`).
+"""``plenoctree refine TREE --run-dir RUN_DIR``: subdivide leaves where one value cannot
+represent the NeRF-SH, merge siblings that agree (:mod:`plenoctree.convert.refine`).
 
 Every option is a field of :class:`plenoctree.convert.refine.RefineConfig`; its docstring is the
 ``--help`` text.
@@ -8,18 +8,24 @@ Every option is a field of :class:`plenoctree.convert.refine.RefineConfig`; its 
 from __future__ import annotations
 
 import argparse
-import dataclasses
+
+
+def config_from_args(args: argparse.Namespace):
+    """The :class:`RefineConfig`: defaults, then ``--config FILE``, then the flags given."""
+    from ..convert.refine import RefineConfig
+    from ._options import apply, given, load_config_file
+
+    cfg = apply(RefineConfig(), load_config_file(args._config_file),
+                where=str(args._config_file))
+    return apply(cfg, given(args, args._dests), where="refine")
 
 
 def _run(args: argparse.Namespace) -> int:
-    from ..convert.refine import RefineConfig, refine
+    from ..convert.refine import refine
 
-    kw = {f.name: getattr(args, f.name) for f in dataclasses.fields(RefineConfig)
-          if hasattr(args, f.name)}
-    res = refine(RefineConfig(**kw))
-    line = (f"{res.leaves_before} -> {res.leaves_after} leaves ({res.nodes_after} nodes, depth "
-            f"{res.max_depth}), {res.file_bytes / 2**20:.1f} MB, {res.seconds:.1f} s")
-    print(line)
+    res = refine(config_from_args(args))
+    print(f"{res.leaves_before} -> {res.leaves_after} leaves ({res.nodes_after} nodes, depth "
+          f"{res.max_depth}), {res.file_bytes / 2**20:.1f} MB, {res.seconds:.1f} s")
     if res.psnr_before is not None:
         print(f"test PSNR before {res.psnr_before:.3f} dB  after {res.psnr_after:.3f} dB "
               f"({res.eval_views} views)")
@@ -30,24 +36,13 @@ def _run(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``refine`` command."""
     from ..convert.refine import RefineConfig
-    from ..nerf.config import field_docs
+    from ._options import add_config, add_config_file
 
-    docs = field_docs(RefineConfig)
     p = sub.add_parser("refine", help="adapt a tree's leaves to the NeRF-SH it came from",
                        description="Score every leaf by the spread of the NeRF-SH inside it, "
                                    "subdivide the worst (one level per pass), optionally merge "
                                    "sibling leaves that agree; the tree stays svox-compatible.")
-    for f in dataclasses.fields(RefineConfig):
-        help_ = docs.get(f.name, "").replace("%", "%%")
-        if f.name == "tree":
-            p.add_argument("tree", help=help_)
-        elif f.name == "run_dir":
-            p.add_argument("--run", dest="run_dir", required=True, help=help_)
-        elif f.name == "show_progress":
-            p.add_argument("--progress", dest="show_progress",
-                           action=argparse.BooleanOptionalAction, default=None, help=help_)
-        else:
-            flag = "--" + f.name.replace("_", "-")
-            p.add_argument(flag, dest=f.name, type=type(f.default), default=f.default,
-                           help=f"{help_} (default: {f.default!r})" if f.default != "" else help_)
-    p.set_defaults(func=_run)
+    add_config_file(p)
+    dests = add_config(p, RefineConfig, positional=("tree",), short={"out": "-o"},
+                       rename={"show_progress": "progress"})
+    p.set_defaults(func=_run, _dests=dests)

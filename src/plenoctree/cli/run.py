@@ -14,6 +14,7 @@ import argparse
 # Stage config fields the pipeline sets itself (paths between the stages).
 _STAGE_SKIP = {"train": ("data", "out", "preset", "model"),
                "extract": ("run_dir", "out", "data"),
+               "refine": ("tree", "run_dir", "out", "data"),
                "finetune": ("tree", "data", "out")}
 
 
@@ -69,6 +70,10 @@ def add_stage_flags(p: argparse.ArgumentParser) -> list[str]:
                         title="network of the training stage (--train.*)")
     dests += add_config(p, ExtractConfig, prefix="extract.", skip=_STAGE_SKIP["extract"],
                         title="extraction stage (--extract.*)")
+    from ..convert.refine import RefineConfig
+
+    dests += add_config(p, RefineConfig, prefix="refine.", skip=_STAGE_SKIP["refine"],
+                        title="refinement stage (--refine.*)")
     dests += add_config(p, FinetuneConfig, prefix="finetune.", skip=_STAGE_SKIP["finetune"],
                         title="fine-tuning stage (--finetune.*)")
     return dests

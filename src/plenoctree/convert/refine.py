@@ -362,8 +362,9 @@ class RefineConfig:
     """Output tree (.npz); default: <tree stem>_refined.npz."""
     passes: int = 1
     """Subdivision rounds (each can go one level deeper where the field still varies)."""
-    threshold: float = 0.02
-    """Subdivide leaves whose sample spread is at least this (pixel units, 0-1)."""
+    threshold: float = 0.1
+    """Subdivide leaves whose sample spread is at least this (pixel units, 0-1; lego 256³:
+    0.1 refines 36% of the leaves, +2.0 dB at 2.9x the leaves)."""
     max_fraction: float = 0.5
     """At most this share of the scored leaves is subdivided per pass (the worst first)."""
     max_depth: int = 0
@@ -386,6 +387,28 @@ class RefineConfig:
     """Random seed of the samples."""
     show_progress: bool | None = None
     """Progress bars (None: when stderr is a terminal)."""
+
+    def validated(self) -> "RefineConfig":
+        """Check the option values; raises :class:`ConfigError` naming the option."""
+        for name, lo in (("passes", 0), ("samples", 1), ("max_depth", 0), ("eval_views", 0),
+                         ("chunk", 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+                raise ConfigError(f"refine: --{name.replace('_', '-')} must be an integer >= "
+                                  f"{lo}, got {v!r}")
+        if self.max_depth > MAX_DEPTH:
+            raise ConfigError(f"refine: --max-depth {self.max_depth} is past the depth limit "
+                              f"{MAX_DEPTH}")
+        if not 0.0 < float(self.max_fraction) <= 1.0:
+            raise ConfigError(f"refine: --max-fraction must be in (0, 1], got {self.max_fraction}")
+        for name in ("threshold", "merge_tol"):
+            v = float(getattr(self, name))
+            if not (np.isfinite(v) and v >= 0):
+                raise ConfigError(f"refine: --{name.replace('_', '-')} must be >= 0, got {v}")
+        if self.precision not in ("auto", "fp16", "fp32"):
+            raise ConfigError(f"refine: --precision must be auto, fp16 or fp32, got "
+                              f"{self.precision!r}")
+        return self
 
 
 @dataclass
@@ -432,10 +455,9 @@ def refine(cfg: RefineConfig, log=print) -> RefineResult:
     from .extract import ExtractConfig, _load_run, clamp_sigma_for_fp16
 
     t0 = time.perf_counter()
+    cfg = cfg.validated()
     if not cfg.tree:
         raise ConfigError("refine: give the tree to refine")
-    if cfg.precision not in ("auto", "fp16", "fp32"):
-        raise ConfigError(f"--precision must be auto, fp16 or fp32, got {cfg.precision!r}")
     stored = load_tree(cfg.tree, keep_dtype=True)
     precision = cfg.precision if cfg.precision != "auto" else (
         "fp16" if stored.data.dtype == np.float16 else "fp32")

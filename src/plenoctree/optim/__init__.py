@@ -5,7 +5,7 @@
   the torch twin with autograd as the oracle and on CUDA.
 - :class:`FinetuneConfig` / :func:`finetune` (``finetune.py``): the optimisation loop.
 
-Importing this package compiles nothing; the numba kernels (``_numba_grad.py``) compile on
+Importing this package compiles nothing; the numba kernels (``_render_grad_numba.py``) compile on
 first use and are cached on disk.
 """
 

@@ -85,7 +85,7 @@ class ViewSet:
             row, col = np.divmod(pix, self.width)
             o, d = self.cameras.pixel_rays(self.cam_index[img], col, row)
             return o, d, np.ascontiguousarray(self.images[img, row, col])
-        from ._numba_grad import pixel_rays
+        from ._render_grad_numba import pixel_rays
 
         m = index.shape[0]
         o = np.empty((m, 3), np.float32)

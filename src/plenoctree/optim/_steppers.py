@@ -50,7 +50,7 @@ class NumbaStepper:
 
     Args:
         data2: float32 ``[n_cells, D]`` cell values, updated in place.
-        args: :class:`~plenoctree.optim._fast.KernelArgs` of the tree and render options.
+        args: :class:`~plenoctree.optim._render_grad.KernelArgs` of the tree and render options.
         optimizer: ``"sgd" | "adam" | "rmsprop"``; ``lr`` its learning rate.
     """
 
@@ -58,7 +58,7 @@ class NumbaStepper:
 
     def __init__(self, data2: np.ndarray, args: Any, optimizer: str, lr: float,
                  n_chunks: int | None = None, sigma_lr: float | None = None) -> None:
-        from ._fast import SparseGrad
+        from ._render_grad import SparseGrad
 
         if data2.dtype != np.float32 or not data2.flags.c_contiguous:
             raise ConfigError("NumbaStepper: data must be a contiguous float32 [n_cells, D] array")
@@ -75,8 +75,8 @@ class NumbaStepper:
     def step(self, origins: np.ndarray, dirs: np.ndarray, targets: np.ndarray,
              scale: float) -> tuple[float, int]:
         """One step on a batch; returns ``(sum of squared errors, non-finite values written)``."""
-        from . import _numba_grad as k
-        from ._fast import fused_mse_numba
+        from . import _render_grad_numba as k
+        from ._render_grad import fused_mse_numba
 
         separate = self.sigma_lr is not None and self.sigma_lr != self.lr
         sse = fused_mse_numba(self.args, self.data2, origins, dirs, targets, scale, self.buf,
@@ -116,7 +116,7 @@ class NumbaStepper:
 
     def render(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """Render rays with the current values (no gradient): float32 ``[N, 3]``."""
-        from ._fast import forward_numba
+        from ._render_grad import forward_numba
 
         return forward_numba(self.args, self.data2, origins, dirs).astype(np.float32, copy=False)
 
@@ -303,6 +303,6 @@ def make_stepper(backend: str, data2: np.ndarray, tree: Any, options: Any, optim
 
 def _numba_stepper(data2: np.ndarray, tree: Any, options: Any, optimizer: str,
                    lr: float, sigma_lr: float | None = None, device: Any = None) -> NumbaStepper:
-    from ._fast import kernel_args
+    from ._render_grad import kernel_args
 
     return NumbaStepper(data2, kernel_args(tree, options), optimizer, lr, sigma_lr=sigma_lr)

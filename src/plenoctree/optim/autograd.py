@@ -43,7 +43,7 @@ class OctreeRenderFunction(torch.autograd.Function):
     """``rgb [N, 3] = render(data)`` with numba forward and analytic numba backward.
 
     ``forward(ctx, data, args, origins, dirs)``: ``data`` float32/float64 CPU tensor
-    ``[n_nodes, 2, 2, 2, D]``; ``args`` a :class:`~plenoctree.optim._fast.KernelArgs` (tree
+    ``[n_nodes, 2, 2, 2, D]``; ``args`` a :class:`~plenoctree.optim._render_grad.KernelArgs` (tree
     geometry and options); ``origins, dirs`` float32 numpy ``[N, 3]``. The gradient has the
     shape of ``data``; cells no ray reaches with σ > 0 (and every internal cell) get 0.
     """
@@ -51,7 +51,7 @@ class OctreeRenderFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, data: torch.Tensor, args: Any, origins: np.ndarray,
                 dirs: np.ndarray) -> torch.Tensor:
-        from ._fast import forward_numba
+        from ._render_grad import forward_numba
 
         data2 = data.detach().contiguous().reshape(args.n_cells, data.shape[-1]).numpy()
         rgb = forward_numba(args, data2, origins, dirs)
@@ -61,7 +61,7 @@ class OctreeRenderFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx: Any, grad_rgb: torch.Tensor):
-        from ._fast import backward_numba
+        from ._render_grad import backward_numba
 
         (data,) = ctx.saved_tensors
         if not ctx.needs_input_grad[0]:
@@ -133,7 +133,7 @@ def render_rays_differentiable(data: torch.Tensor, tree: Any, origins: Any, dirs
 def _grad_numba(data: torch.Tensor, tree: Any, o: torch.Tensor, d: torch.Tensor,
                 opts: RenderOptions) -> torch.Tensor:
     """numba forward + analytic backward (CPU tensors)."""
-    from ._fast import _rays, kernel_args
+    from ._render_grad import _rays, kernel_args
 
     args = kernel_args(tree, opts)
     o_np, d_np = _rays(o, d)

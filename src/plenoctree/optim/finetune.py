@@ -11,7 +11,12 @@ Loss and learning-rate units: a batch of rays ``R`` contributes
 took one step per whole image. So an epoch of batches applies the same total gradient as the
 original's epoch of per-image steps, and ``lr = 1e7`` is the paper's SGD learning rate whatever
 ``batch_rays`` is. Adam / RMSprop are scale-free (defaults 1e-2 / 1e-3) and lazy (only cells a
-batch reaches are updated).
+batch reaches are updated); σ gets its own rate ``lr_sigma / h`` (h = finest leaf side), so a
+step moves each leaf's opacity by about ``lr_sigma``.
+
+Defaults (Adam 1e-2 for colour and opacity, 3 back-offs) chosen by measurement: on the
+procedural demo scene the paper's SGD 1e7 diverges (validation 34.97 → 27.46 dB, the input kept;
+with back-offs +0.16 dB) while Adam gains +2.1 dB in 6 epochs; see README "Fine-tuning".
 
 >>> cfg = FinetuneConfig(tree="tree.npz", data="data/lego", out="tree_ft.npz", epochs=4)  # doctest: +SKIP
 >>> result = finetune(cfg)                                                          # doctest: +SKIP
@@ -57,13 +62,15 @@ class FinetuneConfig:
                                      "pixel; stops earlier at the first validation drop)")
     lr: float | None = _f(None, "learning rate; default 1e7 for sgd (paper units: per-pixel mean "
                                 "loss of one image), 1e-2 for adam, 1e-3 for rmsprop")
-    optimizer: str = _f("sgd", "sgd (paper), adam or rmsprop (lazy: touched cells only)")
+    optimizer: str = _f("adam", "adam (default: per-value step sizes, transfers across scenes "
+                                "and tree sizes), rmsprop or sgd (the paper's; lazy: touched "
+                                "cells only)")
     lr_sigma: float | None = _f(None, "adam / rmsprop: learning rate of σ in opacity units (a step "
                                       "changes σ·h by about this, h = the finest leaf side); "
-                                      "default: lr (sgd: always lr)")
+                                      "default: the same number as lr (sgd: σ uses lr)")
     lr_decay: float = _f(1.0, "multiply the learning rate by this over the epochs (exponential "
                               "schedule; 1 = constant)")
-    backoffs: int = _f(0, "on a validation drop (or a divergence) restore the best values and "
+    backoffs: int = _f(3, "on a validation drop (or a divergence) restore the best values and "
                           "halve the learning rate, up to this many times, before stopping")
     batch_rays: int = _f(1 << 16, "rays per optimisation step, drawn at random from all images")
     ray_tile: int = _f(4, "draw rays as random k x k pixel tiles (1 = independent pixels); "
@@ -279,14 +286,15 @@ def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = Non
     data2 = np.ascontiguousarray(tree.data, dtype=np.float32).reshape(-1, tree.data_dim).copy()
     lr = DEFAULT_LR[cfg.optimizer] if cfg.lr is None else float(cfg.lr)
     h = float(tree.leaf_sizes().min())
-    sigma_lr = None if cfg.optimizer == "sgd" or cfg.lr_sigma is None else float(cfg.lr_sigma) / h
+    sigma_lr = None if cfg.optimizer == "sgd" else (
+        lr if cfg.lr_sigma is None else float(cfg.lr_sigma)) / h
     stepper = make_stepper(cfg.backend, data2, tree, opts, cfg.optimizer, lr, sigma_lr,
                            device=cfg.device)
     run_device = str(getattr(stepper, "device", "cpu"))
     say(f"finetune: {tree_path} ({tree.n_leaves} leaves, {tree.data_format}) on {cfg.data} "
         f"[{len(train_set)} train / {len(val_set) if val_set else 0} val views, "
         f"{train_set.width}x{train_set.height}], {cfg.optimizer} lr={lr:g}"
-        f"{'' if sigma_lr is None else f' (σ {sigma_lr:g} = {cfg.lr_sigma:g}/h)'}"
+        f"{'' if sigma_lr is None else f' (σ {sigma_lr:g} = {sigma_lr * h:g}/h)'}"
         f"{'' if cfg.lr_decay == 1 else f' decaying x{cfg.lr_decay:g}'}, "
         f"batch {cfg.batch_rays} rays in {cfg.ray_tile}x{cfg.ray_tile} tiles, "
         f"backend {stepper.backend} on {run_device}")

@@ -156,24 +156,27 @@ def render_rays(tree: Any, origins: Any, dirs: Any, options: RenderOptions | Non
     name = _backend.resolve("render", backend, device)
     batch = tuple(origins.shape[:-1])
     _check_origins(origins, _vec3(tree.offset), _vec3(tree.invradius))
+    # The numba kernel marches the pixels of an image in 2-D tiles when it knows the width.
+    hint = {"width": int(batch[-1])} if name == "numba" and len(batch) >= 2 else {}
     out = _backend.implementation("render", name)(
-        tree, info, origins.reshape(-1, 3), dirs.reshape(-1, 3), opts, device)
+        tree, info, origins.reshape(-1, 3), dirs.reshape(-1, 3), opts, device, **hint)
     return RenderOutput(rgb=out.rgb.reshape(*batch, 3).to(device),
                         depth=out.depth.reshape(batch).to(device),
                         alpha=out.alpha.reshape(batch).to(device))
 
 
-def _render_numba(tree: Any, info: FormatInfo, origins: Any, dirs: Any, opts: RenderOptions,
-                  device: Any) -> RenderOutput:
-    """The numba kernel on CPU inputs ``origins, dirs [N, 3]`` (numpy or CPU tensors)."""
-    from . import _numba_impl
+def _numba_render(tree: Any, info: FormatInfo, origins: Any, dirs: Any, opts: RenderOptions,
+                  device: Any, width: int = 0) -> RenderOutput:
+    """The numba kernel on CPU inputs ``origins, dirs [N, 3]`` (numpy or CPU tensors);
+    ``width``: the image width when the rays are an image's pixels in row-major order."""
+    from . import _render_numba
 
     def to_np(x: Any) -> np.ndarray:
         return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x
 
-    rgb, depth, alpha = _numba_impl.render_rays_numba(
+    rgb, depth, alpha = _render_numba.render_rays_numba(
         to_np(tree.child), to_np(tree.data), _vec3(tree.offset), _vec3(tree.invradius), info,
-        _extra(tree), to_np(origins), to_np(dirs), opts)
+        _extra(tree), to_np(origins), to_np(dirs), opts, width=width)
     return RenderOutput(torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(alpha))
 
 

@@ -7,7 +7,7 @@ Colours, weights and outputs use the dtype of ``data``; the ray geometry (tree-s
 distances, leaf lookup) is always float64, as in the numba kernel, so both backends pick the
 same leaves even for rays running exactly along voxel faces.
 
-Algorithm (both backends; the numba kernel in ``_numba_impl`` computes the same thing):
+Algorithm (both backends; the numba kernel in ``_render_numba`` computes the same thing):
 
 1. ``d ← d / |d|``; tree-space origin ``o' = offset + invradius * o`` and per-unit-``t``
    direction ``d' = invradius * d``, so the tree-space point at world distance ``t`` is

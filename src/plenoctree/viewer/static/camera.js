@@ -27,6 +27,24 @@ export function lookAt(eye, target, up) {
     0, 0, 0, 1];
 }
 
+const FLY = { KeyW: [0, 0, 1], KeyS: [0, 0, -1], KeyA: [-1, 0, 0], KeyD: [1, 0, 0],
+  KeyQ: [0, -1, 0], KeyE: [0, 1, 0] };
+const TURN = { ArrowLeft: [1, 0], ArrowRight: [-1, 0], ArrowUp: [0, -1], ArrowDown: [0, 1] };
+
+export const isMoveKey = (code) => Boolean(FLY[code] || TURN[code]);
+
+// Move `camera` for the key codes in `held` over dt seconds: fly at 0.5 `radius` per second
+// (W/S forward/back, A/D left/right, Q/E down/up), turn 60°/s around the eye (arrows).
+export function applyHeldKeys(camera, held, dt, radius) {
+  let f = [0, 0, 0], tr = [0, 0];
+  for (const k of held) {
+    if (FLY[k]) f = f.map((v, i) => v + FLY[k][i]);
+    if (TURN[k]) tr = tr.map((v, i) => v + TURN[k][i]);
+  }
+  if (f.some((v) => v)) camera.fly(f[0], f[1], f[2], 0.5 * radius * dt);
+  if (tr.some((v) => v)) camera.turn(tr[0] * dt * Math.PI / 3, tr[1] * dt * Math.PI / 3);
+}
+
 export class OrbitCamera {
   constructor({ target = [0, 0, 0], distance = 4, azimuth = 0.6, elevation = 0.5, fovY = 40, up = "+z" } = {}) {
     this.target = target.slice();

@@ -5,7 +5,8 @@
 import { NpzArchive, FormatError } from "./npz.js";
 import { packTree, LimitError } from "./tree.js";
 import { Renderer, GLError } from "./renderer.js";
-import { OrbitCamera, UP } from "./camera.js";
+import { OrbitCamera, UP, applyHeldKeys, isMoveKey } from "./camera.js";
+import { drawFrustums } from "./overlay.js";
 import { probeRay, lumisphere } from "./probe.js";
 import { MeshPass, parseObj, parseGlb, toSceneUp } from "./mesh.js";
 
@@ -232,45 +233,11 @@ function jumpToCamera(i) {
   invalidate();
 }
 
-// Frustums of the training cameras on the overlay canvas (projected with the current view).
+// Frustums of the training cameras on the overlay canvas (see overlay.js).
 function drawCameras(view) {
-  const ov = $("overlay");
-  const dpr = window.devicePixelRatio || 1;
-  const W = Math.round(ov.clientWidth * dpr), H = Math.round(ov.clientHeight * dpr);
-  if (ov.width !== W || ov.height !== H) { ov.width = W; ov.height = H; }
-  const ctx = ov.getContext("2d");
-  ctx.clearRect(0, 0, W, H);
-  const cams = config.cameras;
-  if (!cams || !$("show_cameras").checked || fixedView) return;
-  const m = view.c2w;
-  const sx = W / view.width, sy = H / view.height;
-  // world -> camera (inverse of a rigid c2w): R^T (p - t)
-  const project = (p) => {
-    const d = [p[0] - m[3], p[1] - m[7], p[2] - m[11]];
-    const x = m[0] * d[0] + m[4] * d[1] + m[8] * d[2];
-    const y = m[1] * d[0] + m[5] * d[1] + m[9] * d[2];
-    const z = m[2] * d[0] + m[6] * d[1] + m[10] * d[2];
-    if (z > -1e-6) return null;
-    return [(view.cx + view.fx * x / -z) * sx, (view.cy - view.fy * y / -z) * sy];
-  };
-  const r = treeRadius() * 0.12;
-  const current = Number($("camera_select").value);
-  cams.c2w.forEach((c, i) => {
-    const eye = [c[3], c[7], c[11]];
-    const fy = Array.isArray(cams.fy) ? cams.fy[i] : cams.fy;
-    const fx = Array.isArray(cams.fx) ? cams.fx[i] : cams.fx;
-    const hw = 0.5 * cams.width / fx, hh = 0.5 * cams.height / fy;
-    const corner = (a, b) => [0, 1, 2].map((k) => eye[k] + r * (a * hw * c[4 * k] + b * hh * c[4 * k + 1] - c[4 * k + 2]));
-    const pts = [eye, corner(-1, -1), corner(1, -1), corner(1, 1), corner(-1, 1)].map(project);
-    if (pts.some((q) => q === null)) return;
-    ctx.strokeStyle = i === current ? "#ff4081" : "#1a73e8";
-    ctx.lineWidth = (i === current ? 2 : 1) * dpr;
-    ctx.beginPath();
-    for (let k = 1; k <= 4; k++) { ctx.moveTo(...pts[0]); ctx.lineTo(...pts[k]); }
-    ctx.moveTo(...pts[1]);
-    for (const k of [2, 3, 4, 1]) ctx.lineTo(...pts[k]);
-    ctx.stroke();
-  });
+  const show = config.cameras && $("show_cameras").checked && !fixedView;
+  drawFrustums($("overlay"), view, show ? config.cameras : null,
+    Number($("camera_select").value), treeRadius() * 0.12);
 }
 
 // ---------------------------------------------------------------- radiance probe
@@ -323,27 +290,15 @@ function probePixel(x, y) {
 // ---------------------------------------------------------------- keyboard fly
 const held = new Set();
 let lastKeyTime = null;
-const FLY = { KeyW: [0, 0, 1], KeyS: [0, 0, -1], KeyA: [-1, 0, 0], KeyD: [1, 0, 0],
-  KeyQ: [0, -1, 0], KeyE: [0, 1, 0] };
-const TURN = { ArrowLeft: [1, 0], ArrowRight: [-1, 0], ArrowUp: [0, -1], ArrowDown: [0, 1] };
-
-// Advance the held keys by dt seconds: fly at 0.5 scene radii per second, turn 60°/s.
+// Advance the held keys by dt seconds (camera.js: fly 0.5 scene radii per second, turn 60°/s).
 function applyKeys(dt) {
-  if (!held.size || !renderer || !renderer.tree) return;
-  const speed = 0.5 * treeRadius() * dt;
-  let f = [0, 0, 0], tr = [0, 0];
-  for (const k of held) {
-    if (FLY[k]) f = f.map((v, i) => v + FLY[k][i]);
-    if (TURN[k]) tr = tr.map((v, i) => v + TURN[k][i]);
-  }
-  if (f.some((v) => v)) camera.fly(f[0], f[1], f[2], speed);
-  if (tr.some((v) => v)) camera.turn(tr[0] * dt * Math.PI / 3, tr[1] * dt * Math.PI / 3);
+  if (held.size && renderer && renderer.tree) applyHeldKeys(camera, held, dt, treeRadius());
 }
 
 function onKey(e, down) {
   const tag = (e.target && e.target.tagName) || "";
   if (["INPUT", "SELECT", "TEXTAREA"].includes(tag) && e.target.type !== "checkbox" && e.target.type !== "range") return;
-  if (FLY[e.code] || TURN[e.code]) {
+  if (isMoveKey(e.code)) {
     e.preventDefault();
     if (down) held.add(e.code); else held.delete(e.code);
     return;

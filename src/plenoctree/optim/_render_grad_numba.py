@@ -6,7 +6,7 @@ is cached on disk.
 Per ray (``k`` = the ray's σ > 0 segments in marching order, ``C`` = rendered rgb incl. the
 background ``c_N`` composited with the transmittance ``T_N`` left at the end):
 
-* pass 1, :func:`_trace_one`: marches exactly like ``render._numba_impl._render_one`` (same
+* pass 1, :func:`_trace_one`: marches with the renderer's traversal ``render._march_numba.next_leaf`` (same
   quantised leaf lookup, same common-ancestor stack, same ``step_eps`` push, same early stop at
   ``T < stop_thresh``) and records, for every segment with σ > 0, its cell, ``δ`` (world
   units), ``exp(-σ δ)`` and its colour ``c`` (after the sigmoid). Segments with σ ≤ 0 add
@@ -52,16 +52,14 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from ..render._numba_impl import _basis
-from ..render.options import KIND_RGBA, QUANT_BITS
+from ..render._march_numba import (MAX_LEVEL, MAX_STEPS, STACK_SIZE, basis_values, next_leaf,
+                                   ray_start)
+from ..render.options import KIND_RGBA
 
 __all__ = ["TILE", "grad_kernel", "merge_chunks", "step_touched", "OPT_SGD", "OPT_ADAM",
            "OPT_RMSPROP", "pixel_rays", "initial_capacity"]
 
 TILE = 64          # rays per interleaved tile of a chunk
-_SCALE = float(2 ** QUANT_BITS)
-_INV_SCALE = 1.0 / _SCALE
-_BIG = 1e30
 _REC = 5           # record columns: delta, att, c_r, c_g, c_b
 
 
@@ -73,8 +71,9 @@ def initial_capacity(depth_limit: int) -> int:
 
 @njit(cache=True, fastmath=True, inline="always")
 def _trace_one(child, sig, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg, b_lo, b_hi,
-               stop, eps, basis, stack, rec_cell, rec, out4):
-    """March one ray (the renderer's algorithm) and record its σ > 0 segments.
+               stop, eps, max_level, basis, st, stack, rec_cell, rec, out4):
+    """March one ray (the renderer's traversal, :mod:`plenoctree.render._march_numba`) and
+    record its σ > 0 segments.
 
     Writes ``Σ w c`` into ``out4[:3]`` and ``T_N`` into ``out4[3]``; fills ``basis[:n_b]`` (zero
     outside ``[b_lo, b_hi]``), ``rec_cell[s]`` and ``rec[s] = (δ, exp(-σδ), c_r, c_g, c_b)``.
@@ -86,86 +85,25 @@ def _trace_one(child, sig, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b
     out4[1] = 0.0
     out4[2] = 0.0
     out4[3] = 1.0
-    norm = math.sqrt(dx * dx + dy * dy + dz * dz)
-    dx /= norm
-    dy /= norm
-    dz /= norm
-    px = offset[0] + invr[0] * ox
-    py = offset[1] + invr[1] * oy
-    pz = offset[2] + invr[2] * oz
-    vx = invr[0] * dx
-    vy = invr[1] * dy
-    vz = invr[2] * dz
-    t0 = 0.0
-    t1 = _BIG
-    for a in range(3):
-        p = px if a == 0 else (py if a == 1 else pz)
-        v = vx if a == 0 else (vy if a == 1 else vz)
-        if v == 0.0:
-            if p < 0.0 or p > 1.0:
-                t1 = -_BIG
-        else:
-            ta = (0.0 - p) / v
-            tb = (1.0 - p) / v
-            if ta > tb:
-                ta, tb = tb, ta
-            t0 = max(t0, ta)
-            t1 = min(t1, tb)
+    dx, dy, dz, px, py, pz, vx, vy, vz, ix, iy, iz, t0, t1, eps_t = ray_start(
+        offset, invr, ox, oy, oz, dx, dy, dz, eps)
     if not t0 < t1:
         return 0
-    ix_ = 1.0 / vx if vx != 0.0 else _BIG
-    iy_ = 1.0 / vy if vy != 0.0 else _BIG
-    iz_ = 1.0 / vz if vz != 0.0 else _BIG
-    eps_t = eps / math.sqrt(vx * vx + vy * vy + vz * vz)
-    sx = 1 if vx >= 0.0 else 0
-    sy = 1 if vy >= 0.0 else 0
-    sz = 1 if vz >= 0.0 else 0
-    _basis(kind, n_b, dx, dy, dz, sg, basis)
-    for b in range(n_b):
-        if b < b_lo or b > b_hi:
-            basis[b] = 0.0
+    basis_values(kind, n_b, dx, dy, dz, sg, b_lo, b_hi, basis)
     zero = basis[0] - basis[0]          # 0 in the dtype of the colour arithmetic
 
     cap = rec_cell.shape[0]
     n_seg = 0
     trans = 1.0
     t = t0
-    level = 0
+    st[0] = 0
+    st[1] = -1
     stack[0] = 0
-    qx_prev = -1
-    qy_prev = 0
-    qz_prev = 0
-    top = QUANT_BITS - 1
-    while t < t1:
-        ts = t + eps_t
-        qx = int(min(max((px + ts * vx) * _SCALE, 0.0), _SCALE - 1.0))
-        qy = int(min(max((py + ts * vy) * _SCALE, 0.0), _SCALE - 1.0))
-        qz = int(min(max((pz + ts * vz) * _SCALE, 0.0), _SCALE - 1.0))
-        if qx_prev >= 0:
-            diff = (qx ^ qx_prev) | (qy ^ qy_prev) | (qz ^ qz_prev)
-            while level > 0 and (diff >> (QUANT_BITS - level)) != 0:
-                level -= 1
-        node = stack[level]
-        while True:
-            sh = top - level
-            cell = node * 8 + (((qx >> sh) & 1) << 2) + (((qy >> sh) & 1) << 1) + ((qz >> sh) & 1)
-            c = child[cell]
-            if c == 0:
-                break
-            node += c
-            level += 1
-            stack[level] = node
-        qx_prev = qx
-        qy_prev = qy
-        qz_prev = qz
-        sh = top - level
-        bx = (((qx >> sh) + sx) << sh) * _INV_SCALE
-        by = (((qy >> sh) + sy) << sh) * _INV_SCALE
-        bz = (((qz >> sh) + sz) << sh) * _INV_SCALE
-        tx = (bx - px) * ix_
-        ty = (by - py) * iy_
-        tz = (bz - pz) * iz_
-        t_end = min(max(min(tx, min(ty, tz)), ts), t1)
+    steps = 0
+    while t < t1 and steps < MAX_STEPS:
+        steps += 1
+        cell, t_end, _ = next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps_t, t1,
+                                   True, max_level, st, stack)
         sigma = sig[cell]
         if sigma > 0.0:
             if n_seg == cap:
@@ -269,14 +207,15 @@ def grad_kernel(child, sig, data, offset, invr, origins, dirs, aux, mode, scale,
 
     Work items are tiles of :data:`TILE` rays, scheduled dynamically; a tile runs on one thread
     ``t = numba.get_thread_id()`` and scatters into slab ``t``, so the caller must run at most
-    ``n_chunks`` threads (:func:`plenoctree.optim._fast` does).
+    ``n_chunks`` threads (:mod:`plenoctree.optim._render_grad` does).
     """
     n = origins.shape[0]
     n_chunks = grad3.shape[0]
     n_tiles = (n + TILE - 1) // TILE
     # per-thread scratch (thread t uses row t; the caller runs at most n_chunks threads)
     basis_all = np.zeros((n_chunks, max(25, n_b)), dtype=data.dtype)
-    stack_all = np.zeros((n_chunks, QUANT_BITS + 1), dtype=np.int64)
+    stack_all = np.zeros((n_chunks, STACK_SIZE), dtype=np.int64)
+    st_all = np.zeros((n_chunks, 4), dtype=np.int64)
     out_all = np.zeros((n_chunks, 4), dtype=np.float64)
     cell_all = np.empty((n_chunks, cap0), dtype=np.int64)
     rec_all = np.empty((n_chunks, cap0, _REC), dtype=np.float64)
@@ -284,6 +223,7 @@ def grad_kernel(child, sig, data, offset, invr, origins, dirs, aux, mode, scale,
         c = numba.get_thread_id()
         basis = basis_all[c]
         stack = stack_all[c]
+        st = st_all[c]
         out4 = out_all[c]
         rec_cell = cell_all[c]
         rec = rec_all[c]
@@ -299,7 +239,7 @@ def grad_kernel(child, sig, data, offset, invr, origins, dirs, aux, mode, scale,
                                    np.float64(origins[i, 1]), np.float64(origins[i, 2]),
                                    np.float64(dirs[i, 0]), np.float64(dirs[i, 1]),
                                    np.float64(dirs[i, 2]), kind, n_b, sg, b_lo, b_hi, stop,
-                                   eps, basis, stack, rec_cell, rec, out4)
+                                   eps, MAX_LEVEL, basis, st, stack, rec_cell, rec, out4)
                 if n_seg >= 0:
                     break
                 grow = 2 * rec_cell.shape[0]          # rare: a private, larger record
@@ -394,38 +334,48 @@ def step_touched(data, sig, grad3, flags, touched, n_touched, opt, lr, m1, m2, b
             cell = touched[c, j]
             if flags[c, cell] == 0:
                 continue
-            for d in range(dim):
-                g = 0.0
-                for k in range(c, n_chunks):
-                    if flags[k, cell] != 0:
-                        g += grad3[k, cell, d]
-                        grad3[k, cell, d] = 0.0
-                if opt == OPT_SGD:
-                    v = data[cell, d] - lr * g
-                elif opt == OPT_ADAM:
-                    a = beta1 * m1[cell, d] + (1.0 - beta1) * g
-                    b = beta2 * m2[cell, d] + (1.0 - beta2) * g * g
+            g = grad3[c, cell]
+            # Fold the later slabs that hold this cell into slab c (0 + a + b, as before), so
+            # the update loops below are flag-free and vectorise over the D values.
+            for k in range(c + 1, n_chunks):
+                if flags[k, cell] != 0:
+                    gk = grad3[k, cell]
+                    for d in range(dim):
+                        g[d] += gk[d]
+                        gk[d] = 0.0
+                    flags[k, cell] = 0
+            row = data[cell]
+            if opt == OPT_SGD:
+                for d in range(dim):
+                    row[d] -= lr * g[d]
+            elif opt == OPT_ADAM:
+                for d in range(dim):
+                    a = beta1 * m1[cell, d] + (1.0 - beta1) * g[d]
+                    b = beta2 * m2[cell, d] + (1.0 - beta2) * g[d] * g[d]
                     if abs(a) < 1e-30:
                         a = 0.0
                     if b < 1e-30:
                         b = 0.0
                     m1[cell, d] = a
                     m2[cell, d] = b
-                    v = data[cell, d] - lr * (a / bc1) / (math.sqrt(b / bc2) + eps)
-                else:
-                    b = beta2 * m2[cell, d] + (1.0 - beta2) * g * g
+                    row[d] -= lr * (a / bc1) / (math.sqrt(b / bc2) + eps)
+            else:
+                for d in range(dim):
+                    b = beta2 * m2[cell, d] + (1.0 - beta2) * g[d] * g[d]
                     if b < 1e-30:
                         b = 0.0
                     m2[cell, d] = b
-                    v = data[cell, d] - lr * g / (math.sqrt(b) + eps)
-                if not math.isfinite(v):
-                    bad += 1
-                data[cell, d] = v
-            for k in range(c, n_chunks):
-                flags[k, cell] = 0
-            if data[cell, dim - 1] < 0.0:
-                data[cell, dim - 1] = 0.0
-            sig[cell] = data[cell, dim - 1]
+                    row[d] -= lr * g[d] / (math.sqrt(b) + eps)
+            nonfinite = 0
+            for d in range(dim):
+                g[d] = 0.0
+                if not math.isfinite(row[d]):
+                    nonfinite += 1
+            bad += nonfinite
+            flags[c, cell] = 0
+            if row[dim - 1] < 0.0:
+                row[dim - 1] = 0.0
+            sig[cell] = row[dim - 1]
         n_touched[c] = 0
     return bad
 

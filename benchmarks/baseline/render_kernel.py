@@ -26,8 +26,8 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from .. import sh as _sh
-from .options import KIND_RGBA, KIND_SG, KIND_SH, QUANT_BITS, FormatInfo, RenderOptions
+from plenoctree import sh as _sh
+from plenoctree.render.options import KIND_RGBA, KIND_SG, KIND_SH, QUANT_BITS, FormatInfo, RenderOptions
 
 __all__ = ["render_rays_numba", "TILE", "CHUNK_TILES"]
 

@@ -1,6 +1,6 @@
 """Python side of the numba fine-tuning kernels: argument packing and per-thread gradient slabs.
 
-Nothing here compiles at import; :mod:`._numba_grad` is imported on first use.
+Nothing here compiles at import; :mod:`._render_grad_numba` is imported on first use.
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ __all__ = ["KernelArgs", "SparseGrad", "kernel_args", "default_chunks", "forward
 
 
 def _kernels():
-    from . import _numba_grad
+    from . import _render_grad_numba
 
-    return _numba_grad
+    return _render_grad_numba
 
 
 def default_chunks() -> int:
@@ -61,7 +61,7 @@ def _np(x: Any) -> np.ndarray:
 
 def kernel_args(tree: Any, options: RenderOptions | None = None) -> KernelArgs:
     """Pack ``tree`` (an :class:`~plenoctree.octree.Octree`, geometry only) and ``options``."""
-    from ._numba_grad import initial_capacity
+    from ._render_grad_numba import initial_capacity
 
     opts = (options if options is not None else RenderOptions()).validated()
     child = _np(tree.child)
@@ -83,7 +83,7 @@ def kernel_args(tree: Any, options: RenderOptions | None = None) -> KernelArgs:
 
 
 class SparseGrad:
-    """Per-thread gradient slabs with touched-cell lists (see :mod:`._numba_grad`).
+    """Per-thread gradient slabs with touched-cell lists (see :mod:`._render_grad_numba`).
 
     ``grad3 [n_chunks, n_cells, D]`` (``grad3[0]`` is the merged gradient after
     :meth:`merge`), ``flags`` uint8 ``[n_chunks, n_cells]``, ``touched`` int64
@@ -185,7 +185,7 @@ def fused_mse_numba(args: KernelArgs, data2: np.ndarray, origins: np.ndarray, di
                     rgb: np.ndarray | None = None, sig: np.ndarray | None = None,
                     merge: bool = True) -> float:
     """One fused forward + backward of ``L = scale · Σ (C - target)²`` into ``buffers``
-    (merged on return unless ``merge=False``: :func:`._numba_grad.step_touched` reads the
+    (merged on return unless ``merge=False``: :func:`._render_grad_numba.step_touched` reads the
     slabs directly); returns the un-scaled sum of squared errors of the batch.
 
     ``sig`` is ``data2[:, -1]`` as a contiguous array (made here when not given; a caller that

@@ -1,0 +1,189 @@
+"""The one ray traversal of the numba kernels: box entry, leaf lookup, exit face, SH/SG basis.
+
+Shared by the renderer (:mod:`._render_numba`) and the fine-tuning kernels
+(:mod:`plenoctree.optim._render_grad_numba`), so every numba kernel marches exactly the same
+segments as the torch twin (:mod:`._torch_impl`, the spec: read its docstring for the maths).
+
+How a ray marches (tree space ``p(t) = o' + t d'``, ``t`` in world units):
+
+* :func:`ray_start` normalises the direction, maps the ray to tree space and clips it to the
+  box ``[0, 1]^3`` (``t0 < t1`` when it hits).
+* :func:`next_leaf` finds the leaf holding ``p(t + ε_t)`` and the end of its segment. Points are
+  quantised to integer coordinates (``QUANT_BITS`` bits per axis), so the cell at level ``l``
+  is one bit of each coordinate and the descent is integer-only. The nodes of the current
+  root-to-leaf path stay on a stack: when the ray leaves a leaf, the highest bit that differs
+  between the old and the new integer point names the deepest common ancestor and the descent
+  restarts there (most exits cross into a sibling or a cousin: one or two levels, not the
+  whole depth). The descent never goes below ``max_level`` (``octree.limits.MAX_DEPTH``: a
+  deeper tree cannot write past the stack), and every kernel stops a ray after
+  ``octree.limits.max_steps(depth)`` segments (no geometry can make a ray march forever).
+
+State between calls lives in ``st`` (int64 ``[4]``: level, previous integer point; set
+``st[1] = -1`` at the start of every ray) and ``stack`` (int64 ``[STACK_SIZE]``, ``max_level < STACK_SIZE``).
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+from .. import sh as _sh
+from ..octree.limits import MAX_DEPTH, max_steps
+from .options import KIND_SG, KIND_SH, QUANT_BITS
+
+__all__ = ["ray_start", "next_leaf", "basis_values", "STACK_SIZE", "MAX_LEVEL", "MAX_STEPS"]
+
+#: Deepest node level a descent reaches (= the deepest cell depth a tree may have; deeper
+#: cells are never looked up, so no tree can make a descent write past the stack).
+MAX_LEVEL = MAX_DEPTH
+#: Entries of the path stack (levels ``0..MAX_LEVEL`` plus one spare).
+STACK_SIZE = MAX_LEVEL + 2
+#: Segments one ray may march at most (``octree.limits.max_steps`` of the deepest tree any
+#: loader accepts): only rays that could never finish are cut.
+MAX_STEPS = max_steps(MAX_DEPTH)
+
+_SCALE = float(2 ** QUANT_BITS)
+_INV_SCALE = 1.0 / _SCALE
+_BIG = 1e30
+_TOP = QUANT_BITS - 1
+
+_C0 = _sh.SH_C0
+_C1 = _sh.SH_C1
+_C20, _C21, _C22, _C23, _C24 = _sh.SH_C2
+_C30, _C31, _C32, _C33, _C34, _C35, _C36 = _sh.SH_C3
+_C40, _C41, _C42, _C43, _C44, _C45, _C46, _C47, _C48 = _sh.SH_C4
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def basis_values(kind, n_b, x, y, z, sg, b_lo, b_hi, out):
+    """Write the ``n_b`` basis values at unit direction (x, y, z) into ``out[:n_b]`` (in the
+    dtype of ``out``), zero outside ``[b_lo, b_hi]``."""
+    if kind == KIND_SG:
+        for b in range(n_b):
+            cos = sg[b, 1] * x + sg[b, 2] * y + sg[b, 3] * z
+            out[b] = math.exp(sg[b, 0] * (cos - 1.0)) / n_b
+    else:
+        out[0] = _C0 if kind == KIND_SH else 1.0
+        if n_b > 1:
+            out[1] = -_C1 * y
+            out[2] = _C1 * z
+            out[3] = -_C1 * x
+        if n_b > 4:
+            xx, yy, zz = x * x, y * y, z * z
+            xy, yz, xz = x * y, y * z, x * z
+            out[4] = _C20 * xy
+            out[5] = _C21 * yz
+            out[6] = _C22 * (2.0 * zz - xx - yy)
+            out[7] = _C23 * xz
+            out[8] = _C24 * (xx - yy)
+            if n_b > 9:
+                out[9] = _C30 * y * (3.0 * xx - yy)
+                out[10] = _C31 * xy * z
+                out[11] = _C32 * y * (4.0 * zz - xx - yy)
+                out[12] = _C33 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)
+                out[13] = _C34 * x * (4.0 * zz - xx - yy)
+                out[14] = _C35 * z * (xx - yy)
+                out[15] = _C36 * x * (xx - 3.0 * yy)
+            if n_b > 16:
+                out[16] = _C40 * xy * (xx - yy)
+                out[17] = _C41 * yz * (3.0 * xx - yy)
+                out[18] = _C42 * xy * (7.0 * zz - 1.0)
+                out[19] = _C43 * yz * (7.0 * zz - 3.0)
+                out[20] = _C44 * (zz * (35.0 * zz - 30.0) + 3.0)
+                out[21] = _C45 * xz * (7.0 * zz - 3.0)
+                out[22] = _C46 * (xx - yy) * (7.0 * zz - 1.0)
+                out[23] = _C47 * xz * (xx - 3.0 * yy)
+                out[24] = _C48 * (xx * (xx - 3.0 * yy) - yy * (3.0 * xx - yy))
+    for b in range(n_b):
+        if b < b_lo or b > b_hi:
+            out[b] = 0.0
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def ray_start(offset, invr, ox, oy, oz, dx, dy, dz, eps):
+    """Unit direction, tree-space origin, direction and its reciprocal, the box interval and
+    the step push ``ε_t = eps / |d'|`` of one ray.
+
+    Returns ``(dx, dy, dz, px, py, pz, vx, vy, vz, ix, iy, iz, t0, t1, eps_t)`` (float64; the
+    ray misses the box when ``not t0 < t1``)."""
+    norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+    dx /= norm
+    dy /= norm
+    dz /= norm
+    px = offset[0] + invr[0] * ox
+    py = offset[1] + invr[1] * oy
+    pz = offset[2] + invr[2] * oz
+    vx = invr[0] * dx
+    vy = invr[1] * dy
+    vz = invr[2] * dz
+    t0 = 0.0
+    t1 = _BIG
+    for a in range(3):
+        p = px if a == 0 else (py if a == 1 else pz)
+        v = vx if a == 0 else (vy if a == 1 else vz)
+        if v == 0.0:
+            if p < 0.0 or p > 1.0:
+                t1 = -_BIG
+        else:
+            ta = (0.0 - p) / v
+            tb = (1.0 - p) / v
+            if ta > tb:
+                ta, tb = tb, ta
+            t0 = max(t0, ta)
+            t1 = min(t1, tb)
+    ix = 1.0 / vx if vx != 0.0 else _BIG
+    iy = 1.0 / vy if vy != 0.0 else _BIG
+    iz = 1.0 / vz if vz != 0.0 else _BIG
+    eps_t = eps / math.sqrt(vx * vx + vy * vy + vz * vz)
+    return dx, dy, dz, px, py, pz, vx, vy, vz, ix, iy, iz, t0, t1, eps_t
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps_t, t1, use_stack, max_level, st, stack):
+    """The leaf holding ``p(t + eps_t)`` and the end of its segment.
+
+    Returns ``(cell, t_end, n_desc)``: the flat cell index (``node * 8 + i*4 + j*2 + k``), the
+    segment end ``min(max(exit, t + eps_t), t1)`` and the number of ``child`` reads this lookup
+    made. ``use_stack=False`` descends from the root every time (the reference the tests
+    compare the stack against)."""
+    ts = t + eps_t
+    # Clamp first, then truncate (= floor for non-negative values).
+    qx = int(min(max((px + ts * vx) * _SCALE, 0.0), _SCALE - 1.0))
+    qy = int(min(max((py + ts * vy) * _SCALE, 0.0), _SCALE - 1.0))
+    qz = int(min(max((pz + ts * vz) * _SCALE, 0.0), _SCALE - 1.0))
+    level = st[0]
+    if use_stack and st[1] >= 0:
+        # Deepest level whose node is shared with the previous path.
+        diff = (qx ^ st[1]) | (qy ^ st[2]) | (qz ^ st[3])
+        while level > 0 and (diff >> (QUANT_BITS - level)) != 0:
+            level -= 1
+    else:
+        level = 0
+        stack[0] = 0
+    node = stack[level]
+    n_desc = 0
+    while True:
+        sh = _TOP - level
+        cell = node * 8 + (((qx >> sh) & 1) << 2) + (((qy >> sh) & 1) << 1) + ((qz >> sh) & 1)
+        c = child[cell]
+        n_desc += 1
+        if c == 0 or level >= max_level:
+            break
+        node += c
+        level += 1
+        stack[level] = node
+    st[0] = level
+    st[1] = qx
+    st[2] = qy
+    st[3] = qz
+    sh = _TOP - level
+    # Exit face of the leaf: its low (d < 0) or high (d >= 0) side per axis.
+    bx = (((qx >> sh) + (1 if vx >= 0.0 else 0)) << sh) * _INV_SCALE
+    by = (((qy >> sh) + (1 if vy >= 0.0 else 0)) << sh) * _INV_SCALE
+    bz = (((qz >> sh) + (1 if vz >= 0.0 else 0)) << sh) * _INV_SCALE
+    tx = (bx - px) * ix
+    ty = (by - py) * iy
+    tz = (bz - pz) * iz
+    t_end = min(max(min(tx, min(ty, tz)), ts), t1)
+    return cell, t_end, n_desc
