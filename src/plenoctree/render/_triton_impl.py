@@ -11,7 +11,7 @@ reached its leaf), so the data-dependent per-ray loop becomes a masked loop over
 ends when the block's last ray stops.
 
 ``BACKWARD`` (constexpr) turns the same march into the fine-tuning gradient (paper B.3, as in
-``optim/_numba_grad.py``): given ``g = dL/dC`` and the forward colour ``C``, it walks the
+``optim/_render_grad_numba.py``): given ``g = dL/dC`` and the forward colour ``C``, it walks the
 segments again front to back with the running transmittance ``T_i`` and prefix
 ``P_i = sum_{k<=i} w_k c_k`` and scatters with atomic adds
 
