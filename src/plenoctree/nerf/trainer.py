@@ -185,6 +185,10 @@ def train(cfg: TrainConfig, resume: bool = False,
     if not cfg.data or not cfg.out:
         raise ConfigError("training needs a dataset folder (--data) and a run directory (--out)")
     check_output_dir(cfg.out)
+    # Under torchrun only rank 0 (the one that writes) holds the lock: the other ranks of the
+    # same run would otherwise find the folder "in use" by rank 0.
+    if int(os.environ.get("RANK", "0") or 0) != 0:
+        return _train(cfg, resume, on_step, quiet)
     with run_lock(cfg.out, "train --resume" if resume else "train"):
         return _train(cfg, resume, on_step, quiet)
 
