@@ -195,14 +195,7 @@ def check_output_file(path: str | os.PathLike, what: str = "--out") -> Path:
     if p.is_dir():
         raise ConfigError(f"{p}: {what} is a directory; give a file name such as "
                           f"{p / 'tree.npz'}")
-    parent = p.parent if str(p.parent) else Path(".")
-    anc = parent
-    while not anc.exists() and anc != anc.parent:
-        anc = anc.parent
-    if anc.exists() and not anc.is_dir():
-        raise ConfigError(f"{p}: {what}: {anc} is a file, not a folder")
-    if not os.access(anc, os.W_OK | os.X_OK):
-        raise ConfigError(f"{p}: {what}: folder {anc} is not writable")
+    _check_creatable(p, p.parent if str(p.parent) else Path("."), what)
     if p.exists() or p.is_symlink():
         if not p.is_file():
             raise ConfigError(f"{p}: {what} exists and is not a regular file")
@@ -219,14 +212,21 @@ def check_output_dir(path: str | os.PathLike, what: str = "--out") -> Path:
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise ConfigError(f"{p}: {what} must be a folder, but a file of that name exists")
-    anc = p
+    _check_creatable(p, p, what)
+    return p
+
+
+def _check_creatable(p: Path, folder: Path, what: str) -> None:
+    """``ConfigError`` unless the nearest existing ancestor of ``folder`` is a writable folder."""
+    from .errors import ConfigError
+
+    anc = folder
     while not anc.exists() and anc != anc.parent:
         anc = anc.parent
     if anc.exists() and not anc.is_dir():
         raise ConfigError(f"{p}: {what}: {anc} is a file, not a folder")
     if not os.access(anc, os.W_OK | os.X_OK):
         raise ConfigError(f"{p}: {what}: folder {anc} is not writable")
-    return p
 
 
 def atomic_save_npz(path: str | os.PathLike, compressed: bool = False, **arrays: np.ndarray) -> None:

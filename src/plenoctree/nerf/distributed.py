@@ -39,7 +39,7 @@ from typing import Any, Iterable
 
 import torch
 
-__all__ = ["DistContext", "setup_distributed", "world_from_env"]
+__all__ = ["DistContext", "rank_from_env", "setup_distributed", "world_from_env"]
 
 
 def world_from_env() -> int:
@@ -48,6 +48,14 @@ def world_from_env() -> int:
         return max(1, int(os.environ.get("WORLD_SIZE", "1")))
     except ValueError:
         return 1
+
+
+def rank_from_env() -> int:
+    """``RANK`` set by ``torchrun`` (0 when not launched by it)."""
+    try:
+        return max(0, int(os.environ.get("RANK", "0") or 0))
+    except ValueError:
+        return 0
 
 
 @dataclass

@@ -187,7 +187,9 @@ def train(cfg: TrainConfig, resume: bool = False,
     check_output_dir(cfg.out)
     # Under torchrun only rank 0 (the one that writes) holds the lock: the other ranks of the
     # same run would otherwise find the folder "in use" by rank 0.
-    if int(os.environ.get("RANK", "0") or 0) != 0:
+    from .distributed import rank_from_env
+
+    if rank_from_env() != 0:
         return _train(cfg, resume, on_step, quiet)
     with run_lock(cfg.out, "train --resume" if resume else "train"):
         return _train(cfg, resume, on_step, quiet)
