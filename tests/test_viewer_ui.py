@@ -545,3 +545,19 @@ def test_inserted_mesh_is_occluded_in_an_ndc_tree(browser, ff):
     cpu = _cpu_over(cut, o, d, _shaded(color, [0, 0, 1], wd))
     _close(gpu, cpu, "NDC mesh occlusion")
     assert np.abs(gpu - plain).max() > 0.2
+
+
+def test_a_large_glb_mesh_loads(bundle):
+    """A GLB of 160 k vertices (an exported lego mesh has more) loads without exhausting the
+    JS stack (no argument spreading of vertex arrays)."""
+    trimesh = pytest.importorskip("trimesh")
+    n = 400
+    y, x = np.mgrid[0:n, 0:n].astype(np.float32) / n
+    verts = np.stack([x.ravel() + 3.0, y.ravel(), np.zeros(n * n, np.float32)], 1)
+    q = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None]).ravel()
+    faces = np.concatenate([np.stack([q, q + 1, q + n], 1), np.stack([q + 1, q + n + 1, q + n], 1)])
+    glb = trimesh.Trimesh(verts, faces, process=False).export(file_type="glb")
+    info = bundle.evaluate("b => window.viewer.addMesh(b, 'big.glb')",
+                           base64.b64encode(glb).decode())
+    bundle.evaluate("window.viewer.clearMeshes()")
+    assert info == {"vertices": n * n, "triangles": len(faces)}

@@ -63,7 +63,7 @@ export function parseGlb(buffer, name = "mesh.glb") {
       if ((prim.mode ?? 4) !== 4) continue;
       const base = pos.length / 3;
       const p = read(prim.attributes.POSITION).arr;
-      pos.push(...p);
+      for (let i = 0; i < p.length; i++) pos.push(p[i]);   // (no spread: large meshes)
       const nv = p.length / 3;
       if (prim.attributes.COLOR_0 !== undefined) {
         const c = read(prim.attributes.COLOR_0);
