@@ -467,7 +467,7 @@ function buildControls() {
     if (!f) return;
     $("message").hidden = true;
     api.state = "loading";
-    try { await loadBuffer(await f.arrayBuffer(), f.name); } catch (err) { showError(err); }
+    try { await loadBuffer(await f.arrayBuffer(), f.name, false); } catch (err) { showError(err); }
     $("file").value = "";
   });
   canvas.addEventListener("webglcontextlost", (e) => {
@@ -536,7 +536,8 @@ async function fetchTree(url) {
   return out.buffer;
 }
 
-async function loadBuffer(buffer, name) {
+// bundled: the tree named by config.json (its "ndc" applies), not one opened from the disk.
+async function loadBuffer(buffer, name, bundled = true) {
   treeName = name;
   setStatus("Reading the archive...");
   const archive = new NpzArchive(buffer, name);
@@ -544,7 +545,7 @@ async function loadBuffer(buffer, name) {
   const packed = await packTree(archive, limits, setStatus);
   setStatus("Uploading textures...");
   renderer.upload(packed);
-  opts.ndc = config.ndc || packed.ndc || null;   // the bundle's, else the tree file's own
+  opts.ndc = packed.ndc || (bundled && config.ndc) || null;   // the file's own, else the bundle's
   frameInitialView(packed);
   opts.sh_min = 0;
   opts.sh_max = -1;
