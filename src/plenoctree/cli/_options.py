@@ -268,10 +268,15 @@ def add_command(sub: argparse._SubParsersAction, name: str, cls: type,
     ``--config FILE`` and one flag per field (:func:`add_config`; ``options`` are its keyword
     arguments). When used, it calls ``run(cfg, args)`` with ``cfg`` = ``base()`` (default
     ``cls()``) under ``--config`` and the flags given (:func:`layered`); ``args`` holds the
-    flags that are not options (``--json``, ``--quiet``). Returns the parser, to add those."""
+    flags that are not options (``--json``, ``--quiet``); ``args._resolve(args)`` gives the
+    config alone (tests). Returns the parser, to add those flags."""
     p = sub.add_parser(name, help=help, description=description)
     add_config_file(p)
     dests = add_config(p, cls, **options)
     make = base or cls
-    p.set_defaults(func=lambda args: run(layered(args, make(), name), args), _dests=dests)
+
+    def resolve(args: argparse.Namespace) -> Any:
+        return layered(args, make(), name)
+
+    p.set_defaults(func=lambda args: run(resolve(args), args), _dests=dests, _resolve=resolve)
     return p
