@@ -24,9 +24,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
-from ._files import (_check_options, _composite_into, _decode,  # noqa: F401 (re-exported)
-                     _finite_number, _frame_file_path, _image_path, _is_number, _matrix,
-                     _run_parallel)
+from ._files import _check_options, _finite_number, _frame_file_path, _image_path, _matrix
+from ._images import load_images
 from .cameras import Cameras
 from .dataset import Dataset
 
@@ -129,25 +128,15 @@ def load_blender(root: str | os.PathLike, split: str = "train", downscale: int =
             raise DatasetError(f"{p}: image file not found (listed in {json_path})")
         paths.append(p)
 
-    first = _decode(paths[0], None)
-    height, width = first.shape[:2]
-    for key, val in (("w", width), ("h", height)):
-        if key in meta and int(meta[key]) != val:
-            raise DatasetError(f"{json_path}: {key} = {meta[key]:g} but {paths[0]} is "
-                               f"{width}x{height}")
+    def check_size(width: int, height: int) -> None:
+        for key, val in (("w", width), ("h", height)):
+            if key in meta and int(meta[key]) != val:
+                raise DatasetError(f"{json_path}: {key} = {meta[key]:g} but {paths[0]} is "
+                                   f"{width}x{height}")
+
+    images, alphas, (width, height) = load_images(paths, downscale, bg, num_threads,
+                                                  check_size=check_size, composite_all=True)
     f = int(downscale)
-    if width % f or height % f:
-        raise DatasetError(f"{paths[0]}: downscale {f} does not divide the image size "
-                           f"{width}x{height}")
-    h, w, n = height // f, width // f, len(paths)
-    images = np.empty((n, h, w, 3), dtype=np.float32)
-    alphas = np.empty((n, h, w), dtype=np.float32)
-
-    def work(i: int) -> None:
-        arr = first if i == 0 else _decode(paths[i], (width, height))
-        _composite_into(arr, f, bg, images[i], alphas[i])
-
-    _run_parallel(n, work, num_threads)
 
     if "fl_x" in meta:
         fx = meta["fl_x"]
