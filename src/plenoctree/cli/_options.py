@@ -28,7 +28,6 @@ import argparse
 import dataclasses
 import json
 import re
-from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from .._config import apply, field_help, load_config_file

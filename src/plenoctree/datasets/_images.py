@@ -14,7 +14,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..errors import DatasetError
-from ._files import _composite_into, _decode
+from ._files import _composite_into, _decode, reading
 from ._files import _run_parallel as _run
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -36,13 +36,8 @@ def probe_size(path: Path) -> tuple[int, int]:
     """``(width, height)`` of an image file from its header (DatasetError naming it)."""
     from PIL import Image
 
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: image file not found") from None
-    except Exception as e:  # noqa: BLE001 - any decoder failure means an unreadable file
-        raise DatasetError(f"{path}: unreadable image ({type(e).__name__}: {e})") from None
+    with reading(path, "image"), Image.open(path) as im:
+        return im.size
 
 
 def load_images(paths: Sequence[Path], downscale: int, background: np.ndarray,
@@ -127,18 +122,11 @@ def load_masks(paths: Sequence[Path | None], size: tuple[int, int], downscale: i
         p = paths[i]
         if p is None:
             return
-        try:
-            with Image.open(p) as im:
-                if im.size != (width, height):
-                    raise DatasetError(f"{p}: mask is {im.size[0]}x{im.size[1]}, its image is "
-                                       f"{width}x{height}")
-                m = np.asarray(im.convert("L")) > 0
-        except DatasetError:
-            raise
-        except FileNotFoundError:
-            raise DatasetError(f"{p}: mask file not found") from None
-        except Exception as e:  # noqa: BLE001 - any decoder failure means an unreadable file
-            raise DatasetError(f"{p}: unreadable mask ({type(e).__name__}: {e})") from None
+        with reading(p, "mask"), Image.open(p) as im:
+            if im.size != (width, height):
+                raise DatasetError(f"{p}: mask is {im.size[0]}x{im.size[1]}, its image is "
+                                   f"{width}x{height}")
+            m = np.asarray(im.convert("L")) > 0
         mf = m.astype(np.float32)
         if f > 1:
             mf = mf.reshape(h, f, w, f).mean(axis=(1, 3), dtype=np.float32)

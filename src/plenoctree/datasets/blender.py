@@ -15,16 +15,16 @@ returned half-loaded.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
-from ._files import _check_options, _finite_number, _frame_file_path, _image_path, _matrix
+from ._files import (_check_options, _finite_number, _frame_file_path, _image_path, _matrix,
+                     read_json_object)
 from ._images import load_images
 from .cameras import Cameras
 from .dataset import Dataset
@@ -45,19 +45,7 @@ def read_transforms(path: str | os.PathLike) -> tuple[dict, list[tuple[str, np.n
         ``frames`` is a list of ``(file_path, c2w [4, 4] float64)``.
     """
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: file not found") from None
-    except OSError as e:
-        raise DatasetError(f"{path}: cannot read ({e.strerror or e})") from None
-    try:
-        obj = json.loads(raw)
-    except (ValueError, RecursionError) as e:     # JSONDecodeError, UnicodeDecodeError, ...
-        raise DatasetError(f"{path}: not valid JSON ({e})") from None
-    if not isinstance(obj, dict):
-        raise DatasetError(f"{path}: expected a JSON object at the top level, got "
-                           f"{type(obj).__name__}")
+    obj = read_json_object(path)
     meta: dict[str, float] = {}
     for key in ("camera_angle_x", "fl_x", "fl_y", "cx", "cy", "w", "h"):
         if key in obj:

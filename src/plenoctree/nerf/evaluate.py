@@ -6,7 +6,6 @@ PlenOctree 167.7 FPS): every pixel is a ray through the network, in chunks, no g
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
