@@ -69,12 +69,15 @@ def test_a_new_config_field_becomes_a_flag_with_no_other_edit():
                          "--stage.background", "black"])
     values = given(args, dests, prefix="stage.")
     assert values == {"epochs": 3, "box": [1.0, 2.0, 3.0], "smooth": True,
-                      "background": (0.0, 0.0, 0.0)}
+                      "background": "black"}
     cfg = apply(Cfg(), values)
     assert cfg.box == (1.0, 2.0, 3.0) and cfg.lr is None and cfg.epochs == 3
+    assert cfg.background == (0.0, 0.0, 0.0)
     assert "Passes over the data. (default: 20)" in p.format_help()
-    with pytest.raises(SystemExit):
-        p.parse_args(["--stage.background", "pink"])
+    args = p.parse_args(["--stage.background", "pink"])
+    with pytest.raises(Exception, match="--background: expected white, black or R,G,B"):
+        apply(Cfg(), given(args, dests, prefix="stage."))
+    assert apply(Cfg(), {"background": "0.5"}).background == (0.5, 0.5, 0.5)   # config files
 
 
 def test_train_config_file_then_flags(tmp_path, capsys):

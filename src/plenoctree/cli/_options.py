@@ -13,7 +13,8 @@ field into a flag; a new field becomes a flag with no other edit:
 - type from the annotation: ``bool`` → ``--x/--no-x``; ``int``/``float``/``str`` (``| None``
   allowed); tuples of numbers → ``--x 1 2 3`` or ``--x 1,2,3`` (a length fixed by the
   annotation, ``tuple[float, float]``, is checked); ``dict``/``list`` → a JSON value; a field
-  named ``background`` → ``white``, ``black`` or ``R,G,B``;
+  named ``background`` → ``white``, ``black`` or ``R,G,B`` (parsed with the other values by
+  :func:`apply`, so a config file may use the same names);
 - field metadata (``field(metadata={...})``) may add ``"choices"``, ``"flag"`` (another flag
   name, e.g. ``"steps"``), ``"positional": True``, ``"cli": False`` (no flag), ``"metavar"``.
 
@@ -30,37 +31,12 @@ import json
 import re
 from typing import Any, Callable, Iterable
 
-from .._config import apply, field_help, load_config_file
+from .._config import apply, field_help, load_config_file, parse_background
 from ..errors import ConfigError
 
 __all__ = ["add_command", "add_config", "given", "layered", "apply", "field_help",
            "load_config_file", "parse_background", "add_config_file", "config_to_json",
            "format_default"]
-
-
-def parse_background(text: str) -> tuple[float, float, float]:
-    """``white``, ``black``, ``R,G,B`` or one grey value, floats in [0, 1] -> an RGB tuple;
-    anything else raises :class:`ConfigError`."""
-    t = str(text).strip().lower()
-    named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
-    if t in named:
-        return named[t]
-    try:
-        vals = tuple(float(v) for v in t.split(","))
-    except ValueError:
-        vals = ()
-    if len(vals) == 1:
-        vals = vals * 3
-    if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
-        raise ConfigError(f"--background: expected white, black or R,G,B in [0,1], got {text!r}")
-    return vals  # type: ignore[return-value]
-
-
-def _background_arg(text: str) -> tuple[float, float, float]:
-    try:
-        return parse_background(text)
-    except ConfigError as e:
-        raise argparse.ArgumentTypeError(str(e).split(": ", 1)[1]) from None
 
 
 def _numbers(conv: type, length: int | None):
@@ -97,7 +73,7 @@ def _kind(f: dataclasses.Field) -> tuple[str, Any]:
     base = parts[0] if parts else "str"
     default = f.default if f.default is not dataclasses.MISSING else None
     if f.name == "background":
-        return "background", _background_arg
+        return "background", str          # parsed by _config.apply (flags and config files)
     if base == "bool":
         return "bool", None
     if base.startswith("tuple") or isinstance(default, tuple):
