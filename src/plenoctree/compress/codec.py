@@ -50,22 +50,19 @@ _FP16_MAX = float(np.finfo(np.float16).max)
 
 @dataclass
 class CompressOptions:
-    """Settings of :func:`compress` (the CLI flags have the same names).
-
-    Attributes:
-        bits: codebook size ``2**bits`` per basis function, 1..16 (paper: 16).
-        retain: keep the first ``retain`` basis functions unquantised (float16); 0..B.
-            ``retain=1`` keeps the view-independent (DC) colour exact.
-        sigma_thresh: leaves with ``σ <= sigma_thresh`` (1/world-length) are dropped: σ set
-            to 0 and left out of the codebook fit (svox's ``--sigma_thresh``; 0 keeps every
-            leaf with σ > 0).
-        level: DEFLATE level 0..9 used when the file is written.
-    """
+    """Settings of :func:`compress` (the ``compress`` / ``lod`` flags: the field docstrings
+    are their help)."""
 
     bits: int = 16
+    """codebook size 2^bits per SH basis function, 1..16 (the paper's 16)"""
     retain: int = 0
+    """keep the first N basis functions unquantised, float16, 0..B (1 = the view-independent
+    DC colour exact)"""
     sigma_thresh: float = 0.0
+    """drop leaves with sigma <= this (1/world units): sigma set to 0 and left out of the
+    codebook fit (svox's --sigma_thresh; 0 keeps every leaf with sigma > 0)"""
     level: int = 6
+    """DEFLATE level 0..9 used when the file is written"""
 
     def validated(self, basis_dim: int | None = None) -> CompressOptions:
         """Return ``self`` after checking every field; raises :class:`ConfigError`."""

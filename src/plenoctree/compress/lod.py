@@ -39,19 +39,15 @@ _MIN_T = 1e-30
 
 @dataclass
 class LodOptions:
-    """One level-of-detail setting (the ``plenoctree lod`` flags have the same names).
-
-    Attributes:
-        sh_degree: keep SH bands ``0..sh_degree`` (SH trees only); None keeps all.
-        max_depth: merge every cell deeper than this depth (root cells have depth 0); None
-            keeps the tree's depth.
-        prune_alpha: empty the leaves whose opacity ``1 - exp(-σ ℓ)`` is below this; 0 keeps
-            every leaf.
-    """
+    """One level-of-detail setting (the ``plenoctree lod`` flags: the field docstrings are
+    their help)."""
 
     sh_degree: int | None = None
+    """keep SH degrees 0..N (SH trees only; default: all)"""
     max_depth: int | None = None
+    """merge cells deeper than this (root cells have depth 0; default: the tree's depth)"""
     prune_alpha: float = 0.0
+    """empty leaves whose opacity 1-exp(-sigma*size) is below this (0 keeps every leaf)"""
 
     def validated(self) -> LodOptions:
         if self.sh_degree is not None and (isinstance(self.sh_degree, bool)
