@@ -183,6 +183,56 @@ def test_run_images_stage_reports_bad_photos(tmp_path):
         run_pipeline(PipelineConfig(images=str(d), data=str(d), out=str(tmp_path / "run")))
 
 
+@pytest.mark.parametrize("flags, message", [
+    (["--finetune.lr-decay", "5"], "lr_decay must be in"),
+    (["--grid", "100"], "grid"),
+    (["--train.lr-init", "-1"], "learning rates must be > 0"),
+    (["--process.frames", "2"], "--frames must be an integer >= 3"),
+    (["--process.camera-model", "FISH"], "camera model must be one of"),
+    (["--process.mapper", '{"no_such_option": 1}'], "unknown COLMAP mapper option"),
+])
+def test_run_images_checks_every_option_before_process(tmp_path, monkeypatch, capsys, flags,
+                                                       message):
+    """`run --images` with a bad option of any stage fails at once: `process` never runs."""
+    import plenoctree.process as proc
+
+    calls = []
+    monkeypatch.setattr(proc, "process", lambda *a, **k: calls.append(a))
+    d = tmp_path / "imgs"
+    d.mkdir()
+    for i in range(3):
+        _noise(d / f"{i}.png", seed=i)
+    rc = main(["run", "--images", str(d), "--out", str(tmp_path / "run"), *flags])
+    err = capsys.readouterr().err
+    assert rc == 1 and message in err and "Traceback" not in err, err
+    assert not calls and not (tmp_path / "run" / "data").exists()
+
+
+def test_run_images_passes_process_options(tmp_path, monkeypatch):
+    """--process.* reach `process` (then the stage's missing output stops the run); they are
+    refused with --data."""
+    import plenoctree.process as proc
+    from plenoctree.pipeline import PipelineConfig, PipelineError, run_pipeline
+
+    seen = []
+    monkeypatch.setattr(proc, "process", lambda cfg, log=print: seen.append(cfg))
+    d = tmp_path / "imgs"
+    d.mkdir()
+    for i in range(3):
+        _noise(d / f"{i}.png", seed=i)
+    rc = main(["run", "--images", str(d), "--out", str(tmp_path / "run"), "--process.scene",
+               "forward", "--process.frames", "40", "--process.matcher", "sequential",
+               "--process.mapper", '{"mapper.init_min_tri_angle": 4.0}'])
+    assert rc == 1 and len(seen) == 1
+    cfg = seen[0]
+    assert (cfg.scene, cfg.frames, cfg.sfm.matcher) == ("forward", 40, "sequential")
+    assert cfg.sfm.mapper == {"mapper.init_min_tri_angle": 4.0}
+    assert cfg.images == str(d) and cfg.out == str(tmp_path / "run" / "data")
+    with pytest.raises(ConfigError, match=r"--process\.\* options apply to --images"):
+        run_pipeline(PipelineConfig(data=str(d), out=str(tmp_path / "run2"),
+                                    extra={"process": {"frames": 40}}), log=lambda *_: None)
+
+
 @pytest.mark.parametrize("scene", ["360", "forward"])
 def test_dataset_writing_from_a_reconstruction(tmp_path, scene):
     """The output half of `process` on a synthetic COLMAP model: the loaders read it back

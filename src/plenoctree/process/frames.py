@@ -18,8 +18,8 @@ import numpy as np
 
 from .sfm import ProcessError
 
-__all__ = ["list_photos", "video_frames", "sharpness", "is_video", "VIDEO_SUFFIXES",
-           "PHOTO_SUFFIXES"]
+__all__ = ["list_photos", "video_frames", "sharpness", "is_video", "require_video_reader",
+           "VIDEO_SUFFIXES", "PHOTO_SUFFIXES"]
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
@@ -72,6 +72,17 @@ def list_photos(folder: str | os.PathLike, single_camera: bool = True) -> list[P
     return photos
 
 
+def require_video_reader():
+    """``imageio.v2`` with its ffmpeg plugin, or :class:`ProcessError` naming the extra."""
+    try:
+        import imageio.v2 as iio
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        raise ProcessError("reading videos needs imageio-ffmpeg: pip install "
+                           "'plenoctree[video]'") from None
+    return iio
+
+
 def sharpness(rgb: np.ndarray) -> float:
     """Variance of the 4-neighbour Laplacian of the grey image (higher = sharper)."""
     g = np.asarray(rgb, dtype=np.float32)
@@ -97,12 +108,7 @@ def video_frames(video: str | os.PathLike, out_dir: str | os.PathLike, n_frames:
         raise ProcessError(f"drop fraction must be in [0, 1), got {drop}")
     if n_frames < 3:
         raise ProcessError(f"--frames must be at least 3, got {n_frames}")
-    try:
-        import imageio.v2 as iio
-        import imageio_ffmpeg  # noqa: F401
-    except ImportError:
-        raise ProcessError("reading videos needs imageio-ffmpeg: pip install "
-                           "'plenoctree[video]'") from None
+    iio = require_video_reader()
     try:
         reader = iio.get_reader(str(video), format="FFMPEG")
         total = reader.count_frames()

@@ -28,7 +28,8 @@ from typing import Any, Callable, Sequence
 
 from ..errors import ConfigError, PlenOctreeError
 
-__all__ = ["SfmOptions", "SfmResult", "run_sfm", "require_pycolmap", "ProcessError"]
+__all__ = ["SfmOptions", "SfmResult", "run_sfm", "require_pycolmap", "check_options",
+           "ProcessError"]
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV",
                  "OPENCV_FISHEYE")
@@ -104,7 +105,8 @@ def _chunks(seq: Sequence, n: int) -> list[Sequence]:
     return [seq[i:i + n] for i in range(0, len(seq), n)]
 
 
-def _check(opts: SfmOptions) -> None:
+def check_options(opts: SfmOptions) -> None:
+    """Check the option values; raises :class:`ConfigError` naming the option."""
     if opts.camera_model not in CAMERA_MODELS:
         raise ConfigError(f"camera model must be one of {', '.join(CAMERA_MODELS)}, got "
                           f"{opts.camera_model!r}")
@@ -112,6 +114,33 @@ def _check(opts: SfmOptions) -> None:
         raise ConfigError(f"matcher must be auto, exhaustive or sequential, got {opts.matcher!r}")
     if opts.max_features < 100 or opts.max_image_size < 64:
         raise ConfigError("max_features must be >= 100 and max_image_size >= 64")
+    if opts.sequential_overlap < 1:
+        raise ConfigError(f"sequential_overlap must be >= 1, got {opts.sequential_overlap}")
+    if not opts.focal_factor > 0:
+        raise ConfigError(f"focal_factor must be > 0, got {opts.focal_factor}")
+    if not isinstance(opts.mapper, dict):
+        raise ConfigError(f"mapper must be a dict of COLMAP mapper options, got {opts.mapper!r}")
+    try:
+        import pycolmap
+    except ImportError:
+        return                              # (the caller's require_pycolmap() says so)
+    _mapper_options(pycolmap, opts)
+
+
+def _mapper_options(pycolmap: Any, opts: SfmOptions) -> Any:
+    """pycolmap.IncrementalPipelineOptions with ``opts.mapper`` set on COLMAP's defaults."""
+    popt = pycolmap.IncrementalPipelineOptions()
+    popt.num_threads = int(opts.num_threads)
+    popt.random_seed = int(opts.seed)
+    for k, v in opts.mapper.items():
+        obj, name = (popt.mapper, k[7:]) if k.startswith("mapper.") else (popt, k)
+        if not hasattr(obj, name):
+            raise ConfigError(f"unknown COLMAP mapper option {k!r}")
+        try:
+            setattr(obj, name, v)
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"COLMAP mapper option {k!r}: bad value {v!r} ({e})") from None
+    return popt
 
 
 def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Sequence[str],
@@ -135,7 +164,7 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     from .._util import progress
 
     opts = opts or SfmOptions()
-    _check(opts)
+    check_options(opts)
     names = list(names)
     if len(names) < 3:
         raise ProcessError(f"{image_dir}: {len(names)} image(s); structure from motion needs at "
@@ -192,14 +221,7 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
 
     # 3. Incremental mapping (progress: one tick per registered image).
     t0 = time.perf_counter()
-    popt = pycolmap.IncrementalPipelineOptions()
-    popt.num_threads = int(opts.num_threads)
-    popt.random_seed = int(opts.seed)
-    for k, v in opts.mapper.items():
-        obj, name = (popt.mapper, k[7:]) if k.startswith("mapper.") else (popt, k)
-        if not hasattr(obj, name):
-            raise ConfigError(f"unknown COLMAP mapper option {k!r}")
-        setattr(obj, name, v)
+    popt = _mapper_options(pycolmap, opts)
     sparse = work / "sparse"
     sparse.mkdir(exist_ok=True)
     with progress(total=len(names), desc="colmap mapping", unit="img",
