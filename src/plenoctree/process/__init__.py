@@ -111,11 +111,11 @@ def process(cfg: ProcessConfig, log: Callable[[str], None] = print) -> dict:
     if not cfg.images or not cfg.out:
         raise ConfigError("both the images (folder or video) and --out are needed")
     src, out = Path(cfg.images), Path(cfg.out)
+    _check_out(out, cfg.overwrite)
     video = is_video(src)
     if not video:
         photos = list_photos(src, cfg.sfm.single_camera)       # fail fast on bad photos
     cfg.validated()
-    _check_out(out, cfg.overwrite)
     t_start = time.perf_counter()
     stage = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     shutil.rmtree(stage, ignore_errors=True)

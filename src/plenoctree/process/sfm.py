@@ -241,9 +241,7 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     # A final global bundle adjustment of the chosen model.
     pycolmap.logging.minloglevel = 2          # (the mapper resets COLMAP's log level)
     t0 = time.perf_counter()
-    ba = pycolmap.BundleAdjustmentOptions()
-    ba.print_summary = False
-    pycolmap.bundle_adjustment(best, ba)
+    _global_ba(pycolmap, best)
     times["final_ba"] = time.perf_counter() - t0
     n_reg = best.num_reg_images()
     log(f"colmap: {n_reg} of {len(names)} images registered"
@@ -252,6 +250,19 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
         raise ProcessError(f"{image_dir}: only {n_reg} of {len(names)} images could be "
                            "registered; take more overlapping photos of the scene")
     return SfmResult(best, len(names), n_reg, len(models), times)
+
+
+def _global_ba(pycolmap: Any, rec: Any) -> None:
+    """Bundle adjustment of every registered image and point of ``rec`` (in place; through
+    the adjuster object, which, unlike ``pycolmap.bundle_adjustment``, keeps COLMAP's log
+    level: no INFO lines on the terminal)."""
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in rec.reg_image_ids():
+        config.add_image(image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.print_summary = False
+    pycolmap.create_default_bundle_adjuster(ba, config, rec).solve()
 
 
 WEAK_IMAGE_FRACTION = 0.35
