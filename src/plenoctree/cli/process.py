@@ -61,9 +61,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="capture kind (default auto: decided from the cameras)")
     p.add_argument("--frames", type=int, default=150,
                    help="video only: frames kept, evenly spread (default 150)")
-    p.add_argument("--drop-blurry", type=float, default=0.1,
-                   help="video only: fraction of candidate frames dropped as the blurriest "
-                        "(default 0.1)")
+    p.add_argument("--drop-blurry", type=float, default=0.5,
+                   help="video only: fraction of the evenly spaced candidate frames dropped, "
+                        "each kept frame the sharpest of its run of 1 / (1 - DROP) "
+                        "consecutive candidates (default 0.5: the sharper of two)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out folder")
     add_sfm_flags(p)
     p.set_defaults(func=_run)

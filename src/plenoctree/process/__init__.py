@@ -53,8 +53,9 @@ class ProcessConfig:
     """capture kind: auto (from the cameras), 360 (object seen from around) or forward (NDC)"""
     frames: int = 150
     """video only: frames kept (evenly spread, the blurriest candidates dropped)"""
-    drop_blurry: float = 0.1
-    """video only: fraction of the evenly spaced candidate frames dropped as the blurriest"""
+    drop_blurry: float = 0.5
+    """video only: fraction of the evenly spaced candidate frames dropped, each kept frame the
+    sharpest of its run of 1 / (1 - drop) consecutive candidates (0.5: the sharper of two)"""
     overwrite: bool = False
     """replace an existing output folder"""
     sfm: SfmOptions = field(default_factory=SfmOptions)
@@ -127,7 +128,7 @@ def process(cfg: ProcessConfig, log: Callable[[str], None] = print) -> dict:
         image_dir = photos[0].parent
         names = [p.name for p in photos]
         log(f"process: {len(names)} images from {src}")
-        res = run_sfm(image_dir, work, names, cfg.sfm, sequential=video, log=log)
+        res = run_sfm(image_dir, work, names, cfg.sfm, sequential=video, log=log, label=src)
         summary = _write_dataset(res, image_dir, names, stage, work, cfg, log)
         summary.update(source=str(src), video=video, seconds_total=time.perf_counter() - t_start,
                        config={k: v for k, v in asdict(cfg).items()})

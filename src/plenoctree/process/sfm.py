@@ -29,7 +29,7 @@ from typing import Any, Callable, Sequence
 from ..errors import ConfigError, PlenOctreeError
 
 __all__ = ["SfmOptions", "SfmResult", "run_sfm", "require_pycolmap", "check_options",
-           "ProcessError"]
+           "ProcessError", "sequential_pairs", "min_inliers"]
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV",
                  "OPENCV_FISHEYE")
@@ -48,6 +48,10 @@ class ProcessError(PlenOctreeError, RuntimeError):
 
 def require_pycolmap() -> Any:
     """Import pycolmap or raise :class:`ProcessError` naming the extra to install."""
+    # Pillow first: imported after pycolmap (whose wheel bundles its own zlib), Pillow's PNG
+    # encoder crashes the interpreter (free(): invalid pointer in deflateEnd).
+    from PIL import Image  # noqa: F401
+
     try:
         import pycolmap
     except ImportError:
@@ -65,7 +69,7 @@ class SfmOptions:
     single_camera: bool = True
     """one camera (intrinsics) shared by every image; off: one per image"""
     matcher: str = "auto"
-    """exhaustive, sequential (videos) or auto (sequential for video frames / > 300 images)"""
+    """exhaustive, sequential (videos) or auto (sequential beyond 100 video frames / 300 photos)"""
     max_features: int = 8192
     """SIFT features per image"""
     guided_matching: bool = True
@@ -145,14 +149,17 @@ def _mapper_options(pycolmap: Any, opts: SfmOptions) -> Any:
 
 def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Sequence[str],
             opts: SfmOptions | None = None, sequential: bool = False,
-            log: Callable[[str], None] = print, show_progress: bool | None = None) -> SfmResult:
+            log: Callable[[str], None] = print, show_progress: bool | None = None,
+            label: str | os.PathLike | None = None) -> SfmResult:
     """Features, matches and an incremental reconstruction of ``names`` in ``image_dir``.
 
     Args:
         image_dir: folder of the images; ``names``: their file names in it (>= 2, in capture
             order for videos).
         work_dir: scratch folder for ``database.db`` (created; emptied of an old database).
-        sequential: the images are video frames (``matcher="auto"`` then matches neighbours).
+        sequential: the images are video frames in time order (``matcher="auto"`` then
+            matches neighbours in time, :func:`sequential_pairs`, beyond 100 frames).
+        label: what the error messages name (default ``image_dir``; ``process``: the video).
 
     Returns:
         :class:`SfmResult` with the model holding the most registered images.
@@ -165,9 +172,10 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
 
     opts = opts or SfmOptions()
     check_options(opts)
+    label = image_dir if label is None else label
     names = list(names)
     if len(names) < 3:
-        raise ProcessError(f"{image_dir}: {len(names)} image(s); structure from motion needs at "
+        raise ProcessError(f"{label}: {len(names)} image(s); structure from motion needs at "
                            "least 3 overlapping photos (20+ recommended)")
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
@@ -203,16 +211,16 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
 
     # 2. Matching.
     t0 = time.perf_counter()
-    use_seq = opts.matcher == "sequential" or (opts.matcher == "auto"
-                                               and (sequential or len(names) > 300))
+    use_seq = opts.matcher == "sequential" or (
+        opts.matcher == "auto" and len(names) > (EXHAUSTIVE_MAX_FRAMES if sequential
+                                                 else EXHAUSTIVE_MAX_PHOTOS))
     mopt = pycolmap.FeatureMatchingOptions()
     mopt.num_threads = int(opts.num_threads)
     mopt.guided_matching = bool(opts.guided_matching)
     ver = pycolmap.TwoViewGeometryOptions()
     ver.ransac.random_seed = int(opts.seed)
     if use_seq:
-        pairs = [(i, j) for i in range(len(names))
-                 for j in range(i + 1, min(len(names), i + 1 + opts.sequential_overlap))]
+        pairs = sequential_pairs(len(names), opts.sequential_overlap)
     else:
         pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
     _match_pairs(pycolmap, db, work, names, pairs, mopt, ver, show_progress,
@@ -222,6 +230,13 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     # 3. Incremental mapping (progress: one tick per registered image).
     t0 = time.perf_counter()
     popt = _mapper_options(pycolmap, opts)
+    with pycolmap.Database.open(db) as d:
+        n_kp = sorted(d.num_keypoints_for_image(im.image_id) for im in d.read_all_images())
+    cap = popt.mapper.abs_pose_min_num_inliers
+    popt.mapper.abs_pose_min_num_inliers = min_inliers(n_kp[len(n_kp) // 2], cap)
+    if popt.mapper.abs_pose_min_num_inliers < cap:
+        log(f"colmap: {n_kp[len(n_kp) // 2]} features in the median image: an image is "
+            f"registered with >= {popt.mapper.abs_pose_min_num_inliers} inliers")
     sparse = work / "sparse"
     sparse.mkdir(exist_ok=True)
     with progress(total=len(names), desc="colmap mapping", unit="img",
@@ -230,7 +245,7 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
                                               next_image_callback=lambda: bar.update(1))
     times["mapping"] = time.perf_counter() - t0
     if not models:
-        raise ProcessError(f"{image_dir}: COLMAP could not reconstruct any cameras from the "
+        raise ProcessError(f"{label}: COLMAP could not reconstruct any cameras from the "
                            f"{len(names)} images (too few matches). Try more photos with more "
                            "overlap (each part of the scene seen from 3+ nearby views), "
                            "sharper or more textured images, or --matcher exhaustive")
@@ -247,9 +262,45 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     log(f"colmap: {n_reg} of {len(names)} images registered"
         + (f" (largest of {len(models)} models)" if len(models) > 1 else ""))
     if n_reg < 3:
-        raise ProcessError(f"{image_dir}: only {n_reg} of {len(names)} images could be "
+        raise ProcessError(f"{label}: only {n_reg} of {len(names)} images could be "
                            "registered; take more overlapping photos of the scene")
     return SfmResult(best, len(names), n_reg, len(models), times)
+
+
+EXHAUSTIVE_MAX_PHOTOS = 300
+"""``matcher="auto"``: photos are matched exhaustively up to this many, sequentially beyond."""
+EXHAUSTIVE_MAX_FRAMES = 100
+"""``matcher="auto"``: video frames are matched exhaustively up to this many (every pair:
+the loop closures of an orbit), sequentially beyond (:func:`sequential_pairs`)."""
+MIN_INLIER_FRACTION = 0.1
+"""An image is registered with at least this fraction of the median image's features as 2D-3D
+inliers (:func:`min_inliers`)."""
+
+
+def min_inliers(median_features: int, cap: int) -> int:
+    """The mapper's ``abs_pose_min_num_inliers``: :data:`MIN_INLIER_FRACTION` of the median
+    image's features, between COLMAP's default 30 and ``cap`` (the mapper option, 100 by
+    default).
+
+    Measured on lego: the 400² training photos keep ~1,200 features each and need the cap of
+    100 against a photo registered on the wrong side of the object; frames of a 320² video
+    keep ~750, and with 100 a third of them failed to register (56 of 60 do with this rule,
+    all within 0.8° of the truth; ``benchmarks/colmap_poses.py --video``).
+    """
+    return int(max(min(30, cap), min(cap, round(MIN_INLIER_FRACTION * median_features))))
+
+
+def sequential_pairs(n: int, overlap: int) -> list[tuple[int, int]]:
+    """Image pairs of a video's ``n`` frames in time order: each frame with its ``overlap``
+    next ones, and (as COLMAP's sequential matcher's quadratic overlap) with the frames
+    ``2**k`` later beyond them, which closes loops of orbits and revisits."""
+    pairs = {(i, j) for i in range(n) for j in range(i + 1, min(n, i + 1 + overlap))}
+    k = 1
+    while k < n:
+        if k > overlap:
+            pairs.update((i, i + k) for i in range(n - k))
+        k *= 2
+    return sorted(pairs)
 
 
 def _global_ba(pycolmap: Any, rec: Any) -> None:
