@@ -308,7 +308,8 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
         tree_in = out / "tree_refined.npz"
         rcfg = RefineConfig(tree=str(tree_raw), run_dir=str(run_dir), out=str(tree_in),
                             passes=cfg.refine_passes, threshold=cfg.refine_threshold,
-                            data=str(data), seed=cfg.seed, show_progress=False)
+                            data=str(data), seed=cfg.seed, show_progress=False,
+                            averaging=ecfg.averaging)     # new leaves valued as extracted
         apply(rcfg, cfg.extra.get("refine", {}), where="--refine")
         rcfg.validated()
     fcfg = FinetuneConfig(tree=str(tree_in), data=str(data), out=str(tree_ft),
