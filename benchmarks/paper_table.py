@@ -288,6 +288,27 @@ def plot(res: dict, path: Path, variants: dict | None = None) -> None:
     plt.close(fig)
 
 
+def stage_rows(res: dict, fps_key: str = "fps_800") -> list[dict]:
+    """The rows as ``plenoctree plot`` reads them (``stage``, ``psnr``, ``fps``, ``mb``, with
+    leaves and SSIM): the JSON of ``docs/lego_stages.json``; FPS at 800² by default."""
+    out = []
+    for key, label in ROWS:
+        r = res["rows"].get(key, {})
+        if r.get("psnr") is None:
+            continue
+        row = {"stage": _SHORT[key], "psnr": round(r["psnr"], 3),
+               "fps": None if r.get(fps_key) is None else round(r[fps_key], 3),
+               "mb": None if r.get("mb") is None else round(r["mb"], 1)}
+        if r.get("ssim") is not None:
+            row["ssim"] = round(r["ssim"], 4)
+        if r.get("n_leaves") is not None:
+            row["leaves"] = r["n_leaves"]
+        if r.get("views") is not None:
+            row["views"] = r["views"]
+        out.append(row)
+    return out
+
+
 def table3_variants(path: Path) -> dict:
     """``{name: {"psnr", "fps"}}`` from ``extract_table3.json`` (raw trees, FPS at its
     ``fps_size``), or {} when the file is missing."""
@@ -300,16 +321,19 @@ def table3_variants(path: Path) -> dict:
 
 
 # --- driver -----------------------------------------------------------------------------
-def run_full(out: Path, data: Path, views: int, downscale: int = 2, nerf: str = ""
-             ) -> tuple[Path, Path, Path, Path | None, dict]:
+def run_full(out: Path, data: Path, views: int, downscale: int = 2, nerf: str = "",
+             finetune_epochs: int = 0) -> tuple[Path, Path, Path, Path | None, dict]:
     """Run the whole chain on lego at 800/``downscale``² into ``out`` (resumable, with the
     ``plenoctree run`` defaults; ``nerf``: a trained NeRF-SH run to start from, as
-    ``plenoctree run --nerf``); return the artefact paths and the pipeline's summary."""
+    ``plenoctree run --nerf``; ``finetune_epochs``: 0 = the run's default); return the
+    artefact paths and the pipeline's summary."""
     from plenoctree.pipeline import PipelineConfig, run_pipeline
 
-    summary = run_pipeline(PipelineConfig(data=str(data), out=str(out), downscale=downscale,
-                                          preset="cpu", eval_views=views, video_frames=0,
-                                          web=False, nerf=nerf))
+    cfg = PipelineConfig(data=str(data), out=str(out), downscale=downscale, preset="cpu",
+                         eval_views=views, video_frames=0, web=False, nerf=nerf)
+    if finetune_epochs:
+        cfg.finetune_epochs = finetune_epochs
+    summary = run_pipeline(cfg)
     # the layout documented by run_pipeline
     plnz = out / "tree_ft.plnz"
     return (Path(nerf) if nerf else out / "nerf", out / "tree.npz", out / "tree_ft.npz",
@@ -352,6 +376,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tree-ft", default=str(ROOT / "runs/lego_ft/tree_ft.npz"))
     ap.add_argument("--size", type=int, choices=(400, 800), default=400,
                     help="image size of training (--full) and scoring")
+    ap.add_argument("--finetune-epochs", type=int, default=0,
+                    help="--full: maximum fine-tuning epochs (0 = plenoctree run's default)")
     ap.add_argument("--plnz", default="", help="compressed ft tree (default: compress here)")
     ap.add_argument("--views", type=int, default=200, help="test views scored at 400²")
     ap.add_argument("--fps-views", type=int, default=3, help="views timed at 800²")
@@ -369,7 +395,7 @@ def main(argv: list[str] | None = None) -> int:
     stage_figs: dict = {}
     if a.full:
         nerf_run, tree, tree_ft, plnz, summary = run_full(Path(a.out), data, a.views, down,
-                                                          a.nerf_run or "")
+                                                          a.nerf_run or "", a.finetune_epochs)
         tree_ref = Path(a.out) / "tree_refined.npz"
         stage_figs = pipeline_stage_figures(summary)
         known = pipeline_evals(Path(a.out))
@@ -388,6 +414,7 @@ def main(argv: list[str] | None = None) -> int:
            "read_from_artefacts": read,
            "inputs": {"nerf_run": str(nerf_run), "tree": str(tree), "tree_ft": str(tree_ft)},
            "nerf_given": bool(a.full and a.nerf_run),
+           "finetune": summary.get("finetune") if a.full else None,
            "rows": {}}
     rows = res["rows"]
 
@@ -483,6 +510,10 @@ def main(argv: list[str] | None = None) -> int:
                 f"(read): {_fmt(read.get('raw_psnr_all_views'), '.2f')} / "
                 f"{_fmt(read.get('ft_psnr_all_views'), '.2f')} dB.\n")
     plot(res, out / "paper_table_psnr_fps.png", variants)
+    src = (f"python benchmarks/paper_table.py {' '.join(sys.argv[1:] if argv is None else argv)}"
+           f" (lego {a.size}², {a.views} test views; NeRF-SH: {res['rows']['nerf_sh'].get('views')}"
+           f" views; FPS at 800²; {meta['cpu_count']} CPU cores, load {meta['loadavg']})")
+    atomic_save_json(out / "paper_table_stages.json", {"source": src, "rows": stage_rows(res)})
     print(md)
     print(f"wrote {out / 'paper_table.json'}, paper_table.md, paper_table_psnr_fps.png "
           f"({res['wall_s']:.0f} s)")
