@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     res.update({"run": a.run, "tree": a.tree, "views": a.views, "cpu_count": os.cpu_count(),
                 "platform": platform.platform()})
     rows = res["rows"]
-    field_, train_cfg, _ = _load_run(ExtractConfig(run_dir=a.run))
+    field_, train_cfg, _ = _load_run(ExtractConfig(run_dir=a.run, device="cpu"))
     down = int(getattr(train_cfg, "downscale", 1) or 1)
     tree = load_tree(a.tree).astype(np.float32)
 
