@@ -104,15 +104,21 @@ def machine() -> dict:
 
 # --- measurements -----------------------------------------------------------------------
 def measure_tree(path: Path, data: Path, views: int, fps_views: int, work: Path,
-                 downscale: int = 2) -> dict:
+                 downscale: int = 2, known: dict | None = None) -> dict:
     """PSNR/SSIM of tree file ``path`` on the first ``views`` test views at 800/``downscale``²,
-    FPS at that size (median over those views) and at 800² (``fps_views`` views), MB on disk."""
+    FPS at that size (median over those views) and at 800² (``fps_views`` views), MB on disk.
+    ``known``: an ``eval.json`` of the same tree, size and views (the pipeline's): its scores
+    are used instead of rendering the views again (800² FPS is still measured here)."""
     from plenoctree.evaluation import EvalConfig, eval_tree_file
 
     quiet = lambda *a, **k: None  # noqa: E731
     t0 = time.perf_counter()
-    r4 = eval_tree_file(EvalConfig(tree=path, data=data, downscale=downscale, limit=views,
-                                   out=work / f"{path.stem}_400", show_progress=False), log=quiet)
+    if known and known.get("dataset", {}).get("n_views") == views:
+        r4 = known
+    else:
+        r4 = eval_tree_file(EvalConfig(tree=path, data=data, downscale=downscale, limit=views,
+                                       out=work / f"{path.stem}_400", show_progress=False),
+                            log=quiet)
     r8 = eval_tree_file(EvalConfig(tree=path, data=data, downscale=1, limit=fps_views,
                                    out=work / f"{path.stem}_800", show_progress=False), log=quiet)
     return {"path": str(path), "psnr": r4["mean"]["psnr"], "ssim": r4["mean"]["ssim"],
@@ -213,13 +219,14 @@ def markdown_table(res: dict) -> str:
     views = res.get("views", "?")
     size = res.get("size", 400)
     lines = [f"| lego, {views} test views at {size}² | PSNR | SSIM | LPIPS | FPS 400² | FPS 800² "
-             "| leaves | MB | stage min | peak RSS MB | paper PSNR | paper SSIM | "
+             "| leaves | MB | stage min (wall / CPU) | peak RSS MB | paper PSNR | paper SSIM | "
              "paper FPS (800², V100) | paper MB |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for key, label in ROWS:
         r, p = res["rows"][key], PAPER[key]
+        cpu = "" if r.get("cpu_s") is None else f" / {r['cpu_s'] / 60:.1f}"
         stage = ("–" if r.get("stage_s") is None
-                 else f"{r['stage_s'] / 60:.1f} ({r['stage_src']})")
+                 else f"{r['stage_s'] / 60:.1f}{cpu} ({r['stage_src']})")
         lines.append(f"| {label} | {_fmt(r['psnr'], '.2f')} | {_fmt(r['ssim'], '.3f')} | "
                      f"{_fmt(r.get('lpips'), '.3f')} | "
                      f"{_fmt(r['fps_400'], '.3g')} | {_fmt(r['fps_800'], '.3g')} | "
@@ -281,6 +288,27 @@ def plot(res: dict, path: Path, variants: dict | None = None) -> None:
     plt.close(fig)
 
 
+def stage_rows(res: dict, fps_key: str = "fps_800") -> list[dict]:
+    """The rows as ``plenoctree plot`` reads them (``stage``, ``psnr``, ``fps``, ``mb``, with
+    leaves and SSIM): the JSON of ``docs/lego_stages.json``; FPS at 800² by default."""
+    out = []
+    for key, label in ROWS:
+        r = res["rows"].get(key, {})
+        if r.get("psnr") is None:
+            continue
+        row = {"stage": _SHORT[key], "psnr": round(r["psnr"], 3),
+               "fps": None if r.get(fps_key) is None else round(r[fps_key], 3),
+               "mb": None if r.get("mb") is None else round(r["mb"], 1)}
+        if r.get("ssim") is not None:
+            row["ssim"] = round(r["ssim"], 4)
+        if r.get("n_leaves") is not None:
+            row["leaves"] = r["n_leaves"]
+        if r.get("views") is not None:
+            row["views"] = r["views"]
+        out.append(row)
+    return out
+
+
 def table3_variants(path: Path) -> dict:
     """``{name: {"psnr", "fps"}}`` from ``extract_table3.json`` (raw trees, FPS at its
     ``fps_size``), or {} when the file is missing."""
@@ -293,28 +321,44 @@ def table3_variants(path: Path) -> dict:
 
 
 # --- driver -----------------------------------------------------------------------------
-def run_full(out: Path, data: Path, views: int, downscale: int = 2
-             ) -> tuple[Path, Path, Path, Path | None, dict]:
+def run_full(out: Path, data: Path, views: int, downscale: int = 2, nerf: str = "",
+             finetune_epochs: int = 0) -> tuple[Path, Path, Path, Path | None, dict]:
     """Run the whole chain on lego at 800/``downscale``² into ``out`` (resumable, with the
-    ``plenoctree run`` defaults); return the artefact paths and the pipeline's summary."""
+    ``plenoctree run`` defaults; ``nerf``: a trained NeRF-SH run to start from, as
+    ``plenoctree run --nerf``; ``finetune_epochs``: 0 = the run's default); return the
+    artefact paths and the pipeline's summary."""
     from plenoctree.pipeline import PipelineConfig, run_pipeline
 
-    summary = run_pipeline(PipelineConfig(data=str(data), out=str(out), downscale=downscale,
-                                          preset="cpu", eval_views=views, video_frames=0,
-                                          web=False))
+    cfg = PipelineConfig(data=str(data), out=str(out), downscale=downscale, preset="cpu",
+                         eval_views=views, video_frames=0, web=False, nerf=nerf)
+    if finetune_epochs:
+        cfg.finetune_epochs = finetune_epochs
+    summary = run_pipeline(cfg)
     # the layout documented by run_pipeline
     plnz = out / "tree_ft.plnz"
-    return (out / "nerf", out / "tree.npz", out / "tree_ft.npz",
+    return (Path(nerf) if nerf else out / "nerf", out / "tree.npz", out / "tree_ft.npz",
             plnz if plnz.is_file() else None, summary)
 
 
+def pipeline_evals(out: Path) -> dict:
+    """``{row key: eval.json}`` of the pipeline's own scoring in ``out`` (eval_raw, ...)."""
+    keys = {"raw": "raw", "refined": "refined", "ft": "ft", "compressed": "compressed"}
+    res = {}
+    for key, name in keys.items():
+        p = out / f"eval_{name}" / "eval.json"
+        if p.is_file():
+            res[key] = json.loads(p.read_text())
+    return res
+
+
 def pipeline_stage_figures(summary: dict) -> dict:
-    """``{row key: (seconds, peak RSS MB)}`` of the stage that made each row, from a pipeline
-    summary (``times_s`` / ``peak_rss_mb``)."""
+    """``{row key: (seconds, peak RSS MB, CPU seconds)}`` of the stage that made each row, from a
+    pipeline summary (``times_s`` / ``peak_rss_mb`` / ``cpu_s``)."""
     times, peaks = summary.get("times_s", {}), summary.get("peak_rss_mb", {})
+    cpu = summary.get("cpu_s", {})
     stage = {"nerf_sh": "train", "raw": "extract", "refined": "refine", "ft": "finetune",
              "compressed": "compress"}
-    return {k: (times.get(v), peaks.get(v)) for k, v in stage.items()}
+    return {k: (times.get(v), peaks.get(v), cpu.get(v)) for k, v in stage.items()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -324,12 +368,16 @@ def main(argv: list[str] | None = None) -> int:
     mode.add_argument("--full", action="store_true", help="run the pipeline from scratch")
     ap.add_argument("--out", default="runs/lego_paper_table", help="--full output folder")
     ap.add_argument("--data", default=str(LEGO))
-    ap.add_argument("--nerf-run", default=str(ROOT / "runs/lego_cpu"))
+    ap.add_argument("--nerf-run", default=None,
+                    help="trained NeRF-SH run (default runs/lego_cpu); with --full the chain "
+                         "starts from it instead of training (plenoctree run --nerf)")
     ap.add_argument("--tree", default=str(ROOT / "runs/lego_cpu_extract/tree.npz"))
     ap.add_argument("--tree-refined", default="", help="adaptively refined tree (optional)")
     ap.add_argument("--tree-ft", default=str(ROOT / "runs/lego_ft/tree_ft.npz"))
     ap.add_argument("--size", type=int, choices=(400, 800), default=400,
                     help="image size of training (--full) and scoring")
+    ap.add_argument("--finetune-epochs", type=int, default=0,
+                    help="--full: maximum fine-tuning epochs (0 = plenoctree run's default)")
     ap.add_argument("--plnz", default="", help="compressed ft tree (default: compress here)")
     ap.add_argument("--views", type=int, default=200, help="test views scored at 400²")
     ap.add_argument("--fps-views", type=int, default=3, help="views timed at 800²")
@@ -346,11 +394,17 @@ def main(argv: list[str] | None = None) -> int:
     down = 800 // a.size
     stage_figs: dict = {}
     if a.full:
-        nerf_run, tree, tree_ft, plnz, summary = run_full(Path(a.out), data, a.views, down)
+        nerf_run, tree, tree_ft, plnz, summary = run_full(Path(a.out), data, a.views, down,
+                                                          a.nerf_run or "", a.finetune_epochs)
         tree_ref = Path(a.out) / "tree_refined.npz"
         stage_figs = pipeline_stage_figures(summary)
+        known = pipeline_evals(Path(a.out))
+        print(f"pipeline done ({summary.get('total_s', 0):.0f} s of stages); measuring",
+              flush=True)
     else:
-        nerf_run, tree, tree_ft = Path(a.nerf_run), Path(a.tree), Path(a.tree_ft)
+        nerf_run = Path(a.nerf_run or ROOT / "runs/lego_cpu")
+        tree, tree_ft = Path(a.tree), Path(a.tree_ft)
+        known = {}
         tree_ref = Path(a.tree_refined) if a.tree_refined else None
         plnz = Path(a.plnz) if a.plnz else None
     read = read_stage_times(nerf_run, tree, tree_ft)
@@ -359,6 +413,8 @@ def main(argv: list[str] | None = None) -> int:
            "fps_views": a.fps_views, "machine": meta, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
            "read_from_artefacts": read,
            "inputs": {"nerf_run": str(nerf_run), "tree": str(tree), "tree_ft": str(tree_ft)},
+           "nerf_given": bool(a.full and a.nerf_run),
+           "finetune": summary.get("finetune") if a.full else None,
            "rows": {}}
     rows = res["rows"]
 
@@ -368,19 +424,22 @@ def main(argv: list[str] | None = None) -> int:
     print("paper-architecture NeRF-SH timing ...", flush=True)
     res["paper_nerf"] = measure_nerf_paper(data, a.paper_rows)
     print("raw tree ...", flush=True)
-    rows["raw"] = {**measure_tree(tree, data, a.views, a.fps_views, work, down),
+    rows["raw"] = {**measure_tree(tree, data, a.views, a.fps_views, work, down,
+                                  known.get("raw")),
                    "stage_s": read.get("extract_s"), "stage_src": "read: extraction"}
     if tree_ref is not None and tree_ref.is_file():
         print("refined tree ...", flush=True)
         rj = tree_ref.with_name(tree_ref.stem + ".refine.json")
         ref_s = json.loads(rj.read_text()).get("seconds") if rj.is_file() else None
-        rows["refined"] = {**measure_tree(tree_ref, data, a.views, a.fps_views, work, down),
+        rows["refined"] = {**measure_tree(tree_ref, data, a.views, a.fps_views, work, down,
+                                          known.get("refined")),
                            "stage_s": ref_s, "stage_src": "read: refinement"}
     else:
         rows["refined"] = {"psnr": None, "ssim": None, "fps_400": None, "fps_800": None,
                            "mb": None, "stage_s": None, "stage_src": "not run"}
     print("fine-tuned tree ...", flush=True)
-    rows["ft"] = {**measure_tree(tree_ft, data, a.views, a.fps_views, work, down),
+    rows["ft"] = {**measure_tree(tree_ft, data, a.views, a.fps_views, work, down,
+                                 known.get("ft")),
                   "stage_s": read.get("finetune_s"), "stage_src": "read: fine-tuning"}
 
     from plenoctree.compress import CompressOptions, compress, load_any_tree, save_compressed
@@ -397,7 +456,8 @@ def main(argv: list[str] | None = None) -> int:
         cj = plnz.parent / "compress.json"
         c_s = json.loads(cj.read_text()).get("compress_s") if cj.is_file() else None
         c_src = "read: compression" if c_s is not None else "given .plnz"
-    rows["compressed"] = {**measure_tree(plnz, data, a.views, a.fps_views, work, down),
+    rows["compressed"] = {**measure_tree(plnz, data, a.views, a.fps_views, work, down,
+                                         known.get("compressed")),
                           "stage_s": c_s, "stage_src": c_src}
     for deg in (2, 1):
         print(f"SH degree {deg} ...", flush=True)
@@ -408,11 +468,13 @@ def main(argv: list[str] | None = None) -> int:
                             "stage_s": time.perf_counter() - t0,
                             "stage_src": "measured: truncate+save"}
     del ft_tree
-    for key, (sec, peak) in stage_figs.items():      # --full: the pipeline's own figures
+    for key, (sec, peak, cpu) in stage_figs.items():   # --full: the pipeline's own figures
+        given = key == "nerf_sh" and res["nerf_given"]
         if key in rows and sec is not None:
-            rows[key]["stage_s"], rows[key]["stage_src"] = sec, "pipeline"
+            rows[key]["stage_s"] = sec
+            rows[key]["stage_src"] = "read: given run" if given else "pipeline"
         if key in rows:
-            rows[key]["peak_rss_mb"] = peak
+            rows[key]["peak_rss_mb"], rows[key]["cpu_s"] = peak, cpu
 
     ft, nerf, pn = rows["ft"], rows["nerf_sh"], res["paper_nerf"]
     res["speedup"] = {
@@ -438,13 +500,20 @@ def main(argv: list[str] | None = None) -> int:
 
     atomic_save_json(out / "paper_table.json", res)
     with atomic_write(out / "paper_table.md", "w") as f:
-        f.write(f"# lego 400², CPU ({meta['cpu_count']} cores, load {meta['loadavg']})\n\n")
+        given = (f", NeRF-SH given: {nerf_run} (shared NeRF-SH, not trained in this run)"
+                 if res["nerf_given"] else "")
+        f.write(f"# lego {a.size}², CPU ({meta['cpu_count']} cores, load {meta['loadavg']})"
+                f"{given}\n\n")
         f.write(md)
         f.write(f"\nStage times marked `read` come from the artefacts; the rest were measured "
                 f"in this run ({res['wall_s']:.0f} s). Raw / ft PSNR over all 200 views "
                 f"(read): {_fmt(read.get('raw_psnr_all_views'), '.2f')} / "
                 f"{_fmt(read.get('ft_psnr_all_views'), '.2f')} dB.\n")
     plot(res, out / "paper_table_psnr_fps.png", variants)
+    src = (f"python benchmarks/paper_table.py {' '.join(sys.argv[1:] if argv is None else argv)}"
+           f" (lego {a.size}², {a.views} test views; NeRF-SH: {res['rows']['nerf_sh'].get('views')}"
+           f" views; FPS at 800²; {meta['cpu_count']} CPU cores, load {meta['loadavg']})")
+    atomic_save_json(out / "paper_table_stages.json", {"source": src, "rows": stage_rows(res)})
     print(md)
     print(f"wrote {out / 'paper_table.json'}, paper_table.md, paper_table_psnr_fps.png "
           f"({res['wall_s']:.0f} s)")

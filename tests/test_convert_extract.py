@@ -230,6 +230,7 @@ def test_too_large_grid_is_a_clear_error(scene):
     (dict(masking="alpha"), "--masking"), (dict(bbox="tight"), "--bbox"),
     (dict(weight_thresh=0.0), "--weight-thresh"), (dict(precision="fp8"), "--precision"),
     (dict(radius=(1.0, 2.0)), "--radius"), (dict(center=(0.0, 0.0, 0.0)), "--radius"),
+    (dict(averaging="median"), "--averaging"),
 ])
 def test_bad_options(scene, kw, match):
     with pytest.raises(ConfigError, match=match):
@@ -242,3 +243,47 @@ def test_run_dir_without_checkpoint(tmp_path):
     (tmp_path / "checkpoint.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ConfigError, match="checkpoint"):
         extract(ExtractConfig(run_dir=str(tmp_path)))
+
+
+def test_opacity_average_keeps_the_mean_opacity_and_the_seen_colour():
+    from plenoctree.convert.sampling import average_samples
+
+    h = 0.1
+    rng = np.random.default_rng(0)
+    # a uniform voxel: both averages are the value itself
+    same = np.repeat(rng.normal(size=(1, 1, 4)).astype(np.float32), 8, axis=1)
+    same[..., -1] = 7.0
+    for avg in ("mean", "opacity"):
+        np.testing.assert_allclose(average_samples(same, h, avg), same[:, 0], rtol=1e-5)
+    # a surface cuts the voxel: half the samples dense (α ≈ 1), half empty
+    cut = np.zeros((1, 8, 4), np.float32)
+    cut[0, :4, -1], cut[0, :4, :3] = 500.0, 1.0      # dense half: coefficients 1
+    cut[0, 4:, :3] = -3.0                            # empty half: colour nobody sees
+    m, o = average_samples(cut, h, "mean")[0], average_samples(cut, h, "opacity")[0]
+    assert 1 - np.exp(-m[-1] * h) > 0.999                    # the mean makes it all surface
+    np.testing.assert_allclose(1 - np.exp(-o[-1] * h), 0.5, rtol=1e-4)   # mean opacity kept
+    np.testing.assert_allclose(o[:3], 1.0, rtol=1e-5)        # the colour of what is seen
+    np.testing.assert_allclose(m[:3], -1.0, rtol=1e-5)
+    # every sample empty: σ 0 and the plain mean of the coefficients; per-voxel sides
+    empty = rng.normal(size=(3, 5, 4)).astype(np.float32)
+    empty[..., -1] = 0.0
+    np.testing.assert_allclose(average_samples(empty, np.array([0.1, 0.2, 0.3]), "opacity"),
+                               empty.mean(axis=1), atol=1e-6)
+    # never above the mean σ; opaque to float precision stays finite
+    dense = np.full((1, 4, 4), 1e6, np.float32)
+    assert np.isfinite(average_samples(dense, h, "opacity")).all()
+    v = rng.exponential(50.0, size=(100, 8, 4)).astype(np.float32)
+    assert np.all(average_samples(v, h, "opacity")[:, -1] <= v[..., -1].mean(1) * (1 + 1e-6))
+    with pytest.raises(ConfigError, match="averaging"):
+        average_samples(v, h, "median")
+
+
+def test_opacity_averaging_renders_the_scene_better(scene, weight_run):
+    # the procedural scene's surfaces cut voxels: the opacity-preserving average does not grow
+    # them by a voxel (measured: 64³ 28.17 -> 28.49 dB, 32³ 23.52 -> 24.72 dB)
+    cfg = ExtractConfig(data=str(scene), grid=64, samples=4, bbox_grid=32, seed=1,
+                        averaging="opacity")
+    op = extract(cfg, field=AnalyticField())
+    assert op.tree.n_leaves == weight_run.tree.n_leaves      # the same voxels are kept
+    assert op.psnr > weight_run.psnr + 0.15, (op.psnr, weight_run.psnr)
+    assert json.loads(json.dumps(op.to_json()))["averaging"] == "opacity"

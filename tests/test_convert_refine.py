@@ -98,6 +98,23 @@ def test_depth_limit_and_bad_options(coarse):
         refine_tree(tree, f, max_fraction=0)
     with pytest.raises(ConfigError, match="passes"):
         refine_tree(tree, f, passes=-1)
+    from plenoctree.convert.refine import RefineConfig
+
+    with pytest.raises(ConfigError, match="--averaging"):
+        RefineConfig(averaging="median").validated()
+
+
+def test_opacity_average_of_new_leaves(coarse):
+    # the same samples (same seeds) valued with the opacity-preserving average: never denser
+    # than the mean, equal where the field is uniform, lower where a surface cuts the child
+    f, tree = coarse
+    tm, _ = refine_tree(tree, f, passes=1, threshold=0.02, averaging="mean")
+    to, _ = refine_tree(tree, f, passes=1, threshold=0.02, averaging="opacity")
+    to.check_integrity()
+    assert to.n_leaves == tm.n_leaves
+    sm, so = tm.leaf_data()[:, -1], to.leaf_data()[:, -1]
+    assert np.all(so <= sm * (1 + 1e-5) + 1e-6)
+    assert np.mean(np.isclose(so, sm, rtol=1e-4)) > 0.5 and np.any(so < 0.9 * sm)
 
 
 def test_refine_cli_on_a_run(tmp_path, capsys):

@@ -95,3 +95,20 @@ def test_read_stage_times(pt, tmp_path):
     assert got == {"train_s": 1800.5, "nerf_val_psnr": 34.3, "extract_s": 5.0,
                    "raw_psnr_all_views": 30.76, "finetune_s": 889.6,
                    "ft_psnr_all_views": 31.774}
+
+
+def test_stage_rows_are_what_plenoctree_plot_reads(pt, tmp_path):
+    import json
+
+    from plenoctree.plots import plot_stages
+
+    res = _fake(pt)
+    res["rows"]["refined"]["psnr"] = None             # a row not run is left out
+    rows = pt.stage_rows(res)
+    assert [r["stage"] for r in rows] == [pt._SHORT[k] for k, _ in pt.ROWS if k != "refined"]
+    ft = next(r for r in rows if r["stage"] == pt._SHORT["ft"])
+    i = [k for k, _ in pt.ROWS].index("ft")
+    assert ft["fps"] == 1.5 + i and ft["psnr"] == 30.0 + 0.25 * i
+    json.dumps(rows)
+    pytest.importorskip("matplotlib")
+    assert plot_stages(rows, tmp_path / "s.png") and (tmp_path / "s.png").stat().st_size > 0

@@ -70,6 +70,20 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path):
     s3 = run_pipeline(_tiny_cfg(scene, out, finetune_epochs=2), log=logs.append)
     assert "train" in s3["skipped"] and "extract" in s3["skipped"]
     assert "finetune" not in s3["skipped"] and "compress" not in s3["skipped"]
+    # every stage records its CPU seconds beside the wall time
+    assert s3["cpu_s"]["finetune"] > 0 and "| CPU (s) |" in (out / "summary.md").read_text()
+
+    # --nerf: a second chain from the trained NeRF-SH of the first, which is only read
+    ck = out / "nerf" / "checkpoint.pt"
+    before = ck.stat().st_mtime_ns
+    out2 = tmp_path / "from_nerf"
+    s4 = run_pipeline(_tiny_cfg(scene, out2, nerf=str(out / "nerf"), video_frames=0, web=False),
+                      log=logs.append)
+    assert not (out2 / "nerf").exists() and ck.stat().st_mtime_ns == before
+    assert "train" in s4["skipped"] and s4["rows"][0]["given"]
+    assert (out2 / "tree_ft.npz").exists() and "(given run)" in (out2 / "summary.md").read_text()
+    with pytest.raises(ConfigError, match="no checkpoint.pt"):
+        run_pipeline(_tiny_cfg(scene, tmp_path / "x", nerf=str(tmp_path)), log=logs.append)
 
 
 def test_bad_stage_options_fail_before_training(scene, tmp_path):

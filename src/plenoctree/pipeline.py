@@ -45,6 +45,9 @@ class PipelineConfig:
     """output folder: every artefact of the chain goes there"""
     format: str | None = None
     """dataset format (default: detected from the folder)"""
+    nerf: str = ""
+    """a trained NeRF-SH (run folder holding checkpoint.pt, or the checkpoint) to start from:
+    the train stage is skipped and the folder is only read"""
     downscale: int = 1
     """integer area downscale of the images for every stage (2 = lego at 400²)"""
     preset: str = "cpu"
@@ -154,6 +157,7 @@ class _Runner:
         self.stamps = out / ".stages"
         self.times: dict[str, float] = {}
         self.peaks: dict[str, float] = {}     # peak RSS (MB) of each stage
+        self.cpu: dict[str, float] = {}       # CPU seconds of each stage (all threads)
         self.skipped: list[str] = []
 
     def stage(self, name: str, settings: dict, inputs: list[Path], outputs: list[Path],
@@ -171,13 +175,15 @@ class _Runner:
             self.times[name] = float(old.get("seconds", 0.0))
             if old.get("peak_rss_mb") is not None:
                 self.peaks[name] = float(old["peak_rss_mb"])
+            if old.get("cpu_seconds") is not None:
+                self.cpu[name] = float(old["cpu_seconds"])
             self.skipped.append(name)
             return False
         self.log(f"[{name}] running")
         from .convert.memory import StageMonitor
 
         mon = StageMonitor()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), _cpu_seconds()
         try:
             with mon.stage(name):
                 fn()
@@ -190,11 +196,40 @@ class _Runner:
             raise
         seconds = time.perf_counter() - t0
         self.times[name] = seconds
+        self.cpu[name] = _cpu_seconds() - c0
         self.peaks[name] = float(mon.to_json()[name]["peak_rss_mb"])
         atomic_save_json(path, {"stamp": stamp, "seconds": seconds,
+                                "cpu_seconds": self.cpu[name],
                                 "peak_rss_mb": self.peaks[name]})
         self.log(f"[{name}] done in {seconds:.1f} s")
         return True
+
+    def given(self, name: str, seconds: float | None) -> None:
+        """Record a stage not run here (its artefact was given); ``seconds`` as reported."""
+        if seconds is not None:
+            self.times[name] = float(seconds)
+        self.skipped.append(name)
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds used so far by this process (all threads) and its waited-for children."""
+    import resource
+
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def _given_nerf(path: str) -> Path:
+    """The run folder of ``--nerf`` (a folder holding the checkpoint, or the checkpoint file)."""
+    from .nerf.checkpoint import CHECKPOINT_NAME
+
+    p = Path(path)
+    if p.is_file() and p.name == CHECKPOINT_NAME:
+        p = p.parent
+    if not (p / CHECKPOINT_NAME).is_file():
+        raise ConfigError(f"--nerf {path}: no {CHECKPOINT_NAME} there (give the run folder of a "
+                          "trained NeRF-SH, e.g. the OUT/nerf of an earlier run)")
+    return p
 
 
 def _read_json(path: Path) -> dict:
@@ -239,6 +274,8 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
         raise ConfigError(f"{data}: dataset folder does not exist")
     common = {"data": str(data.resolve()), "format": cfg.format, "downscale": cfg.downscale}
     run_dir, tree_raw, tree_ft = out / "nerf", out / "tree.npz", out / "tree_ft.npz"
+    if cfg.nerf:
+        run_dir = _given_nerf(cfg.nerf)
     tree_c = out / "tree_ft.plnz"
 
     # 1. NeRF-SH training (resumes from its checkpoint when a previous run was cut short).
@@ -276,7 +313,8 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
         tree_in = out / "tree_refined.npz"
         rcfg = RefineConfig(tree=str(tree_raw), run_dir=str(run_dir), out=str(tree_in),
                             passes=cfg.refine_passes, threshold=cfg.refine_threshold,
-                            data=str(data), seed=cfg.seed, show_progress=False)
+                            data=str(data), seed=cfg.seed, show_progress=False,
+                            averaging=ecfg.averaging)     # new leaves valued as extracted
         apply(rcfg, cfg.extra.get("refine", {}), where="--refine")
         rcfg.validated()
     fcfg = FinetuneConfig(tree=str(tree_in), data=str(data), out=str(tree_ft),
@@ -303,8 +341,12 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
             log(f"[train] resuming {run_dir}")
         train(tcfg, resume=resume)
 
-    r.stage("train", {**common, "train": _config_dict(tcfg)}, [], [run_dir / CHECKPOINT_NAME],
-            do_train, "check the dataset and training options")
+    if cfg.nerf:          # a trained NeRF-SH: its training time is read from its summary
+        log(f"[train] using the trained NeRF-SH {run_dir} (not trained here)")
+        r.given("train", _read_json(run_dir / "summary.json").get("train_time_s"))
+    else:
+        r.stage("train", {**common, "train": _config_dict(tcfg)}, [],
+                [run_dir / CHECKPOINT_NAME], do_train, "check the dataset and training options")
 
     # 2. NeRF-SH baseline on a few test views: PSNR and seconds per frame.
     nerf_json = out / "nerf_eval.json"
@@ -460,8 +502,9 @@ def _summary(cfg: PipelineConfig, out: Path, r: _Runner, evals: dict, nerf: dict
     nerf_fps = nerf_mean.get("fps")
     rows.append({"stage": "NeRF-SH", "psnr": nerf_mean.get("psnr"), "ssim": nerf_mean.get("ssim"),
                  "fps": nerf_fps, "mb": nerf.get("model_mb"),
-                 "seconds": r.times.get("train"), "views": nerf.get("n_views"),
-                 "peak_rss_mb": r.peaks.get("train")})
+                 "seconds": r.times.get("train"), "cpu_seconds": r.cpu.get("train"),
+                 "views": nerf.get("n_views"), "peak_rss_mb": r.peaks.get("train"),
+                 "given": bool(cfg.nerf)})
     names = {"raw": "PlenOctree", "refined": "PlenOctree refined",
              "ft": "PlenOctree fine-tuned", "compressed": "compressed"}
     stage_time = {"raw": "extract", "refined": "refine", "ft": "finetune",
@@ -473,11 +516,13 @@ def _summary(cfg: PipelineConfig, out: Path, r: _Runner, evals: dict, nerf: dict
                      "leaves": tree.get("n_leaves"),
                      "peak_rss_mb": r.peaks.get(stage_time[key]),
                      "seconds": r.times.get(stage_time[key]),
+                     "cpu_seconds": r.cpu.get(stage_time[key]),
                      "views": ev.get("dataset", {}).get("n_views")})
     ft_fps = evals.get("ft", {}).get("mean", {}).get("fps")
     speedup = (ft_fps / nerf_fps) if (ft_fps and nerf_fps) else None
     return {"config": _config_dict(cfg), "rows": rows, "times_s": r.times,
             "skipped": r.skipped, "speedup_over_nerf": speedup, "peak_rss_mb": r.peaks,
+            "cpu_s": r.cpu,
             "total_s": sum(v for v in r.times.values() if v),
             "finetune": _finetune_note(evals, ft or {}),
             "web": str(out / "web") if cfg.web else None,
@@ -511,14 +556,16 @@ def summary_markdown(summary: dict) -> str:
     def f(v, fmt):
         return format(v, fmt) if isinstance(v, (int, float)) else "–"
 
-    lines = ["| stage | test views | PSNR (dB) | SSIM | FPS | leaves | MB | time (s) | "
+    lines = ["| stage | test views | PSNR (dB) | SSIM | FPS | leaves | MB | wall (s) | CPU (s) | "
              "peak RSS (MB) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for row in summary["rows"]:
+        wall = f(row['seconds'], '.0f') + (" (given run)" if row.get("given") else "")
         lines.append(f"| {row['stage']} | {f(row['views'], 'd')} | {f(row['psnr'], '.2f')} | "
                      f"{f(row['ssim'], '.4f')} | {f(row['fps'], '.3g')} | "
                      f"{f(row.get('leaves'), ',d')} | {f(row['mb'], '.1f')} "
-                     f"| {f(row['seconds'], '.0f')} | {f(row.get('peak_rss_mb'), '.0f')} |")
+                     f"| {wall} | {f(row.get('cpu_seconds'), '.0f')} "
+                     f"| {f(row.get('peak_rss_mb'), '.0f')} |")
     ft = summary.get("finetune") or {}
     if ft:
         lines.append("")

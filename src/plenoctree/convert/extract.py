@@ -57,6 +57,9 @@ class ExtractConfig:
     """Cells per axis of the extraction grid, a power of two (paper: 512; CPU default 256)."""
     samples: int = 8
     """Random samples averaged per kept voxel (paper: 256)."""
+    averaging: str = "mean"
+    """Voxel value from its samples: mean (of σ and coefficients, the paper's) or opacity (σ
+    keeping the samples' mean opacity over the voxel side, opacity-weighted colour)."""
     masking: str = "weight"
     """Voxel filter: "weight" (max ray weight over the training views, the paper's) or "sigma"
     (alpha threshold; keeps hidden matter too)."""
@@ -184,6 +187,11 @@ def _validate(cfg: ExtractConfig) -> None:
                     ("--chunk", cfg.chunk)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             raise ConfigError(f"{name} must be a positive integer, got {v!r}")
+    from .sampling import AVERAGING
+
+    if cfg.averaging not in AVERAGING:
+        raise ConfigError(f"--averaging must be one of {', '.join(AVERAGING)}, got "
+                          f"{cfg.averaging!r}")
     if cfg.masking not in ("weight", "sigma"):
         raise ConfigError(f"--masking must be weight or sigma, got {cfg.masking!r}")
     if cfg.bbox not in ("auto", "fixed"):
@@ -375,7 +383,8 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
     with mon.stage("sample"):
         st = SamplingStats()
         values = sample_cells(field, spec, np.flatnonzero(mask), cfg.samples, cfg.chunk, cfg.seed,
-                              cfg.projection_degree, cfg.projection_dirs, cfg.show_progress, st)
+                              cfg.projection_degree, cfg.projection_dirs, cfg.show_progress, st,
+                              cfg.averaging)
 
     with mon.stage("build"):
         tree = Octree.from_grid(values, mask, spec.center, spec.radius, fmt, extra_data)
@@ -400,7 +409,8 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
                         nerf_psnr=nerf_psnr,
                         extra={"sampled_points": st.points, "nonfinite_values": st.nonfinite,
                                "sigma_clamped_fp16": n_clamped,
-                               "samples": cfg.samples, "masking": cfg.masking,
+                               "samples": cfg.samples, "averaging": cfg.averaging,
+                               "masking": cfg.masking,
                                "device": cfg.device,
                                "weight_thresh": cfg.weight_thresh, "precision": cfg.precision,
                                **vis_info,

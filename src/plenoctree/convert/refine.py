@@ -37,6 +37,7 @@ import numpy as np
 from .._util import atomic_save_json, progress
 from ..errors import ConfigError
 from ..sh import SH_C0
+from .sampling import AVERAGING, average_samples
 
 from ..octree.limits import MAX_DEPTH
 
@@ -55,10 +56,11 @@ def _base_colour(coeffs: np.ndarray, data_format: str, basis_dim: int) -> np.nda
 
 
 def _box_stats(field_: Any, lo: np.ndarray, size: np.ndarray, samples: int,
-               rng: np.random.Generator, fmt: str, basis_dim: int, dim: int
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """Mean field value ``[M, D]`` (σ ≥ 0 last) and spread ``[M]`` of ``samples`` uniform
-    random points in each world box ``lo [M, 3] + [0, size [M, 3]]``."""
+               rng: np.random.Generator, fmt: str, basis_dim: int, dim: int,
+               averaging: str = "mean") -> tuple[np.ndarray, np.ndarray]:
+    """Average field value ``[M, D]`` (σ ≥ 0 last; ``averaging`` as in
+    :func:`~plenoctree.convert.sampling.average_samples`) and spread ``[M]`` of ``samples``
+    uniform random points in each world box ``lo [M, 3] + [0, size [M, 3]]``."""
     m = lo.shape[0]
     pts = (lo[:, None, :] + rng.random((m, samples, 3)) * size[:, None, :]).astype(np.float32)
     sigma, coeffs = field_.query(pts.reshape(-1, 3))
@@ -70,7 +72,7 @@ def _box_stats(field_: Any, lo: np.ndarray, size: np.ndarray, samples: int,
     vals[~np.isfinite(vals)] = 0.0
     vals = vals.reshape(m, samples, dim)
     np.maximum(vals[..., -1], 0.0, out=vals[..., -1])
-    mean = vals.mean(axis=1)
+    mean = average_samples(vals, size.mean(axis=1), averaging)
     return mean, _spread(vals, mean, size.mean(axis=1), fmt, basis_dim)
 
 
@@ -170,10 +172,11 @@ def compact_tree(tree: Any) -> Any:
 
 
 def subdivide_leaves(tree: Any, leaves: np.ndarray, field_: Any, samples: int = 8,
-                     seed: int = 0, chunk: int = 1 << 17, show_progress: bool | None = False
-                     ) -> tuple[Any, np.ndarray]:
+                     seed: int = 0, chunk: int = 1 << 17, show_progress: bool | None = False,
+                     averaging: str = "mean") -> tuple[Any, np.ndarray]:
     """Split leaves ``leaves`` (indices in ``leaf_indices`` order) into 8 children each, valued
-    by the mean of ``samples`` field samples in each child's box.
+    by the average (``averaging``: "mean" or "opacity", as extraction's) of ``samples`` field
+    samples in each child's box.
 
     Returns ``(new tree, spread [8 M] of the new children)``; the tree is renumbered
     breadth-first and its ``depth_limit`` raised to its new depth when needed.
@@ -196,7 +199,8 @@ def subdivide_leaves(tree: Any, leaves: np.ndarray, field_: Any, samples: int = 
                   disable=None if show_progress is None else not show_progress) as bar:
         for s, e in _blocks(8 * m, samples, chunk):
             vals[s:e], spread[s:e] = _box_stats(field_, clo[s:e], chalf[s:e], samples, rng,
-                                                tree.data_format, tree.basis_dim, dim)
+                                                tree.data_format, tree.basis_dim, dim,
+                                                averaging)
             bar.update(e - s)
     n = tree.n_nodes
     child = np.concatenate([tree.child, np.zeros((m, 2, 2, 2), np.int32)])
@@ -276,7 +280,8 @@ def merge_leaves(tree: Any, tol: float) -> tuple[Any, int]:
 def refine_tree(tree: Any, field_: Any, *, passes: int = 1, threshold: float = 0.02,
                 max_fraction: float = 0.5, max_depth: int | None = None, samples: int = 8,
                 merge_tol: float = 0.0, seed: int = 0, chunk: int = 1 << 17,
-                show_progress: bool | None = False, log=lambda s: None) -> tuple[Any, list]:
+                show_progress: bool | None = False, log=lambda s: None,
+                averaging: str = "mean") -> tuple[Any, list]:
     """Subdivide where one value per leaf cannot represent ``field_`` and (``merge_tol > 0``)
     merge where eight siblings agree; see the module docstring.
 
@@ -290,6 +295,8 @@ def refine_tree(tree: Any, field_: Any, *, passes: int = 1, threshold: float = 0
             ``MAX_DEPTH``).
         samples: field samples per scored / new leaf.
         merge_tol: merge siblings that agree within this (0 = no merging).
+        averaging: value of a new leaf from its samples: "mean" or "opacity" (use the one the
+            tree was extracted with).
 
     Returns:
         ``(new tree, per-pass records)`` with leaves, nodes, subdivided / merged counts.
@@ -325,7 +332,7 @@ def refine_tree(tree: Any, field_: Any, *, passes: int = 1, threshold: float = 0
             break
         worst = cand[np.argsort(-scores, kind="stable")[:k]]
         tree, child_spread = subdivide_leaves(tree, worst, field_, samples, seed + 100 + p,
-                                              chunk, show_progress)
+                                              chunk, show_progress, averaging)
         rec = {"pass": p + 1, "scored": int(cand.size), "subdivided": k,
                "leaves": int(tree.n_leaves), "nodes": int(tree.n_nodes),
                "max_depth": int(tree.max_depth),
@@ -373,6 +380,9 @@ class RefineConfig:
     """Field samples per scored and per new leaf."""
     merge_tol: float = 0.0
     """Merge eight sibling leaves that agree within this (pixel units; 0 = no merging)."""
+    averaging: str = "mean"
+    """Value of a new leaf from its samples: mean (of σ and coefficients) or opacity (σ keeping
+    the samples' mean opacity, opacity-weighted colour; use the extraction's)."""
     precision: str = "auto"
     """Saved precision: fp16, fp32 or auto (that of the input file)."""
     data: str = ""
@@ -405,6 +415,9 @@ class RefineConfig:
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"refine: --{name.replace('_', '-')} must be >= 0, got {v}")
+        if self.averaging not in AVERAGING:
+            raise ConfigError(f"refine: --averaging must be one of {', '.join(AVERAGING)}, got "
+                              f"{self.averaging!r}")
         if self.precision not in ("auto", "fp16", "fp32"):
             raise ConfigError(f"refine: --precision must be auto, fp16 or fp32, got "
                               f"{self.precision!r}")
@@ -479,7 +492,8 @@ def refine(cfg: RefineConfig, log=print) -> RefineResult:
                             max_fraction=float(cfg.max_fraction),
                             max_depth=int(cfg.max_depth) or None, samples=int(cfg.samples),
                             merge_tol=float(cfg.merge_tol), seed=int(cfg.seed),
-                            chunk=int(cfg.chunk), show_progress=cfg.show_progress, log=log)
+                            chunk=int(cfg.chunk), show_progress=cfg.show_progress, log=log,
+                            averaging=cfg.averaging)
     new.check_integrity("refined tree")
     after = _eval_psnr(new, root, down, bg, cfg.eval_views) if cfg.eval_views else None
     if after is not None:

@@ -1,8 +1,18 @@
 """Per-voxel averaging (paper §4.2, *Sampling*): the value each leaf stores.
 
 For every kept cell, ``S`` points are drawn uniformly inside it, the field is evaluated there
-and the leaf gets the plain mean of the samples' ``(raw coefficients, σ)`` — a box filter over
+and the leaf gets an average of the samples' ``(raw coefficients, σ)`` — a box filter over
 the voxel that reduces aliasing (paper: S = 256; original default 8). σ is clamped at 0.
+:func:`average_samples` offers two averages:
+
+- ``"mean"`` (the paper's): the plain mean of σ and of the coefficients. Where a surface cuts
+  the voxel, half-dense samples give a mean σ that is still opaque over the voxel's side, so
+  the whole voxel renders as surface (surfaces grow by up to a voxel);
+- ``"opacity"``: σ such that the voxel's opacity over its side ``h`` is the mean of the
+  samples' opacities, ``σ = -ln(1 - mean_s(1 - exp(-σ_s h))) / h`` (≤ the mean σ, equal where
+  the field is uniform), and the coefficients averaged with the samples' opacities as weights
+  (the colour of what a ray sees in the voxel, not of the empty samples; the plain mean where
+  every sample is empty).
 
 For a plain NeRF each sample point's colour is first projected onto SH
 (:mod:`plenoctree.convert.projection`), then averaged the same way.
@@ -25,7 +35,10 @@ from ..sh import num_sh_bases
 from .grid import GridSpec, cell_points
 from .projection import project_sh
 
-__all__ = ["SamplingStats", "sample_cells", "output_format"]
+__all__ = ["SamplingStats", "sample_cells", "output_format", "average_samples", "AVERAGING"]
+
+AVERAGING = ("mean", "opacity")
+"""The per-voxel averages of :func:`average_samples`."""
 
 
 @dataclass
@@ -46,10 +59,45 @@ def output_format(field: Any, projection_degree: int) -> tuple[str, np.ndarray |
     return fmt, extra, expected_data_dim(fmt)
 
 
+def average_samples(vals: np.ndarray, h: np.ndarray | float, averaging: str = "mean"
+                    ) -> np.ndarray:
+    """One value per voxel from its samples (see the module docstring).
+
+    Args:
+        vals: float32 ``[M, S, D]`` samples: coefficients, then σ ≥ 0 (1 / world length).
+        h: the voxel side (world units), a scalar or ``[M]``; only ``"opacity"`` uses it.
+        averaging: ``"mean"`` or ``"opacity"``.
+
+    Returns:
+        float32 ``[M, D]``, σ ≥ 0 last.
+    """
+    if averaging == "mean":
+        out = vals.mean(axis=1)
+    elif averaging == "opacity":
+        h = np.broadcast_to(np.asarray(h, np.float64), (vals.shape[0],))[:, None]
+        sig = np.maximum(vals[..., -1].astype(np.float64), 0.0)
+        alpha = -np.expm1(-sig * h)                              # [M, S]
+        a_mean = alpha.mean(axis=1)
+        out = np.empty((vals.shape[0], vals.shape[2]), np.float32)
+        # -log1p(-a) / h, with a = 1 (every sample opaque to float precision) kept finite:
+        # σ then stays the largest sample's (the voxel is opaque either way)
+        with np.errstate(divide="ignore"):
+            s_op = -np.log1p(-np.minimum(a_mean, 1.0)) / h[:, 0]
+        out[:, -1] = np.where(np.isfinite(s_op), np.minimum(s_op, sig.mean(axis=1)),
+                              sig.max(axis=1))
+        w = alpha.sum(axis=1, keepdims=True)
+        wn = np.where(w > 0, alpha / np.where(w > 0, w, 1.0), 1.0 / vals.shape[1])
+        out[:, :-1] = np.einsum("ms,msd->md", wn, vals[..., :-1].astype(np.float64))
+    else:
+        raise ConfigError(f"averaging must be one of {', '.join(AVERAGING)}, got {averaging!r}")
+    np.maximum(out[:, -1], 0.0, out=out[:, -1])
+    return out.astype(np.float32, copy=False)
+
+
 def sample_cells(field: Any, spec: GridSpec, flat: np.ndarray, samples: int = 8,
                  chunk: int = 1 << 16, seed: int = 0, projection_degree: int = 3,
                  projection_dirs: int = 10000, show_progress: bool | None = None,
-                 stats: SamplingStats | None = None) -> np.ndarray:
+                 stats: SamplingStats | None = None, averaging: str = "mean") -> np.ndarray:
     """Mean of ``samples`` random samples of the field in each cell ``flat [M]``.
 
     Args:
@@ -60,6 +108,8 @@ def sample_cells(field: Any, spec: GridSpec, flat: np.ndarray, samples: int = 8,
         chunk: points per field call (for projection: point-direction pairs per call).
         seed: random seed (points and projection directions).
         stats: optional counters to fill.
+        averaging: ``"mean"`` or ``"opacity"`` (:func:`average_samples`; the voxel side is the
+            mean of the cell's three sides).
 
     Returns:
         float32 ``[M, D]``: the coefficients then σ ≥ 0 (the octree leaf layout).
@@ -68,6 +118,9 @@ def sample_cells(field: Any, spec: GridSpec, flat: np.ndarray, samples: int = 8,
         raise ConfigError(f"samples per cell must be a positive integer, got {samples!r}")
     if chunk < 1:
         raise ConfigError(f"chunk must be >= 1, got {chunk}")
+    if averaging not in AVERAGING:
+        raise ConfigError(f"averaging must be one of {', '.join(AVERAGING)}, got {averaging!r}")
+    h = float(np.mean(2.0 * spec.radius / spec.res))
     _, _, dim = output_format(field, projection_degree)
     plain = field.basis == "plain"
     flat = np.asarray(flat, dtype=np.int64)
@@ -99,8 +152,7 @@ def sample_cells(field: Any, spec: GridSpec, flat: np.ndarray, samples: int = 8,
                 st.nonfinite += int(bad.sum())
                 vals[bad] = 0.0
             st.points += len(pts)
-            mean = vals.reshape(len(block), samples, dim).mean(axis=1)
-            np.maximum(mean[:, -1], 0.0, out=mean[:, -1])
-            out[s:s + len(block)] = mean
+            out[s:s + len(block)] = average_samples(vals.reshape(len(block), samples, dim), h,
+                                                    averaging)
             bar.update(len(block))
     return out
