@@ -36,10 +36,9 @@ lazy Adam or lazy RMSprop), projects σ onto σ ≥ 0 and re-zeroes the slabs, f
 No work is proportional to the tree size: one step costs O(touched cells).
 
 Arrays: ``child`` int32 ``[n_cells]`` (flat ``[n_nodes * 8]``), ``data`` float ``[n_cells, D]``
-(float32 for training; float64 works too, for ``gradcheck``), ``sig`` ``[n_cells]`` a copy of
-``data[:, -1]`` (the marching loop reads σ of every leaf it crosses; the compact copy — 4 bytes
-per cell next to ``child`` — stays in cache where the ``D``-wide rows do not; the step kernels
-keep it in sync), ``grad3`` same dtype
+(float32 for training; float64 works too, for ``gradcheck``; the march reads σ from the rows
+its look-ahead prefetched), ``sig`` ``[n_cells]`` the step kernels' copy of ``data[:, -1]``
+(kept in sync for their callers), ``grad3`` same dtype
 ``[n_chunks, n_cells, D]``, ``flags`` uint8 ``[n_chunks, n_cells]``, ``touched`` int64
 ``[n_chunks, n_cells]``, ``n_touched`` int64 ``[n_chunks]``. Geometry is computed in float64,
 as in the renderer.
@@ -54,7 +53,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..render._march_numba import (MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, basis_values,
-                                   leaf_logits, look_ahead, prefetch_row, ray_start)
+                                   leaf_logits, look_ahead, ray_start)
 from ..render.options import KIND_RGBA
 
 __all__ = ["TILE", "grad_kernel", "merge_chunks", "step_touched", "OPT_SGD", "OPT_ADAM",
@@ -72,9 +71,8 @@ def initial_capacity(depth_limit: int) -> int:
 
 
 @njit(cache=True, fastmath=True, inline="always")
-def _trace_one(child, sig, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg, b_lo, b_hi,
-               stop, eps, max_level, basis, st, stack, qc, qe, rec_cell, rec, out4, grad,
-               pf_grad):
+def _trace_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg, b_lo, b_hi,
+               stop, eps, max_level, basis, st, stack, qc, qe, rec_cell, rec, out4):
     """March one ray (the renderer's traversal, :mod:`plenoctree.render._march_numba`, with
     its look-ahead) and record its σ > 0 segments.
 
@@ -82,8 +80,7 @@ def _trace_one(child, sig, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b
     outside ``[b_lo, b_hi]``), ``rec_cell[s]`` and ``rec[s] = (δ, exp(-σδ), c_r, c_g, c_b)``.
     Returns the number of recorded segments, or ``-1`` when the record is full (the caller
     grows it and traces again). Colour dot products run in the dtype of ``data`` (float32 in
-    training, as in the renderer; float64 for gradcheck). ``pf_grad``: prefetch the ``grad``
-    row of every recorded cell (the backward pass scatters into it next).
+    training, as in the renderer; float64 for gradcheck).
     """
     out4[0] = 0.0
     out4[1] = 0.0
@@ -94,7 +91,7 @@ def _trace_one(child, sig, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b
     if not t0 < t1:
         return 0
     basis_values(kind, n_b, dx, dy, dz, sg, b_lo, b_hi, basis)
-
+    dim = data.shape[1]
     cap = rec_cell.shape[0]
     n_seg = 0
     trans = 1.0
@@ -115,12 +112,10 @@ def _trace_one(child, sig, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b
         cell = qc[head & _QMASK]
         t_end = qe[head & _QMASK]
         head += 1
-        sigma = sig[cell]
+        sigma = data[cell, dim - 1]         # the row look_ahead prefetched
         if sigma > 0.0:
             if n_seg == cap:
                 return -1
-            if pf_grad:
-                prefetch_row(grad, cell)
             delta = t_end - t
             att = math.exp(-sigma * delta)
             w = trans * (1.0 - att)
@@ -196,7 +191,7 @@ def _backprop_one(n_seg, rec_cell, rec, kind, n_b, b_lo, b_hi, basis, cr, cg, cb
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def grad_kernel(child, sig, data, offset, invr, origins, dirs, aux, mode, scale, kind, n_b, sg, b_lo,
+def grad_kernel(child, data, offset, invr, origins, dirs, aux, mode, scale, kind, n_b, sg, b_lo,
                 b_hi, bg, stop, eps, cap0, rgb_out, grad3, flags, touched, n_touched, sse):
     """Forward + analytic backward for ``[N, 3]`` rays, accumulating into per-chunk slabs.
 
@@ -240,12 +235,12 @@ def grad_kernel(child, sig, data, offset, invr, origins, dirs, aux, mode, scale,
         for i in range(tile * TILE, min(n, (tile + 1) * TILE)):
             while True:
                 # float64 scalars: the direction is normalised in float64 (as the twin)
-                n_seg = _trace_one(child, sig, data, offset, invr, np.float64(origins[i, 0]),
+                n_seg = _trace_one(child, data, offset, invr, np.float64(origins[i, 0]),
                                    np.float64(origins[i, 1]), np.float64(origins[i, 2]),
                                    np.float64(dirs[i, 0]), np.float64(dirs[i, 1]),
                                    np.float64(dirs[i, 2]), kind, n_b, sg, b_lo, b_hi, stop,
                                    eps, MAX_LEVEL, basis, st, stack, qc, qe, rec_cell, rec,
-                                   out4, grad, mode != 2)
+                                   out4)
                 if n_seg >= 0:
                     break
                 grow = 2 * rec_cell.shape[0]          # rare: a private, larger record
