@@ -34,10 +34,13 @@ def _run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out {out} would overwrite the input")
     tree = load_any_tree(src)
     if fmt == "svox":
-        from ..octree.io import export_svox
+        from ..export import export_svox_file
 
-        export_svox(tree, out)
+        side = export_svox_file(tree, out)
         what = f"svox tree, {tree.n_leaves} leaves (float16)"
+        if tree.ndc is not None:
+            what += (f"; NDC tree: ndc_config in the file" +
+                     (f", volrend's {side.name} beside it" if side else ""))
     elif fmt == "ply":
         from ..export import export_point_cloud
 
@@ -52,6 +55,8 @@ def _run(args: argparse.Namespace) -> int:
                            show_progress=not args.quiet)
         what = (f"mesh, {len(mesh.vertices)} vertices, {len(mesh.faces)} faces "
                 f"(sigma level {mesh.level:.4g})")
+    if fmt != "svox" and tree.ndc is not None:
+        what += "; NDC tree, written in world coordinates"
     print(f"{src} -> {out}: {what}, {out.stat().st_size / 1e6:.2f} MB")
     return 0
 
@@ -84,8 +89,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "cell is half opaque, -ln(0.5)/cell)")
     p.add_argument("--smooth", type=float, default=0.0,
                    help="mesh: Gaussian blur of the density grid, in cells (default 0)")
-    p.add_argument("--up", default="+z", choices=["+z", "-z", "+y", "-y", "+x", "-x"],
+    p.add_argument("--up", default=None, choices=["+z", "-z", "+y", "-y", "+x", "-x"],
                    help="mesh .glb: the scene's up axis, turned onto glTF's +Y (default +z, "
-                   "Blender scenes)")
+                   "Blender scenes; +y for forward-facing NDC trees)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=_run)

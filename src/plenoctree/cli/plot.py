@@ -25,12 +25,14 @@ def _run(args: argparse.Namespace) -> int:
             obj = json.loads(src.read_text())
         except (OSError, UnicodeDecodeError, ValueError) as e:
             raise ConfigError(f"{src}: not a JSON file ({e})") from None
-        rows = obj.get("rows") if isinstance(obj, dict) else obj
-        if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
-            raise ConfigError(f"{src}: expected a run's summary.json (or a list of rows with "
-                              "stage, psnr, fps, mb)")
+        from ..plots import stage_rows
+
+        try:
+            rows, title = stage_rows(obj)
+        except ValueError as e:
+            raise ConfigError(f"{src}: {e}") from None
         out = Path(args.out) if args.out else src.with_name("stages.png")
-        ok = plot_stages(rows, out, title=args.title)
+        ok = plot_stages(rows, out, title=args.title or title)
         what = "stage plot"
     if not ok:
         raise ConfigError(f"{src}: nothing to plot (no values), or matplotlib is missing "
@@ -43,10 +45,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``plot`` command."""
     p = sub.add_parser("plot", help="plot a run's stages (PSNR vs FPS and MB) or a fine-tuning "
                        "log's PSNR curve",
-                       description="FILE: a run's summary.json (or a JSON list of rows with "
-                       "stage, psnr, fps, mb) -> stage plot; a fine-tuning <tree>.log.jsonl -> "
-                       "train/validation PSNR per epoch. Needs matplotlib (the plot extra).")
-    p.add_argument("file", help="summary.json or <tree>.log.jsonl")
+                       description="FILE: a run's summary.json, benchmarks/paper_table.py's "
+                       "paper_table.json (or a JSON list of rows with stage, psnr, fps, mb) -> "
+                       "stage plot; a fine-tuning <tree>.log.jsonl -> train/validation PSNR "
+                       "per epoch. Needs matplotlib (the plot extra).")
+    p.add_argument("file", help="summary.json, paper_table.json or <tree>.log.jsonl")
     p.add_argument("--out", default=None,
                    help="PNG (default: stages.png beside the summary, <tree>.curve.png)")
     p.add_argument("--title", default=None, help="plot title")

@@ -101,7 +101,7 @@ def _run_camera_path(args: argparse.Namespace) -> int:
     options = render_options_from_args(args, (1.0, 1.0, 1.0))
     out = Path(args.out) if args.out else Path(args.tree).parent / (
         Path(args.tree).stem + f"_render_{Path(args.camera_path).stem}")
-    cams = cp.cameras
+    cams = cp.cameras if tree.ndc is None else tree.ndc.apply(cp.cameras)   # NDC tree: NDC rays
     if args.limit is not None:
         cams = cams.select(np.arange(min(args.limit, len(cams))))
     paths = render_path_images(tree, cams, out, options, args.backend)

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -101,6 +102,7 @@ class CompressedTree:
         quant_map: uint16 ``[B - retain, n, 2, 2, 2]``.
         data_retained: float16 ``[retain, n, 2, 2, 2, 3]``.
         options: the :class:`CompressOptions` used (``bits`` = log2 of the codebook size).
+        ndc: the tree's :class:`~plenoctree.octree.ndc.NDCSpace` (forward-facing) or None.
     """
 
     child: np.ndarray
@@ -114,6 +116,7 @@ class CompressedTree:
     quant_map: np.ndarray
     data_retained: np.ndarray
     options: CompressOptions = field(default_factory=CompressOptions)
+    ndc: Any = None
 
     @property
     def n_nodes(self) -> int:
@@ -255,7 +258,7 @@ def compress(tree: Octree, options: CompressOptions | None = None) -> Compressed
                           invradius=tree.invradius.copy(), data_format=tree.data_format,
                           extra_data=extra, depth_limit=int(tree.depth_limit), sigma=sigma16,
                           quant_colors=quant_colors, quant_map=quant_map,
-                          data_retained=retained, options=opts)
+                          data_retained=retained, options=opts, ndc=tree.ndc)
 
 
 def decompress(ctree: CompressedTree, name: str = "compressed tree") -> Octree:
@@ -289,6 +292,6 @@ def decompress(ctree: CompressedTree, name: str = "compressed tree") -> Octree:
     tree = Octree(child=ctree.child.copy(), data=data, offset=ctree.offset.copy(),
                   invradius=ctree.invradius.copy(), data_format=ctree.data_format,
                   extra_data=None if ctree.extra_data is None else ctree.extra_data.copy(),
-                  depth_limit=int(ctree.depth_limit))
+                  depth_limit=int(ctree.depth_limit), ndc=ctree.ndc)
     tree.check_integrity(name)
     return tree

@@ -91,7 +91,8 @@ def truncate_sh(tree: Octree, degree: int) -> Octree:
                            tree.data[..., -1:]], axis=-1)
     return Octree(child=tree.child.copy(), data=np.ascontiguousarray(data),
                   offset=tree.offset.copy(), invradius=tree.invradius.copy(),
-                  data_format=f"SH{b_new}", extra_data=None, depth_limit=tree.depth_limit)
+                  data_format=f"SH{b_new}", extra_data=None, depth_limit=tree.depth_limit,
+                  ndc=tree.ndc)
 
 
 def _parents(child: np.ndarray) -> np.ndarray:
@@ -168,7 +169,7 @@ def _collapse(tree: Octree, select: Callable[[np.ndarray, np.ndarray, int], np.n
     out = Octree(child=new_child, data=new_data, offset=tree.offset.copy(),
                  invradius=tree.invradius.copy(), data_format=tree.data_format,
                  extra_data=None if tree.extra_data is None else tree.extra_data.copy(),
-                 depth_limit=-1)
+                 depth_limit=-1, ndc=tree.ndc)
     out.depth_limit = max(out.max_depth, 0)
     return out
 
