@@ -129,14 +129,17 @@ def measure_tree(path: Path, data: Path, views: int, fps_views: int, work: Path,
             "measure_s": time.perf_counter() - t0}
 
 
-def measure_nerf_cpu(run: Path, views: int, work: Path, downscale: int = 2) -> dict:
+def measure_nerf_cpu(run: Path, views: int, work: Path, downscale: int = 2,
+                     data: Path | None = None) -> dict:
     """Our CPU-preset NeRF-SH: PSNR/SSIM and s/frame on ``views`` evenly spaced test views at
-    400², and s/frame of one full 800² frame."""
+    400², and s/frame of one full 800² frame. ``data``: the dataset (default: the run's own
+    record, which may be relative to where it was trained)."""
     from plenoctree.nerf.evaluate import render_nerf_views
 
-    r4 = render_nerf_views(run, "test", views=views, downscale=downscale, out=work / "nerf_400")
+    r4 = render_nerf_views(run, "test", views=views, downscale=downscale, out=work / "nerf_400",
+                           data=data)
     r8 = render_nerf_views(run, "test", views=1, downscale=1, out=work / "nerf_800",
-                           with_ssim=False)
+                           with_ssim=False, data=data)
     return {"psnr": r4["mean_psnr"], "ssim": r4["mean_ssim"], "views": r4["n_views"],
             "s_400": statistics.median(r4["seconds"]), "s_800": r8["seconds_per_full_frame"],
             "fps_400": 1.0 / statistics.median(r4["seconds"]),
@@ -419,7 +422,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = res["rows"]
 
     print("NeRF-SH (CPU preset) ...", flush=True)
-    rows["nerf_sh"] = {**measure_nerf_cpu(nerf_run, a.nerf_views, work, down),
+    rows["nerf_sh"] = {**measure_nerf_cpu(nerf_run, a.nerf_views, work, down, data),
                        "stage_s": read.get("train_s"), "stage_src": "read: training"}
     print("paper-architecture NeRF-SH timing ...", flush=True)
     res["paper_nerf"] = measure_nerf_paper(data, a.paper_rows)
