@@ -3,7 +3,8 @@
 Input: a dataset written by ``plenoctree process`` from the lego training photos (e.g. by
 ``benchmarks/colmap_poses.py``, under ``/tmp/colmap_poses/process_defaults``). A twin dataset is
 made beside it with the same images (linked), the same frames and split, but the true poses,
-the true focal length and the Blender scene box [-1.5, 1.5]³. Both go through
+the true focal length (of the source photos' size; the principal point of the undistorted
+images) and the Blender scene box [-1.5, 1.5]³. Both go through
 ``run_pipeline`` with one small budget (``--steps`` of NeRF-SH training, ``--grid``,
 ``--epochs`` of fine-tuning, at ``--downscale``); the table gives the test PSNR of every stage
 (the 10 held-out photos of nerfstudio's 90 % rule) and the difference.
@@ -38,14 +39,25 @@ def make_twin(data: Path, twin: Path) -> Path:
     for d in data.iterdir():
         if d.is_dir() and d.name.startswith("images") and not (twin / d.name).exists():
             os.symlink(d.resolve(), twin / d.name)
-    w = tj["w"]
-    focal = 0.5 * w / math.tan(0.5 * meta["camera_angle_x"])
-    out = {"camera_model": "PINHOLE", "w": w, "h": tj["h"], "fl_x": focal, "fl_y": focal,
-           "cx": w / 2, "cy": tj["h"] / 2, "aabb_scale": 1, "scale": 1 / 3,
+    # The undistorted images are the source photos resampled by COLMAP's camera (focal kept,
+    # principal point moved to the new centre, a ~0 radial term: a half-pixel shift on lego)
+    # and cropped at the top left to a multiple of 8: the true camera of these pixels is the
+    # true focal of the source size, with the principal point where `process` put it.
+    from PIL import Image
+
+    src = Path(json.loads((data / "process.json").read_text())["source"])
+    with Image.open(next(p for p in sorted(src.iterdir()) if p.suffix == ".png")) as im:
+        w_src = im.size[0]
+    focal = 0.5 * w_src / math.tan(0.5 * meta["camera_angle_x"])
+    out = {"camera_model": "PINHOLE", "w": tj["w"], "h": tj["h"], "fl_x": focal, "fl_y": focal,
+           "cx": tj["cx"], "cy": tj["cy"], "aabb_scale": 1, "scale": 1 / 3,
            "offset": [0.5, 0.5, 0.5],
            "frames": [{"file_path": f["file_path"], "transform_matrix": gt[f["colmap_name"]]}
                       for f in tj["frames"]]}
-    (twin / "transforms.json").write_text(json.dumps(out, indent=1))
+    text = json.dumps(out, indent=1)
+    tfile = twin / "transforms.json"
+    if not tfile.is_file() or tfile.read_text() != text:    # (a resumed run keeps its stamps)
+        tfile.write_text(text)
     return twin
 
 

@@ -3,20 +3,25 @@ where a ray's time goes, and the torch twin for accuracy.
 
 Method: a fixed set of orbit views (30° elevation, distance 4, the NeRF-synthetic field of view;
 for the forward-facing tree, the LLFF capture's own NDC cameras at 504×378) is rendered at each
-size by each path in the same run. Rays are generated before timing (their cost is reported on
-its own). Each path gets a warm-up render (JIT compile / cache load), then ``--repeats`` timed
-passes over all views; we report the median time per frame, the spread (min, max) over passes
-and the process CPU time per frame (all threads: robust to other jobs sharing the cores).
+size by each path in the same run. Each path gets a warm-up render (JIT compile / cache load),
+then ``--repeats`` timed passes over all views, interleaved; we report the median time per
+frame, the spread (min, max) over passes and the process CPU time per frame (all threads:
+robust to other jobs sharing the cores).
 
 Paths:
-- ``numba``: the public :func:`plenoctree.render_rays` (input checks, cached packed layout,
-  kernel) — what ``render``/``eval``/``video``/``view`` get;
-- ``kernel``: the same kernel called with prepared arrays (so ``numba - kernel`` is the time per
-  frame spent outside the kernel);
-- ``baseline``: the kernel as it was before issue 12 (``benchmarks/baseline/render_kernel.py``,
-  frozen), called with prepared arrays: the ratio ``numba / baseline`` is the speed-up;
+- ``numba``: the public :func:`plenoctree.render_image` (camera in, image out: the kernel makes
+  each pixel's ray itself) — what ``render``/``eval``/``video`` get;
+- ``rays``: the public :func:`plenoctree.render_rays` on ray arrays made before timing (input
+  checks + kernel: the API for arbitrary rays);
+- ``kernel``: the same kernel called with prepared ray arrays (so ``rays - kernel`` is the time
+  per frame spent outside the kernel by the ray API);
+- ``baseline``: a frame as it was before issue 12 (``cameras.rays`` in numpy + the frozen kernel
+  ``benchmarks/baseline/render_kernel.py``): the ratio ``baseline / numba`` is the speed-up;
 - ``torch``: the twin (float32) on a strided subset of ``--twin-views`` views, per-ray time
-  extrapolated; it gives max |Δ rgb| against ``numba`` (the spec: ≤ 1e-4).
+  extrapolated; it gives max |Δ rgb| against ``numba`` and ``rays`` (the spec: ≤ 1e-4).
+
+The time numpy takes to make the ray arrays of a frame (``cameras.rays``) is reported as
+``raygen ms``.
 
 Per-ray counters (the same march, :func:`plenoctree.render._render_numba.ray_stats_numba`):
 leaves visited, σ > 0 leaves, σ > 0 segments of negligible weight (< 1e-4), ``child`` reads of
@@ -49,28 +54,29 @@ import numpy as np
 from _trees import ROOT, load_bench_tree, machine_info
 
 
-def orbit_views(tree: Any, n_views: int, size: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    from plenoctree.datasets import generate_rays
+def orbit_cameras(n_views: int, size: int) -> Any:
+    """``n_views`` cameras on a 30° orbit at distance 4 (NeRF-synthetic field of view)."""
+    from plenoctree.datasets import Cameras
     from plenoctree.datasets.procedural import CAMERA_ANGLE_X, CAMERA_DISTANCE, look_at
 
     fx = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
-    out = []
+    c2w = []
     for i in range(n_views):
         a = 2 * math.pi * i / n_views
         el = math.radians(30.0)
         eye = CAMERA_DISTANCE * np.array([math.cos(el) * math.cos(a), math.cos(el) * math.sin(a),
                                           math.sin(el)])
-        out.append(generate_rays(look_at(eye, np.zeros(3)), fx, fx, size / 2.0, size / 2.0,
-                                 size, size))
-    return out
+        c2w.append(look_at(eye, np.zeros(3)))
+    return Cameras(np.stack(c2w), fx, fx, size / 2.0, size / 2.0, size, size)
 
 
-def ff_views(root: str, n_views: int) -> tuple[list, int, int]:
+def ff_cameras(root: str, n_views: int) -> tuple[Any, list[int]]:
+    """The LLFF capture's own (NDC) cameras and ``n_views`` indices evenly spread over them."""
     from plenoctree.datasets.llff import load_llff
 
     cams = load_llff(root, split="all").cameras
     idx = np.linspace(0, len(cams) - 1, n_views).round().astype(int)
-    return [cams.rays(int(i)) for i in idx], cams.width, cams.height
+    return cams, [int(i) for i in idx]
 
 
 def time_passes(fn: Callable[[], Any], repeats: int) -> tuple[list[float], list[float]]:
@@ -129,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="JSON path (default benchmarks/results/render_speed_<tree>.json)")
     args = ap.parse_args(argv)
 
-    from plenoctree.render import RenderOptions, render_rays
+    from plenoctree.render import RenderOptions, render_image, render_rays
     from plenoctree.render import _render_numba as kern
     from plenoctree.render.options import parse_data_format
 
@@ -139,44 +145,49 @@ def main(argv: list[str] | None = None) -> int:
     info = parse_data_format(tree.data_format, tree.data_dim, tree.extra_data)
     opts = RenderOptions(stop_thresh=args.stop_thresh)
     if desc["kind"] == "forward_facing":
-        sets = {}
-        views, w, h = ff_views(desc["data"], args.views)
-        sets[f"{w}x{h}"] = (views, w * h)
+        cams, idx = ff_cameras(desc["data"], args.views)
+        sets = {f"{cams.width}x{cams.height}": (cams, idx)}
     else:
-        sets = {f"{s}x{s}": (None, s * s) for s in args.sizes}
+        sets = {f"{s}x{s}": (orbit_cameras(args.views, s), list(range(args.views)))
+                for s in args.sizes}
 
-    paths = ["numba", "kernel"] + ([] if args.no_baseline else ["baseline"])
+    paths = ["numba", "rays", "kernel"] + ([] if args.no_baseline else ["baseline"])
     results: dict[str, dict[str, Any]] = {p: {} for p in paths + ["torch"]}
     counters, breakdown, max_diff = {}, {}, {}
-    for key, (views, n_px) in sets.items():
+    for key, (cams, idx) in sets.items():
+        n_px = cams.width * cams.height
         t0 = time.perf_counter()
-        if views is None:
-            size = int(key.split("x")[0])
-            views = orbit_views(tree, args.views, size)
+        views = [cams.rays(i) for i in idx]
         raygen_ms = 1e3 * (time.perf_counter() - t0) / len(views)
         flat = [(o.reshape(-1, 3), d.reshape(-1, 3)) for o, d in views]
 
         def run_public():
+            for i in idx:
+                render_image(tree, cams, i, opts, backend="numba")
+
+        def run_rays():
             for o, d in views:
                 render_rays(tree, o, d, opts, backend="numba")
 
         prepared = kern.prepare(tree, info, opts)
         outs = [kern.empty_outputs(len(o)) for o, _ in flat]
-
-        width = views[0][0].shape[1]
+        width = cams.width
 
         def run_kernel():
             for (o, d), out in zip(flat, outs):
                 kern.render_prepared(prepared, o, d, out, width=width)
 
-        fns: dict[str, Callable[[], Any]] = {"numba": run_public, "kernel": run_kernel}
+        fns: dict[str, Callable[[], Any]] = {"numba": run_public, "rays": run_rays,
+                                             "kernel": run_kernel}
         if "baseline" in paths:
             from baseline import render_kernel as base
 
-            def run_base():
-                for o, d in flat:
+            def run_base():      # what a frame cost before issue 12: ray arrays + the kernel
+                for i in idx:
+                    o, d = cams.rays(i)
                     base.render_rays_numba(tree.child, tree.data, tree.offset, tree.invradius,
-                                           info, tree.extra_data, o, d, opts)
+                                           info, tree.extra_data, o.reshape(-1, 3),
+                                           d.reshape(-1, 3), opts)
 
             fns["baseline"] = run_base
         for name in paths:
@@ -199,11 +210,15 @@ def main(argv: list[str] | None = None) -> int:
         results["torch"][key] = summarise([w / n_sub * n_px for w in wall],
                                           [c / n_sub * n_px for c in cpu], n_px)
         results["torch"][key].update(extrapolated=True, rays_timed=n_sub)
-        max_diff[key] = max(float((render_rays(tree, o, d, opts, backend="numba").rgb
-                                   - ref).abs().max()) for (o, d), ref in zip(subsets, twin))
+        max_diff[key] = max(max(
+            float((render_image(tree, cams, i, opts, backend="numba").rgb.reshape(-1, 3)
+                   [::stride] - ref).abs().max()),
+            float((render_rays(tree, o, d, opts, backend="numba").rgb - ref).abs().max()))
+            for i, (o, d), ref in zip(idx, subsets, twin))
         counters[key] = ray_counters(tree, views, opts)
         pub, ker = results["numba"][key]["ms_per_frame"], results["kernel"][key]["ms_per_frame"]
         breakdown[key] = {"raygen_ms": raygen_ms, "outside_kernel_ms": pub - ker,
+                          "rays_api_outside_kernel_ms": results["rays"][key]["ms_per_frame"] - ker,
                           "kernel_ms": ker,
                           "kernel_ns_per_ray_core": ker * 1e6 / n_px * (os.cpu_count() or 1)}
         print(f"[{key}] numba {pub:.1f} ms, kernel {ker:.1f} ms"
@@ -239,19 +254,21 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['ms_max']:.1f} | {r['fps']:.2f} | {r['mrays_per_s']:.2f} | "
                   f"{r['cpu_ms_per_frame']:.1f} |")
     print("\n| size | hit rays | leaves/hit ray | σ>0 leaves | negligible (w<1e-4) | child reads "
-          "| stopped early | raygen ms | outside kernel ms | kernel ns/ray/core |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| stopped early | numpy raygen ms | render_image − kernel ms | render_rays − kernel ms "
+          "| kernel ns/ray/core |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for k in sets:
         c, b = counters[k], breakdown[k]
         print(f"| {k} | {c['hit_fraction']:.1%} | {c['leaves_per_hit_ray']:.1f} | "
               f"{c['sigma_leaves_per_hit_ray']:.1f} | {c['negligible_per_hit_ray']:.1f} | "
               f"{c['descent_per_hit_ray']:.1f} | {c['stopped_fraction_of_hit']:.1%} | "
               f"{b['raygen_ms']:.1f} | {b['outside_kernel_ms']:.1f} | "
+              f"{b['rays_api_outside_kernel_ms']:.1f} | "
               f"{b['kernel_ns_per_ray_core']:.0f} |")
     print()
     for k in sets:
-        sp = f"{ratio[k]:.2f}x the baseline kernel; " if ratio else ""
-        print(f"{k}: numba {results['numba'][k]['fps']:.1f} FPS, {sp}max |Δ rgb| numba vs "
+        sp = f"{ratio[k]:.2f}x a pre-issue-12 frame; " if ratio else ""
+        print(f"{k}: numba {results['numba'][k]['fps']:.1f} FPS, {sp}max |Δ rgb| numba/rays vs "
               f"twin = {max_diff[k]:.2e}")
     m = report["machine"]
     print(f"\nmachine: {m['cpu_model']}, {m['cpu_count']} cores, numba {m['numba']} "

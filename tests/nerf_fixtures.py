@@ -1,10 +1,19 @@
-"""Shared helpers of the NeRF-SH tests: a tiny procedural dataset and tiny configurations."""
+"""Shared helpers of the tests: a tiny procedural dataset, tiny NeRF-SH configurations, a
+scratch copy of a dataset folder."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 from plenoctree.nerf.config import TrainConfig, preset
+
+
+def copy_dataset(src: Path, tmp_path: Path) -> Path:
+    """A copy of dataset folder ``src`` at ``tmp_path / "scene"`` (to damage in a test)."""
+    dst = tmp_path / "scene"
+    shutil.copytree(src, dst)
+    return dst
 
 
 def tiny_dataset(root: Path, size: int = 24, n_train: int = 12) -> Path:

@@ -69,12 +69,15 @@ def test_a_new_config_field_becomes_a_flag_with_no_other_edit():
                          "--stage.background", "black"])
     values = given(args, dests, prefix="stage.")
     assert values == {"epochs": 3, "box": [1.0, 2.0, 3.0], "smooth": True,
-                      "background": (0.0, 0.0, 0.0)}
+                      "background": "black"}
     cfg = apply(Cfg(), values)
     assert cfg.box == (1.0, 2.0, 3.0) and cfg.lr is None and cfg.epochs == 3
+    assert cfg.background == (0.0, 0.0, 0.0)
     assert "Passes over the data. (default: 20)" in p.format_help()
-    with pytest.raises(SystemExit):
-        p.parse_args(["--stage.background", "pink"])
+    args = p.parse_args(["--stage.background", "pink"])
+    with pytest.raises(Exception, match="--background: expected white, black or R,G,B"):
+        apply(Cfg(), given(args, dests, prefix="stage."))
+    assert apply(Cfg(), {"background": "0.5"}).background == (0.5, 0.5, 0.5)   # config files
 
 
 def test_train_config_file_then_flags(tmp_path, capsys):
@@ -151,3 +154,91 @@ def test_info_describes_a_tree(tiny_scene, capsys):
 def test_license_is_an_spdx_string():
     text = (ROOT / "pyproject.toml").read_text()
     assert 'license = "MIT"' in text and "license = {" not in text
+
+
+# Commands on add_command: (argv without --config, a config file, what it must resolve to,
+# a flag that overrides the file and the value it gives).
+_CONFIG_CASES = {
+    "process": (["process", "imgs", "--out", "o"],
+                {"frames": 12, "sfm": {"max_features": 100}},
+                lambda c: (c.frames, c.sfm.max_features, c.sfm.single_camera) == (12, 100, True),
+                ["--max-features", "7"], lambda c: c.sfm.max_features == 7),
+    "export": (["export", "t.npz", "--out", "o.ply"], {"min_opacity": 0.5, "up": "+y"},
+               lambda c: (c.min_opacity, c.up, c.tree) == (0.5, "+y", "t.npz"),
+               ["--min-opacity", "0.25"], lambda c: c.min_opacity == 0.25),
+    "plot": (["plot", "summary.json"], {"title": "T"}, lambda c: c.title == "T",
+             ["--title", "U"], lambda c: c.title == "U"),
+    "video": (["video", "t.npz"], {"frames": 3, "depth_range": [1, 2], "mode": "both"},
+              lambda c: (c.frames, c.depth_range, c.mode) == (3, (1, 2), "both"),
+              ["--depth-range", "0.5,4"], lambda c: c.depth_range == (0.5, 4.0)),
+    "compress": (["compress", "t.npz"], {"codec": {"bits": 4}, "evaluate": False},
+                 lambda c: (c.codec.bits, c.codec.level, c.evaluate) == (4, 6, False),
+                 ["--bits", "5", "--eval"], lambda c: c.codec.bits == 5 and c.evaluate),
+    "decompress": (["decompress", "t.plnz"], {"precision": "fp16"},
+                   lambda c: c.precision == "fp16", ["--precision", "fp32"],
+                   lambda c: c.precision == "fp32"),
+    "lod": (["lod", "t.npz", "--out", "o.plnz"], {"lod": {"sh_degree": 1}, "target_mb": 2},
+            lambda c: (c.lod.sh_degree, c.target_mb, c.codec.bits) == (1, 2, 16),
+            ["--sh-degree", "0"], lambda c: c.lod.sh_degree == 0),
+    "view": (["view", "t.npz"], {"port": 0, "split": "test"},
+             lambda c: (c.port, c.split, c.max_mb) == (0, "test", 2048.0),
+             ["--port", "9"], lambda c: c.port == 9),
+    "extract": (["extract", "run"], {"grid": 64, "samples": 2},
+                lambda c: (c.grid, c.samples, c.run_dir) == (64, 2, "run"),
+                ["--grid", "32"], lambda c: c.grid == 32),
+    "refine": (["refine", "t.npz"], {"passes": 3}, lambda c: c.passes == 3,
+               ["--passes", "2"], lambda c: c.passes == 2),
+    "finetune": (["finetune", "t.npz"], {"epochs": 2, "optimizer": "sgd"},
+                 lambda c: (c.epochs, c.optimizer) == (2, "sgd"),
+                 ["--epochs", "1"], lambda c: c.epochs == 1),
+    "eval": (["eval", "t.npz"], {"split": "val", "limit": 2},
+             lambda c: (c.split, c.limit, c.tree) == ("val", 2, "t.npz"),
+             ["--views", "1"], lambda c: c.limit == 1),
+    "demo": (["demo"], {"n_train": 5}, lambda c: c.n_train == 5,
+             ["--n-train", "6"], lambda c: c.n_train == 6),
+    "render": (["render", "t.npz"], {"split": "val", "background": "black", "limit": 2},
+               lambda c: (c.split, c.background, c.limit) == ("val", (0.0, 0.0, 0.0), 2),
+               ["--background", "0,0,1"], lambda c: c.background == (0.0, 0.0, 1.0)),
+    "render-nerf": (["render-nerf", "run"], {"views": 3, "ssim": False},
+                    lambda c: (c.views, c.ssim, c.run_dir) == (3, False, "run"),
+                    ["--ssim"], lambda c: c.ssim),
+    "export-web": (["export-web", "t.npz", "--out", "o"], {"title": "T", "overwrite": True},
+                   lambda c: (c.title, c.overwrite) == ("T", True),
+                   ["--no-overwrite"], lambda c: not c.overwrite),
+}
+
+
+@pytest.mark.parametrize("command", sorted(_CONFIG_CASES))
+def test_config_file_then_flags_on_every_config_command(command, tmp_path):
+    argv, values, check, flags, check_flags = _CONFIG_CASES[command]
+    cfg_file = tmp_path / "c.json"
+    cfg_file.write_text(json.dumps(values))
+    parser = build_parser()
+    args = parser.parse_args(argv + ["--config", str(cfg_file)])
+    assert check(args._resolve(args))
+    args = parser.parse_args(argv + ["--config", str(cfg_file)] + flags)
+    cfg = args._resolve(args)
+    assert check_flags(cfg)
+    cfg_file.write_text(json.dumps({"no_such_option": 1}))
+    args = parser.parse_args(argv + ["--config", str(cfg_file)])
+    with pytest.raises(Exception, match="unknown option 'no_such_option'"):
+        args._resolve(args)
+
+
+def test_fixed_length_tuple_flags_are_checked(capsys):
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["video", "t.npz", "--depth-range", "1,2,3"])
+    assert "--depth-range: expected 2 numbers" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["video", "t.npz", "--depth-range", "near,far"])
+    assert "expected numbers" in capsys.readouterr().err
+
+
+def test_compress_runs_from_a_config_file(tiny_scene, tmp_path, capsys):
+    cfg_file = tmp_path / "c.json"
+    cfg_file.write_text(json.dumps({"codec": {"bits": 3}, "evaluate": False}))
+    out = tmp_path / "t.plnz"
+    assert main(["compress", str(tiny_scene / "tree.npz"), "--out", str(out), "--config",
+                 str(cfg_file), "--json", str(tmp_path / "r.json")]) == 0
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert rep["options"]["bits"] == 3 and "psnr_fidelity" not in rep and out.is_file()

@@ -14,6 +14,7 @@ from plenoctree.datasets.forward_facing import write_forward_facing_dataset
 from plenoctree.datasets.llff import average_pose, load_llff, read_llff, write_llff
 from plenoctree.datasets.procedural import write_procedural_dataset
 from plenoctree.errors import ConfigError, DatasetError
+from nerf_fixtures import copy_dataset as _copy
 
 
 @pytest.fixture(scope="module")
@@ -35,12 +36,6 @@ def llff_root(blender, tmp_path_factory):
 def ff_root(tmp_path_factory):
     return write_forward_facing_dataset(tmp_path_factory.mktemp("ff"), n_images=10, width=16,
                                         height=12, n_samples=32)
-
-
-def _copy(src, tmp_path):
-    dst = tmp_path / "scene"
-    shutil.copytree(src, dst)
-    return dst
 
 
 def test_round_trip_gives_blender_rays(blender, llff_root):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import shutil
 
 import numpy as np
 import pytest
@@ -13,6 +12,7 @@ from plenoctree.datasets import detect_format, generate_rays, load_blender, load
 from plenoctree.datasets.nerfstudio import load_nerfstudio, write_nerfstudio
 from plenoctree.datasets.procedural import write_procedural_dataset
 from plenoctree.errors import ConfigError, DatasetError
+from nerf_fixtures import copy_dataset as _copy
 
 
 @pytest.fixture(scope="module")
@@ -31,12 +31,6 @@ def ns_root(blender, tmp_path_factory):
     c = blender.cameras
     return write_nerfstudio(tmp_path_factory.mktemp("ns"), c.c2w, _u8(blender.images),
                             (c.fx, c.fy, c.cx, c.cy), extra={"aabb_scale": 2})
-
-
-def _copy(src, tmp_path):
-    dst = tmp_path / "scene"
-    shutil.copytree(src, dst)
-    return dst
 
 
 def _edit(root, fn):

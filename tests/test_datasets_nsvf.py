@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 import pytest
 from PIL import Image
@@ -12,6 +10,7 @@ from plenoctree.datasets import detect_format, load_blender, load_dataset
 from plenoctree.datasets.nsvf import load_nsvf, read_intrinsics, write_nsvf
 from plenoctree.datasets.procedural import write_procedural_dataset
 from plenoctree.errors import ConfigError, DatasetError
+from nerf_fixtures import copy_dataset as _copy
 
 
 @pytest.fixture(scope="module")
@@ -35,12 +34,6 @@ def nsvf_root(blender, tmp_path_factory):
     return write_nsvf(tmp_path_factory.mktemp("nsvf"),
                       {s: (d.cameras.c2w, _rgba(d)) for s, d in blender.items()},
                       c.fx, c.fy, c.cx, c.cy, bbox=[[-1.2, -1.1, -1.0], [1.0, 1.1, 1.2]])
-
-
-def _copy(src, tmp_path):
-    dst = tmp_path / "scene"
-    shutil.copytree(src, dst)
-    return dst
 
 
 def test_round_trip_gives_blender_rays(blender, nsvf_root):

@@ -99,6 +99,11 @@ def test_ndc_scene_trains_extracts_and_finetunes(scene, tmp_path):
     np.testing.assert_allclose(box_lo, data.scene_bbox[0], atol=1e-5)  # the NDC box
     np.testing.assert_allclose(box_hi, data.scene_bbox[1], atol=1e-5)
     assert 0 < ex.n_kept < 32 ** 3
+    from plenoctree.octree import load_tree
+    from plenoctree.octree.ndc import NDCSpace
+
+    ndc = NDCSpace.from_cameras(data.cameras)          # the tree file carries its NDC space
+    assert ndc is not None and ex.tree.ndc == ndc and load_tree(tmp_path / "tree.npz").ndc == ndc
     assert math.isfinite(ex.psnr) and ex.psnr > empty_psnr + 2.0, (ex.psnr, empty_psnr)
 
     ft = finetune(FinetuneConfig(tree=str(tmp_path / "tree.npz"), data=str(scene),
@@ -108,4 +113,5 @@ def test_ndc_scene_trains_extracts_and_finetunes(scene, tmp_path):
     assert ft.test_psnr_before == pytest.approx(ex.psnr, abs=0.05)
     # measured: 19.5 -> 22.1 dB (sgd 1e5; with 1024-ray batches the default 1e7 diverged)
     assert ft.epochs_run == 2 and ft.stop_reason.startswith("finished"), ft.stop_reason
+    assert load_tree(tmp_path / "tree_ft.npz").ndc == ndc            # kept by fine-tuning
     assert math.isfinite(ft.test_psnr_after) and ft.test_psnr_after > ft.test_psnr_before + 1.0

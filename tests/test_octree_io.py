@@ -79,12 +79,13 @@ def test_native_fp16_and_header(tmp_path):
     np.testing.assert_allclose(back.data, tree.data, rtol=1e-3, atol=1e-3)
     assert load_tree(path, keep_dtype=True).data.dtype == np.float16
     raw = npz_arrays(path)
-    assert int(raw["format_version"]) == 1 and raw["data"].dtype == np.float16
+    assert int(raw["format_version"]) == 2 and raw["data"].dtype == np.float16
     header = json.loads(str(raw["header"]))
     assert header["data_format"] == "SH9" and header["sh_degree"] == 2
     assert header["dtype"] == "float16" and header["data_dim"] == 28
     assert header["n_nodes"] == tree.n_nodes and header["n_leaves"] == tree.n_leaves
     assert header["package_version"] == plenoctree.__version__
+    assert header["ndc"] is None                                    # a world-space tree
     np.testing.assert_allclose(header["bbox"], tree.bbox)
 
 
@@ -217,7 +218,12 @@ def native_cases(a):
     hdr = json.loads(str(a["header"]))
     return {
         "missing key": (_set(a, child=None), "missing keys"),
-        "format version": (_set(a, format_version=np.int64(2)), "unknown format_version 2"),
+        "format version": (_set(a, format_version=np.int64(3)), "unknown format_version 3"),
+        "header ndc": (_set(a, header=np.array(json.dumps({**hdr, "ndc": {"width": 0}}))),
+                       "header 'ndc': NDC settings must be an object"),
+        "header ndc value": (_set(a, header=np.array(json.dumps(
+            {**hdr, "ndc": {"width": 8, "height": 6, "fx": -1, "fy": 5, "near": 1}}))),
+            "header 'ndc': NDC fx must be a finite positive number"),
         "version dtype": (_set(a, format_version=np.float32(1)), "integer scalar"),
         "header json": (_set(a, header=np.array("{not json")), "not valid JSON"),
         "header type": (_set(a, header=np.array("[1, 2]")), "JSON object"),

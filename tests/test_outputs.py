@@ -167,3 +167,38 @@ def test_cli_eval_save_images_writes_comparison_and_raw_depth(tmp_path):
     assert any(n.endswith("_compare.png") for n in names), names
     assert any(n.endswith("_depth.npy") for n in names) and any(n.endswith("_depth.png") for n in names)
     assert any(n.endswith("_alpha.npy") for n in names)
+
+
+def test_stage_plot_reads_paper_table_json(tmp_path, capsys):
+    """`plenoctree plot paper_table.json` (README's stage plot): every row of
+    benchmarks/paper_table.py, FPS at the table's size, unmeasured rows left out."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    from plenoctree.cli import main
+    from plenoctree.plots import PAPER_TABLE_STAGES, stage_rows
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "paper_table.py"
+    spec = importlib.util.spec_from_file_location("paper_table_for_plot", path)
+    pt = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(pt)
+    assert [k for k, _ in PAPER_TABLE_STAGES] == [k for k, _ in pt.ROWS]   # same rows
+    rows = {k: {"psnr": 30.0 + i, "ssim": 0.9, "fps_400": 2.0 + i, "fps_800": 0.5 + i,
+                "mb": 10.0 * (i + 1)} for i, (k, _) in enumerate(pt.ROWS)}
+    rows["refined"] = {"psnr": None, "fps_400": None, "fps_800": None, "mb": None}
+    res = {"size": 800, "views": 40, "rows": rows}
+    got, title = stage_rows(res)
+    assert [r["stage"] for r in got] == [lbl for k, lbl in PAPER_TABLE_STAGES if k != "refined"]
+    ft = next(r for r in got if r["stage"] == "fine-tuned")
+    i = [k for k, _ in pt.ROWS].index("ft")
+    assert ft == {"stage": "fine-tuned", "psnr": 30.0 + i, "fps": 0.5 + i, "mb": 10.0 * (i + 1)}
+    assert "lego 800²" in title and "40 test views" in title
+    (tmp_path / "paper_table.json").write_text(json.dumps(res))
+    pytest.importorskip("matplotlib")
+    out = tmp_path / "stages.png"
+    assert main(["plot", str(tmp_path / "paper_table.json"), "--out", str(out)]) == 0
+    assert Image.open(out).size[0] > 600
+    (tmp_path / "bad.json").write_text(json.dumps({"rows": 3}))
+    assert main(["plot", str(tmp_path / "bad.json")]) == 1
+    assert "paper_table.json" in capsys.readouterr().err

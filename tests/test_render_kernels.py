@@ -108,6 +108,60 @@ def test_ndc_forward_facing_tree_matches_twin(tmp_path):
     _compare(tree, o, d, RenderOptions())
 
 
+def _cameras_around(tree: Octree, h: int, w: int, n: int, seed: int):
+    from plenoctree.datasets import Cameras
+    from plenoctree.datasets.procedural import look_at
+
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(n, 3))
+    eyes = tree.center + 3.5 * float(tree.radius.max()) * v / np.linalg.norm(v, axis=1)[:, None]
+    c2w = np.stack([look_at(e, tree.center) for e in eyes])
+    return Cameras(c2w, rng.uniform(1.5, 2.5, n) * w, rng.uniform(1.5, 2.5, n) * w,
+                   w / 2 + rng.uniform(-2, 2, n), h / 2 + rng.uniform(-2, 2, n), w, h)
+
+
+def _same_as_array_rays(tree: Octree, cams, i: int, opts: RenderOptions, twin: bool) -> None:
+    from plenoctree.render import render_image
+
+    got = render_image(tree, cams, i, opts, backend="numba")           # rays made in-kernel
+    o, d = cams.rays(i)
+    ref = render_rays(tree, o, d, opts, backend="numba")               # rays from arrays
+    assert got.rgb.shape == (cams.height, cams.width, 3)
+    for a, b in zip((got.rgb, got.depth, got.alpha), (ref.rgb, ref.depth, ref.alpha)):
+        torch.testing.assert_close(a, b, rtol=0, atol=2e-6)
+    if twin:
+        _compare(tree, o, d, opts)
+
+
+def test_render_image_makes_the_rays_in_the_kernel():
+    tree = _subdivide(_grid_tree("SH9", seed=4), 0.3, 5)
+    cams = _cameras_around(tree, 21, 30, 3, seed=6)        # per-camera fx, fy, cx, cy
+    for i in range(3):
+        _same_as_array_rays(tree, cams, i, RenderOptions(), twin=i == 0)
+
+
+def test_render_image_makes_ndc_rays_in_the_kernel(tmp_path):
+    from plenoctree.datasets.forward_facing import (forward_facing_tree,
+                                                    write_forward_facing_dataset)
+    from plenoctree.datasets.llff import load_llff
+    from plenoctree.errors import ConfigError
+    from plenoctree.render import render_image
+
+    root = write_forward_facing_dataset(tmp_path / "ff", n_images=3, width=24, height=18,
+                                        n_samples=16)
+    tree = forward_facing_tree(root, 32)
+    cams = load_llff(root, split="all").cameras
+    for i in range(len(cams)):
+        _same_as_array_rays(tree, cams, i, RenderOptions(), twin=i == 1)
+    back = cams.c2w.copy()
+    back[0, :3, 2] *= -1.0                                # camera 0 looks up +z: no NDC rays
+    back[0, :3, 0] *= -1.0
+    from plenoctree.datasets import Cameras
+    bad = Cameras(back, cams.fx, cams.fy, cams.cx, cams.cy, cams.width, cams.height, ndc=True)
+    with pytest.raises(ConfigError, match="NDC"):
+        render_image(tree, bad, 0, backend="numba")
+
+
 def test_finetune_forward_shares_the_render_traversal():
     from plenoctree.optim._render_grad import forward_numba, kernel_args
 

@@ -309,29 +309,55 @@ def test_alt_click_probes_the_scene(bundle):
     assert bundle.locator("#probe_box").get_attribute("open") is not None
 
 
-def test_ndc_forward_facing_tree_matches_cpu(browser, tmp_path):
-    """An LLFF (NDC) tree: the page maps world rays to NDC like Cameras(ndc=True).rays()."""
+@pytest.fixture(scope="module")
+def ff(tmp_path_factory):
     from plenoctree.datasets import load_dataset
     from plenoctree.datasets.forward_facing import forward_facing_tree, write_forward_facing_dataset
 
-    root = write_forward_facing_dataset(tmp_path / "ff", n_images=9, width=48, height=36,
-                                        n_samples=64)
+    d = tmp_path_factory.mktemp("ff")
+    root = write_forward_facing_dataset(d / "ff", n_images=9, width=48, height=36, n_samples=64)
     tree = forward_facing_tree(root, 32)
-    save_tree(tree, tmp_path / "ff.npz", precision="fp16")
-    tree = tree.astype(np.float16).astype(np.float32)
+    save_tree(tree, d / "ff.npz", precision="fp16")
     data = load_dataset(root, "train")
-    assert data.cameras.ndc
-    out = export_web(tmp_path / "ff.npz", tmp_path / "ffsite", cameras=data.cameras)
+    assert data.cameras.ndc and tree.ndc is not None
+    return {"dir": d, "tree": tree.astype(np.float16).astype(np.float32), "path": d / "ff.npz",
+            "cams": data.cameras}
+
+
+def _open_bundle(browser, out):
     srv = _Static(out)
+    page = browser.new_page(viewport={"width": 640, "height": 400})
+    page.goto(srv.url)
+    page.wait_for_function("window.viewer && window.viewer.state !== 'loading'", timeout=90_000)
+    assert page.evaluate("window.viewer.state") == "ready", page.evaluate("window.viewer.message")
+    return srv, page
+
+
+@pytest.mark.parametrize("source", ["bundle_cameras", "tree_file", "svox_file", "plnz_file"])
+def test_ndc_forward_facing_tree_matches_cpu(browser, ff, source):
+    """An LLFF (NDC) tree: the page maps world rays to NDC like Cameras(ndc=True).rays(), with
+    the NDC space from the bundle's cameras or, without them, from the tree file itself
+    (native header, svox ndc_config, .plnz header)."""
+    from plenoctree.compress import compress, decompress, save_compressed
+    from plenoctree.octree.io import export_svox
+
+    tree, path = ff["tree"], ff["path"]
+    if source == "svox_file":
+        path = ff["dir"] / "ff_svox.npz"
+        export_svox(tree, path)
+    elif source == "plnz_file":
+        path = ff["dir"] / "ff.plnz"
+        ctree = compress(tree)
+        save_compressed(ctree, path)
+        tree = decompress(ctree)
+    out = export_web(path, ff["dir"] / f"site_{source}", overwrite=True,
+                     cameras=ff["cams"] if source == "bundle_cameras" else None)
+    assert ("ndc" in (out / "config.json").read_text()) == (source == "bundle_cameras")
+    srv, page = _open_bundle(browser, out)
     try:
-        page = browser.new_page(viewport={"width": 640, "height": 400})
-        page.goto(srv.url)
-        page.wait_for_function("window.viewer && window.viewer.state !== 'loading'",
-                               timeout=90_000)
-        assert page.evaluate("window.viewer.state") == "ready", page.evaluate("window.viewer.message")
         first = page.evaluate("window.viewer.currentView(48, 36)")
         np.testing.assert_allclose(np.reshape(first["c2w"], (4, 4)), np.eye(4), atol=1e-6)
-        cams = data.cameras
+        cams = ff["cams"]
         for i in (0, 3):
             fx, fy, cx, cy = cams.intrinsics(i)
             view = {"c2w": cams.c2w[i].reshape(-1).tolist(), "fx": fx, "fy": fy, "cx": cx,
@@ -354,10 +380,25 @@ def _plane_obj(x0=0.0, color=(0.2, 0.6, 0.3), half=4.0) -> str:
     return "\n".join([f"v {x} {y} {z} {c}" for x, y, z in vs] + ["f 1 2 3 4", ""])
 
 
+MESH_AMBIENT = 0.3      # mesh.js: shade = A + (1 - A) |n . d| (headlight Lambert)
+
+
+def _shaded(color, normal, dirs) -> np.ndarray:
+    """The mesh colour the page draws for a surface of ``normal`` seen along unit ``dirs``."""
+    lam = np.abs(np.asarray(dirs, np.float64) @ np.asarray(normal, np.float64))
+    return np.asarray(color)[None, None] * (MESH_AMBIENT + (1 - MESH_AMBIENT) * lam)[..., None]
+
+
+def _cpu_over(tree, o, d, background) -> np.ndarray:
+    """CPU render of rays (o, d) over a per-pixel background [H, W, 3]."""
+    out = render_rays(tree, o, d, RenderOptions(background=(0.0, 0.0, 0.0)))
+    return out.rgb.numpy() + (1 - out.alpha.numpy())[..., None] * background
+
+
 def test_inserted_mesh_is_occluded_by_the_volume(bundle, scene):
     """A plane at world x = 0 (a cell boundary of the tree): in front of it the volume
-    composites over the plane's colour, behind it nothing shows; equals the CPU render of the
-    tree with its x < 0 half emptied over a background of the plane's colour."""
+    composites over the plane's (shaded) colour, behind it nothing shows; equals the CPU render
+    of the tree with its x < 0 half emptied over a background of the shaded plane colour."""
     tree = scene["tree"]
     view = {"c2w": np.linalg.inv(np.linalg.inv(
         __import__("plenoctree.datasets.procedural", fromlist=["look_at"]).look_at(
@@ -375,7 +416,9 @@ def test_inserted_mesh_is_occluded_by_the_volume(bundle, scene):
     node, i, j, k = cut.leaf_indices()
     behind = cut.leaf_centers()[:, 0] < 0
     cut.data[node[behind], i[behind], j[behind], k[behind], -1] = 0
-    cpu = _cpu(cut, view, background=color)
+    c2w = np.asarray(view["c2w"], np.float32).reshape(4, 4)
+    o, d = generate_rays(c2w, view["fx"], view["fy"], view["cx"], view["cy"], SIZE, SIZE)
+    cpu = _cpu_over(cut, o, d, _shaded(color, [1, 0, 0], d))
     _close(gpu, cpu, "mesh occlusion")
     plain = _pixels(bundle, view)                      # removed again: the plain render
     _close(plain, _cpu(tree, view), "after clearMeshes")
@@ -392,3 +435,129 @@ def test_exported_glb_mesh_loads_into_the_viewer(bundle, tmp_path):
     info = bundle.evaluate("b => window.viewer.addMesh(b, 'm.glb')", b64)
     bundle.evaluate("window.viewer.clearMeshes()")
     assert info == {"vertices": len(mesh.vertices), "triangles": len(mesh.faces)}
+
+
+def _cube_obj(center, half, color) -> str:
+    """An axis-aligned cube with 4 vertices per face (so each face keeps its own normal)."""
+    c, lines, faces = np.asarray(center, float), [], []
+    for axis in range(3):
+        for sign in (-1, 1):
+            u, w = [a for a in range(3) if a != axis]
+            quad = []
+            for su, sw in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+                p = c.copy()
+                p[axis] += sign * half
+                p[u] += su * half
+                p[w] += sw * half
+                quad.append(p)
+            n0 = len(lines)
+            lines += [f"v {p[0]} {p[1]} {p[2]} {color[0]} {color[1]} {color[2]}" for p in quad]
+            faces.append(f"f {n0 + 1} {n0 + 2} {n0 + 3} {n0 + 4}")
+    return "\n".join(lines + faces + [""])
+
+
+def test_inserted_mesh_is_shaded_by_a_headlight(bundle, scene):
+    """A cube away from the volume: every pixel of a face shows the colour times
+    A + (1 - A)|n . d| for that face's normal and the pixel's ray (CPU ray-cast of the cube);
+    the three visible faces differ in brightness; unlit mode draws the flat colour."""
+    from plenoctree.datasets.procedural import look_at
+
+    center, half, color = np.array([0.0, -4.0, 0.0]), 0.6, (0.9, 0.8, 0.7)
+    eye = np.array([2.2, -6.4, 1.9])
+    c2w = look_at(eye, center)
+    f = 0.5 * SIZE / math.tan(0.5 * FOV_X)
+    view = {"c2w": c2w.reshape(-1).tolist(), "fx": f, "fy": f, "cx": SIZE / 2, "cy": SIZE / 2,
+            "width": SIZE, "height": SIZE}
+    o, d = generate_rays(c2w.astype(np.float32), f, f, SIZE / 2, SIZE / 2, SIZE, SIZE)
+    o, d = o.astype(np.float64), d.astype(np.float64)
+    # CPU ray-cast: entry distance and entry face of the box
+    with np.errstate(divide="ignore"):
+        ta, tb = (center - half - o) / d, (center + half - o) / d
+    lo, hi = np.minimum(ta, tb), np.maximum(ta, tb)
+    axis = np.argmax(lo, -1)
+    hit = lo.max(-1) < hi.min(-1)
+    normal = np.zeros_like(d)
+    np.put_along_axis(normal, axis[..., None], -np.sign(np.take_along_axis(d, axis[..., None],
+                                                                            -1)), -1)
+    lam = np.abs(np.sum(normal * d, -1))
+    want = np.asarray(color) * (MESH_AMBIENT + (1 - MESH_AMBIENT) * lam)[..., None]
+    # pixels away from the silhouette and the face edges (no sampling ambiguity)
+    label = np.where(hit, axis, -1)
+    pad = np.pad(label, 1, mode="edge")
+    interior = np.ones_like(hit)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            interior &= pad[1 + dy:1 + dy + SIZE, 1 + dx:1 + dx + SIZE] == label
+    bundle.evaluate("t => window.viewer.addMesh(t, 'cube.obj')", _cube_obj(center, half, color))
+    try:
+        gpu = _pixels(bundle, view)
+        bundle.evaluate("window.viewer.setMeshShading(false)")
+        flat = _pixels(bundle, view)
+    finally:
+        bundle.evaluate("window.viewer.setMeshShading(true)")
+        bundle.evaluate("window.viewer.clearMeshes()")
+    m = interior & hit
+    assert m.sum() > 500
+    diff = np.abs(gpu[m] - want[m])
+    assert diff.mean() <= 0.5 / 255 and diff.max() <= 1.5 / 255, (diff.mean() * 255,
+                                                                   diff.max() * 255)
+    faces = [gpu[m & (axis == a)].mean(0) for a in range(3) if (m & (axis == a)).sum() > 50]
+    assert len(faces) == 3
+    assert min(abs(faces[a][0] - faces[b][0]) for a, b in ((0, 1), (0, 2), (1, 2))) > 0.03
+    np.testing.assert_allclose(flat[m], np.broadcast_to(color, flat[m].shape), atol=1 / 255)
+    rest = ~hit & interior                      # elsewhere: the volume as the CPU renders it
+    assert np.abs(gpu[rest] - np.clip(_cpu(scene["tree"], view), 0, 1)[rest]).max() <= 2 / 255
+
+
+def test_inserted_mesh_is_occluded_in_an_ndc_tree(browser, ff):
+    """NDC trees: a world plane z = -2 (the NDC plane z' = 0, a cell boundary of the tree)
+    hides what lies behind it; equals the CPU render of the tree with its z' > 0 part emptied,
+    over the shaded plane. Mesh distances are mapped to NDC distances along each ray."""
+    tree = ff["tree"]
+    out = export_web(ff["path"], ff["dir"] / "site_mesh", overwrite=True)
+    srv, page = _open_bundle(browser, out)
+    try:
+        color = (0.3, 0.5, 0.8)
+        half, z0 = 1.5, -2.0
+        obj = "\n".join([f"v {x} {y} {z0} {color[0]} {color[1]} {color[2]}"
+                         for x, y in ((-half, -half), (half, -half), (half, half), (-half, half))]
+                        + ["f 1 2 3 4", ""])
+        page.evaluate("t => window.viewer.addMesh(t, 'plane.obj')", obj)
+        cams = ff["cams"]
+        i = 2
+        fx, fy, cx, cy = cams.intrinsics(i)
+        view = {"c2w": cams.c2w[i].reshape(-1).tolist(), "fx": fx, "fy": fy, "cx": cx,
+                "cy": cy, "width": cams.width, "height": cams.height}
+        gpu = _pixels(page, view)
+        page.evaluate("window.viewer.clearMeshes()")
+        plain = _pixels(page, view)
+        page.close()
+    finally:
+        srv.close()
+    assert tree.ndc.world_to_ndc([0.0, 0.0, z0])[2] == pytest.approx(0.0)
+    cut = tree.copy()
+    node, i_, j, k = cut.leaf_indices()
+    behind = cut.leaf_centers()[:, 2] > 0
+    assert behind.any() and (~behind).any()
+    cut.data[node[behind], i_[behind], j[behind], k[behind], -1] = 0
+    wo, wd = generate_rays(cams.c2w[i], fx, fy, cx, cy, cams.width, cams.height)
+    o, d = cams.rays(i)
+    cpu = _cpu_over(cut, o, d, _shaded(color, [0, 0, 1], wd))
+    _close(gpu, cpu, "NDC mesh occlusion")
+    assert np.abs(gpu - plain).max() > 0.2
+
+
+def test_a_large_glb_mesh_loads(bundle):
+    """A GLB of 160 k vertices (an exported lego mesh has more) loads without exhausting the
+    JS stack (no argument spreading of vertex arrays)."""
+    trimesh = pytest.importorskip("trimesh")
+    n = 400
+    y, x = np.mgrid[0:n, 0:n].astype(np.float32) / n
+    verts = np.stack([x.ravel() + 3.0, y.ravel(), np.zeros(n * n, np.float32)], 1)
+    q = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None]).ravel()
+    faces = np.concatenate([np.stack([q, q + 1, q + n], 1), np.stack([q + 1, q + n + 1, q + n], 1)])
+    glb = trimesh.Trimesh(verts, faces, process=False).export(file_type="glb")
+    info = bundle.evaluate("b => window.viewer.addMesh(b, 'big.glb')",
+                           base64.b64encode(glb).decode())
+    bundle.evaluate("window.viewer.clearMeshes()")
+    assert info == {"vertices": n * n, "triangles": len(faces)}

@@ -13,7 +13,7 @@ from typing import Any
 
 from .errors import ConfigError
 
-__all__ = ["apply", "field_help", "load_config_file", "config_dict"]
+__all__ = ["apply", "field_help", "load_config_file", "config_dict", "parse_background"]
 
 
 def field_help(cls: type) -> dict[str, str]:
@@ -33,11 +33,30 @@ def field_help(cls: type) -> dict[str, str]:
     return docs
 
 
+def parse_background(text: str) -> tuple[float, float, float]:
+    """``white``, ``black``, ``R,G,B`` or one grey value, floats in [0, 1] -> an RGB tuple;
+    anything else raises :class:`ConfigError`."""
+    t = str(text).strip().lower()
+    named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+    if t in named:
+        return named[t]
+    try:
+        vals = tuple(float(v) for v in t.split(","))
+    except ValueError:
+        vals = ()
+    if len(vals) == 1:
+        vals = vals * 3
+    if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
+        raise ConfigError(f"--background: expected white, black or R,G,B in [0,1], got {text!r}")
+    return vals  # type: ignore[return-value]
+
+
 def apply(cfg: Any, values: dict[str, Any], where: str = "config") -> Any:
     """Set ``values`` (nested dicts for nested dataclasses) on dataclass ``cfg``; returns it.
 
     Unknown names raise :class:`ConfigError` naming ``where``; lists become tuples where the
-    field's default is a tuple (JSON has no tuples)."""
+    field's default is a tuple (JSON has no tuples); a ``background`` given as text
+    (``white``, ``black``, ``R,G,B``) becomes its RGB tuple (:func:`parse_background`)."""
     names = {f.name: f for f in dataclasses.fields(cfg)}
     for key, value in values.items():
         if key not in names:
@@ -48,6 +67,8 @@ def apply(cfg: Any, values: dict[str, Any], where: str = "config") -> Any:
             apply(cur, value, f"{where}.{key}")
             continue
         ann = str(names[key].type)
+        if key == "background" and isinstance(value, str):
+            value = parse_background(value)
         if isinstance(value, list) and (isinstance(cur, tuple) or ann.startswith("tuple")
                                         or key == "background"):
             value = tuple(value)

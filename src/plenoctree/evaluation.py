@@ -1,12 +1,15 @@
 """Render a tree over a dataset split and score it: PNGs, per-view metrics and timings.
 
-Used by ``plenoctree render`` / ``plenoctree eval`` and the demo. Imports render, datasets and
-metrics (same layer as ``nerf``/``convert``).
+:func:`score_views` is the one render-and-score loop: ``render`` / ``eval`` and the demo
+(:func:`evaluate_tree`), the network's validation and ``render-nerf``
+(:func:`plenoctree.nerf.evaluate.evaluate_views`), the fine-tuner's validation
+(``optim._loop.render_views_psnr``) and the compression report all score through it. Imports
+render, datasets and metrics (below ``nerf``/``convert``/``optim``/``compress``, which use it).
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable, Sequence
 
 import time
 from dataclasses import dataclass, field
@@ -23,7 +26,7 @@ from .octree import Octree
 # The renderer (torch) is imported inside the functions: EvalConfig is read by `--help`.
 
 __all__ = ["EvalConfig", "EvalResult", "depth_to_image", "eval_markdown", "eval_tree_file",
-           "evaluate_tree", "metrics_markdown"]
+           "evaluate_tree", "metrics_markdown", "score_views"]
 
 
 @dataclass
@@ -168,34 +171,82 @@ def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None
     dev = resolve_device(str(device))
     tree = tree_to_device(tree, dev)
     cams = data.cameras
-    if warmup and len(cams):
-        render_image(tree, cams, 0, options, backend, device=dev)
     out = Path(out_dir) if out_dir is not None else None
-    res = EvalResult([], [], [], [], cams.width, cams.height, backend,
-                     extra={"device": str(dev)})
-    disable = None if show_progress is None else not show_progress
-    for i in progress(range(len(cams)), desc="render", disable=disable):
-        t0 = time.perf_counter()
-        o = render_image(tree, cams, i, options, backend, device=dev)
-        ms = (time.perf_counter() - t0) * 1e3
-        rgb = o.rgb.detach().cpu().numpy()
-        gt = data.images[i]
-        name = data.names[i] if i < len(data.names) else f"view_{i:03d}"
-        res.names.append(name)
-        res.psnr.append(float(psnr(rgb, gt)))
-        # SSIM's 11x11 window needs images at least that large; smaller ones score NaN.
-        res.ssim.append(float(ssim(rgb, gt)) if min(rgb.shape[:2]) >= 11 else float("nan"))
-        res.ms.append(ms)
-        if lpips_net is not None:
-            res.lpips.append(float(lpips_score(rgb, gt, lpips_net)))
+    names = [data.names[i] if i < len(data.names) else f"view_{i:03d}" for i in range(len(cams))]
+
+    def keep(i, name, o, rgb, gt):
         if out is not None:
             save_view_images(out, name, rgb, gt, o.depth.detach().cpu().numpy(),
                              o.alpha.detach().cpu().numpy(), data.near, data.far,
                              options.background)
+
+    res = score_views(lambda i: render_image(tree, cams, i, options, backend, device=dev),
+                      data.images[:len(cams)], names=names, warmup=warmup,
+                      lpips_net=lpips_net, show_progress=show_progress, on_view=keep,
+                      backend=backend)
+    res.width, res.height, res.extra = cams.width, cams.height, {"device": str(dev)}
     if out is not None:
         atomic_save_json(out / "metrics.json", res.to_json())
         with atomic_write(out / "metrics.md", "w") as f:
             f.write(metrics_markdown(res))
+    return res
+
+
+def _rgb_of(o: Any) -> np.ndarray:
+    """The RGB image of a renderer's output: an array, a tensor, ``.rgb`` or ``["rgb"]``."""
+    if isinstance(o, dict):
+        o = o["rgb"]
+    o = getattr(o, "rgb", o)
+    if hasattr(o, "detach"):
+        o = o.detach().cpu().numpy()
+    return np.asarray(o)
+
+
+def score_views(render: Callable[[int], Any], images: Sequence[np.ndarray], *,
+                names: Sequence[str] = (), with_ssim: bool = True, lpips_net: str | None = None,
+                warmup: bool = False, show_progress: bool | None = False,
+                rgb_of: Callable[[Any], np.ndarray] = _rgb_of,
+                on_view: Callable[..., None] | None = None, backend: str = "") -> EvalResult:
+    """The one render-and-score loop (trees, the fine-tuner's views, the network, codecs).
+
+    For each ``k`` in ``range(len(images))``: ``o = render(k)`` (timed, milliseconds),
+    ``rgb = rgb_of(o)`` ([H, W, 3] numpy in [0, 1]; default: an array, a tensor, ``o.rgb`` or
+    ``o["rgb"]``), then PSNR (dB; ``inf`` for identical images) against ``images[k]``, SSIM
+    (NaN when ``with_ssim`` is False or the image is under the 11x11 window), LPIPS with
+    ``lpips_net`` when given, and ``on_view(k, name, o, rgb, gt)`` (e.g. saving pictures).
+
+    Args:
+        render: view index -> the renderer's output.
+        images: ground truth (or reference renders) per view, ``[H, W, 3]`` each.
+        names: view names (default ``view_<k:03d>``).
+        warmup: render view 0 once, untimed, first (JIT compilation, cache load).
+        show_progress: progress bar (``None``: shown, as :func:`~plenoctree._util.progress`).
+
+    Returns:
+        An :class:`EvalResult` (``width``/``height`` of the first image, ``backend`` as given).
+    """
+    n = len(images)
+    if warmup and n:
+        render(0)
+    h, w = (int(images[0].shape[0]), int(images[0].shape[1])) if n else (0, 0)
+    res = EvalResult([], [], [], [], w, h, backend)
+    disable = None if show_progress is None else not show_progress
+    for k in progress(range(n), desc="render", disable=disable):
+        t0 = time.perf_counter()
+        o = render(k)
+        ms = (time.perf_counter() - t0) * 1e3
+        rgb, gt = rgb_of(o), images[k]
+        name = names[k] if k < len(names) else f"view_{k:03d}"
+        res.names.append(name)
+        res.psnr.append(float(psnr(rgb, gt)))
+        # SSIM's 11x11 window needs images at least that large; smaller ones score NaN.
+        small = min(rgb.shape[:2]) < 11
+        res.ssim.append(float(ssim(rgb, gt)) if with_ssim and not small else float("nan"))
+        res.ms.append(ms)
+        if lpips_net is not None:
+            res.lpips.append(float(lpips_score(rgb, gt, lpips_net)))
+        if on_view is not None:
+            on_view(k, name, o, rgb, gt)
     return res
 
 

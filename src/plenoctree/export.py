@@ -6,7 +6,16 @@
 - :func:`sample_sigma_grid` / :func:`extract_mesh` / :func:`export_mesh`: marching cubes
   (scikit-image) on σ sampled from the tree at its finest leaf resolution, vertex colours from
   the SH coefficients, written with ``trimesh`` as ``.ply``, ``.glb`` or ``.obj``.
-- svox: :func:`plenoctree.octree.io.export_svox` (the svox / volrend layout, float16 data).
+- svox: :func:`export_svox_file` (:func:`plenoctree.octree.io.export_svox`: the svox /
+  volrend layout, float16 data; NDC trees also get volrend's ``<stem>_poses_bounds.npy``).
+
+Forward-facing trees (``tree.ndc`` set: the box lives in NDC space, :mod:`plenoctree.octree.ndc`)
+are exported in *world* coordinates: point centres and mesh vertices are mapped back with
+``NDCSpace.ndc_to_world`` (point sizes: the extent of the leaf's 8 mapped corners; mesh faces
+re-wound, since the map reverses orientation, and normals recomputed). Geometry at NDC depth
+``z' >= NDC_MAX_Z`` (world depth beyond ``2 near / (1 - NDC_MAX_Z)`` = 200 near, towards the
+NDC far end at infinity) is dropped. Colours are evaluated in NDC space (the tree's SH take NDC
+ray directions); densities stay per unit NDC length.
 
 Colour of a leaf (or vertex) seen along a unit ray direction ``d``: ``sigmoid(Σ_b k_b Y_b(d))``
 per channel, as the renderer computes it. ``view="dc"`` uses the mean of each basis over the
@@ -43,10 +52,14 @@ __all__ = [
     "export_mesh",
     "MESH_SUFFIXES",
     "point_colors",
+    "export_svox_file",
+    "NDC_MAX_Z",
 ]
 
 #: File types :func:`export_mesh` writes (by suffix of the output path).
 MESH_SUFFIXES = (".ply", ".glb", ".obj")
+#: NDC trees: geometry at NDC depth z' >= this (world depth > 200 near) is not exported.
+NDC_MAX_Z = 0.99
 
 
 def _require(module: str, package: str) -> Any:
@@ -127,14 +140,16 @@ def point_colors(tree: Octree, coeffs: np.ndarray, dirs: Any = "dc") -> np.ndarr
 # ---------------------------------------------------------------------------- point cloud
 @dataclass
 class PointCloud:
-    """Occupied leaves as points (world units).
+    """Occupied leaves as points (world units; NDC trees: mapped back to world space).
 
     Attributes:
         xyz: float32 ``[N, 3]`` leaf centres.
         rgb: float32 ``[N, 3]`` colour in [0, 1].
-        opacity: float32 ``[N]`` ``1 - exp(-σ s)``, ``s`` the mean side of the leaf.
-        sigma: float32 ``[N]`` density (1 / world length).
-        size: float32 ``[N, 3]`` side lengths of the leaf.
+        opacity: float32 ``[N]`` ``1 - exp(-σ s)``, ``s`` the mean side of the leaf (tree units
+            of length: NDC for NDC trees).
+        sigma: float32 ``[N]`` density (1 / world length; 1 / NDC length for NDC trees).
+        size: float32 ``[N, 3]`` side lengths of the leaf (NDC trees: of the world box around
+            its mapped corners).
     """
 
     xyz: np.ndarray
@@ -142,6 +157,9 @@ class PointCloud:
     opacity: np.ndarray
     sigma: np.ndarray
     size: np.ndarray
+
+
+_CORNERS = np.stack(np.meshgrid([0.0, 1.0], [0.0, 1.0], [0.0, 1.0], indexing="ij"), -1).reshape(8, 3)
 
 
 def leaf_points(tree: Octree, view: Any = "dc", min_opacity: float = 0.01) -> PointCloud:
@@ -163,6 +181,16 @@ def leaf_points(tree: Octree, view: Any = "dc", min_opacity: float = 0.01) -> Po
     opacity = 1.0 - np.exp(-sigma * size.mean(1))
     keep = (sigma > 0) & (opacity >= mo)
     centre = tree.tree_to_world(corner[keep] + 0.5 * size_t[keep, None])
+    if tree.ndc is not None:           # forward-facing: back to world space (module docstring)
+        near_end = centre[:, 2] < NDC_MAX_Z
+        keep[np.flatnonzero(keep)[~near_end]] = False
+        centre = centre[near_end]
+        corners = tree.tree_to_world(corner[keep][:, None, :] + size_t[keep, None, None]
+                                     * _CORNERS[None])
+        world = tree.ndc.ndc_to_world(corners)                        # [n, 8, 3]
+        size = np.zeros_like(size)
+        size[keep] = world.max(1) - world.min(1)
+        centre = tree.ndc.ndc_to_world(centre)
     rgb = point_colors(tree, data[keep, :-1], v)
     return PointCloud(xyz=centre.astype(np.float32), rgb=rgb,
                       opacity=opacity[keep].astype(np.float32),
@@ -313,8 +341,34 @@ def extract_mesh(tree: Octree, resolution: int | None = None, level: float | Non
     colors = point_colors(tree, data[:, :-1], dirs)
     # skimage winds faces clockwise seen along the descent normal; flip to CCW-outward
     faces = faces[:, ::-1]
+    if tree.ndc is not None:
+        verts, faces, nrm, colors = _unwarp_ndc(tree.ndc, verts, faces, colors)
     return Mesh(vertices=verts.astype(np.float32), faces=np.ascontiguousarray(faces, np.int32),
                 normals=nrm.astype(np.float32), colors=colors, level=lev)
+
+
+def _unwarp_ndc(ndc: Any, verts: np.ndarray, faces: np.ndarray, colors: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """An NDC-space mesh in world space: faces touching ``z' >= NDC_MAX_Z`` dropped, unused
+    vertices removed, vertices mapped by ``ndc_to_world``, faces re-wound (the map has a
+    negative Jacobian determinant) and area-weighted vertex normals recomputed."""
+    ok = verts[:, 2] < NDC_MAX_Z
+    faces = faces[ok[faces].all(1)]
+    if not len(faces):
+        raise ConfigError(f"the surface lies entirely at NDC depth >= {NDC_MAX_Z} (at "
+                          "infinity in world space): nothing to export")
+    used = np.unique(faces)
+    remap = np.full(len(verts), -1, np.int64)
+    remap[used] = np.arange(used.size)
+    faces = remap[faces][:, ::-1]
+    world = ndc.ndc_to_world(verts[used])
+    tri = world[faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])      # area-weighted, outward
+    nrm = np.zeros_like(world)
+    for c in range(3):
+        np.add.at(nrm, faces[:, c], fn)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
+    return world, faces, nrm, colors[used]
 
 
 _UP_TO_Y = {  # rotations taking the scene's up axis to glTF's +Y (right-handed, det +1)
@@ -327,16 +381,43 @@ _UP_TO_Y = {  # rotations taking the scene's up axis to glTF's +Y (right-handed,
 }
 
 
+def export_svox_file(tree: Octree, path: str | os.PathLike) -> Path | None:
+    """:func:`~plenoctree.octree.io.export_svox` plus, for an NDC tree, volrend's NDC sidecar
+    ``<stem>_poses_bounds.npy`` (one LLFF row: the identity reference pose, ``H W f`` = the
+    tree's NDC height, width and fx; volrend maps its world rays to NDC with them, near 1).
+
+    Returns the sidecar's path, or None (world-space tree, or an NDC space volrend cannot
+    express: ``near != 1`` or ``fx != fy``; the ``.npz``'s ``ndc_config`` still holds it).
+    """
+    from .octree.io import export_svox
+
+    export_svox(tree, path)
+    ndc = tree.ndc
+    if ndc is None or abs(ndc.near - 1.0) > 1e-9 or abs(ndc.fx - ndc.fy) > 1e-6 * ndc.fx:
+        return None
+    row = np.array([[0.0, 1.0, 0.0, 0.0, ndc.height],      # LLFF columns: down, right, back,
+                    [-1.0, 0.0, 0.0, 0.0, ndc.width],      # centre, hwf (identity pose)
+                    [0.0, 0.0, 1.0, 0.0, ndc.fx]])
+    pb = np.concatenate([row.reshape(-1), [1.0, 100.0]])[None]     # + depth bounds
+    side = Path(path).with_name(Path(path).stem + "_poses_bounds.npy")
+    with atomic_write(side, "wb") as f:
+        np.save(f, pb, allow_pickle=False)
+    return side
+
+
 def export_mesh(tree: Octree, path: str | os.PathLike, resolution: int | None = None,
                 level: float | None = None, smooth: float = 0.0, view: Any = "normal",
-                up: str = "+z", show_progress: bool | None = None) -> Mesh:
+                up: str | None = None, show_progress: bool | None = None) -> Mesh:
     """Write :func:`extract_mesh`'s mesh with vertex colours as ``.ply``, ``.glb`` or ``.obj``
     (by the suffix of ``path``; via trimesh). Returns the mesh (in world coordinates).
 
     ``.ply``/``.obj`` keep world coordinates. glTF (``.glb``) is +Y-up by specification, so the
-    scene's ``up`` axis (``"+z"`` for Blender/NeRF-synthetic scenes) is rotated onto +Y there
-    (Blender's glTF importer rotates it back to +Z).
+    scene's ``up`` axis (default ``"+z"``, Blender/NeRF-synthetic scenes; ``"+y"`` for NDC
+    trees, whose LLFF world is y-up) is rotated onto +Y there (Blender's glTF importer rotates
+    it back to +Z).
     """
+    if up is None:
+        up = "+y" if tree.ndc is not None else "+z"
     path = Path(path)
     kind = path.suffix.lower()
     if kind not in MESH_SUFFIXES:

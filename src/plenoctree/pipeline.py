@@ -91,10 +91,11 @@ class PipelineConfig:
     """random seed of training and fine-tuning"""
     extra: dict = field(default_factory=dict)
     """stage overrides: {"train": {...TrainConfig fields, "model": {...}}, "extract": {...},
-    "finetune": {...}} (the CLI's --train.*, --extract.*, --finetune.* flags)"""
+    "finetune": {...}, "process": {...ProcessConfig fields, "sfm": {...}}} (the CLI's --train.*,
+    --extract.*, --finetune.*, --process.* flags)"""
 
 
-STAGE_OPTIONS = ("train", "extract", "refine", "finetune")
+STAGE_OPTIONS = ("process", "train", "extract", "refine", "finetune")
 """Stages whose every config field ``extra`` may set (``plenoctree run --<stage>.<field>``)."""
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -262,9 +263,14 @@ def run_pipeline(cfg: PipelineConfig, log: Callable[[str], None] = print) -> dic
 def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) -> dict:
     atomic_save_json(out / "config.json", _config_dict(cfg))   # `run --config` reads it back
     r = _Runner(out, log)
-    # 0. camera poses of the user's photos / video (plenoctree.process) into OUT/data
-    data = _process_stage(cfg, out, r, log) if cfg.images else Path(cfg.data)
-    if not data.exists():
+    _check_extra(cfg.extra)
+    # 0. camera poses of the user's photos / video (plenoctree.process) into OUT/data: its
+    # options are checked now, the stage runs once every other stage's options are checked.
+    if cfg.extra.get("process") and not cfg.images:
+        raise ConfigError("--process.* options apply to --images (photos or a video), not --data")
+    pcfg = _process_config(cfg, out) if cfg.images else None
+    data = Path(pcfg.out) if pcfg else Path(cfg.data)
+    if pcfg is None and not data.exists():
         raise ConfigError(f"{data}: dataset folder does not exist")
     common = {"data": str(data.resolve()), "format": cfg.format, "downscale": cfg.downscale}
     run_dir, tree_raw, tree_ft = out / "nerf", out / "tree.npz", out / "tree_ft.npz"
@@ -284,7 +290,6 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
         tcfg.max_steps = cfg.train_steps
     elif cfg.train_minutes:
         tcfg.max_steps = 10**9  # the time budget decides
-    _check_extra(cfg.extra)
     apply(tcfg, cfg.extra.get("train", {}), where="--train")
 
     from .nerf.config import validate
@@ -325,6 +330,8 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
     from .compress import CompressOptions
 
     CompressOptions(bits=cfg.compress_bits).validated()
+    if pcfg is not None:
+        _process_stage(pcfg, r, log)
 
     def do_train():
         from .nerf.trainer import train
@@ -431,7 +438,7 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
     atomic_save_json(out / "summary.json", summary)
     from .plots import plot_stages               # PSNR against FPS and MB (needs matplotlib)
 
-    plot_stages(summary["rows"], out / "stages.png", title=f"{Path(cfg.data).name}: stages")
+    plot_stages(summary["rows"], out / "stages.png", title=f"{Path(cfg.data or cfg.images).name}: stages")
     with atomic_write(out / "summary.md", "w") as f:
         f.write(summary_markdown(summary))
     log("")
@@ -439,19 +446,28 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
     return summary
 
 
-def _process_stage(cfg: PipelineConfig, out: Path, r: _Runner, log: Callable) -> Path:
-    """Run ``process`` on ``cfg.images`` into ``OUT/data`` (skipped when up to date)."""
-    from .process import ProcessConfig, process
+def _process_config(cfg: PipelineConfig, out: Path):
+    """The checked :class:`~plenoctree.process.ProcessConfig` of ``run --images`` (its
+    ``--process.*`` options; the dataset goes to ``OUT/data``)."""
+    from .process import ProcessConfig
 
-    src, data = Path(cfg.images), out / "data"
-    if not src.exists():
-        raise ConfigError(f"{src}: no such folder of photos or video file")
+    pcfg = ProcessConfig(images=str(cfg.images), out=str(out / "data"), overwrite=True)
+    apply(pcfg, cfg.extra.get("process", {}), where="--process")
+    if pcfg.images != str(cfg.images) or pcfg.out != str(out / "data"):
+        raise ConfigError("--process: images and out are set by run (--images, OUT/data)")
+    return pcfg.validated()
+
+
+def _process_stage(pcfg: Any, r: _Runner, log: Callable) -> None:
+    """Run ``process`` into ``OUT/data`` (skipped when the photos and options are unchanged)."""
+    from .process import process
+
+    src = Path(pcfg.images)
     inputs = sorted(p for p in src.iterdir() if p.is_file()) if src.is_dir() else [src]
-    r.stage("process", {"images": str(src.resolve())}, inputs, [data / "process.json"],
-            lambda: process(ProcessConfig(images=str(src), out=str(data), overwrite=True),
-                            log=log), "check the photos (see the message) or run "
-            "`plenoctree process` with other options into --data")
-    return data
+    settings = {**_config_dict(pcfg), "images": str(src.resolve())}
+    r.stage("process", settings, inputs, [Path(pcfg.out) / "process.json"],
+            lambda: process(pcfg, log=log), "check the photos (see the message), change the "
+            "--process.* options, or run `plenoctree process` yourself and pass --data")
 
 
 def _config_dict(cfg: Any) -> dict:

@@ -151,6 +151,37 @@ def plot_finetune_curve(log_path: str | os.PathLike, out: str | os.PathLike,
     return True
 
 
+#: ``benchmarks/paper_table.py`` row keys -> stage labels of the stage plot (in its order).
+PAPER_TABLE_STAGES = (("nerf_sh", "NeRF-SH"), ("raw", "PlenOctree raw"),
+                      ("refined", "refined"), ("ft", "fine-tuned"),
+                      ("compressed", "compressed .plnz"), ("sh2", "fine-tuned, SH 2"),
+                      ("sh1", "fine-tuned, SH 1"))
+
+
+def stage_rows(obj: Any) -> tuple[list[dict], str | None]:
+    """The stage plot's rows (``stage, psnr, fps, mb``) and a default title from any of:
+    a run's ``summary.json`` (``{"rows": [...]}``), a JSON list of such rows, or
+    ``benchmarks/paper_table.py``'s ``paper_table.json`` (``{"rows": {key: {psnr, fps_400,
+    fps_800, mb, ...}}, "size": 400, "views": ...}``: FPS at the table's image size, MB on
+    disk; rows not measured, e.g. ``refined`` without a refined tree, are left out).
+    Raises ``ValueError`` for anything else."""
+    rows = obj.get("rows") if isinstance(obj, dict) else obj
+    if isinstance(rows, dict) and isinstance(obj, dict):             # paper_table.json
+        size = int(obj.get("size") or 400)
+        out = []
+        for key, label in PAPER_TABLE_STAGES:
+            r = rows.get(key)
+            if isinstance(r, dict) and r.get("psnr") is not None:
+                out.append({"stage": label, "psnr": r.get("psnr"), "fps": r.get(f"fps_{size}"),
+                            "mb": r.get("mb")})
+        title = f"lego {size}²: stages (benchmarks/paper_table.py, {obj.get('views')} test views)"
+        return out, title
+    if isinstance(rows, list) and all(isinstance(r, dict) for r in rows):
+        return list(rows), None
+    raise ValueError("expected a run's summary.json, benchmarks/paper_table.py's "
+                     "paper_table.json, or a list of rows with stage, psnr, fps, mb")
+
+
 def plot_stages(rows: Sequence[dict], out: str | os.PathLike, title: str | None = None) -> bool:
     """PSNR against FPS (log scale) and against MB (log scale) of each stage, to ``out``.
 

@@ -30,6 +30,7 @@ from .datasets import Cameras
 from .errors import BackendError, ConfigError, TreeFormatError
 
 __all__ = ["PATHS", "MODES", "UP_AXES", "VideoConfig", "VideoResult", "axis_vector",
+           "ndc_spiral_cameras",
            "detect_up_axis", "fit_radius", "orbit_poses", "orbit_cameras", "resize_cameras", "depth_bounds",
            "compose_frame", "pad_even", "write_video", "video_cameras", "make_video",
            "render_path_images"]
@@ -113,6 +114,24 @@ def orbit_cameras(center: np.ndarray, radius: float, n_frames: int, width: int, 
     f = 0.5 * width / math.tan(0.5 * fov_x)
     return Cameras(orbit_poses(center, radius, n_frames, elevation_deg, up), f, f,
                    width / 2.0, height / 2.0, int(width), int(height))
+
+
+def ndc_spiral_cameras(ndc, n_frames: int = DEFAULT_FRAMES) -> Cameras:
+    """A spiral video path for an NDC tree without its dataset: LLFF's :func:`spiral_path`
+    for a rig of offsets ±(0.1, 0.1, 0.05)·near about the reference camera with content depths
+    4/3 to 40/3·near (LLFF's normalisation puts the closest content at 4/3 near), so it looks
+    at a point ~4.5 near ahead; the reference camera's intrinsics, NDC rays of ``ndc``."""
+    from .datasets.llff import spiral_path
+
+    _check_frames(n_frames)
+    s = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
+    rig = np.tile(np.eye(4), (8, 1, 1))
+    rig[:, :3, 3] = s * np.array([0.1, 0.1, 0.05]) * ndc.near
+    bounds = np.array([[4.0 / 3.0, 40.0 / 3.0]]) * ndc.near
+    path = spiral_path(rig, bounds, n_frames)
+    cams = Cameras(path.astype(np.float32), ndc.fx, ndc.fy, ndc.width / 2.0, ndc.height / 2.0,
+                   ndc.width, ndc.height)
+    return ndc.apply(cams)
 
 
 def resize_cameras(cams: Cameras, width: int, height: int) -> Cameras:
@@ -397,15 +416,26 @@ def video_cameras(cfg: VideoConfig, tree) -> tuple[Cameras, dict]:
         if cfg.frames is not None and cfg.frames != len(cp):
             raise ConfigError(f"--frames {cfg.frames}: the camera path {cfg.camera_path} has "
                               f"{len(cp)} frames (leave --frames out)")
-        return cp.cameras, {"path": "camera_path", "up": None, "radius": None, "fps": cp.fps}
+        cams = cp.cameras if tree.ndc is None else tree.ndc.apply(cp.cameras)
+        return cams, {"path": "camera_path", "up": None, "radius": None, "fps": cp.fps}
     elif cfg.dataparser_transforms is not None:
         raise ConfigError("--dataparser-transforms goes with --camera-path")
     fmt = None
     if cfg.data is not None:
         fmt = cfg.format or detect_format(cfg.data)
-    kind = cfg.path or ("spiral" if fmt == "llff" else "orbit")
+    ndc = getattr(tree, "ndc", None)
+    kind = cfg.path or ("spiral" if fmt == "llff" or ndc is not None else "orbit")
     if kind not in PATHS:
         raise ConfigError(f"--path: expected one of {', '.join(PATHS)}, got {kind!r}")
+    if kind == "orbit" and ndc is not None:
+        raise ConfigError(f"{cfg.tree}: a forward-facing (NDC) tree cannot be orbited (it holds "
+                          "only what lies in front of its cameras): use --path spiral, "
+                          "--path dataset or --camera-path")
+    if kind == "spiral" and cfg.data is None and ndc is not None:
+        cams = ndc_spiral_cameras(ndc, cfg.frames or DEFAULT_FRAMES)
+        if cfg.width is not None and (cams.width, cams.height) != (cfg.width, cfg.height):
+            cams = resize_cameras(cams, int(cfg.width), int(cfg.height))
+        return cams, {"path": "spiral", "up": None, "radius": None}
     if kind != "orbit" and cfg.data is None:
         raise ConfigError(f"--path {kind} needs --data (the dataset whose cameras to follow)")
     info: dict = {"path": kind, "up": None, "radius": None}

@@ -11,8 +11,10 @@ field into a flag; a new field becomes a flag with no other edit:
   default (``default: 0.01``; nothing when the default is ``None``/empty and the text says
   what happens then);
 - type from the annotation: ``bool`` → ``--x/--no-x``; ``int``/``float``/``str`` (``| None``
-  allowed); tuples of numbers → ``--x 1 2 3``; ``dict``/``list`` → a JSON value; a field
-  named ``background`` → ``white``, ``black`` or ``R,G,B``;
+  allowed); tuples of numbers → ``--x 1 2 3`` or ``--x 1,2,3`` (a length fixed by the
+  annotation, ``tuple[float, float]``, is checked); ``dict``/``list`` → a JSON value; a field
+  named ``background`` → ``white``, ``black`` or ``R,G,B`` (parsed with the other values by
+  :func:`apply`, so a config file may use the same names);
 - field metadata (``field(metadata={...})``) may add ``"choices"``, ``"flag"`` (another flag
   name, e.g. ``"steps"``), ``"positional": True``, ``"cli": False`` (no flag), ``"metavar"``.
 
@@ -27,39 +29,40 @@ import argparse
 import dataclasses
 import json
 import re
-from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
-from .._config import apply, field_help, load_config_file
+from .._config import apply, field_help, load_config_file, parse_background
 from ..errors import ConfigError
 
-__all__ = ["add_config", "given", "layered", "apply", "field_help", "load_config_file", "parse_background",
-           "add_config_file", "config_to_json", "format_default"]
+__all__ = ["add_command", "add_config", "given", "layered", "apply", "field_help",
+           "load_config_file", "parse_background", "add_config_file", "config_to_json",
+           "format_default"]
 
 
-def parse_background(text: str) -> tuple[float, float, float]:
-    """``white``, ``black``, ``R,G,B`` or one grey value, floats in [0, 1] -> an RGB tuple;
-    anything else raises :class:`ConfigError`."""
-    t = str(text).strip().lower()
-    named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
-    if t in named:
-        return named[t]
-    try:
-        vals = tuple(float(v) for v in t.split(","))
-    except ValueError:
-        vals = ()
-    if len(vals) == 1:
-        vals = vals * 3
-    if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
-        raise ConfigError(f"--background: expected white, black or R,G,B in [0,1], got {text!r}")
-    return vals  # type: ignore[return-value]
+def _numbers(conv: type, length: int | None):
+    """The argparse action of a tuple field: ``--x 1 2 3`` or ``--x 1,2,3`` -> a list of
+    numbers (``length`` of them when the annotation fixes it, e.g. ``tuple[float, float]``)."""
+
+    class Numbers(argparse.Action):
+        def __call__(self, parser, namespace, values, option_string=None):
+            try:
+                nums = [conv(v) for text in values for v in str(text).split(",") if v.strip()]
+            except ValueError:
+                parser.error(f"{option_string}: expected numbers, got {' '.join(values)!r}")
+            if length is not None and len(nums) != length:
+                parser.error(f"{option_string}: expected {length} numbers, got "
+                             f"{' '.join(values)!r}")
+            setattr(namespace, self.dest, nums)
+
+    return Numbers
 
 
-def _background_arg(text: str) -> tuple[float, float, float]:
-    try:
-        return parse_background(text)
-    except ConfigError as e:
-        raise argparse.ArgumentTypeError(str(e).split(": ", 1)[1]) from None
+def _tuple_length(ann: str) -> int | None:
+    """``tuple[float, float]`` -> 2; ``tuple`` / ``tuple[float, ...]`` -> None."""
+    m = re.search(r"tuple\[([^\]]*)\]", ann)
+    if not m or "..." in m.group(1):
+        return None
+    return len([t for t in m.group(1).split(",") if t.strip()])
 
 
 def _kind(f: dataclasses.Field) -> tuple[str, Any]:
@@ -70,7 +73,7 @@ def _kind(f: dataclasses.Field) -> tuple[str, Any]:
     base = parts[0] if parts else "str"
     default = f.default if f.default is not dataclasses.MISSING else None
     if f.name == "background":
-        return "background", _background_arg
+        return "background", str          # parsed by _config.apply (flags and config files)
     if base == "bool":
         return "bool", None
     if base.startswith("tuple") or isinstance(default, tuple):
@@ -111,7 +114,10 @@ def add_config(p: argparse.ArgumentParser | Any, cls: type, *, prefix: str = "",
                positional: Iterable[str] = (), short: dict[str, str] | None = None,
                rename: dict[str, str] | None = None,
                aliases: dict[str, str] | None = None,
-               choices: dict[str, Iterable[str]] | None = None) -> list[str]:
+               choices: dict[str, Iterable[str]] | None = None,
+               required: Iterable[str] = (),
+               metavars: dict[str, str] | None = None,
+               nested: dict[str, dict[str, Any]] | None = None) -> list[str]:
     """Add one flag per field of dataclass ``cls`` to parser (or group) ``p``.
 
     ``prefix``: flag and dest prefix (``"finetune."`` → ``--finetune.epochs``, dest
@@ -122,16 +128,28 @@ def add_config(p: argparse.ArgumentParser | Any, cls: type, *, prefix: str = "",
     (required). ``short``: extra short flags (``{"out": "-o"}``). ``rename``: flag names
     differing from the field's (``{"show_progress": "progress"}``). ``aliases``: an older
     flag name kept working (``{"limit": "--limit"}``). ``choices``: allowed values of
-    fields (as the ``"choices"`` metadata). Returns the dests added.
+    fields (as the ``"choices"`` metadata). ``required``: flags that must be given on the
+    command line (e.g. ``--out``). ``metavars``: shown value names (``{"tree": "JSON"}``).
+    ``nested``: fields holding a dataclass whose own fields get
+    flags too, ``{field: add_config keyword arguments}`` (flags unprefixed unless given a
+    ``prefix``; dest ``<field>.<name>``). Returns the dests added.
     """
-    choices = choices or {}
+    choices, required, metavars = choices or {}, set(required), metavars or {}
     positional, short, rename, aliases = set(positional), short or {}, rename or {}, aliases or {}
     dprefix = prefix if dest_prefix is None else dest_prefix
     docs = field_help(cls)
     target = p.add_argument_group(title) if title else p
     skip = set(skip)
-    dests = []
+    dests: list[str] = []
+    later: list[tuple[type, dict[str, Any]]] = []
+    nested = nested or {}
     for f in dataclasses.fields(cls):
+        if f.name in nested:
+            inner = getattr(shown, f.name) if shown is not None else _default_of(f)
+            kw = {"prefix": prefix, "dest_prefix": f"{dprefix}{f.name}.", "shown": inner,
+                  **nested[f.name]}
+            later.append((type(inner), kw))
+            continue
         if f.name in skip or not f.metadata.get("cli", True) or dataclasses.is_dataclass(
                 _default_of(f)):
             continue
@@ -141,7 +159,7 @@ def add_config(p: argparse.ArgumentParser | Any, cls: type, *, prefix: str = "",
         shown_default = format_default(default)
         if shown_default is not None and kind != "json":
             text = f"{text} (default: {shown_default})" if text else f"default: {shown_default}"
-        text = text.replace("%", "%%")
+        text = text.replace("``", "").replace("%", "%%")
         dest = dprefix + f.name
         if f.metadata.get("positional") or f.name in positional:
             target.add_argument(dest, metavar=f.name.upper(), help=text)
@@ -155,20 +173,27 @@ def add_config(p: argparse.ArgumentParser | Any, cls: type, *, prefix: str = "",
         if f.name in aliases and not prefix:
             names.append(aliases[f.name])
         kw: dict[str, Any] = {"dest": dest, "default": None, "help": text}
+        if f.name in required and not prefix:
+            kw["required"] = True
         if kind == "bool":
             kw["action"] = argparse.BooleanOptionalAction
+        elif kind == "tuple":
+            ann = f.type if isinstance(f.type, str) else str(f.type)
+            kw["nargs"] = "+"
+            kw["action"] = _numbers(parse, _tuple_length(ann))
+            kw["metavar"] = metavars.get(f.name) or f.metadata.get("metavar") or "X"
         else:
             kw["type"] = parse
-            if kind == "tuple":
-                kw["nargs"] = "+"
             if "choices" in f.metadata or f.name in choices:
                 kw["choices"] = list(choices.get(f.name) or f.metadata["choices"])
-            kw["metavar"] = f.metadata.get("metavar") or {
-                "tuple": "X", "background": "COLOUR", "json": "JSON"}.get(kind, f.name.upper())
+            kw["metavar"] = metavars.get(f.name) or f.metadata.get("metavar") or {
+                "background": "COLOUR", "json": "JSON"}.get(kind, f.name.upper())
             if "choices" in kw:
                 kw.pop("metavar")
         target.add_argument(*names, **kw)
         dests.append(dest)
+    for inner_cls, kw in later:
+        dests += add_config(p, inner_cls, **kw)
     return dests
 
 
@@ -208,3 +233,25 @@ def add_config_file(p: argparse.ArgumentParser) -> None:
 def config_to_json(cfg: Any) -> str:
     """A dataclass config as indented JSON (tuples as lists, paths as strings)."""
     return json.dumps(dataclasses.asdict(cfg), indent=2, default=str)
+
+
+def add_command(sub: argparse._SubParsersAction, name: str, cls: type,
+                run: Callable[[Any, argparse.Namespace], int | None], *, help: str,
+                description: str | None = None, base: Callable[[], Any] | None = None,
+                **options: Any) -> argparse.ArgumentParser:
+    """Add the sub-command ``name`` whose options are the fields of dataclass ``cls``:
+    ``--config FILE`` and one flag per field (:func:`add_config`; ``options`` are its keyword
+    arguments). When used, it calls ``run(cfg, args)`` with ``cfg`` = ``base()`` (default
+    ``cls()``) under ``--config`` and the flags given (:func:`layered`); ``args`` holds the
+    flags that are not options (``--json``, ``--quiet``); ``args._resolve(args)`` gives the
+    config alone (tests). Returns the parser, to add those flags."""
+    p = sub.add_parser(name, help=help, description=description)
+    add_config_file(p)
+    dests = add_config(p, cls, **options)
+    make = base or cls
+
+    def resolve(args: argparse.Namespace) -> Any:
+        return layered(args, make(), name)
+
+    p.set_defaults(func=lambda args: run(resolve(args), args), _dests=dests, _resolve=resolve)
+    return p

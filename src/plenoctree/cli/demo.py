@@ -6,11 +6,9 @@ import argparse
 from pathlib import Path
 
 
-def _run(args: argparse.Namespace) -> int:
-    from ..demo import DemoConfig, run_demo
-    from ._options import layered
+def _run(cfg, args: argparse.Namespace) -> int:
+    from ..demo import run_demo
 
-    cfg = layered(args, DemoConfig(), "demo")
     cfg.out = Path(cfg.out)
     run_demo(cfg)
     return 0
@@ -19,10 +17,10 @@ def _run(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``demo`` command (one flag per :class:`DemoConfig` field)."""
     from ..demo import DemoConfig
-    from ._options import add_config
+    from ._options import add_command
 
-    p = sub.add_parser("demo", help="the whole chain on the embedded procedural scene",
-                       description="Write the procedural scene as a dataset, train a NeRF-SH, "
-                                   "extract, fine-tune, evaluate, compress, export the viewer "
-                                   "and an orbit video; prints one summary table.")
-    p.set_defaults(func=_run, _dests=add_config(p, DemoConfig))
+    add_command(sub, "demo", DemoConfig, _run,
+                help="the whole chain on the embedded procedural scene",
+                description="Write the procedural scene as a dataset, train a NeRF-SH, "
+                            "extract, fine-tune, evaluate, compress, export the viewer and an "
+                            "orbit video; prints one summary table.")

@@ -10,25 +10,11 @@ import argparse
 
 from ..errors import ConfigError
 
-def _add_config_args(p: argparse.ArgumentParser) -> list[str]:
-    from ..convert.extract import ExtractConfig
-    from ._options import add_config, add_config_file
 
-    add_config_file(p)
-    return add_config(p, ExtractConfig, positional=("run_dir",), short={"out": "-o"},
-                      rename={"show_progress": "progress"})
-
-
-def config_from_args(args: argparse.Namespace):
-    """Build an :class:`~plenoctree.convert.ExtractConfig` from parsed arguments (defaults,
-    then ``--config FILE``, then the flags given)."""
-    from ..convert.extract import ExtractConfig
-    from ._options import layered
-
-    cfg = layered(args, ExtractConfig(), "extract")
+def _check(cfg) -> None:
+    """Option checks the ExtractConfig fields cannot express."""
     if len(cfg.radius) not in (0, 1, 3):
         raise ConfigError(f"--radius needs 1 or 3 numbers, got {list(cfg.radius)}")
-    return cfg
 
 
 def _mb(n: float) -> str:
@@ -65,18 +51,23 @@ def report(res) -> str:
     return "\n".join(lines)
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(cfg, args: argparse.Namespace) -> int:
     from ..convert import extract
 
-    res = extract(config_from_args(args))
-    print(report(res))
+    _check(cfg)
+    print(report(extract(cfg)))
     return 0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the ``extract`` command."""
-    p = sub.add_parser("extract", help="convert a trained NeRF-SH run into a PlenOctree",
-                       description="Convert a trained NeRF-SH (RUN_DIR/checkpoint.pt) into a "
-                       "PlenOctree (paper section 4.2): auto box, sigma grid, visibility filter "
-                       "over the training views, per-voxel sampling, octree, test PSNR.")
-    p.set_defaults(func=_run, _dests=_add_config_args(p))
+    """Add the ``extract`` command (one flag per ExtractConfig field)."""
+    from ..convert.extract import ExtractConfig
+    from ._options import add_command
+
+    add_command(sub, "extract", ExtractConfig, _run,
+                help="convert a trained NeRF-SH run into a PlenOctree",
+                description="Convert a trained NeRF-SH (RUN_DIR/checkpoint.pt) into a "
+                "PlenOctree (paper section 4.2): auto box, sigma grid, visibility filter over "
+                "the training views, per-voxel sampling, octree, test PSNR.",
+                positional=("run_dir",), short={"out": "-o"},
+                rename={"show_progress": "progress"})

@@ -9,26 +9,17 @@ from __future__ import annotations
 import argparse
 
 
-def config_from_args(args: argparse.Namespace):
-    """The :class:`FinetuneConfig` of parsed arguments: defaults, ``--config FILE``, flags."""
-    from ..optim.finetune import FinetuneConfig
-    from ._options import layered
+def _run(cfg, args: argparse.Namespace) -> int:
+    from ..optim.finetune import finetune
+    from ._output import write_json
     from ._provenance import data_from_provenance
 
-    cfg = layered(args, FinetuneConfig(), "finetune")
     if args.quiet:
         cfg.verbose = False
         cfg.show_progress = False if cfg.show_progress is None else cfg.show_progress
     if not cfg.data and cfg.tree:
         cfg.data = data_from_provenance(cfg.tree, "finetune")
-    return cfg
-
-
-def _run(args: argparse.Namespace) -> int:
-    from ..optim.finetune import finetune
-    from ._output import write_json
-
-    res = finetune(config_from_args(args))
+    res = finetune(cfg)
     fmt = lambda v: "n/a" if v is None else f"{v:.3f} dB"  # noqa: E731
     print(f"test PSNR before {fmt(res.test_psnr_before)}  after {fmt(res.test_psnr_after)}")
     print(f"{res.epochs_run} epochs ({res.steps} steps), best epoch {res.best_epoch}, "
@@ -42,16 +33,14 @@ def _run(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``finetune`` command."""
     from ..optim.finetune import FinetuneConfig
-    from ._options import add_config, add_config_file
+    from ._options import add_command
     from ._output import add_json, add_quiet
 
-    p = sub.add_parser("finetune", help="fine-tune a tree's leaf values on the training images",
-                       description="Optimise σ and the SH coefficients of every leaf on the "
-                                   "training photos (tree structure fixed). Prints the test "
-                                   "PSNR before and after.")
-    add_config_file(p)
-    dests = add_config(p, FinetuneConfig, positional=("tree",), skip=("verbose",),
-                       rename={"show_progress": "progress"})
+    p = add_command(sub, "finetune", FinetuneConfig, _run,
+                    help="fine-tune a tree's leaf values on the training images",
+                    description="Optimise σ and the SH coefficients of every leaf on the "
+                                "training photos (tree structure fixed). Prints the test "
+                                "PSNR before and after.",
+                    positional=("tree",), skip=("verbose",), rename={"show_progress": "progress"})
     add_quiet(p, "no per-epoch lines on stderr, no progress bar")
     add_json(p, "the result")
-    p.set_defaults(func=_run, _dests=dests)

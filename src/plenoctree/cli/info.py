@@ -1,5 +1,5 @@
 """``plenoctree info [TREE]``: version, compute backends, threads and GPU; or what a tree file
-holds (format, size, depth, box, the dataset it was made from)."""
+holds (format, size, depth, box, NDC space, the dataset it was made from)."""
 
 from __future__ import annotations
 
@@ -57,6 +57,7 @@ def tree_info(path: str) -> dict:
         "bbox_min": [round(v, 6) for v in bbox[0]],
         "bbox_max": [round(v, 6) for v in bbox[1]],
         "memory_mb": round(tree.nbytes / 2**20, 3),
+        "ndc": tree.ndc.to_json() if tree.ndc is not None else None,
         "dataset": found[0] if found else None,
     }
 
@@ -72,6 +73,11 @@ def _run(args: argparse.Namespace) -> int:
         for key, value in info.items():
             if isinstance(value, list):
                 value = ", ".join(str(v) for v in value)
+            elif isinstance(value, dict):
+                value = ", ".join(f"{k} {v:g}" for k, v in value.items())
+            if key == "ndc":
+                value = ("forward-facing, NDC of the reference camera: " + value
+                         if value else "no (world-space tree)")
             print(f"{key:<{width}}  {value if value is not None else 'none'}")
     return 0
 

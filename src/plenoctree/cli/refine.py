@@ -10,20 +10,10 @@ from __future__ import annotations
 import argparse
 
 
-def config_from_args(args: argparse.Namespace):
-    """The :class:`RefineConfig`: defaults, then ``--config FILE``, then the flags given."""
-    from ..convert.refine import RefineConfig
-    from ._options import apply, given, load_config_file
-
-    cfg = apply(RefineConfig(), load_config_file(args._config_file),
-                where=str(args._config_file))
-    return apply(cfg, given(args, args._dests), where="refine")
-
-
-def _run(args: argparse.Namespace) -> int:
+def _run(cfg, args: argparse.Namespace) -> int:
     from ..convert.refine import refine
 
-    res = refine(config_from_args(args))
+    res = refine(cfg)
     print(f"{res.leaves_before} -> {res.leaves_after} leaves ({res.nodes_after} nodes, depth "
           f"{res.max_depth}), {res.file_bytes / 2**20:.1f} MB, {res.seconds:.1f} s")
     if res.psnr_before is not None:
@@ -36,13 +26,11 @@ def _run(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``refine`` command."""
     from ..convert.refine import RefineConfig
-    from ._options import add_config, add_config_file
+    from ._options import add_command
 
-    p = sub.add_parser("refine", help="adapt a tree's leaves to the NeRF-SH it came from",
-                       description="Score every leaf by the spread of the NeRF-SH inside it, "
-                                   "subdivide the worst (one level per pass), optionally merge "
-                                   "sibling leaves that agree; the tree stays svox-compatible.")
-    add_config_file(p)
-    dests = add_config(p, RefineConfig, positional=("tree",), short={"out": "-o"},
-                       rename={"show_progress": "progress"})
-    p.set_defaults(func=_run, _dests=dests)
+    add_command(sub, "refine", RefineConfig, _run,
+                help="adapt a tree's leaves to the NeRF-SH it came from",
+                description="Score every leaf by the spread of the NeRF-SH inside it, "
+                            "subdivide the worst (one level per pass), optionally merge "
+                            "sibling leaves that agree; the tree stays svox-compatible.",
+                positional=("tree",), short={"out": "-o"}, rename={"show_progress": "progress"})

@@ -1,15 +1,18 @@
-"""``plenoctree render``: render a tree over a dataset split, write PNGs and metrics."""
+"""``plenoctree render``: render a tree over a dataset split, write PNGs and metrics.
+
+Every option is a field of :class:`RenderConfig` (help = its docstrings).
+"""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import ConfigError
-from ._options import parse_background  # noqa: F401  (re-exported: eval, video, compress)
 
 
 def resize_dataset(data, width: int, height: int):
@@ -32,53 +35,83 @@ def resize_dataset(data, width: int, height: int):
                                cameras=new_cams)
 
 
-def add_render_options(p: argparse.ArgumentParser) -> None:
-    """Add the renderer knobs shared by render-like commands."""
-    p.add_argument("--backend", default="auto",
-                   help="auto, numba, triton or torch (default: auto)")
-    p.add_argument("--device", default="auto",
-                   help="auto (CUDA when a GPU is present, else cpu), cpu, cuda or cuda:N")
-    p.add_argument("--stop-thresh", type=float, default=0.01,
-                   help="early ray termination when transmittance < this; 0 disables (default 0.01)")
-    p.add_argument("--background", default=None,
-                   help="white, black or R,G,B (default: the dataset's background)")
+@dataclass
+class RenderConfig:
+    """Options of ``plenoctree render``."""
+
+    tree: str = ""
+    """tree file (.npz native or svox layout, or compressed .plnz)"""
+    data: str | None = None
+    """dataset folder (default: the one recorded next to the tree)"""
+    camera_path: str | None = None
+    """render along a nerfstudio camera-path JSON instead (frames, depth; no scores);
+    --width/--height override its size"""
+    dataparser_transforms: str | None = None
+    """with --camera-path: nerfstudio's dataparser_transforms.json, mapping nerfstudio-viewer
+    poses back to the dataset's world"""
+    split: str = "test"
+    """dataset split"""
+    format: str | None = None
+    """dataset format (default: detected)"""
+    out: str | None = None
+    """output folder (default: next to the tree)"""
+    downscale: int = 1
+    """integer area downscale of the images"""
+    width: int | None = None
+    """render width (with --height)"""
+    height: int | None = None
+    """render height (with --width)"""
+    limit: int | None = None
+    """use only the first N views of the split (default: all)"""
+    backend: str = "auto"
+    """auto, numba, triton or torch"""
+    device: str = "auto"
+    """auto (CUDA when a GPU is present, else cpu), cpu, cuda or cuda:N"""
+    stop_thresh: float = 0.01
+    """early ray termination when transmittance < this; 0 disables"""
+    background: tuple[float, float, float] | None = None
+    """white, black or R,G,B (default: the dataset's background)"""
 
 
-def render_options_from_args(args: argparse.Namespace, data_background):
-    """Build a :class:`RenderOptions` from parsed arguments."""
+def _render_options(cfg: RenderConfig, data_background):
+    """The :class:`RenderOptions` of ``cfg`` (background: ``cfg``'s, else the dataset's)."""
     from ..render import RenderOptions
 
-    bg = parse_background(args.background) if args.background else tuple(data_background)
-    if args.stop_thresh < 0 or args.stop_thresh >= 1:
-        raise ConfigError(f"--stop-thresh must be in [0, 1), got {args.stop_thresh}")
-    return RenderOptions(stop_thresh=args.stop_thresh, background=bg)
+    if cfg.stop_thresh < 0 or cfg.stop_thresh >= 1:
+        raise ConfigError(f"--stop-thresh must be in [0, 1), got {cfg.stop_thresh}")
+    bg = tuple(cfg.background) if cfg.background else tuple(data_background)
+    return RenderOptions(stop_thresh=cfg.stop_thresh, background=bg)
 
 
-def _run(args: argparse.Namespace) -> int:
+def _check_size(cfg: RenderConfig) -> None:
+    if (cfg.width is None) != (cfg.height is None):
+        raise ConfigError("--width and --height must be given together")
+
+
+def _run(cfg: RenderConfig, args: argparse.Namespace) -> int:
     from ..datasets import load_dataset
     from ..evaluation import evaluate_tree
     from ..compress import load_any_tree
 
-    if args.camera_path:
-        return _run_camera_path(args)
-    if not args.data:
+    if cfg.camera_path:
+        return _run_camera_path(cfg)
+    if not cfg.data:
         from ._provenance import data_from_provenance
 
-        args.data = data_from_provenance(args.tree, "render")
-    tree = load_any_tree(args.tree)
-    bg = parse_background(args.background) if args.background else (1.0, 1.0, 1.0)
-    data = load_dataset(args.data, split=args.split, format=args.format,
-                        downscale=args.downscale, background=bg, limit=args.limit)
-    if (args.width is None) != (args.height is None):
-        raise ConfigError("--width and --height must be given together")
-    if args.width is not None:
-        if args.width <= 0 or args.height <= 0:
+        cfg.data = data_from_provenance(cfg.tree, "render")
+    tree = load_any_tree(cfg.tree)
+    bg = tuple(cfg.background) if cfg.background else (1.0, 1.0, 1.0)
+    data = load_dataset(cfg.data, split=cfg.split, format=cfg.format,
+                        downscale=cfg.downscale, background=bg, limit=cfg.limit)
+    _check_size(cfg)
+    if cfg.width is not None:
+        if cfg.width <= 0 or cfg.height <= 0:
             raise ConfigError("--width/--height must be positive")
-        data = resize_dataset(data, args.width, args.height)
-    options = render_options_from_args(args, data.background)
-    out = Path(args.out) if args.out else Path(args.tree).with_suffix("").parent / (
-        Path(args.tree).stem + f"_render_{args.split}")
-    res = evaluate_tree(tree, data, out, options, args.backend, device=args.device)
+        data = resize_dataset(data, cfg.width, cfg.height)
+    options = _render_options(cfg, data.background)
+    out = Path(cfg.out) if cfg.out else Path(cfg.tree).with_suffix("").parent / (
+        Path(cfg.tree).stem + f"_render_{cfg.split}")
+    res = evaluate_tree(tree, data, out, options, cfg.backend, device=cfg.device)
     print(f"{len(res.names)} views at {res.width}x{res.height} -> {out}")
     print(f"PSNR {res.mean_psnr:.2f} dB  SSIM {res.mean_ssim:.4f}  "
           f"{res.ms_per_frame:.1f} ms/frame ({res.fps:.1f} FPS, backend {res.backend} on "
@@ -86,51 +119,35 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_camera_path(args: argparse.Namespace) -> int:
+def _run_camera_path(cfg: RenderConfig) -> int:
     """``render TREE --camera-path JSON``: frames along a nerfstudio camera path, no scores."""
     from ..camera_path import load_camera_path
     from ..compress import load_any_tree
     from ..video import render_path_images
 
-    if (args.width is None) != (args.height is None):
-        raise ConfigError("--width and --height must be given together")
-    if args.data is not None:
+    _check_size(cfg)
+    if cfg.data is not None:
         raise ConfigError("--camera-path renders its own cameras: leave out --data")
-    cp = load_camera_path(args.camera_path, args.width, args.height, args.dataparser_transforms)
-    tree = load_any_tree(args.tree)
-    options = render_options_from_args(args, (1.0, 1.0, 1.0))
-    out = Path(args.out) if args.out else Path(args.tree).parent / (
-        Path(args.tree).stem + f"_render_{Path(args.camera_path).stem}")
-    cams = cp.cameras
-    if args.limit is not None:
-        cams = cams.select(np.arange(min(args.limit, len(cams))))
-    paths = render_path_images(tree, cams, out, options, args.backend)
-    print(f"{len(paths)} frames at {cams.width}x{cams.height} along {args.camera_path} -> {out}")
+    cp = load_camera_path(cfg.camera_path, cfg.width, cfg.height, cfg.dataparser_transforms)
+    tree = load_any_tree(cfg.tree)
+    options = _render_options(cfg, (1.0, 1.0, 1.0))
+    out = Path(cfg.out) if cfg.out else Path(cfg.tree).parent / (
+        Path(cfg.tree).stem + f"_render_{Path(cfg.camera_path).stem}")
+    cams = cp.cameras if tree.ndc is None else tree.ndc.apply(cp.cameras)   # NDC tree: NDC rays
+    if cfg.limit is not None:
+        cams = cams.select(np.arange(min(cfg.limit, len(cams))))
+    paths = render_path_images(tree, cams, out, options, cfg.backend)
+    print(f"{len(paths)} frames at {cams.width}x{cams.height} along {cfg.camera_path} -> {out}")
     return 0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the ``render`` command."""
+    """Add the ``render`` command (one flag per :class:`RenderConfig` field)."""
     from ..datasets import FORMATS
-    from ._output import add_views
+    from ._options import add_command
 
-    p = sub.add_parser("render", help="render a tree over a dataset split (PNGs + metrics.json)")
-    p.add_argument("tree", help="tree file (.npz native or svox layout, or compressed .plnz)")
-    p.add_argument("--data", default=None,
-                   help="dataset folder (default: the one recorded next to the tree)")
-    p.add_argument("--camera-path", default=None, metavar="JSON",
-                   help="render along a nerfstudio camera-path JSON instead (frames, depth; "
-                        "no scores); --width/--height override its size")
-    p.add_argument("--dataparser-transforms", default=None, metavar="JSON",
-                   help="with --camera-path: nerfstudio's dataparser_transforms.json, mapping "
-                        "nerfstudio-viewer poses back to the dataset's world")
-    p.add_argument("--split", default="test", help="dataset split (default: test)")
-    p.add_argument("--format", default=None, choices=FORMATS,
-                   help="dataset format (default: detected)")
-    p.add_argument("--out", default=None, help="output folder (default: next to the tree)")
-    p.add_argument("--downscale", type=int, default=1, help="integer area downscale of the images")
-    p.add_argument("--width", type=int, default=None, help="render width (with --height)")
-    p.add_argument("--height", type=int, default=None, help="render height (with --width)")
-    add_views(p, dest="limit", legacy="--limit")
-    add_render_options(p)
-    p.set_defaults(func=_run)
+    add_command(sub, "render", RenderConfig, _run,
+                help="render a tree over a dataset split (PNGs + metrics.json)",
+                positional=("tree",), rename={"limit": "views"}, aliases={"limit": "--limit"},
+                metavars={"camera_path": "JSON", "dataparser_transforms": "JSON", "limit": "N"},
+                choices={"format": FORMATS})

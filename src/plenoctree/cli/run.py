@@ -3,7 +3,7 @@
 Flags: one per :class:`~plenoctree.pipeline.PipelineConfig` field, and every option of the
 stages in :data:`~plenoctree.pipeline.STAGE_OPTIONS` as ``--<stage>.<field>``
 (``--train.lr-init``, ``--train.net-width``, ``--extract.bbox-scale``,
-``--finetune.optimizer``...), all generated from the config dataclasses. Values layer:
+``--finetune.optimizer``, ``--process.frames`` for ``--images``...), all generated from the config dataclasses. Values layer:
 ``--preset`` → ``--config FILE`` (e.g. a previous run's ``OUT/config.json``) → flags.
 """
 
@@ -15,7 +15,8 @@ import argparse
 _STAGE_SKIP = {"train": ("data", "out", "preset", "model"),
                "extract": ("run_dir", "out", "data"),
                "refine": ("tree", "run_dir", "out", "data"),
-               "finetune": ("tree", "data", "out")}
+               "finetune": ("tree", "data", "out"),
+               "process": ("images", "out", "overwrite", "sfm")}
 
 
 def config_from_args(args: argparse.Namespace):
@@ -76,6 +77,13 @@ def add_stage_flags(p: argparse.ArgumentParser) -> list[str]:
                         title="refinement stage (--refine.*)")
     dests += add_config(p, FinetuneConfig, prefix="finetune.", skip=_STAGE_SKIP["finetune"],
                         title="fine-tuning stage (--finetune.*)")
+    from ..process import ProcessConfig, SfmOptions
+
+    dests += add_config(p, ProcessConfig, prefix="process.", skip=_STAGE_SKIP["process"],
+                        title="camera poses of --images (--process.*, as `plenoctree "
+                              "process`'s options)", choices={"scene": ("auto", "360", "forward")})
+    dests += add_config(p, SfmOptions, prefix="process.", dest_prefix="process.sfm.",
+                        title="COLMAP options of --images (--process.*)")
     return dests
 
 

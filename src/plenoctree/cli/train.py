@@ -9,6 +9,7 @@ reports PSNR / SSIM and seconds per frame.
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import ConfigError
@@ -16,11 +17,42 @@ from ..errors import ConfigError
 _TRAIN_SKIP = ("out", "preset", "model")
 
 
+@dataclass
+class RenderNerfConfig:
+    """Options of ``plenoctree render-nerf``."""
+
+    run_dir: str = ""
+    """training run directory (or a checkpoint.pt)"""
+    split: str = "test"
+    """dataset split"""
+    data: str | None = None
+    """dataset folder (default: the one trained on)"""
+    downscale: int | None = None
+    """image downscale (default: the training downscale)"""
+    views: int = 0
+    """render this many views evenly spaced over the split (0 = all)"""
+    indices: str | None = None
+    """comma-separated view indices instead"""
+    rows: str | None = None
+    """render only rows A:B of each view; seconds per frame are extrapolated"""
+    chunk: int | None = None
+    """rays per chunk"""
+    amp: str | None = None
+    """bf16 autocast of the MLP (default: as in training — off for the paper preset, bf16
+    where supported for the cpu preset)"""
+    ssim: bool = True
+    """score SSIM too (--no-ssim: skip it)"""
+    out: str | None = None
+    """output folder (default RUN_DIR/render_<split>)"""
+    threads: int = 0
+    """CPU threads (0 = all)"""
+
+
 def register(sub) -> None:
     """Add ``train`` and ``render-nerf`` to the CLI."""
     from ..datasets.dataset import FORMATS
     from ..nerf.config import ModelConfig, TrainConfig, preset
-    from ._options import add_config, add_config_file
+    from ._options import add_command, add_config, add_config_file
 
     p = sub.add_parser("train", help="train a NeRF-SH (paper §4.1) on posed images",
                        description="Train a NeRF-SH. Presets: 'cpu' (hash grid + occupancy "
@@ -46,27 +78,11 @@ def register(sub) -> None:
                         title="network (ModelConfig)")
     p.set_defaults(func=run_train, _dests=dests)
 
-    r = sub.add_parser("render-nerf", help="render a split with a trained NeRF-SH (the baseline)",
-                       description="Render views with the network itself (no octree), in "
-                       "chunks, and report PSNR, SSIM and seconds per frame.")
-    r.add_argument("run_dir", help="training run directory (or a checkpoint.pt)")
-    r.add_argument("--split", default="test", help="dataset split (default test)")
-    r.add_argument("--data", default=None, help="dataset folder (default: the one trained on)")
-    r.add_argument("--downscale", type=int, default=None,
-                   help="image downscale (default: the training downscale)")
-    r.add_argument("--views", type=int, default=0,
-                   help="render this many views evenly spaced over the split (0 = all)")
-    r.add_argument("--indices", default=None, help="comma-separated view indices instead")
-    r.add_argument("--rows", default=None,
-                   help="render only rows A:B of each view; seconds per frame are extrapolated")
-    r.add_argument("--chunk", type=int, default=None, help="rays per chunk")
-    r.add_argument("--amp", choices=["auto", "bf16", "off"], default=None,
-                   help="bf16 autocast of the MLP (default: as in training — off for the "
-                        "paper preset, bf16 where supported for the cpu preset)")
-    r.add_argument("--no-ssim", action="store_true", help="skip SSIM")
-    r.add_argument("--out", default=None, help="output folder (default RUN_DIR/render_<split>)")
-    r.add_argument("--threads", type=int, default=0, help="CPU threads (0 = all)")
-    r.set_defaults(func=run_render_nerf)
+    add_command(sub, "render-nerf", RenderNerfConfig, run_render_nerf,
+                help="render a split with a trained NeRF-SH (the baseline)",
+                description="Render views with the network itself (no octree), in chunks, and "
+                "report PSNR, SSIM and seconds per frame.", positional=("run_dir",),
+                choices={"amp": ("auto", "bf16", "off")})
 
 
 def build_config(args: argparse.Namespace):
@@ -135,27 +151,27 @@ def _parse_rows(text: str | None) -> slice | None:
     return slice(a, b)
 
 
-def run_render_nerf(args: argparse.Namespace) -> int:
+def run_render_nerf(cfg: RenderNerfConfig, args: argparse.Namespace) -> int:
     from ..nerf.evaluate import render_nerf_views
 
-    if args.indices:
+    if cfg.indices:
         try:
-            idx = [int(v) for v in args.indices.split(",")]
+            idx = [int(v) for v in cfg.indices.split(",")]
         except ValueError:
             raise ConfigError(f"--indices: expected comma-separated integers, got "
-                              f"{args.indices!r}") from None
+                              f"{cfg.indices!r}") from None
     else:
         idx = None
-    rows = _parse_rows(args.rows)
-    res = render_nerf_views(args.run_dir, split=args.split, views=args.views, indices=idx,
-                            data=args.data, downscale=args.downscale, out=args.out,
-                            with_ssim=not args.no_ssim, amp=args.amp, chunk=args.chunk,
-                            rows=rows, threads=args.threads)
+    rows = _parse_rows(cfg.rows)
+    res = render_nerf_views(cfg.run_dir, split=cfg.split, views=cfg.views, indices=idx,
+                            data=cfg.data, downscale=cfg.downscale, out=cfg.out,
+                            with_ssim=cfg.ssim, amp=cfg.amp, chunk=cfg.chunk,
+                            rows=rows, threads=cfg.threads)
     w, h, frac = res["width"], res["height"], res["rows_fraction"]
     spf = res["seconds_per_full_frame"]
     for n, p, s, t in zip(res["names"], res["psnr"], res["ssim"], res["seconds"]):
         print(f"{n}: PSNR {p:.2f} dB  SSIM {s:.4f}  {t:.2f} s")
-    print(f"{len(res['names'])} views at {w}x{h}{'' if rows is None else f' (rows {args.rows})'}: "
+    print(f"{len(res['names'])} views at {w}x{h}{'' if rows is None else f' (rows {cfg.rows})'}: "
           f"mean PSNR {res['mean_psnr']:.2f} dB, SSIM {res['mean_ssim']:.4f}, "
           f"{spf:.2f} s per {w}x{h} frame ({1 / spf:.3f} FPS), "
           f"{sum(res['n_samples']) / len(res['n_samples']) / max(frac, 1e-9) / (w * h):.1f} "

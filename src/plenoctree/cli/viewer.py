@@ -4,9 +4,50 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import TreeFormatError
+
+
+@dataclass
+class PageConfig:
+    """What the viewer page shows (``view`` and ``export-web``)."""
+
+    tree: str = ""
+    """tree file (.npz or .plnz)"""
+    max_mb: float = 2048.0
+    """GPU texture budget in MB (written into a bundle); larger trees are refused with a hint
+    to 'plenoctree lod'"""
+    data: str | None = None
+    """dataset folder: frame the first view like its cameras and list them in the page (jump
+    to any)"""
+    split: str = "train"
+    """dataset split whose cameras"""
+
+
+@dataclass
+class ViewConfig(PageConfig):
+    """Options of ``plenoctree view``."""
+
+    port: int = 8000
+    """TCP port (0 = any free)"""
+    open: bool = False
+    """open the page in the default browser"""
+    verbose: bool = False
+    """log every request"""
+
+
+@dataclass
+class ExportWebConfig(PageConfig):
+    """Options of ``plenoctree export-web``."""
+
+    out: str = ""
+    """output folder"""
+    title: str | None = None
+    """page title"""
+    overwrite: bool = False
+    """replace an existing bundle"""
 
 
 def _check_tree(path: Path) -> None:
@@ -23,37 +64,37 @@ def _check_tree(path: Path) -> None:
                               "arrays)")
 
 
-def _cameras_extra(args: argparse.Namespace) -> dict:
+def _cameras_extra(cfg: PageConfig) -> dict:
     """config.json entries for --data: the split's cameras (first view, list, jumps).
 
     The images are loaded at downscale 4 only to read the poses cheaply: the page uses the
     poses and the field of view (fx, fy relative to width, height), which downscaling keeps.
     """
-    if not getattr(args, "data", None):
+    if not cfg.data:
         return {}
     from ..datasets import load_dataset
     from ..viewer.export import cameras_config
 
-    data = load_dataset(args.data, split=args.split, downscale=4)
+    data = load_dataset(cfg.data, split=cfg.split, downscale=4)
     return cameras_config(data.cameras, data.names)
 
 
-def _run_view(args: argparse.Namespace) -> int:
+def _run_view(cfg: ViewConfig, args: argparse.Namespace) -> int:
     from ..viewer import ViewerServer
     from ..viewer.budget import check_budget
 
-    path = Path(args.tree)
+    path = Path(cfg.tree)
     _check_tree(path)
-    need = check_budget(path, args.max_mb)
-    extra = _cameras_extra(args)
-    server = ViewerServer(path, port=args.port, max_mb=args.max_mb, verbose=args.verbose)
+    need = check_budget(path, cfg.max_mb)
+    extra = _cameras_extra(cfg)
+    server = ViewerServer(path, port=cfg.port, max_mb=cfg.max_mb, verbose=cfg.verbose)
     if extra:
         from ..viewer.export import add_cameras_to_server
 
         add_cameras_to_server(server, extra)
     print(f"Serving {path} ({need / 1e6:.0f} MB of textures) at {server.url}  (Ctrl-C to stop)",
           flush=True)
-    if args.open:
+    if cfg.open:
         import webbrowser
 
         webbrowser.open(server.url)
@@ -64,17 +105,17 @@ def _run_view(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_export(args: argparse.Namespace) -> int:
+def _run_export(cfg: ExportWebConfig, args: argparse.Namespace) -> int:
     from ..viewer import export_web
 
     from ..viewer.budget import check_budget
 
-    path = Path(args.tree)
+    path = Path(cfg.tree)
     _check_tree(path)
-    check_budget(path, args.max_mb)
-    extra = _cameras_extra(args)
-    out = export_web(path, args.out, title=args.title, overwrite=args.overwrite,
-                     max_mb=args.max_mb)
+    check_budget(path, cfg.max_mb)
+    extra = _cameras_extra(cfg)
+    out = export_web(path, cfg.out, title=cfg.title, overwrite=cfg.overwrite,
+                     max_mb=cfg.max_mb)
     if extra:
         import json
 
@@ -90,35 +131,16 @@ def _run_export(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the ``view`` and ``export-web`` commands."""
-    p = sub.add_parser("view", help="view a tree in the browser (local server on 127.0.0.1)",
-                       description="Start a local HTTP server bound to 127.0.0.1 that serves the "
-                       "WebGL2 viewer page and TREE (raw .npz or compressed .plnz), and print "
-                       "its URL. It serves nothing else.")
-    p.add_argument("tree", help="tree file (.npz or .plnz)")
-    p.add_argument("--port", type=int, default=8000, help="TCP port (default 8000; 0 = any free)")
-    p.add_argument("--open", action="store_true", help="open the page in the default browser")
-    p.add_argument("--max-mb", type=float, default=2048,
-                   help="GPU texture budget in MB; larger trees are refused with a hint to "
-                   "'plenoctree lod' (default 2048)")
-    p.add_argument("--verbose", action="store_true", help="log every request")
-    p.add_argument("--data", default=None,
-                   help="dataset folder: frame the first view like its cameras and list them "
-                   "in the page (jump to any)")
-    p.add_argument("--split", default="train", help="dataset split whose cameras (default train)")
-    p.set_defaults(func=_run_view)
+    """Add the ``view`` and ``export-web`` commands (flags: :class:`ViewConfig`,
+    :class:`ExportWebConfig`)."""
+    from ._options import add_command
 
-    p = sub.add_parser("export-web", help="write a static viewer bundle (page + tree)",
-                       description="Write the viewer page and TREE into a folder that any static "
-                       "web host can serve.")
-    p.add_argument("tree", help="tree file (.npz or .plnz)")
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--title", default=None, help="page title")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing bundle")
-    p.add_argument("--max-mb", type=float, default=2048,
-                   help="GPU texture budget in MB written into the bundle (default 2048)")
-    p.add_argument("--data", default=None,
-                   help="dataset folder: frame the first view like its cameras and list them "
-                   "in the page (jump to any)")
-    p.add_argument("--split", default="train", help="dataset split whose cameras (default train)")
-    p.set_defaults(func=_run_export)
+    add_command(sub, "view", ViewConfig, _run_view,
+                help="view a tree in the browser (local server on 127.0.0.1)",
+                description="Start a local HTTP server bound to 127.0.0.1 that serves the "
+                "WebGL2 viewer page and TREE (raw .npz or compressed .plnz), and print its "
+                "URL. It serves nothing else.", positional=("tree",))
+    add_command(sub, "export-web", ExportWebConfig, _run_export,
+                help="write a static viewer bundle (page + tree)",
+                description="Write the viewer page and TREE into a folder that any static web "
+                "host can serve.", positional=("tree",), required=("out",))

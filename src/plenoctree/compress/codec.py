@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -49,22 +50,19 @@ _FP16_MAX = float(np.finfo(np.float16).max)
 
 @dataclass
 class CompressOptions:
-    """Settings of :func:`compress` (the CLI flags have the same names).
-
-    Attributes:
-        bits: codebook size ``2**bits`` per basis function, 1..16 (paper: 16).
-        retain: keep the first ``retain`` basis functions unquantised (float16); 0..B.
-            ``retain=1`` keeps the view-independent (DC) colour exact.
-        sigma_thresh: leaves with ``σ <= sigma_thresh`` (1/world-length) are dropped: σ set
-            to 0 and left out of the codebook fit (svox's ``--sigma_thresh``; 0 keeps every
-            leaf with σ > 0).
-        level: DEFLATE level 0..9 used when the file is written.
-    """
+    """Settings of :func:`compress` (the ``compress`` / ``lod`` flags: the field docstrings
+    are their help)."""
 
     bits: int = 16
+    """codebook size 2^bits per SH basis function, 1..16 (the paper's 16)"""
     retain: int = 0
+    """keep the first N basis functions unquantised, float16, 0..B (1 = the view-independent
+    DC colour exact)"""
     sigma_thresh: float = 0.0
+    """drop leaves with sigma <= this (1/world units): sigma set to 0 and left out of the
+    codebook fit (svox's --sigma_thresh; 0 keeps every leaf with sigma > 0)"""
     level: int = 6
+    """DEFLATE level 0..9 used when the file is written"""
 
     def validated(self, basis_dim: int | None = None) -> CompressOptions:
         """Return ``self`` after checking every field; raises :class:`ConfigError`."""
@@ -101,6 +99,7 @@ class CompressedTree:
         quant_map: uint16 ``[B - retain, n, 2, 2, 2]``.
         data_retained: float16 ``[retain, n, 2, 2, 2, 3]``.
         options: the :class:`CompressOptions` used (``bits`` = log2 of the codebook size).
+        ndc: the tree's :class:`~plenoctree.octree.ndc.NDCSpace` (forward-facing) or None.
     """
 
     child: np.ndarray
@@ -114,6 +113,7 @@ class CompressedTree:
     quant_map: np.ndarray
     data_retained: np.ndarray
     options: CompressOptions = field(default_factory=CompressOptions)
+    ndc: Any = None
 
     @property
     def n_nodes(self) -> int:
@@ -255,7 +255,7 @@ def compress(tree: Octree, options: CompressOptions | None = None) -> Compressed
                           invradius=tree.invradius.copy(), data_format=tree.data_format,
                           extra_data=extra, depth_limit=int(tree.depth_limit), sigma=sigma16,
                           quant_colors=quant_colors, quant_map=quant_map,
-                          data_retained=retained, options=opts)
+                          data_retained=retained, options=opts, ndc=tree.ndc)
 
 
 def decompress(ctree: CompressedTree, name: str = "compressed tree") -> Octree:
@@ -289,6 +289,6 @@ def decompress(ctree: CompressedTree, name: str = "compressed tree") -> Octree:
     tree = Octree(child=ctree.child.copy(), data=data, offset=ctree.offset.copy(),
                   invradius=ctree.invradius.copy(), data_format=ctree.data_format,
                   extra_data=None if ctree.extra_data is None else ctree.extra_data.copy(),
-                  depth_limit=int(ctree.depth_limit))
+                  depth_limit=int(ctree.depth_limit), ndc=ctree.ndc)
     tree.check_integrity(name)
     return tree

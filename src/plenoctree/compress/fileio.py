@@ -3,11 +3,13 @@
 =================  ==================================  =========================================
 key                dtype / shape                       meaning
 =================  ==================================  =========================================
-``plnz_version``   int64 scalar                        1
+``plnz_version``   int64 scalar                        2 (version 1 files, without
+                                                       ``ndc``, still load)
 ``header``         unicode scalar (JSON)               ``format: "plenoctree-compressed"``,
                                                        data_format, basis_dim, bits, retain,
                                                        sigma_thresh, n_nodes, n_kept, bbox,
-                                                       depth_limit, package_version
+                                                       depth_limit, package_version, ``ndc``
+                                                       (null or the NDCSpace JSON, v2)
 ``child``          int32 ``[n, 2, 2, 2]``              relative child offsets, 0 = leaf
 ``offset``         float64 ``[3]``                     tree = offset + invradius3 * world
 ``invradius3``     float64 ``[3]``                     0.5 / radius
@@ -19,6 +21,8 @@ key                dtype / shape                       meaning
 ``quant_map``      uint16 ``[B - r, n, 2, 2, 2]``      codebook index per cell
 ``data_retained``  float16 ``[r, n, 2, 2, 2, 3]``      only when ``retain = r > 0``
 ``extra_data``     float32 ``[B, 4]``                  SG lobes only
+``ndc_config``     float64 ``[5]``                     NDC trees only: width, height, fx, fy,
+                                                       near (as in the svox layout)
 =================  ==================================  =========================================
 
 The keys ``sigma``, ``quant_colors``, ``quant_map``, ``data_retained``, ``child``, ``offset``,
@@ -39,15 +43,18 @@ from pathlib import Path
 import numpy as np
 
 from .._util import atomic_write
+from ..errors import TreeFormatError
 from ..octree import Octree
 from ..octree._npz import NpzReader
 from ..octree.limits import MAX_DEPTH
+from ..octree.ndc import NDCSpace
 from .codec import CompressedTree, CompressOptions, decompress
 
 __all__ = ["PLNZ_VERSION", "save_compressed", "load_compressed", "is_compressed_file",
            "load_any_tree"]
 
-PLNZ_VERSION = 1
+PLNZ_VERSION = 2
+READ_VERSIONS = (1, 2)       # 1: no "ndc" in the header
 _ZIP64_LIMIT = (1 << 31) - (1 << 20)
 
 
@@ -69,6 +76,7 @@ def _arrays(ctree: CompressedTree) -> dict[str, np.ndarray]:
         "bbox": bbox.tolist(),
         "depth_limit": int(ctree.depth_limit),
         "package_version": __version__,
+        "ndc": None if ctree.ndc is None else ctree.ndc.to_json(),
     }
     arrays = {
         "plnz_version": np.int64(PLNZ_VERSION),
@@ -87,6 +95,8 @@ def _arrays(ctree: CompressedTree) -> dict[str, np.ndarray]:
         arrays["data_retained"] = ctree.data_retained.astype(np.float16)
     if ctree.extra_data is not None:
         arrays["extra_data"] = ctree.extra_data.astype(np.float32)
+    if ctree.ndc is not None:
+        arrays["ndc_config"] = ctree.ndc.as_array()
     return arrays
 
 
@@ -184,6 +194,24 @@ def _check_header(r: NpzReader, header: dict) -> None:
                f"({r.shape('child')[0]} nodes)")
 
 
+def _read_ndc(r: NpzReader, header: dict) -> NDCSpace | None:
+    """The tree's NDC space: header ``ndc`` (v2), else an ``ndc_config`` array, else None."""
+    if header.get("ndc") is None and "ndc_config" not in r:
+        return None
+    if header.get("ndc") is None:
+        s, dt = r.shape("ndc_config"), r.dtype("ndc_config")
+        if dt.kind not in "fiu" or s != (5,):
+            r.fail(f"'ndc_config' must be 5 numbers (width, height, fx, fy, near), got {dt} "
+                   f"{list(s)}")
+    try:
+        if header.get("ndc") is not None:
+            return NDCSpace.from_json(header["ndc"], "header 'ndc'")
+        return NDCSpace.from_array(r.read("ndc_config"))
+    except TreeFormatError as e:
+        r.fail(str(e))
+    raise AssertionError("unreachable")
+
+
 def load_compressed(path: str | os.PathLike) -> CompressedTree:
     """Read a ``.plnz`` file (or an original PlenOctree compressed ``.npz``).
 
@@ -199,9 +227,9 @@ def load_compressed(path: str | os.PathLike) -> CompressedTree:
         header: dict = {}
         if "plnz_version" in r:
             version = r.scalar_int("plnz_version")
-            if version != PLNZ_VERSION:
-                r.fail(f"unknown plnz_version {version} (this plenoctree reads version "
-                       f"{PLNZ_VERSION}; a newer plenoctree may read it)")
+            if version not in READ_VERSIONS:
+                r.fail(f"unknown plnz_version {version} (this plenoctree reads versions "
+                       f"{', '.join(map(str, READ_VERSIONS))}; a newer plenoctree may read it)")
             header = r.json("header")
             _check_header(r, header)
         r.require("child")
@@ -254,6 +282,7 @@ def load_compressed(path: str | os.PathLike) -> CompressedTree:
                 child = _renumber(child, order)
                 sigma, quant_map = sigma[order], quant_map[:, order]
                 retained = retained[:, order]
+        ndc = _read_ndc(r, header)
         bits = header.get("bits", int(round(math.log2(max(qcs[1], 1)))))
         opts = CompressOptions(bits=int(bits) if isinstance(bits, int) and 1 <= bits <= 16 else 16,
                                retain=int(retained.shape[0]),
@@ -264,7 +293,7 @@ def load_compressed(path: str | os.PathLike) -> CompressedTree:
                                sigma=np.maximum(sigma, 0).astype(np.float16),
                                quant_colors=quant_colors.astype(np.float16),
                                quant_map=quant_map, data_retained=retained.astype(np.float16),
-                               options=opts)
+                               options=opts, ndc=ndc)
         ctree.validate(r.name)
         if not (ctree.invradius > 0).all():
             r.fail(f"'invradius3' must be > 0, got {ctree.invradius.tolist()}")

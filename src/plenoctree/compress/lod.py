@@ -39,19 +39,15 @@ _MIN_T = 1e-30
 
 @dataclass
 class LodOptions:
-    """One level-of-detail setting (the ``plenoctree lod`` flags have the same names).
-
-    Attributes:
-        sh_degree: keep SH bands ``0..sh_degree`` (SH trees only); None keeps all.
-        max_depth: merge every cell deeper than this depth (root cells have depth 0); None
-            keeps the tree's depth.
-        prune_alpha: empty the leaves whose opacity ``1 - exp(-σ ℓ)`` is below this; 0 keeps
-            every leaf.
-    """
+    """One level-of-detail setting (the ``plenoctree lod`` flags: the field docstrings are
+    their help)."""
 
     sh_degree: int | None = None
+    """keep SH degrees 0..N (SH trees only; default: all)"""
     max_depth: int | None = None
+    """merge cells deeper than this (root cells have depth 0; default: the tree's depth)"""
     prune_alpha: float = 0.0
+    """empty leaves whose opacity 1-exp(-sigma*size) is below this (0 keeps every leaf)"""
 
     def validated(self) -> LodOptions:
         if self.sh_degree is not None and (isinstance(self.sh_degree, bool)
@@ -91,7 +87,8 @@ def truncate_sh(tree: Octree, degree: int) -> Octree:
                            tree.data[..., -1:]], axis=-1)
     return Octree(child=tree.child.copy(), data=np.ascontiguousarray(data),
                   offset=tree.offset.copy(), invradius=tree.invradius.copy(),
-                  data_format=f"SH{b_new}", extra_data=None, depth_limit=tree.depth_limit)
+                  data_format=f"SH{b_new}", extra_data=None, depth_limit=tree.depth_limit,
+                  ndc=tree.ndc)
 
 
 def _parents(child: np.ndarray) -> np.ndarray:
@@ -168,7 +165,7 @@ def _collapse(tree: Octree, select: Callable[[np.ndarray, np.ndarray, int], np.n
     out = Octree(child=new_child, data=new_data, offset=tree.offset.copy(),
                  invradius=tree.invradius.copy(), data_format=tree.data_format,
                  extra_data=None if tree.extra_data is None else tree.extra_data.copy(),
-                 depth_limit=-1)
+                 depth_limit=-1, ndc=tree.ndc)
     out.depth_limit = max(out.max_depth, 0)
     return out
 

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from ..datasets import Cameras
-from ..metrics import psnr
+from ..evaluation import score_views
 from ..octree import Octree
 from ..render import RenderOptions, render_image
 from .codec import CompressOptions, compress, decompress
@@ -40,9 +40,11 @@ def orbit_cameras(tree: Octree, n: int = 4, size: int = 128, elevation_deg: floa
                  elevation_deg=elevation_deg, up="+z")
 
 
-def _renders(tree: Octree, cams: Cameras, options: RenderOptions, backend: str) -> list[np.ndarray]:
-    return [render_image(tree, cams, i, options, backend).rgb.detach().cpu().numpy()
-            for i in range(len(cams))]
+def _psnrs(tree: Octree, cams: Cameras, options: RenderOptions, backend: str,
+           targets: Any) -> list[float]:
+    """PSNR (dB) per view of ``tree`` rendered from ``cams`` against ``targets[i]``."""
+    return score_views(lambda i: render_image(tree, cams, i, options, backend), targets,
+                       with_ssim=False, backend=backend).psnr
 
 
 def compression_report(src: str | os.PathLike, dst: str | os.PathLike,
@@ -87,17 +89,17 @@ def compression_report(src: str | os.PathLike, dst: str | os.PathLike,
     if data is not None:
         ropts = RenderOptions(background=tuple(float(b) for b in data.background))
         gt = data.images
-        a = [psnr(im, g) for im, g in zip(_renders(tree, data.cameras, ropts, backend), gt)]
-        b = [psnr(im, g) for im, g in zip(_renders(restored, data.cameras, ropts, backend), gt)]
+        a = _psnrs(tree, data.cameras, ropts, backend, gt)
+        b = _psnrs(restored, data.cameras, ropts, backend, gt)
         rep.update(psnr_raw=float(np.mean(a)), psnr_compressed=float(np.mean(b)),
                    psnr_change=float(np.mean(b) - np.mean(a)), views=len(gt),
                    eval_size=[data.cameras.width, data.cameras.height], eval="dataset")
     else:
         cams = orbit_cameras(tree, n_views, size)
         ropts = RenderOptions()
-        ref = _renders(tree, cams, ropts, backend)
-        out = _renders(restored, cams, ropts, backend)
-        vals = [psnr(o, r) for o, r in zip(out, ref)]
+        ref = [render_image(tree, cams, i, ropts, backend).rgb.detach().cpu().numpy()
+               for i in range(len(cams))]
+        vals = _psnrs(restored, cams, ropts, backend, ref)
         finite = [v for v in vals if math.isfinite(v)]
         rep.update(psnr_fidelity=float(np.mean(finite)) if finite else float("inf"),
                    views=len(cams), eval_size=[size, size], eval="orbit")

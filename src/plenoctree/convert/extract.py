@@ -271,6 +271,18 @@ def _load_split(root: str, split: str, downscale: int, background: Any) -> Any:
     return load_dataset(root, split=split, downscale=downscale, background=background)
 
 
+def _ndc_space(train: Any, root: str, downscale: int, background: Any) -> Any:
+    """The NDC space of the dataset's cameras (None for 360° scenes or without a dataset);
+    reads one training image when the split is not loaded anyway."""
+    from ..datasets import load_dataset
+    from ..octree.ndc import NDCSpace
+
+    if train is None and root:
+        train = load_dataset(root, split="train", downscale=downscale, background=background,
+                             limit=1)
+    return NDCSpace.from_cameras(train.cameras) if train is not None else None
+
+
 def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
     """Convert a trained radiance field into a PlenOctree (see the module docstring).
 
@@ -324,6 +336,7 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
             raise ConfigError(f"{data_root}: dataset folder not found; pass --data")
         train = _load_split(data_root, "train", run_down, background) if need_train else None
         data_bbox = train.scene_bbox if train is not None else None
+        ndc = _ndc_space(train, data_root, run_down, background)
         fmt, extra_data, dim = output_format(field, cfg.projection_degree)
 
     with mon.stage("bbox"):
@@ -375,6 +388,7 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
 
     with mon.stage("build"):
         tree = Octree.from_grid(values, mask, spec.center, spec.radius, fmt, extra_data)
+        tree.ndc = ndc          # forward-facing: the NDC space the box lives in (octree.ndc)
         del values, mask
 
     out = Path(cfg.out) if cfg.out else (Path(cfg.run_dir) / "tree.npz"

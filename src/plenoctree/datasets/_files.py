@@ -10,12 +10,14 @@ imported ``blender``, a small cycle). Every problem raises ``DatasetError`` nami
 from __future__ import annotations
 
 import io
+import json
 import math
 import os
 import re
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -88,6 +90,40 @@ def _image_path(root: Path, file_path: str) -> Path:
     return p if p.suffix.lower() in (".png", ".jpg", ".jpeg") else p.with_name(p.name + ".png")
 
 
+def read_json_object(path: Path) -> dict:
+    """The JSON object in file ``path`` (a loader's metadata file); anything else raises one
+    :class:`DatasetError` naming it (missing, unreadable, not JSON, not an object)."""
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: file not found") from None
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read ({e.strerror or e})") from None
+    try:
+        obj = json.loads(raw)
+    except (ValueError, RecursionError) as e:     # JSONDecodeError, UnicodeDecodeError, ...
+        raise DatasetError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(obj, dict):
+        raise DatasetError(f"{path}: expected a JSON object at the top level, got "
+                           f"{type(obj).__name__}")
+    return obj
+
+
+@contextmanager
+def reading(path: Path, what: str = "image") -> Iterator[None]:
+    """Turn any failure reading ``path`` inside the block into one :class:`DatasetError`
+    naming it: ``<path>: <what> file not found`` or ``<path>: unreadable <what> (<error>)``
+    (a DatasetError raised inside passes unchanged)."""
+    try:
+        yield
+    except DatasetError:
+        raise
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: {what} file not found") from None
+    except Exception as e:  # noqa: BLE001 - any decoder failure means an unreadable file
+        raise DatasetError(f"{path}: unreadable {what} ({type(e).__name__}: {e})") from None
+
+
 def _decode(path: Path, expect: tuple[int, int] | None) -> np.ndarray:
     """Decode one PNG (or JPEG) image to uint8 ``[H, W, 4]`` (alpha 255 when the file has none).
 
@@ -95,7 +131,7 @@ def _decode(path: Path, expect: tuple[int, int] | None) -> np.ndarray:
     """
     from PIL import Image
 
-    try:
+    with reading(path, "image"):
         raw = path.read_bytes()
         with Image.open(io.BytesIO(raw), formats=("PNG", "JPEG")) as im:
             if im.format == "PNG" and not raw.endswith(_PNG_END):
@@ -120,12 +156,6 @@ def _decode(path: Path, expect: tuple[int, int] | None) -> np.ndarray:
                 arr = np.stack([g, g, g, np.full_like(g, 255)], -1)
             else:
                 arr = np.asarray(im.convert("RGBA"))
-    except DatasetError:
-        raise
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: image file not found") from None
-    except Exception as e:  # noqa: BLE001 - any decoder failure means an unreadable file
-        raise DatasetError(f"{path}: unreadable image ({type(e).__name__}: {e})") from None
     if arr.shape != (h, w, 4):
         raise DatasetError(f"{path}: decoded to shape {list(arr.shape)}, expected {[h, w, 4]}")
     return arr

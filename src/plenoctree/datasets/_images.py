@@ -1,5 +1,5 @@
-"""Shared helpers of the LLFF, NSVF and nerfstudio loaders: threaded image / mask loading,
-image listing, near/far bounds from a box.
+"""Shared helpers of the loaders (Blender, LLFF, NSVF, nerfstudio): threaded image / mask
+loading, image listing, near/far bounds from a box.
 
 Decoding and area downscaling are :mod:`._files`' (:func:`_files._decode`,
 :func:`_files._composite_into`), so every format treats PNG/JPEG, alpha and downscaling alike.
@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from ..errors import DatasetError
-from ._files import _composite_into, _decode
+from ._files import _composite_into, _decode, reading
 from ._files import _run_parallel as _run
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -36,27 +36,29 @@ def probe_size(path: Path) -> tuple[int, int]:
     """``(width, height)`` of an image file from its header (DatasetError naming it)."""
     from PIL import Image
 
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: image file not found") from None
-    except Exception as e:  # noqa: BLE001 - any decoder failure means an unreadable file
-        raise DatasetError(f"{path}: unreadable image ({type(e).__name__}: {e})") from None
+    with reading(path, "image"), Image.open(path) as im:
+        return im.size
 
 
 def load_images(paths: Sequence[Path], downscale: int, background: np.ndarray,
-                num_threads: int | None = None
+                num_threads: int | None = None, *,
+                check_size: Callable[[int, int], None] | None = None,
+                composite_all: bool = False
                 ) -> tuple[np.ndarray, np.ndarray | None, tuple[int, int]]:
-    """Decode, area-downscale and composite images of one size.
+    """Decode, area-downscale and composite images of one size (every loader's images).
 
     Args:
         paths: image files (at least one). downscale: integer factor dividing the size.
         background: float32 ``[3]`` RGB for transparent pixels.
+        check_size: called with the first image's ``(width, height)`` before the others are
+            decoded (a loader's own size check, e.g. against its metadata).
+        composite_all: composite every image, opaque or not, and always return ``alphas``
+            (the Blender loader); default: fully opaque images skip the compositing.
 
     Returns:
-        ``images`` float32 ``[N, H/f, W/f, 3]``, ``alphas`` float32 ``[N, H/f, W/f]`` or ``None``
-        when every image is fully opaque, and the files' size ``(W, H)``.
+        ``images`` float32 ``[N, H/f, W/f, 3]``, ``alphas`` float32 ``[N, H/f, W/f]`` (``None``
+        when every image is fully opaque, unless ``composite_all``), and the files' size
+        ``(W, H)``.
 
     Raises:
         DatasetError naming the file: unreadable / truncated images, mixed sizes, a
@@ -64,18 +66,24 @@ def load_images(paths: Sequence[Path], downscale: int, background: np.ndarray,
     """
     first = _decode(paths[0], None)
     height, width = first.shape[:2]
+    if check_size is not None:
+        check_size(width, height)
     f = int(downscale)
     if width % f or height % f:
         raise DatasetError(f"{paths[0]}: downscale {f} does not divide the image size "
                            f"{width}x{height}")
     h, w, n = height // f, width // f, len(paths)
     images = np.empty((n, h, w, 3), dtype=np.float32)
-    alphas: list[np.ndarray | None] = [None]
+    alphas: list[np.ndarray | None] = [
+        np.empty((n, h, w), dtype=np.float32) if composite_all else None]
     lock = threading.Lock()
     scale = np.float32(1.0 / 255.0)
 
     def work(i: int) -> None:
         arr = first if i == 0 else _decode(paths[i], (width, height))
+        if composite_all:
+            _composite_into(arr, f, background, images[i], alphas[0][i])
+            return
         if arr[..., 3].min() == 255:     # opaque: same values as compositing, 4x less work
             rgb = arr[..., :3]
             if f == 1:
@@ -114,18 +122,11 @@ def load_masks(paths: Sequence[Path | None], size: tuple[int, int], downscale: i
         p = paths[i]
         if p is None:
             return
-        try:
-            with Image.open(p) as im:
-                if im.size != (width, height):
-                    raise DatasetError(f"{p}: mask is {im.size[0]}x{im.size[1]}, its image is "
-                                       f"{width}x{height}")
-                m = np.asarray(im.convert("L")) > 0
-        except DatasetError:
-            raise
-        except FileNotFoundError:
-            raise DatasetError(f"{p}: mask file not found") from None
-        except Exception as e:  # noqa: BLE001 - any decoder failure means an unreadable file
-            raise DatasetError(f"{p}: unreadable mask ({type(e).__name__}: {e})") from None
+        with reading(p, "mask"), Image.open(p) as im:
+            if im.size != (width, height):
+                raise DatasetError(f"{p}: mask is {im.size[0]}x{im.size[1]}, its image is "
+                                   f"{width}x{height}")
+            m = np.asarray(im.convert("L")) > 0
         mf = m.astype(np.float32)
         if f > 1:
             mf = mf.reshape(h, f, w, f).mean(axis=(1, 3), dtype=np.float32)

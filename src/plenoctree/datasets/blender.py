@@ -15,18 +15,17 @@ returned half-loaded.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
-from ._files import (_check_options, _composite_into, _decode,  # noqa: F401 (re-exported)
-                     _finite_number, _frame_file_path, _image_path, _is_number, _matrix,
-                     _run_parallel)
+from ._files import (_check_options, _finite_number, _frame_file_path, _image_path, _matrix,
+                     read_json_object)
+from ._images import load_images
 from .cameras import Cameras
 from .dataset import Dataset
 
@@ -46,19 +45,7 @@ def read_transforms(path: str | os.PathLike) -> tuple[dict, list[tuple[str, np.n
         ``frames`` is a list of ``(file_path, c2w [4, 4] float64)``.
     """
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: file not found") from None
-    except OSError as e:
-        raise DatasetError(f"{path}: cannot read ({e.strerror or e})") from None
-    try:
-        obj = json.loads(raw)
-    except (ValueError, RecursionError) as e:     # JSONDecodeError, UnicodeDecodeError, ...
-        raise DatasetError(f"{path}: not valid JSON ({e})") from None
-    if not isinstance(obj, dict):
-        raise DatasetError(f"{path}: expected a JSON object at the top level, got "
-                           f"{type(obj).__name__}")
+    obj = read_json_object(path)
     meta: dict[str, float] = {}
     for key in ("camera_angle_x", "fl_x", "fl_y", "cx", "cy", "w", "h"):
         if key in obj:
@@ -129,25 +116,15 @@ def load_blender(root: str | os.PathLike, split: str = "train", downscale: int =
             raise DatasetError(f"{p}: image file not found (listed in {json_path})")
         paths.append(p)
 
-    first = _decode(paths[0], None)
-    height, width = first.shape[:2]
-    for key, val in (("w", width), ("h", height)):
-        if key in meta and int(meta[key]) != val:
-            raise DatasetError(f"{json_path}: {key} = {meta[key]:g} but {paths[0]} is "
-                               f"{width}x{height}")
+    def check_size(width: int, height: int) -> None:
+        for key, val in (("w", width), ("h", height)):
+            if key in meta and int(meta[key]) != val:
+                raise DatasetError(f"{json_path}: {key} = {meta[key]:g} but {paths[0]} is "
+                                   f"{width}x{height}")
+
+    images, alphas, (width, height) = load_images(paths, downscale, bg, num_threads,
+                                                  check_size=check_size, composite_all=True)
     f = int(downscale)
-    if width % f or height % f:
-        raise DatasetError(f"{paths[0]}: downscale {f} does not divide the image size "
-                           f"{width}x{height}")
-    h, w, n = height // f, width // f, len(paths)
-    images = np.empty((n, h, w, 3), dtype=np.float32)
-    alphas = np.empty((n, h, w), dtype=np.float32)
-
-    def work(i: int) -> None:
-        arr = first if i == 0 else _decode(paths[i], (width, height))
-        _composite_into(arr, f, bg, images[i], alphas[i])
-
-    _run_parallel(n, work, num_threads)
 
     if "fl_x" in meta:
         fx = meta["fl_x"]

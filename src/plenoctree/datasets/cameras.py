@@ -139,6 +139,9 @@ class Cameras:
             (:mod:`plenoctree.datasets.ndc`) of the reference camera at the world origin with
             the focal lengths :attr:`ndc_focal` and this image size, near plane ``z = -ndc_near``.
         ndc_near: world distance of the NDC near plane (NeRF: 1).
+        ndc_ref: ``(2 fx / W, 2 fy / H)`` of the NDC reference camera when it is not these
+            cameras' own (rendering an NDC tree from other cameras, e.g. a camera path:
+            ``tree.ndc.apply(cameras)``); None = from these cameras' focal lengths and size.
 
     Invalid values raise :class:`~plenoctree.errors.ConfigError`.
     """
@@ -152,6 +155,7 @@ class Cameras:
     height: int
     ndc: bool = False
     ndc_near: float = 1.0
+    ndc_ref: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         for name, val in (("width", self.width), ("height", self.height)):
@@ -170,6 +174,12 @@ class Cameras:
                 or not math.isfinite(near) or near <= 0:
             raise ConfigError(f"camera ndc_near must be a finite positive number, got {near!r}")
         self.ndc_near = float(near)
+        if self.ndc_ref is not None:
+            ref = tuple(float(v) for v in np.asarray(self.ndc_ref, dtype=np.float64).reshape(-1))
+            if len(ref) != 2 or not all(math.isfinite(v) and v > 0 for v in ref):
+                raise ConfigError(f"camera ndc_ref must be two positive numbers, got "
+                                  f"{self.ndc_ref!r}")
+            self.ndc_ref = ref
 
     def __len__(self) -> int:
         return int(self.c2w.shape[0])
@@ -179,8 +189,8 @@ class Cameras:
             return NotImplemented
         return (np.array_equal(self.c2w, other.c2w)
                 and all(np.array_equal(a, b) for a, b in zip(self._intr(), other._intr()))
-                and (self.width, self.height, self.ndc, self.ndc_near)
-                == (other.width, other.height, other.ndc, other.ndc_near))
+                and (self.width, self.height, self.ndc, self.ndc_near, self.ndc_ref)
+                == (other.width, other.height, other.ndc, other.ndc_near, other.ndc_ref))
 
     def _intr(self) -> tuple:
         return (self.fx, self.fy, self.cx, self.cy)
@@ -203,8 +213,10 @@ class Cameras:
 
     @property
     def ndc_focal(self) -> tuple[float, float]:
-        """``(fx, fy)`` of the NDC reference camera: the shared focal lengths (their mean over
-        the cameras when they differ)."""
+        """``(fx, fy)`` of the NDC reference camera at this image size: from ``ndc_ref`` when
+        set, else the shared focal lengths (their mean over the cameras when they differ)."""
+        if self.ndc_ref is not None:
+            return 0.5 * self.ndc_ref[0] * self.width, 0.5 * self.ndc_ref[1] * self.height
         return float(np.mean(self.fx)), float(np.mean(self.fy))
 
     def _index(self, index: int) -> int:
@@ -306,7 +318,8 @@ class Cameras:
                               f"{self.width}x{self.height}")
         f = float(factor)
         return Cameras(self.c2w.copy(), self.fx / f, self.fy / f, self.cx / f, self.cy / f,
-                       self.width // factor, self.height // factor, self.ndc, self.ndc_near)
+                       self.width // factor, self.height // factor, self.ndc, self.ndc_near,
+                       self.ndc_ref)
 
     def resized(self, width: int, height: int) -> "Cameras":
         """The same cameras rendering ``width`` x ``height`` images: focal lengths and
@@ -331,7 +344,7 @@ class Cameras:
             return np.atleast_1d(v[indices])
 
         return Cameras(c2w.copy(), *(sub(v) for v in self._intr()), self.width, self.height,
-                       self.ndc, self.ndc_near)
+                       self.ndc, self.ndc_near, self.ndc_ref)
 
     @property
     def centers(self) -> np.ndarray:

@@ -142,8 +142,14 @@ def forward_facing_grid(root: str | os.PathLike, resolution: int = 128, chunk: i
 
 
 def forward_facing_tree(root: str | os.PathLike, resolution: int = 128):
-    """The NDC-space ``RGBA`` :class:`~plenoctree.octree.Octree` of :func:`forward_facing_grid`."""
+    """The NDC-space ``RGBA`` :class:`~plenoctree.octree.Octree` of :func:`forward_facing_grid`
+    (``tree.ndc``: the capture's NDC reference camera)."""
     from ..octree import Octree
+    from ..octree.ndc import NDCSpace
+    from .llff import read_llff
 
     values, mask, center, radius = forward_facing_grid(root, resolution)
-    return Octree.from_grid(values, mask, center, radius, data_format="RGBA")
+    tree = Octree.from_grid(values, mask, center, radius, data_format="RGBA")
+    h, w, f = read_llff(root).hwf[0]
+    tree.ndc = NDCSpace(int(w), int(h), float(f), float(f), 1.0)
+    return tree

@@ -33,7 +33,6 @@ problem raises :class:`~plenoctree.errors.DatasetError` naming the file.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from pathlib import Path
@@ -45,7 +44,7 @@ import numpy as np
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, load_masks, near_far_from_box
 from ._files import (_check_options, _finite_number, _frame_file_path, _image_path, _matrix,
-                     check_inside_dataset)
+                     check_inside_dataset, read_json_object)
 from .cameras import Cameras
 from .dataset import Dataset
 
@@ -128,16 +127,7 @@ def read_nerfstudio(path: str | os.PathLike) -> tuple[dict, list[dict]]:
     frame with ``file_path`` (str), ``c2w`` (float64 ``[4, 4]``), ``mask_path`` (str|None),
     ``raw`` (its raw intrinsics) and ``where`` (for messages)."""
     path = Path(path)
-    try:
-        obj = json.loads(path.read_bytes())
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: file not found") from None
-    except OSError as e:
-        raise DatasetError(f"{path}: cannot read ({e.strerror or e})") from None
-    except (ValueError, RecursionError) as e:
-        raise DatasetError(f"{path}: not valid JSON ({e})") from None
-    if not isinstance(obj, dict):
-        raise DatasetError(f"{path}: expected a JSON object at the top level")
+    obj = read_json_object(path)
     frames_in = obj.get("frames")
     if not isinstance(frames_in, list) or not frames_in:
         raise DatasetError(f"{path}: missing or empty 'frames' list")

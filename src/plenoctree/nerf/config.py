@@ -27,6 +27,7 @@ import inspect
 import json
 import textwrap
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigError
@@ -207,10 +208,28 @@ def preset(name: str) -> TrainConfig:
 
 
 @functools.lru_cache(maxsize=None)
+def _class_bodies(filename: str) -> dict[str, list]:
+    """The statements of every class in source file ``filename``, by qualified name (one parse
+    per module: ``inspect.getsource`` re-parses the whole module for each class)."""
+    out: dict[str, list] = {}
+
+    def walk(nodes: list, prefix: str) -> None:
+        for node in nodes:
+            if isinstance(node, ast.ClassDef):
+                out[prefix + node.name] = node.body
+                walk(node.body, f"{prefix}{node.name}.")
+
+    walk(ast.parse(Path(filename).read_text(encoding="utf-8")).body, "")
+    return out
+
+
+@functools.lru_cache(maxsize=None)
 def field_docs(cls: type) -> dict[str, str]:
     """The docstring written under each field of dataclass ``cls``, by field name."""
-    src = textwrap.dedent(inspect.getsource(cls))
-    body = ast.parse(src).body[0].body
+    filename = inspect.getsourcefile(cls)
+    body = _class_bodies(filename).get(cls.__qualname__) if filename else None
+    if body is None:                      # a class defined inside a function
+        body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
     docs: dict[str, str] = {}
     for node, nxt in zip(body, body[1:]):
         if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)

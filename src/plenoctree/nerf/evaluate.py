@@ -6,7 +6,6 @@ PlenOctree 167.7 FPS): every pixel is a ray through the network, in chunks, no g
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +13,7 @@ import numpy as np
 from .._util import atomic_save_json, save_png
 from ..datasets import Dataset
 from ..errors import ConfigError
-from ..metrics import psnr, ssim
+from ..evaluation import score_views
 from .config import TrainConfig
 from .model import NeRFModel
 from .renderer import render_image
@@ -53,22 +52,23 @@ def evaluate_views(model: NeRFModel, data: Dataset, cfg: TrainConfig,
         if not 0 <= i < len(data):
             raise ConfigError(f"view index {i} out of range for {len(data)} views of "
                               f"{data.root} ({data.split})")
-    res = {"names": [], "psnr": [], "ssim": [], "seconds": [], "n_samples": []}
     out = Path(out_dir) if out_dir is not None else None
-    for i in indices:
-        t0 = time.perf_counter()
-        r = render_image(model, data.cameras, i, data.near, data.far, data.background, cfg,
-                         amp=amp, chunk=chunk, device=device, rows=rows)
-        res["seconds"].append(time.perf_counter() - t0)
-        gt = data.images[i] if rows is None else data.images[i][rows]
-        pred = np.clip(r["rgb"], 0.0, 1.0)
-        res["names"].append(data.names[i])
-        res["psnr"].append(psnr(pred, gt))
-        small = min(pred.shape[:2]) < 11             # SSIM's 11x11 window: NaN for tiny images
-        res["ssim"].append(ssim(pred, gt) if with_ssim and not small else float("nan"))
-        res["n_samples"].append(int(r["n_samples"]))
+    n_samples: list[int] = []
+
+    def keep(k, name, r, pred, gt):
+        n_samples.append(int(r["n_samples"]))
         if out is not None:
-            save_png(out / f"{data.names[i]}.png", pred)
+            save_png(out / f"{name}.png", pred)
+
+    ev = score_views(
+        lambda k: render_image(model, data.cameras, indices[k], data.near, data.far,
+                               data.background, cfg, amp=amp, chunk=chunk, device=device,
+                               rows=rows),
+        [data.images[i] if rows is None else data.images[i][rows] for i in indices],
+        names=[data.names[i] for i in indices], with_ssim=with_ssim,
+        rgb_of=lambda r: np.clip(r["rgb"], 0.0, 1.0), on_view=keep)
+    res = {"names": ev.names, "psnr": ev.psnr, "ssim": ev.ssim,
+           "seconds": [ms / 1e3 for ms in ev.ms], "n_samples": n_samples}
     res["mean_psnr"] = float(np.mean(res["psnr"])) if indices else float("nan")
     res["mean_ssim"] = float(np.mean(res["ssim"])) if indices and with_ssim else float("nan")
     res["seconds_per_frame"] = float(np.mean(res["seconds"])) if indices else float("nan")

@@ -30,8 +30,7 @@ import torch
 from .._util import atomic_save_json, atomic_write, progress
 from ..datasets import Dataset, load_dataset
 from ..errors import ConfigError, PlenOctreeError
-from ..runtime import (MALLOC_ENV, RUNTIME_ENV, ThreadTuner, resolve_amp,  # noqa: F401
-                       resolve_device, setup_threads, tune_malloc)
+from ..runtime import ThreadTuner, resolve_amp, resolve_device, setup_threads
 from .checkpoint import CHECKPOINT_NAME, CheckpointError, model_from_checkpoint, \
     read_checkpoint, save_checkpoint
 from .config import TrainConfig, config_json, validate
@@ -41,8 +40,8 @@ from .model import NeRFModel
 from .renderer import autocast, render_rays_hierarchical, render_rays_occupancy
 from .runlog import RunLog
 
-__all__ = ["TrainingError", "TrainResult", "train", "learning_rate", "tune_malloc",
-           "setup_threads", "resolve_device", "resolve_amp", "flush_tiny_moments",
+# Runtime set-up (threads, malloc, device, AMP) is plenoctree.runtime's, not re-exported here.
+__all__ = ["TrainingError", "TrainResult", "train", "learning_rate", "flush_tiny_moments",
            "sparsity_loss", "RaySource", "load_val_views"]
 
 class TrainingError(PlenOctreeError, RuntimeError):

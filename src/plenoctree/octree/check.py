@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import TreeFormatError
 from .limits import MAX_ABS_BOX, MAX_ABS_VALUE, MAX_DEPTH
+from .ndc import NDCSpace
 from .tree import parse_data_format
 
 if TYPE_CHECKING:
@@ -190,9 +191,12 @@ def check_tree(tree: Octree, name: str = "tree") -> None:
     :func:`check_child`: ``0 <= depth_limit <= MAX_DEPTH``, child offsets >= 0 and pointing
     inside the array, every non-root node has exactly one parent (which, with positive
     offsets, rules out cycles and orphans), cell depth <= ``depth_limit``;
-    data finite with ``|value| <= MAX_ABS_VALUE``; σ >= 0.
+    data finite with ``|value| <= MAX_ABS_VALUE``; σ >= 0; ``ndc`` an ``NDCSpace`` or None.
     """
     n = _check_arrays(tree, name)
+    ndc = getattr(tree, "ndc", None)
+    if ndc is not None and not isinstance(ndc, NDCSpace):
+        raise TreeFormatError(f"{name}: ndc must be an NDCSpace or None, got {type(ndc).__name__}")
     _check_topology(tree, name, n)
     _check_values(tree, name, n)
 

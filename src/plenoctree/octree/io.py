@@ -1,14 +1,16 @@
 """Tree files: the native ``.npz`` format and the svox / volrend ``.npz`` layout.
 
-Native file (``format_version`` 1), written by :func:`save_tree`:
+Native file (``format_version`` 2; version 1 files, which have no ``ndc``, still load),
+written by :func:`save_tree`:
 
 =================  ==========================  ==============================================
 key                dtype / shape               meaning
 =================  ==========================  ==============================================
-``format_version`` int64 scalar                1
+``format_version`` int64 scalar                2
 ``header``         unicode scalar (JSON)       data_format, sh_degree, basis_dim, data_dim,
                                                bbox, dtype, depth_limit, n_nodes, n_leaves,
-                                               package version
+                                               package version, ``ndc``: null or {width,
+                                               height, fx, fy, near} (v2; see octree.ndc)
 ``child``          int32 ``[n, 2, 2, 2]``      relative child offsets (> 0), 0 = leaf
 ``data``           float16|32 ``[n,2,2,2,D]``  channel-major coefficients, σ last
 ``offset``         float64 ``[3]``             tree = offset + invradius3 * world
@@ -19,8 +21,9 @@ key                dtype / shape               meaning
 svox layout (:func:`export_svox` / :func:`import_svox`): keys ``child`` int32, ``data``
 float16, ``data_dim``, ``data_format``, ``invradius3`` float32, ``offset`` float32,
 ``parent_depth`` int32 ``[n, 2]`` (packed parent cell ``node*8 + i*4 + j*2 + k``, node depth;
-root ``[-1, 0]``), ``n_internal``, ``n_free``, ``depth_limit``, ``geom_resize_fact`` and, for
-SG, ``extra_data``.
+root ``[-1, 0]``), ``n_internal``, ``n_free``, ``depth_limit``, ``geom_resize_fact``, for
+SG, ``extra_data`` and, for NDC trees, ``ndc_config`` float64 ``[5]`` (width, height, fx, fy,
+near; an extra key svox and volrend ignore).
 
 Every bad file raises ``TreeFormatError("<path>: <problem>")``, checked before anything is
 returned; files are never unpickled and writes are atomic.
@@ -39,11 +42,13 @@ from ..errors import TreeFormatError
 from ._npz import NpzReader
 from .check import expected_data_dim
 from .limits import MAX_DEPTH
+from .ndc import NDCSpace
 from .tree import Octree, parse_data_format
 
 __all__ = ["save_tree", "load_tree", "export_svox", "import_svox", "FORMAT_VERSION"]
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READ_VERSIONS = (1, 2)       # 1: no "ndc" in the header (world-space trees)
 _FP16_MAX = float(np.finfo(np.float16).max)
 _SVOX_KEYS = ("child", "data", "offset")
 
@@ -148,6 +153,7 @@ def save_tree(tree: Octree, path: str | os.PathLike, precision: str = "fp32",
         "n_nodes": tree.n_nodes,
         "n_leaves": tree.n_leaves,
         "package_version": __version__,
+        "ndc": None if tree.ndc is None else tree.ndc.to_json(),
     }
     arrays = dict(format_version=np.int64(FORMAT_VERSION), header=np.array(json.dumps(header)),
                   child=tree.child.astype(np.int32), data=data,
@@ -161,9 +167,9 @@ def save_tree(tree: Octree, path: str | os.PathLike, precision: str = "fp32",
 def _load_native(r: NpzReader, keep_dtype: bool) -> Octree:
     r.require("format_version", "header", "child", "data", "offset", "invradius3")
     version = r.scalar_int("format_version")
-    if version != FORMAT_VERSION:
-        r.fail(f"unknown format_version {version} (this plenoctree reads version "
-               f"{FORMAT_VERSION}; a newer plenoctree may read it)")
+    if version not in READ_VERSIONS:
+        r.fail(f"unknown format_version {version} (this plenoctree reads versions "
+               f"{', '.join(map(str, READ_VERSIONS))}; a newer plenoctree may read it)")
     header = r.json("header")
     fmt, depth_limit = header.get("data_format"), header.get("depth_limit")
     if not isinstance(fmt, str):
@@ -180,9 +186,15 @@ def _load_native(r: NpzReader, keep_dtype: bool) -> Octree:
                    f"({dim if key == 'data_dim' else n})")
     offset, invradius = _check_vec3(r, "offset"), _check_vec3(r, "invradius3")
     extra = _read_extra(r, fmt)
+    ndc = None
+    if version >= 2 and header.get("ndc") is not None:
+        try:
+            ndc = NDCSpace.from_json(header["ndc"], "header 'ndc'")
+        except TreeFormatError as e:
+            r.fail(str(e))
     tree = Octree(child=r.read("child"), data=r.read("data"), offset=offset,
                   invradius=invradius, data_format=fmt, extra_data=extra,
-                  depth_limit=depth_limit)
+                  depth_limit=depth_limit, ndc=ndc)
     tree.check_integrity(r.name)
     return _finish(tree, keep_dtype)
 
@@ -215,7 +227,9 @@ def load_tree(path: str | os.PathLike, keep_dtype: bool = False) -> Octree:
 def export_svox(tree: Octree, path: str | os.PathLike) -> None:
     """Write ``tree`` in the svox / volrend layout (float16 data), atomically.
 
-    Readable by ``svox.N3Tree.load`` and volrend. Raises ``ValueError`` if a value exceeds the
+    Readable by ``svox.N3Tree.load`` and volrend. An NDC tree adds ``ndc_config`` (which they
+    ignore; :func:`plenoctree.export.export_svox_file` also writes volrend's
+    ``<stem>_poses_bounds.npy`` beside it). Raises ``ValueError`` if a value exceeds the
     float16 range, ``TreeFormatError`` if the tree is invalid (nothing is written).
     """
     what = f"export_svox({os.fspath(path)})"
@@ -235,6 +249,8 @@ def export_svox(tree: Octree, path: str | os.PathLike) -> None:
                   depth_limit=np.int64(tree.depth_limit), geom_resize_fact=np.float64(1.5))
     if tree.extra_data is not None:
         arrays["extra_data"] = tree.extra_data.astype(np.float32)
+    if tree.ndc is not None:
+        arrays["ndc_config"] = tree.ndc.as_array()
     atomic_save_npz(path, compressed=False, **arrays)
 
 
@@ -335,6 +351,16 @@ def _load_svox(r: NpzReader, keep_dtype: bool) -> Octree:
     if not (invradius > 0).all():
         r.fail(f"{key!r} must be > 0, got {invradius.tolist()}")
     extra = _read_extra(r, fmt)
+    ndc = None
+    if "ndc_config" in r:
+        shape, dt = r.shape("ndc_config"), r.dtype("ndc_config")
+        if dt.kind not in "fiu" or shape != (5,):
+            r.fail(f"'ndc_config' must be 5 numbers (width, height, fx, fy, near), got {dt} "
+                   f"{list(shape)}")
+        try:
+            ndc = NDCSpace.from_array(r.read("ndc_config"))
+        except TreeFormatError as e:
+            r.fail(str(e))
     child_all = r.read("child")
     if child_all.dtype != np.int32:
         if np.abs(child_all.astype(np.int64)).max() >= cap:
@@ -352,7 +378,7 @@ def _load_svox(r: NpzReader, keep_dtype: bool) -> Octree:
     sigma = data[..., -1]
     np.maximum(sigma, 0, out=sigma)     # svox/volrend render σ <= 0 as empty space
     tree = Octree(child=child, data=data, offset=offset, invradius=invradius, data_format=fmt,
-                  extra_data=extra, depth_limit=depth_limit)
+                  extra_data=extra, depth_limit=depth_limit, ndc=ndc)
     tree.check_integrity(r.name)
     return _finish(tree, keep_dtype)
 

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import TreeFormatError
+from .ndc import NDCSpace
 
 __all__ = ["Octree", "parse_data_format"]
 
@@ -72,6 +73,8 @@ class Octree:
         extra_data: SG only: float32 ``[B, 4]`` (sharpness, mu_x, mu_y, mu_z); else None.
         depth_limit: maximum cell depth (root cells have depth 0; the leaves of a ``2^d`` grid
             have depth ``d - 1``). Passing -1 sets it to the tree's current maximum depth.
+        ndc: forward-facing trees: the :class:`~plenoctree.octree.ndc.NDCSpace` their box lives
+            in (world rays must be mapped to NDC before rendering); None for world-space trees.
 
     The constructor only converts types (``child`` to int32, ``offset``/``invradius`` to
     float64); call :meth:`check_integrity` to validate.
@@ -84,6 +87,7 @@ class Octree:
     data_format: str
     extra_data: np.ndarray | None = None
     depth_limit: int = -1
+    ndc: NDCSpace | None = None
 
     def __post_init__(self) -> None:
         self.child = np.ascontiguousarray(self.child, dtype=np.int32)
@@ -324,7 +328,8 @@ class Octree:
         return (f"Octree(data_format={self.data_format!r}, n_nodes={self.n_nodes}, "
                 f"n_leaves={self.n_leaves}, data_dim={dim}, "
                 f"dtype={self.data.dtype}, depth_limit={self.depth_limit}, "
-                f"center=[{c}], radius=[{r}])")
+                f"center=[{c}], radius=[{r}]" + (", ndc=True" if self.ndc is not None else "")
+                + ")")
 
     # ------------------------------------------------------------------ builders / checks
     @classmethod

@@ -128,13 +128,11 @@ class ViewSet:
 
 def render_views_psnr(stepper: Any, views: ViewSet) -> float:
     """Mean over views of the per-view PSNR (dB) of ``stepper``'s current values."""
-    from ..metrics import psnr
+    from ..evaluation import score_views
 
-    vals = []
-    for i in range(len(views)):
-        o, d = views.view_rays(i)
-        rgb = stepper.render(o, d).reshape(views.height, views.width, 3)
-        vals.append(min(float(psnr(rgb, views.images[i])), 100.0))
+    res = score_views(lambda i: stepper.render(*views.view_rays(i)).reshape(
+        views.height, views.width, 3), views.images, with_ssim=False)
+    vals = [min(p, 100.0) for p in res.psnr]
     return float(np.mean(vals)) if vals else float("nan")
 
 

@@ -124,11 +124,8 @@ def _rays(origins: Any, dirs: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _call(args: KernelArgs, data2: np.ndarray, o: np.ndarray, d: np.ndarray, aux: np.ndarray,
-          mode: int, scale: float, rgb: np.ndarray, sg_buf: SparseGrad | None,
-          sig: np.ndarray | None = None) -> None:
+          mode: int, scale: float, rgb: np.ndarray, sg_buf: SparseGrad | None) -> None:
     k = _kernels()
-    if sig is None:
-        sig = np.ascontiguousarray(data2[:, -1])
     if sg_buf is None:  # forward only: zero-row slabs, one per thread
         nch = default_chunks()
         grad3 = np.zeros((nch, 0, data2.shape[1]), dtype=data2.dtype)
@@ -148,7 +145,7 @@ def _call(args: KernelArgs, data2: np.ndarray, o: np.ndarray, d: np.ndarray, aux
     if threads > grad3.shape[0]:            # one slab per running thread (see grad_kernel)
         numba.set_num_threads(grad3.shape[0])
     try:
-        k.grad_kernel(args.child, sig, data2, args.offset, args.invr, o, d, aux, mode,
+        k.grad_kernel(args.child, data2, args.offset, args.invr, o, d, aux, mode,
                       float(scale), args.info.kind, args.info.basis_dim, args.sg, args.b_lo,
                       args.b_hi, args.bg, args.stop, args.eps, args.cap0, rgb, grad3, flags,
                       touched, n_t, sse)
@@ -182,21 +179,17 @@ def backward_numba(args: KernelArgs, data2: np.ndarray, origins: Any, dirs: Any,
 
 def fused_mse_numba(args: KernelArgs, data2: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
                     targets: np.ndarray, scale: float, buffers: SparseGrad,
-                    rgb: np.ndarray | None = None, sig: np.ndarray | None = None,
-                    merge: bool = True) -> float:
+                    rgb: np.ndarray | None = None, merge: bool = True) -> float:
     """One fused forward + backward of ``L = scale · Σ (C - target)²`` into ``buffers``
     (merged on return unless ``merge=False``: :func:`._render_grad_numba.step_touched` reads the
-    slabs directly); returns the un-scaled sum of squared errors of the batch.
-
-    ``sig`` is ``data2[:, -1]`` as a contiguous array (made here when not given; a caller that
-    steps many times keeps one and lets the step kernels update it)."""
+    slabs directly); returns the un-scaled sum of squared errors of the batch."""
     o, d = _rays(origins, dirs)
     t = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 3)
     if rgb is None:
         rgb = np.empty((o.shape[0], 3), dtype=np.float64)
     if not o.shape[0]:
         return 0.0
-    _call(args, data2, o, d, t, 1, scale, rgb, buffers, sig)
+    _call(args, data2, o, d, t, 1, scale, rgb, buffers)
     if merge:
         buffers.merge()
     return float(buffers.sse.sum())

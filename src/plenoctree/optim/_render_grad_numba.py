@@ -6,9 +6,10 @@ is cached on disk.
 Per ray (``k`` = the ray's σ > 0 segments in marching order, ``C`` = rendered rgb incl. the
 background ``c_N`` composited with the transmittance ``T_N`` left at the end):
 
-* pass 1, :func:`_trace_one`: marches with the renderer's traversal ``render._march_numba.next_leaf`` (same
-  quantised leaf lookup, same common-ancestor stack, same ``step_eps`` push, same early stop at
-  ``T < stop_thresh``) and records, for every segment with σ > 0, its cell, ``δ`` (world
+* pass 1, :func:`_trace_one`: marches with the renderer's traversal (``render._march_numba``:
+  same quantised leaf lookup, same common-ancestor stack, same look-ahead with prefetched rows,
+  same ``step_eps`` push, same early stop at ``T < stop_thresh``, the same leaf-colour dot
+  product ``leaf_logits``) and records, for every segment with σ > 0, its cell, ``δ`` (world
   units), ``exp(-σ δ)`` and its colour ``c`` (after the sigmoid). Segments with σ ≤ 0 add
   nothing to the colour and have zero gradient (σ = relu(σ̃)), so they are not recorded.
 * pass 2, :func:`_backprop_one`: walks the record front to back with the running transmittance
@@ -35,10 +36,9 @@ lazy Adam or lazy RMSprop), projects σ onto σ ≥ 0 and re-zeroes the slabs, f
 No work is proportional to the tree size: one step costs O(touched cells).
 
 Arrays: ``child`` int32 ``[n_cells]`` (flat ``[n_nodes * 8]``), ``data`` float ``[n_cells, D]``
-(float32 for training; float64 works too, for ``gradcheck``), ``sig`` ``[n_cells]`` a copy of
-``data[:, -1]`` (the marching loop reads σ of every leaf it crosses; the compact copy — 4 bytes
-per cell next to ``child`` — stays in cache where the ``D``-wide rows do not; the step kernels
-keep it in sync), ``grad3`` same dtype
+(float32 for training; float64 works too, for ``gradcheck``; the march reads σ from the rows
+its look-ahead prefetched), ``sig`` ``[n_cells]`` the step kernels' copy of ``data[:, -1]``
+(kept in sync for their callers), ``grad3`` same dtype
 ``[n_chunks, n_cells, D]``, ``flags`` uint8 ``[n_chunks, n_cells]``, ``touched`` int64
 ``[n_chunks, n_cells]``, ``n_touched`` int64 ``[n_chunks]``. Geometry is computed in float64,
 as in the renderer.
@@ -52,8 +52,8 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from ..render._march_numba import (MAX_LEVEL, MAX_STEPS, STACK_SIZE, basis_values, next_leaf,
-                                   ray_start)
+from ..render._march_numba import (MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, basis_values,
+                                   leaf_logits, look_ahead, ray_start)
 from ..render.options import KIND_RGBA
 
 __all__ = ["TILE", "grad_kernel", "merge_chunks", "step_touched", "OPT_SGD", "OPT_ADAM",
@@ -61,6 +61,7 @@ __all__ = ["TILE", "grad_kernel", "merge_chunks", "step_touched", "OPT_SGD", "OP
 
 TILE = 64          # rays per interleaved tile of a chunk
 _REC = 5           # record columns: delta, att, c_r, c_g, c_b
+_QMASK = QUEUE - 1
 
 
 def initial_capacity(depth_limit: int) -> int:
@@ -70,10 +71,10 @@ def initial_capacity(depth_limit: int) -> int:
 
 
 @njit(cache=True, fastmath=True, inline="always")
-def _trace_one(child, sig, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg, b_lo, b_hi,
-               stop, eps, max_level, basis, st, stack, rec_cell, rec, out4):
-    """March one ray (the renderer's traversal, :mod:`plenoctree.render._march_numba`) and
-    record its σ > 0 segments.
+def _trace_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg, b_lo, b_hi,
+               stop, eps, max_level, basis, st, stack, qc, qe, rec_cell, rec, out4):
+    """March one ray (the renderer's traversal, :mod:`plenoctree.render._march_numba`, with
+    its look-ahead) and record its σ > 0 segments.
 
     Writes ``Σ w c`` into ``out4[:3]`` and ``T_N`` into ``out4[3]``; fills ``basis[:n_b]`` (zero
     outside ``[b_lo, b_hi]``), ``rec_cell[s]`` and ``rec[s] = (δ, exp(-σδ), c_r, c_g, c_b)``.
@@ -90,8 +91,7 @@ def _trace_one(child, sig, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b
     if not t0 < t1:
         return 0
     basis_values(kind, n_b, dx, dy, dz, sg, b_lo, b_hi, basis)
-    zero = basis[0] - basis[0]          # 0 in the dtype of the colour arithmetic
-
+    dim = data.shape[1]
     cap = rec_cell.shape[0]
     n_seg = 0
     trans = 1.0
@@ -99,31 +99,27 @@ def _trace_one(child, sig, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b
     st[0] = 0
     st[1] = -1
     stack[0] = 0
+    head = 0
+    tail = 0
+    tq = t0
     steps = 0
-    while t < t1 and steps < MAX_STEPS:
-        steps += 1
-        cell, t_end, _ = next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps_t, t1,
-                                   True, max_level, st, stack)
-        sigma = sig[cell]
+    while True:
+        tail, tq, steps = look_ahead(child, data, px, py, pz, vx, vy, vz, ix, iy, iz, eps_t, t1,
+                                     True, max_level, MAX_STEPS, st, stack, qc, qe, head, tail,
+                                     tq, steps)
+        if head == tail:
+            break
+        cell = qc[head & _QMASK]
+        t_end = qe[head & _QMASK]
+        head += 1
+        sigma = data[cell, dim - 1]         # the row look_ahead prefetched
         if sigma > 0.0:
             if n_seg == cap:
                 return -1
             delta = t_end - t
             att = math.exp(-sigma * delta)
             w = trans * (1.0 - att)
-            if kind == KIND_RGBA:
-                ar = data[cell, 0] * basis[0]       # basis[0] = 1, or 0 if excluded
-                ag = data[cell, 1] * basis[0]
-                ab = data[cell, 2] * basis[0]
-            else:
-                ar = zero
-                ag = zero
-                ab = zero
-                for b in range(n_b):              # basis is 0 outside [b_lo, b_hi]
-                    yb = basis[b]
-                    ar += data[cell, b] * yb
-                    ag += data[cell, n_b + b] * yb
-                    ab += data[cell, 2 * n_b + b] * yb
+            ar, ag, ab = leaf_logits(data, cell, kind, n_b, basis)
             cr = 1.0 / (1.0 + math.exp(-ar))    # exp in the data dtype, the rest float64
             cg = 1.0 / (1.0 + math.exp(-ag))
             cb = 1.0 / (1.0 + math.exp(-ab))
@@ -195,7 +191,7 @@ def _backprop_one(n_seg, rec_cell, rec, kind, n_b, b_lo, b_hi, basis, cr, cg, cb
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def grad_kernel(child, sig, data, offset, invr, origins, dirs, aux, mode, scale, kind, n_b, sg, b_lo,
+def grad_kernel(child, data, offset, invr, origins, dirs, aux, mode, scale, kind, n_b, sg, b_lo,
                 b_hi, bg, stop, eps, cap0, rgb_out, grad3, flags, touched, n_touched, sse):
     """Forward + analytic backward for ``[N, 3]`` rays, accumulating into per-chunk slabs.
 
@@ -217,6 +213,8 @@ def grad_kernel(child, sig, data, offset, invr, origins, dirs, aux, mode, scale,
     stack_all = np.zeros((n_chunks, STACK_SIZE), dtype=np.int64)
     st_all = np.zeros((n_chunks, 4), dtype=np.int64)
     out_all = np.zeros((n_chunks, 4), dtype=np.float64)
+    qc_all = np.zeros((n_chunks, QUEUE), dtype=np.int64)
+    qe_all = np.zeros((n_chunks, QUEUE), dtype=np.float64)
     cell_all = np.empty((n_chunks, cap0), dtype=np.int64)
     rec_all = np.empty((n_chunks, cap0, _REC), dtype=np.float64)
     for tile in prange(n_tiles):
@@ -225,6 +223,8 @@ def grad_kernel(child, sig, data, offset, invr, origins, dirs, aux, mode, scale,
         stack = stack_all[c]
         st = st_all[c]
         out4 = out_all[c]
+        qc = qc_all[c]
+        qe = qe_all[c]
         rec_cell = cell_all[c]
         rec = rec_all[c]
         grad = grad3[c]
@@ -235,11 +235,12 @@ def grad_kernel(child, sig, data, offset, invr, origins, dirs, aux, mode, scale,
         for i in range(tile * TILE, min(n, (tile + 1) * TILE)):
             while True:
                 # float64 scalars: the direction is normalised in float64 (as the twin)
-                n_seg = _trace_one(child, sig, data, offset, invr, np.float64(origins[i, 0]),
+                n_seg = _trace_one(child, data, offset, invr, np.float64(origins[i, 0]),
                                    np.float64(origins[i, 1]), np.float64(origins[i, 2]),
                                    np.float64(dirs[i, 0]), np.float64(dirs[i, 1]),
                                    np.float64(dirs[i, 2]), kind, n_b, sg, b_lo, b_hi, stop,
-                                   eps, MAX_LEVEL, basis, st, stack, rec_cell, rec, out4)
+                                   eps, MAX_LEVEL, basis, st, stack, qc, qe, rec_cell, rec,
+                                   out4)
                 if n_seg >= 0:
                     break
                 grow = 2 * rec_cell.shape[0]          # rare: a private, larger record

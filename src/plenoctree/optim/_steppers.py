@@ -80,7 +80,7 @@ class NumbaStepper:
 
         separate = self.sigma_lr is not None and self.sigma_lr != self.lr
         sse = fused_mse_numba(self.args, self.data2, origins, dirs, targets, scale, self.buf,
-                              sig=self.sig, merge=separate)
+                              merge=separate)
         b = self.buf
         if separate:     # merged: slab 0 holds every gradient; keep σ's to redo its update
             cells = b.touched_cells().copy()

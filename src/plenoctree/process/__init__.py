@@ -33,7 +33,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import ConfigError
-from .frames import is_video, list_photos, video_frames
+from .frames import VIDEO_SUFFIXES, is_video, list_photos, require_video_reader, video_frames
 from .sfm import ProcessError, SfmOptions, require_pycolmap, run_sfm
 
 __all__ = ["ProcessConfig", "process", "ProcessError", "SfmOptions", "DOWNSCALES"]
@@ -53,12 +53,45 @@ class ProcessConfig:
     """capture kind: auto (from the cameras), 360 (object seen from around) or forward (NDC)"""
     frames: int = 150
     """video only: frames kept (evenly spread, the blurriest candidates dropped)"""
-    drop_blurry: float = 0.1
-    """video only: fraction of the evenly spaced candidate frames dropped as the blurriest"""
+    drop_blurry: float = 0.5
+    """video only: fraction of the evenly spaced candidate frames dropped, each kept frame the
+    sharpest of its run of 1 / (1 - drop) consecutive candidates (0.5: the sharper of two)"""
     overwrite: bool = False
     """replace an existing output folder"""
     sfm: SfmOptions = field(default_factory=SfmOptions)
     """COLMAP options (camera model, matcher, features, ...)"""
+
+    def validated(self, need_out: bool = True) -> "ProcessConfig":
+        """Check the options, the input's existence and the packages it needs, without
+        reading the photos (``run --images`` calls it before any stage runs).
+
+        Raises:
+            ConfigError: a bad option value, no ``images`` (or ``out`` with ``need_out``).
+            ProcessError: the input is missing, pycolmap (or imageio-ffmpeg for a video)
+                is not installed.
+        """
+        from ..datasets.colmap import KINDS
+        from .sfm import check_options
+
+        if not self.images or (need_out and not self.out):
+            raise ConfigError("both the images (folder or video) and --out are needed")
+        if self.scene not in KINDS:
+            raise ConfigError(f"--scene must be one of {', '.join(KINDS)}, got {self.scene!r}")
+        if isinstance(self.frames, bool) or not isinstance(self.frames, int) or self.frames < 3:
+            raise ConfigError(f"--frames must be an integer >= 3, got {self.frames!r}")
+        if not 0 <= float(self.drop_blurry) < 1:
+            raise ConfigError(f"--drop-blurry must be in [0, 1), got {self.drop_blurry!r}")
+        check_options(self.sfm)
+        src = Path(self.images)
+        if not src.exists():
+            raise ProcessError(f"{src}: no such folder of photos or video file")
+        if src.is_file() and not is_video(src):
+            raise ProcessError(f"{src}: not a folder of photos or a video file "
+                               f"({', '.join(VIDEO_SUFFIXES)})")
+        require_pycolmap()
+        if is_video(src):
+            require_video_reader()
+        return self
 
 
 def _check_out(out: Path, overwrite: bool) -> None:
@@ -76,18 +109,14 @@ def process(cfg: ProcessConfig, log: Callable[[str], None] = print) -> dict:
         ProcessError: bad input photos / video, pycolmap missing, SfM failure.
         ConfigError: bad options or an existing output without ``overwrite``.
     """
-    from ..datasets.colmap import KINDS
-
     if not cfg.images or not cfg.out:
         raise ConfigError("both the images (folder or video) and --out are needed")
-    if cfg.scene not in KINDS:
-        raise ConfigError(f"--scene must be one of {', '.join(KINDS)}, got {cfg.scene!r}")
     src, out = Path(cfg.images), Path(cfg.out)
     _check_out(out, cfg.overwrite)
     video = is_video(src)
     if not video:
         photos = list_photos(src, cfg.sfm.single_camera)       # fail fast on bad photos
-    require_pycolmap()
+    cfg.validated()
     t_start = time.perf_counter()
     stage = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     shutil.rmtree(stage, ignore_errors=True)
@@ -99,7 +128,7 @@ def process(cfg: ProcessConfig, log: Callable[[str], None] = print) -> dict:
         image_dir = photos[0].parent
         names = [p.name for p in photos]
         log(f"process: {len(names)} images from {src}")
-        res = run_sfm(image_dir, work, names, cfg.sfm, sequential=video, log=log)
+        res = run_sfm(image_dir, work, names, cfg.sfm, sequential=video, log=log, label=src)
         summary = _write_dataset(res, image_dir, names, stage, work, cfg, log)
         summary.update(source=str(src), video=video, seconds_total=time.perf_counter() - t_start,
                        config={k: v for k, v in asdict(cfg).items()})

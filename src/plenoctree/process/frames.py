@@ -3,8 +3,12 @@
 :func:`list_photos` returns the image files of a folder after decoding each (one clear error
 for an empty folder, a folder of non-images, a corrupt file, mixed sizes under one camera).
 :func:`video_frames` reads a video with imageio-ffmpeg (``plenoctree[video]``), takes
-``ceil(n / (1 - drop))`` frames evenly spaced over its length and drops the ``drop`` fraction
-with the lowest sharpness (variance of the Laplacian of the grey image), keeping time order.
+``ceil(n / (1 - drop))`` candidate frames evenly spaced over its length, splits them into
+``n`` runs of consecutive candidates and keeps the sharpest of each run (variance of the
+Laplacian of the grey image): a blurred frame gives way to a neighbour, and no stretch of the
+video loses its frames (dropping the least sharp candidates of the whole video did: views with
+less texture went together, leaving gaps the matching could not bridge). Frames are decoded
+once, in order, and only one candidate per run is held in memory.
 """
 
 from __future__ import annotations
@@ -18,8 +22,8 @@ import numpy as np
 
 from .sfm import ProcessError
 
-__all__ = ["list_photos", "video_frames", "sharpness", "is_video", "VIDEO_SUFFIXES",
-           "PHOTO_SUFFIXES"]
+__all__ = ["list_photos", "video_frames", "sharpness", "is_video", "require_video_reader",
+           "VIDEO_SUFFIXES", "PHOTO_SUFFIXES"]
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
@@ -72,6 +76,17 @@ def list_photos(folder: str | os.PathLike, single_camera: bool = True) -> list[P
     return photos
 
 
+def require_video_reader():
+    """``imageio.v2`` with its ffmpeg plugin, or :class:`ProcessError` naming the extra."""
+    try:
+        import imageio.v2 as iio
+        import imageio_ffmpeg  # noqa: F401
+    except ImportError:
+        raise ProcessError("reading videos needs imageio-ffmpeg: pip install "
+                           "'plenoctree[video]'") from None
+    return iio
+
+
 def sharpness(rgb: np.ndarray) -> float:
     """Variance of the 4-neighbour Laplacian of the grey image (higher = sharper)."""
     g = np.asarray(rgb, dtype=np.float32)
@@ -81,9 +96,10 @@ def sharpness(rgb: np.ndarray) -> float:
 
 
 def video_frames(video: str | os.PathLike, out_dir: str | os.PathLike, n_frames: int = 150,
-                 drop: float = 0.1, log: Callable[[str], None] = print) -> list[Path]:
+                 drop: float = 0.5, log: Callable[[str], None] = print) -> list[Path]:
     """Write ``n_frames`` sharp, evenly spread frames of ``video`` as ``out_dir/frame_NNNNN.png``
-    (``NNNNN``: the frame's number in the video, from 0).
+    (``NNNNN``: the frame's number in the video, from 0): the sharpest of each run of
+    ``1 / (1 - drop)`` evenly spaced candidates (module docstring).
 
     Returns the frame files in time order. Raises :class:`ProcessError` for an unreadable
     video, one with fewer than 3 frames, or a missing imageio-ffmpeg.
@@ -97,12 +113,7 @@ def video_frames(video: str | os.PathLike, out_dir: str | os.PathLike, n_frames:
         raise ProcessError(f"drop fraction must be in [0, 1), got {drop}")
     if n_frames < 3:
         raise ProcessError(f"--frames must be at least 3, got {n_frames}")
-    try:
-        import imageio.v2 as iio
-        import imageio_ffmpeg  # noqa: F401
-    except ImportError:
-        raise ProcessError("reading videos needs imageio-ffmpeg: pip install "
-                           "'plenoctree[video]'") from None
+    iio = require_video_reader()
     try:
         reader = iio.get_reader(str(video), format="FFMPEG")
         total = reader.count_frames()
@@ -112,14 +123,32 @@ def video_frames(video: str | os.PathLike, out_dir: str | os.PathLike, n_frames:
         raise ProcessError(f"{video}: {total} frame(s); need at least 3")
     n_cand = min(total, math.ceil(n_frames / (1.0 - drop)))
     want = np.unique(np.linspace(0, total - 1, n_cand).round().astype(int))
-    frames, scores = [], []
+    keep = min(n_frames, len(want))
+    # consecutive candidates in `keep` groups (the larger ones spread evenly); one per group
+    group = np.searchsorted(np.round(np.linspace(0, len(want), keep + 1))[1:-1],
+                            np.arange(len(want)), side="right")
+    slot = {int(f): int(g) for f, g in zip(want, group)}
+    out.mkdir(parents=True, exist_ok=True)
+    paths: list[Path] = []
+    best: tuple | None = None                        # (sharpness, frame number, pixels, group)
+
+    def flush() -> None:                             # named by the video frame number
+        if best is not None:
+            p = out / f"frame_{best[1]:05d}.png"
+            Image.fromarray(best[2]).save(p)
+            paths.append(p)
+
     try:
         with progress(total=len(want), desc="video frames", unit="frame") as bar:
-            wanted = set(want.tolist())
             for i, fr in enumerate(reader):
-                if i in wanted:
-                    frames.append(np.asarray(fr)[..., :3].copy())
-                    scores.append(sharpness(frames[-1]))
+                if i in slot:
+                    rgb = np.asarray(fr)[..., :3].copy()
+                    score = sharpness(rgb)
+                    if best is not None and best[3] != slot[i]:
+                        flush()
+                        best = None
+                    if best is None or score > best[0]:
+                        best = (score, i, rgb, slot[i])
                     bar.update(1)
                 if i >= want[-1]:
                     break
@@ -127,15 +156,7 @@ def video_frames(video: str | os.PathLike, out_dir: str | os.PathLike, n_frames:
         raise ProcessError(f"{video}: decoding failed ({type(e).__name__}: {e})") from None
     finally:
         reader.close()
-    keep = min(n_frames, len(frames))
-    order = np.argsort(scores)[::-1][:keep]          # sharpest first
-    chosen = np.sort(order)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for k in chosen:                                 # named by the video frame number
-        p = out / f"frame_{int(want[k]):05d}.png"
-        Image.fromarray(frames[k]).save(p)
-        paths.append(p)
-    log(f"video: {len(paths)} of {total} frames kept ({len(frames) - len(paths)} blurriest "
-        "of the evenly spaced candidates dropped)")
+    flush()
+    log(f"video: {len(paths)} of {total} frames kept (the sharpest of each run of "
+        f"{len(want) / max(1, len(paths)):.2g} evenly spaced candidates)")
     return paths

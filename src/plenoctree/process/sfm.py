@@ -16,6 +16,12 @@ lego photo was registered on the wrong side of the nearly symmetric object (165�
 stricter ones alone still did so in one of two runs (multi-threaded matching is not
 deterministic), with ~5x fewer 3D points than the median photo, which the filter removes.
 A final global bundle adjustment refines the chosen model.
+
+Video frames (``benchmarks/colmap_poses.py --video``, the lego test orbit): matched
+exhaustively up to :data:`EXHAUSTIVE_MAX_FRAMES` (with 20 neighbours only, the two turns of
+the orbit never met and the frames split into 3-5 models, 16 of 60 registered; at 800² one
+such model put half its frames on the wrong side of the object), and the inlier minimum
+follows the features (:func:`min_inliers`).
 """
 
 from __future__ import annotations
@@ -28,7 +34,8 @@ from typing import Any, Callable, Sequence
 
 from ..errors import ConfigError, PlenOctreeError
 
-__all__ = ["SfmOptions", "SfmResult", "run_sfm", "require_pycolmap", "ProcessError"]
+__all__ = ["SfmOptions", "SfmResult", "run_sfm", "require_pycolmap", "check_options",
+           "ProcessError", "sequential_pairs", "min_inliers"]
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV",
                  "OPENCV_FISHEYE")
@@ -47,6 +54,10 @@ class ProcessError(PlenOctreeError, RuntimeError):
 
 def require_pycolmap() -> Any:
     """Import pycolmap or raise :class:`ProcessError` naming the extra to install."""
+    # Pillow first: imported after pycolmap (whose wheel bundles its own zlib), Pillow's PNG
+    # encoder crashes the interpreter (free(): invalid pointer in deflateEnd).
+    from PIL import Image  # noqa: F401
+
     try:
         import pycolmap
     except ImportError:
@@ -64,7 +75,7 @@ class SfmOptions:
     single_camera: bool = True
     """one camera (intrinsics) shared by every image; off: one per image"""
     matcher: str = "auto"
-    """exhaustive, sequential (videos) or auto (sequential for video frames / > 300 images)"""
+    """exhaustive, sequential (videos) or auto (sequential beyond 100 video frames / 300 photos)"""
     max_features: int = 8192
     """SIFT features per image"""
     guided_matching: bool = True
@@ -104,7 +115,8 @@ def _chunks(seq: Sequence, n: int) -> list[Sequence]:
     return [seq[i:i + n] for i in range(0, len(seq), n)]
 
 
-def _check(opts: SfmOptions) -> None:
+def check_options(opts: SfmOptions) -> None:
+    """Check the option values; raises :class:`ConfigError` naming the option."""
     if opts.camera_model not in CAMERA_MODELS:
         raise ConfigError(f"camera model must be one of {', '.join(CAMERA_MODELS)}, got "
                           f"{opts.camera_model!r}")
@@ -112,18 +124,48 @@ def _check(opts: SfmOptions) -> None:
         raise ConfigError(f"matcher must be auto, exhaustive or sequential, got {opts.matcher!r}")
     if opts.max_features < 100 or opts.max_image_size < 64:
         raise ConfigError("max_features must be >= 100 and max_image_size >= 64")
+    if opts.sequential_overlap < 1:
+        raise ConfigError(f"sequential_overlap must be >= 1, got {opts.sequential_overlap}")
+    if not opts.focal_factor > 0:
+        raise ConfigError(f"focal_factor must be > 0, got {opts.focal_factor}")
+    if not isinstance(opts.mapper, dict):
+        raise ConfigError(f"mapper must be a dict of COLMAP mapper options, got {opts.mapper!r}")
+    try:
+        import pycolmap
+    except ImportError:
+        return                              # (the caller's require_pycolmap() says so)
+    _mapper_options(pycolmap, opts)
+
+
+def _mapper_options(pycolmap: Any, opts: SfmOptions) -> Any:
+    """pycolmap.IncrementalPipelineOptions with ``opts.mapper`` set on COLMAP's defaults."""
+    popt = pycolmap.IncrementalPipelineOptions()
+    popt.num_threads = int(opts.num_threads)
+    popt.random_seed = int(opts.seed)
+    for k, v in opts.mapper.items():
+        obj, name = (popt.mapper, k[7:]) if k.startswith("mapper.") else (popt, k)
+        if not hasattr(obj, name):
+            raise ConfigError(f"unknown COLMAP mapper option {k!r}")
+        try:
+            setattr(obj, name, v)
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"COLMAP mapper option {k!r}: bad value {v!r} ({e})") from None
+    return popt
 
 
 def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Sequence[str],
             opts: SfmOptions | None = None, sequential: bool = False,
-            log: Callable[[str], None] = print, show_progress: bool | None = None) -> SfmResult:
+            log: Callable[[str], None] = print, show_progress: bool | None = None,
+            label: str | os.PathLike | None = None) -> SfmResult:
     """Features, matches and an incremental reconstruction of ``names`` in ``image_dir``.
 
     Args:
         image_dir: folder of the images; ``names``: their file names in it (>= 2, in capture
             order for videos).
         work_dir: scratch folder for ``database.db`` (created; emptied of an old database).
-        sequential: the images are video frames (``matcher="auto"`` then matches neighbours).
+        sequential: the images are video frames in time order (``matcher="auto"`` then
+            matches neighbours in time, :func:`sequential_pairs`, beyond 100 frames).
+        label: what the error messages name (default ``image_dir``; ``process``: the video).
 
     Returns:
         :class:`SfmResult` with the model holding the most registered images.
@@ -135,10 +177,11 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     from .._util import progress
 
     opts = opts or SfmOptions()
-    _check(opts)
+    check_options(opts)
+    label = image_dir if label is None else label
     names = list(names)
     if len(names) < 3:
-        raise ProcessError(f"{image_dir}: {len(names)} image(s); structure from motion needs at "
+        raise ProcessError(f"{label}: {len(names)} image(s); structure from motion needs at "
                            "least 3 overlapping photos (20+ recommended)")
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
@@ -174,16 +217,16 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
 
     # 2. Matching.
     t0 = time.perf_counter()
-    use_seq = opts.matcher == "sequential" or (opts.matcher == "auto"
-                                               and (sequential or len(names) > 300))
+    use_seq = opts.matcher == "sequential" or (
+        opts.matcher == "auto" and len(names) > (EXHAUSTIVE_MAX_FRAMES if sequential
+                                                 else EXHAUSTIVE_MAX_PHOTOS))
     mopt = pycolmap.FeatureMatchingOptions()
     mopt.num_threads = int(opts.num_threads)
     mopt.guided_matching = bool(opts.guided_matching)
     ver = pycolmap.TwoViewGeometryOptions()
     ver.ransac.random_seed = int(opts.seed)
     if use_seq:
-        pairs = [(i, j) for i in range(len(names))
-                 for j in range(i + 1, min(len(names), i + 1 + opts.sequential_overlap))]
+        pairs = sequential_pairs(len(names), opts.sequential_overlap)
     else:
         pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
     _match_pairs(pycolmap, db, work, names, pairs, mopt, ver, show_progress,
@@ -192,14 +235,14 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
 
     # 3. Incremental mapping (progress: one tick per registered image).
     t0 = time.perf_counter()
-    popt = pycolmap.IncrementalPipelineOptions()
-    popt.num_threads = int(opts.num_threads)
-    popt.random_seed = int(opts.seed)
-    for k, v in opts.mapper.items():
-        obj, name = (popt.mapper, k[7:]) if k.startswith("mapper.") else (popt, k)
-        if not hasattr(obj, name):
-            raise ConfigError(f"unknown COLMAP mapper option {k!r}")
-        setattr(obj, name, v)
+    popt = _mapper_options(pycolmap, opts)
+    with pycolmap.Database.open(db) as d:
+        n_kp = sorted(d.num_keypoints_for_image(im.image_id) for im in d.read_all_images())
+    cap = popt.mapper.abs_pose_min_num_inliers
+    popt.mapper.abs_pose_min_num_inliers = min_inliers(n_kp[len(n_kp) // 2], cap)
+    if popt.mapper.abs_pose_min_num_inliers < cap:
+        log(f"colmap: {n_kp[len(n_kp) // 2]} features in the median image: an image is "
+            f"registered with >= {popt.mapper.abs_pose_min_num_inliers} inliers")
     sparse = work / "sparse"
     sparse.mkdir(exist_ok=True)
     with progress(total=len(names), desc="colmap mapping", unit="img",
@@ -208,7 +251,7 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
                                               next_image_callback=lambda: bar.update(1))
     times["mapping"] = time.perf_counter() - t0
     if not models:
-        raise ProcessError(f"{image_dir}: COLMAP could not reconstruct any cameras from the "
+        raise ProcessError(f"{label}: COLMAP could not reconstruct any cameras from the "
                            f"{len(names)} images (too few matches). Try more photos with more "
                            "overlap (each part of the scene seen from 3+ nearby views), "
                            "sharper or more textured images, or --matcher exhaustive")
@@ -219,17 +262,64 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     # A final global bundle adjustment of the chosen model.
     pycolmap.logging.minloglevel = 2          # (the mapper resets COLMAP's log level)
     t0 = time.perf_counter()
-    ba = pycolmap.BundleAdjustmentOptions()
-    ba.print_summary = False
-    pycolmap.bundle_adjustment(best, ba)
+    _global_ba(pycolmap, best)
     times["final_ba"] = time.perf_counter() - t0
     n_reg = best.num_reg_images()
     log(f"colmap: {n_reg} of {len(names)} images registered"
         + (f" (largest of {len(models)} models)" if len(models) > 1 else ""))
     if n_reg < 3:
-        raise ProcessError(f"{image_dir}: only {n_reg} of {len(names)} images could be "
+        raise ProcessError(f"{label}: only {n_reg} of {len(names)} images could be "
                            "registered; take more overlapping photos of the scene")
     return SfmResult(best, len(names), n_reg, len(models), times)
+
+
+EXHAUSTIVE_MAX_PHOTOS = 300
+"""``matcher="auto"``: photos are matched exhaustively up to this many, sequentially beyond."""
+EXHAUSTIVE_MAX_FRAMES = 100
+"""``matcher="auto"``: video frames are matched exhaustively up to this many (every pair:
+the loop closures of an orbit), sequentially beyond (:func:`sequential_pairs`)."""
+MIN_INLIER_FRACTION = 0.1
+"""An image is registered with at least this fraction of the median image's features as 2D-3D
+inliers (:func:`min_inliers`)."""
+
+
+def min_inliers(median_features: int, cap: int) -> int:
+    """The mapper's ``abs_pose_min_num_inliers``: :data:`MIN_INLIER_FRACTION` of the median
+    image's features, between COLMAP's default 30 and ``cap`` (the mapper option, 100 by
+    default).
+
+    Measured on lego: the 400² training photos keep ~1,200 features each and need the cap of
+    100 against a photo registered on the wrong side of the object; frames of a 320² video
+    keep ~750, and with 100 a third of them failed to register (56 of 60 do with this rule,
+    all within 0.8° of the truth; ``benchmarks/colmap_poses.py --video``).
+    """
+    return int(max(min(30, cap), min(cap, round(MIN_INLIER_FRACTION * median_features))))
+
+
+def sequential_pairs(n: int, overlap: int) -> list[tuple[int, int]]:
+    """Image pairs of a video's ``n`` frames in time order: each frame with its ``overlap``
+    next ones, and (as COLMAP's sequential matcher's quadratic overlap) with the frames
+    ``2**k`` later beyond them, which closes loops of orbits and revisits."""
+    pairs = {(i, j) for i in range(n) for j in range(i + 1, min(n, i + 1 + overlap))}
+    k = 1
+    while k < n:
+        if k > overlap:
+            pairs.update((i, i + k) for i in range(n - k))
+        k *= 2
+    return sorted(pairs)
+
+
+def _global_ba(pycolmap: Any, rec: Any) -> None:
+    """Bundle adjustment of every registered image and point of ``rec`` (in place; through
+    the adjuster object, which, unlike ``pycolmap.bundle_adjustment``, keeps COLMAP's log
+    level: no INFO lines on the terminal)."""
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in rec.reg_image_ids():
+        config.add_image(image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.print_summary = False
+    pycolmap.create_default_bundle_adjuster(ba, config, rec).solve()
 
 
 WEAK_IMAGE_FRACTION = 0.35

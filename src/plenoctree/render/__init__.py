@@ -251,8 +251,10 @@ def render_image(tree: Any, cameras: Any, index: int, options: RenderOptions | N
     """
     if not hasattr(cameras, "rays"):
         raise ConfigError(f"cameras: expected a Cameras object, got {type(cameras).__name__}")
-    origins, dirs = cameras.rays(index)
     dev = torch.device(device) if device is not None else torch.device("cpu")
+    if dev.type == "cpu" and _backend.resolve("render", backend, dev) == "numba":
+        return _numba_render_camera(tree, cameras, index, options)
+    origins, dirs = cameras.rays(index)
     if dev.type == "cpu":
         return render_rays(tree, origins, dirs, options=options, backend=backend)
     out = render_rays(tree, torch.from_numpy(origins).to(dev), torch.from_numpy(dirs).to(dev),
@@ -260,3 +262,36 @@ def render_image(tree: Any, cameras: Any, index: int, options: RenderOptions | N
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
     return out
+
+
+def _numba_render_camera(tree: Any, cameras: Any, index: int,
+                         options: RenderOptions | None) -> RenderOutput:
+    """:func:`render_image` with the numba kernel making each pixel's ray itself (the same
+    rays as ``cameras.rays(index)``; no per-frame ray arrays or ray checks over the image)."""
+    from . import _render_numba
+
+    opts = (options if options is not None else RenderOptions())
+    if not isinstance(opts, RenderOptions):
+        raise ConfigError(f"options: expected RenderOptions, got {type(opts).__name__}")
+    opts.validated()
+    info = _tree_info(tree)
+    i = cameras._index(index)
+    w, h = cameras.width, cameras.height
+    # The corner pixels' rays bound every other one (directions are affine in the pixel, NDC
+    # origins projective with a denominator of one sign): checking them checks the image.
+    cols, rows = np.array([0, w - 1, 0, w - 1]), np.array([0, 0, h - 1, h - 1])
+    o, d = cameras.pixel_rays(np.full(4, i), cols, rows)
+    _check_rays(o, d)
+    _check_origins(o, _vec3(tree.offset), _vec3(tree.invradius))
+    ndc = (*cameras.ndc_focal, w, h, cameras.ndc_near) if cameras.ndc else None
+    cam = _render_numba.pack_camera(cameras.c2w[i], *cameras.intrinsics(i), ndc=ndc)
+
+    def to_np(x: Any) -> np.ndarray:
+        return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x
+
+    p = _render_numba._prepare(to_np(tree.child), to_np(tree.data), _vec3(tree.offset),
+                               _vec3(tree.invradius), info, _extra(tree), opts)
+    rgb, depth, alpha = _render_numba.empty_outputs(w * h)
+    _render_numba.render_camera_prepared(p, cam, w, h, (rgb, depth, alpha))
+    return RenderOutput(torch.from_numpy(rgb.reshape(h, w, 3)), torch.from_numpy(depth.reshape(h, w)),
+                        torch.from_numpy(alpha.reshape(h, w)))

@@ -26,13 +26,19 @@ from __future__ import annotations
 
 import math
 
+from llvmlite import binding as _llvm
+from llvmlite import ir as _ir
 from numba import njit
+from numba.core import cgutils as _cgutils
+from numba.core import types as _types
+from numba.extending import intrinsic
 
 from .. import sh as _sh
 from ..octree.limits import MAX_DEPTH, max_steps
-from .options import KIND_SG, KIND_SH, QUANT_BITS
+from .options import KIND_RGBA, KIND_SG, KIND_SH, QUANT_BITS
 
-__all__ = ["ray_start", "next_leaf", "basis_values", "STACK_SIZE", "MAX_LEVEL", "MAX_STEPS"]
+__all__ = ["ray_start", "next_leaf", "look_ahead", "prefetch_row", "basis_values", "leaf_logits",
+           "STACK_SIZE", "MAX_LEVEL", "MAX_STEPS", "LOOKAHEAD", "QUEUE"]
 
 #: Deepest node level a descent reaches (= the deepest cell depth a tree may have; deeper
 #: cells are never looked up, so no tree can make a descent write past the stack).
@@ -42,6 +48,12 @@ STACK_SIZE = MAX_LEVEL + 2
 #: Segments one ray may march at most (``octree.limits.max_steps`` of the deepest tree any
 #: loader accepts): only rays that could never finish are cut.
 MAX_STEPS = max_steps(MAX_DEPTH)
+
+#: Leaves looked up ahead of the one being shaded (:func:`look_ahead`), and the size of the
+#: ring buffer holding them (a power of two > LOOKAHEAD).
+LOOKAHEAD = 6
+QUEUE = 8
+_QMASK = QUEUE - 1
 
 _SCALE = float(2 ** QUANT_BITS)
 _INV_SCALE = 1.0 / _SCALE
@@ -53,6 +65,39 @@ _C1 = _sh.SH_C1
 _C20, _C21, _C22, _C23, _C24 = _sh.SH_C2
 _C30, _C31, _C32, _C33, _C34, _C35, _C36 = _sh.SH_C3
 _C40, _C41, _C42, _C43, _C44, _C45, _C46, _C47, _C48 = _sh.SH_C4
+
+
+_PREFETCH = "llvm.prefetch.p0" if _llvm.llvm_version_info[0] >= 17 else "llvm.prefetch.p0i8"
+
+
+@intrinsic
+def _prefetch(typingctx, arr, i, j):
+    """Hint the CPU to fetch ``arr[i, j]``'s cache line (``llvm.prefetch``: read, keep in all
+    cache levels); no effect on values, no fault on any address."""
+    sig = _types.void(arr, i, j)
+
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = _cgutils.get_item_pointer(context, builder, aryty, ary, [args[1], args[2]],
+                                        wraparound=False)
+        i8p = builder.bitcast(ptr, _ir.IntType(8).as_pointer())
+        i32 = _ir.IntType(32)
+        fnty = _ir.FunctionType(_ir.VoidType(), [i8p.type, i32, i32, i32])
+        fn = _cgutils.get_or_insert_function(builder.module, fnty, _PREFETCH)
+        builder.call(fn, [i8p, _ir.Constant(i32, 0), _ir.Constant(i32, 3), _ir.Constant(i32, 1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@njit(cache=True, inline="always")
+def prefetch_row(data, cell):
+    """Prefetch every cache line of row ``data[cell, :]`` (2-D C-contiguous ``data``)."""
+    dim = data.shape[1]
+    for k in range(0, dim - 1, 16):          # 16 float32 = one 64-byte line
+        _prefetch(data, cell, k)
+    _prefetch(data, cell, dim - 1)
 
 
 @njit(cache=True, fastmath=True, inline="always")
@@ -98,6 +143,25 @@ def basis_values(kind, n_b, x, y, z, sg, b_lo, b_hi, out):
     for b in range(n_b):
         if b < b_lo or b > b_hi:
             out[b] = 0.0
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def leaf_logits(data, cell, kind, n_b, basis):
+    """The colour of ``cell`` before the sigmoid: ``(Σ_b k_{r,b} Y_b, …g, …b)`` in the dtype of
+    ``basis`` (float32 in the renderer and in training, float64 for gradcheck); ``basis`` is 0
+    outside the used range, ``basis[0]`` scales RGBA's plain values (1, or 0 if excluded)."""
+    if kind == KIND_RGBA:
+        return data[cell, 0] * basis[0], data[cell, 1] * basis[0], data[cell, 2] * basis[0]
+    zero = basis[0] - basis[0]
+    ar = zero
+    ag = zero
+    ab = zero
+    for b in range(n_b):
+        yb = basis[b]
+        ar += data[cell, b] * yb
+        ag += data[cell, n_b + b] * yb
+        ab += data[cell, 2 * n_b + b] * yb
+    return ar, ag, ab
 
 
 @njit(cache=True, fastmath=True, inline="always")
@@ -187,3 +251,32 @@ def next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps_t, t1, use_stack
     tz = (bz - pz) * iz
     t_end = min(max(min(tx, min(ty, tz)), ts), t1)
     return cell, t_end, n_desc
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def look_ahead(child, data, px, py, pz, vx, vy, vz, ix, iy, iz, eps_t, t1, use_stack, max_level,
+               max_steps, st, stack, qc, qe, head, tail, tq, steps):
+    """Look up leaves ahead of the one being shaded, up to :data:`LOOKAHEAD` queued.
+
+    The queue ``qc`` (cells, int64 ``[QUEUE]``), ``qe`` (segment ends, float64 ``[QUEUE]``)
+    holds the leaves ``head .. tail - 1`` (ring indices ``& (QUEUE - 1)``) of the segments
+    after the current one; ``tq`` is where the next lookup starts and ``steps`` counts the
+    lookups of this ray (at most ``max_steps``). Each leaf found gets its ``data`` row
+    prefetched, so that by the time the ray shades it (reads σ, and the colour when σ > 0) the
+    row is in cache: the memory latency of the next leaves overlaps the work on this one. A ray
+    that stops early has looked up a few leaves it never shades (their values are not used).
+    The segments are exactly those of repeated :func:`next_leaf` calls (``use_stack``: see
+    there). Start a ray with ``head = tail = steps = 0``, ``tq = t0`` and :func:`next_leaf`'s
+    ``st[1] = -1``.
+
+    Returns ``(tail, tq, steps)``."""
+    while tail - head < LOOKAHEAD and tq < t1 and steps < max_steps:
+        steps += 1
+        cell, t_end, _ = next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, tq, eps_t, t1,
+                                   use_stack, max_level, st, stack)
+        qc[tail & _QMASK] = cell
+        qe[tail & _QMASK] = t_end
+        tail += 1
+        tq = t_end
+        prefetch_row(data, cell)
+    return tail, tq, steps

@@ -21,19 +21,19 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from ._march_numba import (MAX_LEVEL, MAX_STEPS, STACK_SIZE, basis_values, next_leaf,
-                           ray_start)
-from .options import KIND_RGBA, KIND_SG, FormatInfo, RenderOptions
+from ._march_numba import (MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, basis_values, leaf_logits,
+                           look_ahead, next_leaf, ray_start)
+from .options import KIND_SG, FormatInfo, RenderOptions
 
 __all__ = ["render_rays_numba", "ray_stats_numba", "Prepared", "prepare", "render_prepared",
-           "empty_outputs", "TILE", "TILE_2D", "CHUNK_TILES", "STAT_NAMES"]
+           "pack_camera", "render_camera_prepared", "empty_outputs", "TILE", "TILE_2D", "CHUNK_TILES", "STAT_NAMES"]
 
 TILE = 64          # rays per work item when the image width is unknown (one row of rays)
 TILE_2D = (8, 8)   # pixels per work item of an image (1.2x faster than 64x1 rows on lego)
 CHUNK_TILES = 4    # work items per dynamic-scheduling chunk
 
-_Z32 = np.float32(0.0)
 _ONE32 = np.float32(1.0)
+_QMASK = QUEUE - 1
 
 #: Columns of :func:`ray_stats_numba`'s output, per ray.
 STAT_NAMES = ("leaves", "sigma_leaves", "negligible", "descent", "hit", "stopped")
@@ -42,9 +42,9 @@ NEGLIGIBLE_WEIGHT = 1e-4   # a σ > 0 segment with w = T (1 - e^{-σδ}) below t
 
 @njit(cache=True, fastmath=True, inline="always")
 def _render_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg, b_lo, b_hi,
-                stop, eps, use_stack, max_level, max_steps, basis, st, stack, out3):
-    """March one ray (at most ``max_steps`` segments); returns (T, Σw, Σw t_mid) and writes
-    Σ w c into ``out3``."""
+                stop, eps, use_stack, max_level, max_steps, basis, st, stack, qc, qe, out3):
+    """March one ray (at most ``max_steps`` segments, looked up ahead of shading by
+    :func:`look_ahead`); returns (T, Σw, Σw t_mid) and writes Σ w c into ``out3``."""
     out3[0] = 0.0
     out3[1] = 0.0
     out3[2] = 0.0
@@ -61,29 +61,25 @@ def _render_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg
     st[0] = 0
     st[1] = -1
     stack[0] = 0
+    head = 0
+    tail = 0
+    tq = t0
     steps = 0
-    while t < t1 and steps < max_steps:
-        steps += 1
-        cell, t_end, _ = next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps_t, t1,
-                                   use_stack, max_level, st, stack)
+    while True:
+        tail, tq, steps = look_ahead(child, data, px, py, pz, vx, vy, vz, ix, iy, iz, eps_t, t1,
+                                     use_stack, max_level, max_steps, st, stack, qc, qe, head,
+                                     tail, tq, steps)
+        if head == tail:
+            break
+        cell = qc[head & _QMASK]
+        t_end = qe[head & _QMASK]
+        head += 1
         sigma = data[cell, dim - 1]
         if sigma > 0.0:
             att = math.exp(-sigma * (t_end - t))
             w = trans * (1.0 - att)
-            # Colour in float32 (vectorisable dot products, single-precision exp).
-            if kind == KIND_RGBA:
-                ar = data[cell, 0] * basis[0]       # basis[0] = 1, or 0 if excluded
-                ag = data[cell, 1] * basis[0]
-                ab = data[cell, 2] * basis[0]
-            else:
-                ar = _Z32
-                ag = _Z32
-                ab = _Z32
-                for b in range(n_b):          # basis is 0 outside [b_lo, b_hi]
-                    yb = basis[b]
-                    ar += data[cell, b] * yb
-                    ag += data[cell, n_b + b] * yb
-                    ab += data[cell, 2 * n_b + b] * yb
+            # Colour in float32 (vectorised dot products, single-precision exp).
+            ar, ag, ab = leaf_logits(data, cell, kind, n_b, basis)
             out3[0] += w / (_ONE32 + math.exp(-ar))
             out3[1] += w / (_ONE32 + math.exp(-ag))
             out3[2] += w / (_ONE32 + math.exp(-ab))
@@ -96,15 +92,62 @@ def _render_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg
     return trans, w_sum, wt_sum
 
 
+#: ``cam[0]`` of :func:`_render_kernel`: rays read from arrays, or made per pixel from a camera.
+CAM_ARRAYS, CAM_PINHOLE, CAM_NDC = 0, 1, 2
+CAM_SIZE = 20
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _camera_ray(cam, u, v):
+    """The ray of pixel ``(u, v)`` of the camera packed in ``cam`` (see :func:`pack_camera`),
+    float32-rounded as ``datasets.cameras.generate_rays`` (+ ``datasets.ndc.to_ndc_rays`` when
+    ``cam[0] == CAM_NDC``) return it: ``(ox, oy, oz, dx, dy, dz)`` float32."""
+    a = (u + 0.5 - cam[3]) / cam[1]
+    b = -(v + 0.5 - cam[4]) / cam[2]
+    x = a * cam[5] + b * cam[6] - cam[7]
+    y = a * cam[8] + b * cam[9] - cam[10]
+    z = a * cam[11] + b * cam[12] - cam[13]
+    nrm = math.sqrt(x * x + y * y + z * z)
+    dx = np.float32(x / nrm)
+    dy = np.float32(y / nrm)
+    dz = np.float32(z / nrm)
+    ox = np.float32(cam[14])
+    oy = np.float32(cam[15])
+    oz = np.float32(cam[16])
+    if cam[0] == CAM_NDC:
+        # to_ndc_rays on the float32 world ray, in float64, then rounded to float32
+        ex, ey, ez = np.float64(dx), np.float64(dy), np.float64(dz)
+        near = cam[19]
+        t = -(near + np.float64(oz)) / ez
+        px = np.float64(ox) + t * ex
+        py = np.float64(oy) + t * ey
+        pz = np.float64(oz) + t * ez
+        rx = px / pz
+        ry = py / pz
+        nx = cam[17] * (ex / ez - rx)
+        ny = cam[18] * (ey / ez - ry)
+        nz = -2.0 * near / pz
+        nrm = math.sqrt(nx * nx + ny * ny + nz * nz)
+        ox = np.float32(cam[17] * rx)
+        oy = np.float32(cam[18] * ry)
+        oz = np.float32(1.0 + 2.0 * near / pz)
+        dx = np.float32(nx / nrm)
+        dy = np.float32(ny / nrm)
+        dz = np.float32(nz / nrm)
+    return ox, oy, oz, dx, dy, dz
+
+
 @njit(parallel=True, cache=True, fastmath=True)
-def _render_kernel(child, data, offset, invr, origins, dirs, kind, n_b, sg, b_lo, b_hi, bg,
-                   stop, eps, use_stack, max_level, max_steps, width, tile_w, tile_h, rgb, depth,
-                   alpha):
-    """Rays ``i = y * width + x`` in tiles of ``tile_w × tile_h`` pixels (one work item each)."""
-    n = origins.shape[0]
+def _render_kernel(child, data, offset, invr, origins, dirs, cam, kind, n_b, sg, b_lo, b_hi, bg,
+                   stop, eps, use_stack, max_level, max_steps, n, width, tile_w, tile_h, rgb,
+                   depth, alpha):
+    """``n`` rays ``i = y * width + x`` in tiles of ``tile_w × tile_h`` pixels (one work item
+    each): read from ``origins, dirs [n, 3]`` (``cam[0] == CAM_ARRAYS``) or made for pixel
+    ``(x, y)`` of the camera ``cam`` (:func:`_camera_ray`; the arrays are then unused)."""
     height = (n + width - 1) // width
     ntx = (width + tile_w - 1) // tile_w
     nty = (height + tile_h - 1) // tile_h
+    from_cam = cam[0] != CAM_ARRAYS
     for tile in prange(ntx * nty):
         ty = tile // ntx
         tx = tile - ty * ntx
@@ -112,15 +155,22 @@ def _render_kernel(child, data, offset, invr, origins, dirs, kind, n_b, sg, b_lo
         st = np.zeros(4, dtype=np.int64)
         stack = np.zeros(STACK_SIZE, dtype=np.int64)
         acc = np.zeros(3, dtype=np.float64)
+        qc = np.zeros(QUEUE, dtype=np.int64)
+        qe = np.zeros(QUEUE, dtype=np.float64)
         for y in range(ty * tile_h, min(height, (ty + 1) * tile_h)):
             for x in range(tx * tile_w, min(width, (tx + 1) * tile_w)):
                 i = y * width + x
                 if i >= n:
                     break
+                if from_cam:
+                    ox, oy, oz, dx, dy, dz = _camera_ray(cam, x, y)
+                else:
+                    ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+                    dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
                 trans, w_sum, wt_sum = _render_one(
-                    child, data, offset, invr, origins[i, 0], origins[i, 1], origins[i, 2],
-                    dirs[i, 0], dirs[i, 1], dirs[i, 2], kind, n_b, sg, b_lo, b_hi, stop, eps,
-                    use_stack, max_level, max_steps, basis, st, stack, acc)
+                    child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg, b_lo,
+                    b_hi, stop, eps, use_stack, max_level, max_steps, basis, st, stack, qc, qe,
+                    acc)
                 for ch in range(3):
                     rgb[i, ch] = acc[ch] + trans * bg[ch]
                 depth[i] = wt_sum / max(w_sum, 1e-10)
@@ -220,6 +270,31 @@ def empty_outputs(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             np.empty(n, dtype=np.float32))
 
 
+_NO_RAYS = np.zeros((0, 3), dtype=np.float32)
+_NO_CAM = np.zeros(CAM_SIZE, dtype=np.float64)
+
+
+def _launch(p: Prepared, origins: np.ndarray, dirs: np.ndarray, cam: np.ndarray, n: int,
+            out: tuple[np.ndarray, np.ndarray, np.ndarray], use_stack: bool, width: int,
+            tile: tuple[int, int] | None, chunk_tiles: int) -> None:
+    rgb, depth, alpha = out
+    if n == 0:
+        return
+    if width <= 0 or width > n:
+        width, tw, th = n, TILE, 1
+    else:
+        tw, th = tile if tile is not None else TILE_2D
+    old = numba.get_parallel_chunksize()
+    numba.set_parallel_chunksize(max(1, int(chunk_tiles)))
+    try:
+        _render_kernel(p.child, p.data, p.offset, p.invr, origins, dirs, cam, p.kind, p.n_b,
+                       p.sg, p.b_lo, p.b_hi, p.bg, p.stop, p.eps, bool(use_stack), MAX_LEVEL,
+                       p.max_steps, int(n), int(width), max(1, int(tw)), max(1, int(th)),
+                       rgb.reshape(n, 3), depth.reshape(n), alpha.reshape(n))
+    finally:
+        numba.set_parallel_chunksize(old)
+
+
 def render_prepared(p: Prepared, origins: np.ndarray, dirs: np.ndarray,
                     out: tuple[np.ndarray, np.ndarray, np.ndarray], use_stack: bool = True,
                     width: int = 0, tile: tuple[int, int] | None = None,
@@ -229,23 +304,37 @@ def render_prepared(p: Prepared, origins: np.ndarray, dirs: np.ndarray,
     ``width > 0``: the rays are the pixels of an image ``width`` wide (row-major) and are
     marched in ``tile = (w, h)`` pixel tiles (default :data:`TILE_2D`: neighbouring rays share
     nodes and leaves in cache, also across rows); ``width = 0``: one row (``(TILE, 1)``)."""
-    rgb, depth, alpha = out
-    if origins.shape[0] == 0:
-        return
-    old = numba.get_parallel_chunksize()
-    numba.set_parallel_chunksize(max(1, int(chunk_tiles)))
-    try:
-        n = origins.shape[0]
-        if width <= 0 or width > n:
-            width, tw, th = n, TILE, 1
-        else:
-            tw, th = tile if tile is not None else TILE_2D
-        _render_kernel(p.child, p.data, p.offset, p.invr, origins, dirs, p.kind, p.n_b, p.sg,
-                       p.b_lo, p.b_hi, p.bg, p.stop, p.eps, bool(use_stack), MAX_LEVEL,
-                       p.max_steps, int(width), max(1, int(tw)), max(1, int(th)), rgb, depth,
-                       alpha)
-    finally:
-        numba.set_parallel_chunksize(old)
+    _launch(p, origins, dirs, _NO_CAM, int(origins.shape[0]), out, use_stack, width, tile,
+            chunk_tiles)
+
+
+def pack_camera(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float,
+                ndc: tuple[float, float, int, int, float] | None = None) -> np.ndarray:
+    """float64 ``[CAM_SIZE]`` camera of :func:`render_camera_prepared`: ``c2w [4, 4]`` (or
+    ``[3, 4]``, OpenGL), intrinsics in pixels, and for NDC rays ``ndc = (fx, fy, width,
+    height, near)`` of the NDC reference camera (see :mod:`plenoctree.datasets.ndc`)."""
+    m = np.asarray(c2w, dtype=np.float64)
+    cam = np.zeros(CAM_SIZE, dtype=np.float64)
+    cam[0] = CAM_PINHOLE if ndc is None else CAM_NDC
+    cam[1:5] = fx, fy, cx, cy
+    cam[5:14] = m[:3, :3].reshape(9)
+    cam[14:17] = m[:3, 3].astype(np.float32)         # origins are float32, as generate_rays'
+    if ndc is not None:
+        nfx, nfy, nw, nh, near = (float(v) for v in ndc)
+        cam[17:20] = -2.0 * nfx / nw, -2.0 * nfy / nh, near
+    return cam
+
+
+def render_camera_prepared(p: Prepared, cam: np.ndarray, width: int, height: int,
+                           out: tuple[np.ndarray, np.ndarray, np.ndarray],
+                           tile: tuple[int, int] | None = None,
+                           chunk_tiles: int = CHUNK_TILES) -> None:
+    """Render the ``width × height`` image of camera ``cam`` (:func:`pack_camera`) into
+    ``out = (rgb, depth, alpha)`` (``[H * W, 3]``/``[H * W]`` or ``[H, W, ...]`` float32
+    contiguous): the rays are made per pixel inside the kernel, equal to those of
+    ``generate_rays`` (+ ``to_ndc_rays``), so no ray arrays are allocated."""
+    _launch(p, _NO_RAYS, _NO_RAYS, np.ascontiguousarray(cam, dtype=np.float64),
+            int(width) * int(height), out, True, int(width), tile, chunk_tiles)
 
 
 def render_rays_numba(child: np.ndarray, data: np.ndarray, offset: np.ndarray,

@@ -88,6 +88,8 @@ const api = {
     return addMesh(data, name);
   },
   clearMeshes() { if (meshPass) meshPass.clear(); invalidate(); },
+  // Headlight shading of inserted meshes (mesh.js MESH_AMBIENT); false = unlit colours.
+  setMeshShading(on) { meshShading = Boolean(on); $("mesh_shading").checked = meshShading; if (meshPass) meshPass.shading = meshShading; invalidate(); },
 };
 window.viewer = api;
 
@@ -138,6 +140,7 @@ function dismissMessage() {
 // ---------------------------------------------------------------- views
 let initialView = null;
 let meshPass = null;
+let meshShading = true;
 
 // Insert a mesh (OBJ text or GLB bytes; world coordinates, GLB +Y up turned onto the scene's
 // up axis). Returns {vertices, triangles}.
@@ -146,7 +149,7 @@ function addMesh(data, name) {
   const mesh = /\.glb$/i.test(name) || data instanceof ArrayBuffer && new Uint32Array(data.slice(0, 4))[0] === 0x46546c67
     ? toSceneUp(parseGlb(data instanceof ArrayBuffer ? data : new TextEncoder().encode(data).buffer, name), camera.up)
     : parseObj(typeof data === "string" ? data : new TextDecoder().decode(data), name);
-  if (!meshPass) meshPass = new MeshPass(renderer.gl);
+  if (!meshPass) { meshPass = new MeshPass(renderer.gl); meshPass.shading = meshShading; }
   meshPass.add(mesh);
   invalidate();
   return { vertices: mesh.positions.length / 3, triangles: mesh.indices.length / 3 };
@@ -168,9 +171,9 @@ function frameInitialView(t) {
   const center = sceneCenter(t);
   const cams = config.cameras;
   if (config.up && UP[config.up]) camera.up = config.up;
-  if (config.ndc) {
+  if (opts.ndc) {
     // forward-facing: the NDC reference camera (identity pose at the origin, looking down -z)
-    const n = config.ndc;
+    const n = opts.ndc;
     camera.up = "+y";
     camera.fovY = 2 * Math.atan(0.5 * n.height / n.fy) * 180 / Math.PI;
     camera.lookFrom([0, 0, 0], [0, 0, -1]);
@@ -223,7 +226,7 @@ function jumpToCamera(i) {
   const n = cams.c2w.length;
   i = ((Math.round(i) % n) + n) % n;
   // (NDC trees: orbit about a point 2 near-plane distances in front of the camera)
-  const pivot = config.ndc ? [cams.c2w[i][3] - 2 * cams.c2w[i][2], cams.c2w[i][7] - 2 * cams.c2w[i][6],
+  const pivot = opts.ndc ? [cams.c2w[i][3] - 2 * cams.c2w[i][2], cams.c2w[i][7] - 2 * cams.c2w[i][6],
     cams.c2w[i][11] - 2 * cams.c2w[i][10]] : sceneCenter(renderer.tree);
   camera.setPose(cams.c2w[i], cameraFovY(i), pivot);
   fixedView = null;
@@ -342,7 +345,7 @@ function renderOnce(scale = scaleMode === "auto" ? 1 : Number(scaleMode)) {
     opts.depth_range = [Math.max(0, dist - r), dist + r];
   }
   const t0 = performance.now();
-  const meshTex = meshPass && meshPass.meshes.length && !opts.ndc ? meshPass.draw(view) : null;
+  const meshTex = meshPass && meshPass.meshes.length ? meshPass.draw(view) : null;
   renderer.draw(view, opts, meshTex);
   renderer.finish();
   drawCameras(view);
@@ -464,7 +467,7 @@ function buildControls() {
     if (!f) return;
     $("message").hidden = true;
     api.state = "loading";
-    try { await loadBuffer(await f.arrayBuffer(), f.name); } catch (err) { showError(err); }
+    try { await loadBuffer(await f.arrayBuffer(), f.name, false); } catch (err) { showError(err); }
     $("file").value = "";
   });
   canvas.addEventListener("webglcontextlost", (e) => {
@@ -495,6 +498,7 @@ function buildControls() {
     $("mesh_file").value = "";
   });
   $("mesh_clear").addEventListener("click", () => { api.clearMeshes(); $("mesh_info").textContent = ""; });
+  $("mesh_shading").addEventListener("change", () => api.setMeshShading($("mesh_shading").checked));
   canvas.addEventListener("click", (e) => {
     if (!(e.altKey || $("probe_mode").checked) || api.state !== "ready") return;
     const r = canvas.getBoundingClientRect();
@@ -532,7 +536,8 @@ async function fetchTree(url) {
   return out.buffer;
 }
 
-async function loadBuffer(buffer, name) {
+// bundled: the tree named by config.json (its "ndc" applies), not one opened from the disk.
+async function loadBuffer(buffer, name, bundled = true) {
   treeName = name;
   setStatus("Reading the archive...");
   const archive = new NpzArchive(buffer, name);
@@ -540,7 +545,7 @@ async function loadBuffer(buffer, name) {
   const packed = await packTree(archive, limits, setStatus);
   setStatus("Uploading textures...");
   renderer.upload(packed);
-  opts.ndc = config.ndc || null;
+  opts.ndc = packed.ndc || (bundled && config.ndc) || null;   // the file's own, else the bundle's
   frameInitialView(packed);
   opts.sh_min = 0;
   opts.sh_max = -1;

@@ -1,6 +1,6 @@
 // Meshes inserted into the scene (as in the paper's viewer): OBJ / GLB parsing and a WebGL2
-// pass that rasterises them (unlit vertex colours, depth test) into an offscreen target holding
-// colour and the world distance along each pixel's ray. The volume pass then stops each ray at
+// pass that rasterises them (vertex colours under a headlight, depth test) into an offscreen
+// target holding colour and the world distance along each pixel's ray. The volume pass then stops each ray at
 // that distance and composites the mesh colour behind the volume in front of it, so the mesh
 // is occluded by the volume exactly as far as the volume is opaque.
 
@@ -63,7 +63,7 @@ export function parseGlb(buffer, name = "mesh.glb") {
       if ((prim.mode ?? 4) !== 4) continue;
       const base = pos.length / 3;
       const p = read(prim.attributes.POSITION).arr;
-      pos.push(...p);
+      for (let i = 0; i < p.length; i++) pos.push(p[i]);   // (no spread: large meshes)
       const nv = p.length / 3;
       if (prim.attributes.COLOR_0 !== undefined) {
         const c = read(prim.attributes.COLOR_0);
@@ -93,15 +93,42 @@ export function toSceneUp(mesh, up) {
   return { ...mesh, positions: out, yUp: false };
 }
 
+// Headlight Lambert shading of the mesh colour (two-sided, a light at the eye):
+// shade = MESH_AMBIENT + (1 - MESH_AMBIENT) |n . v|, v the unit ray direction, n the
+// interpolated area-weighted vertex normal (vertexNormals).
+export const MESH_AMBIENT = 0.3;
+
+// Area-weighted vertex normals, Float32Array [3 n] (unit; 0 for vertices of no face).
+export function vertexNormals(positions, indices) {
+  const nrm = new Float32Array(positions.length);
+  for (let f = 0; f + 2 < indices.length; f += 3) {
+    const a = indices[f] * 3, b = indices[f + 1] * 3, c = indices[f + 2] * 3;
+    const u = [0, 1, 2].map((k) => positions[b + k] - positions[a + k]);
+    const w = [0, 1, 2].map((k) => positions[c + k] - positions[a + k]);
+    const n = [u[1] * w[2] - u[2] * w[1], u[2] * w[0] - u[0] * w[2], u[0] * w[1] - u[1] * w[0]];
+    for (const v of [a, b, c]) for (let k = 0; k < 3; k++) nrm[v + k] += n[k];
+  }
+  for (let v = 0; v < nrm.length; v += 3) {
+    const l = Math.hypot(nrm[v], nrm[v + 1], nrm[v + 2]);
+    if (l > 0) for (let k = 0; k < 3; k++) nrm[v + k] /= l;
+  }
+  return nrm;
+}
+
 const VS = `#version 300 es
 uniform mat4 u_w2c;            // world -> camera (OpenGL camera: looks down -z)
 uniform vec4 u_intr;           // fx, fy, cx, cy (pixels)
 uniform vec2 u_size;           // width, height
 uniform vec2 u_clip;           // near, far (world units)
+uniform vec3 u_eye;            // camera centre (world)
 in vec3 a_pos;
 in vec3 a_col;
+in vec3 a_nrm;
+in vec4 a_plane;               // the triangle's plane n . x = w (world, n unit)
 out vec3 v_col;
 out vec3 v_cam;
+out vec3 v_nrm;
+flat out vec4 v_plane;         // the same plane in camera coordinates
 void main() {
   vec4 pc = u_w2c * vec4(a_pos, 1.0);
   float z = -pc.z;
@@ -115,17 +142,35 @@ void main() {
                      zc, z);
   v_col = a_col;
   v_cam = pc.xyz;
+  v_nrm = mat3(u_w2c) * a_nrm;   // rotation only (camera space)
+  v_plane = vec4(mat3(u_w2c) * a_plane.xyz, a_plane.w - dot(a_plane.xyz, u_eye));
 }`;
 
 const FS = `#version 300 es
 precision highp float;
+uniform float u_ambient;       // MESH_AMBIENT; 1 = unlit
+uniform vec4 u_intr;
+uniform vec2 u_size;
 in vec3 v_col;
 in vec3 v_cam;
+in vec3 v_nrm;
+flat in vec4 v_plane;
 layout(location = 0) out vec4 o_col;
 layout(location = 1) out vec4 o_dist;
 void main() {
-  o_col = vec4(v_col, 1.0);
-  o_dist = vec4(length(v_cam), 0.0, 0.0, 1.0);   // world distance from the eye along the ray
+  float ln = length(v_nrm);
+  // no normal (degenerate faces): flat normal of the facet from screen-space derivatives
+  vec3 n = ln > 1e-6 ? v_nrm / ln : normalize(cross(dFdx(v_cam), dFdy(v_cam)));
+  float lambert = abs(dot(n, normalize(v_cam)));          // headlight, two-sided
+  o_col = vec4(v_col * (u_ambient + (1.0 - u_ambient) * lambert), 1.0);
+  // world distance from the eye along this pixel's ray (the volume pass's ray: pixel centre),
+  // intersected exactly with the triangle's plane (interpolating the distance is not precise
+  // enough in front of dense volume cells)
+  vec3 rc = normalize(vec3((gl_FragCoord.x - u_intr.z) / u_intr.x,
+                           -((u_size.y - gl_FragCoord.y) - u_intr.w) / u_intr.y, -1.0));
+  float den = dot(v_plane.xyz, rc);
+  float dist = abs(den) > 1e-4 ? v_plane.w / den : length(v_cam);
+  o_dist = vec4(dist, 0.0, 0.0, 1.0);
 }`;
 
 function compile(gl, type, src) {
@@ -148,28 +193,51 @@ export class MeshPass {
     this.prog = prog;
     this.meshes = [];
     this.size = [0, 0];
+    this.shading = true;       // false: unlit vertex colours
   }
 
   add(mesh) {
     const gl = this.gl;
+    // one vertex per triangle corner, so each corner can carry its triangle's plane
+    const nTri = mesh.indices.length / 3, vn = vertexNormals(mesh.positions, mesh.indices);
+    const pos = new Float32Array(nTri * 9), col = new Float32Array(nTri * 9);
+    const nrm = new Float32Array(nTri * 9), plane = new Float32Array(nTri * 12);
+    const P = mesh.positions;
+    for (let f = 0; f < nTri; f++) {
+      const v = [0, 1, 2].map((c) => mesh.indices[3 * f + c] * 3);
+      const e1 = [0, 1, 2].map((k) => P[v[1] + k] - P[v[0] + k]);
+      const e2 = [0, 1, 2].map((k) => P[v[2] + k] - P[v[0] + k]);
+      let n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]];
+      const l = Math.hypot(...n) || 1;
+      n = n.map((x) => x / l);
+      const w = n[0] * P[v[0]] + n[1] * P[v[0] + 1] + n[2] * P[v[0] + 2];
+      for (let c = 0; c < 3; c++) {
+        for (let k = 0; k < 3; k++) {
+          pos[9 * f + 3 * c + k] = P[v[c] + k];
+          col[9 * f + 3 * c + k] = mesh.colors[v[c] + k];
+          nrm[9 * f + 3 * c + k] = vn[v[c] + k];
+        }
+        plane.set([n[0], n[1], n[2], w], 12 * f + 4 * c);
+      }
+    }
     const vao = gl.createVertexArray();
     gl.bindVertexArray(vao);
-    const buf = (data, loc) => {
+    const buf = (data, name, size = 3) => {
+      const loc = gl.getAttribLocation(this.prog, name);
       const b = gl.createBuffer();
       gl.bindBuffer(gl.ARRAY_BUFFER, b);
       gl.bufferData(gl.ARRAY_BUFFER, data, gl.STATIC_DRAW);
       gl.enableVertexAttribArray(loc);
-      gl.vertexAttribPointer(loc, 3, gl.FLOAT, false, 0, 0);
+      gl.vertexAttribPointer(loc, size, gl.FLOAT, false, 0, 0);
     };
-    buf(mesh.positions, gl.getAttribLocation(this.prog, "a_pos"));
-    buf(mesh.colors, gl.getAttribLocation(this.prog, "a_col"));
-    const ib = gl.createBuffer();
-    gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ib);
-    gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, mesh.indices, gl.STATIC_DRAW);
+    buf(pos, "a_pos");
+    buf(col, "a_col");
+    buf(nrm, "a_nrm");
+    buf(plane, "a_plane", 4);
     gl.bindVertexArray(null);
     let far = 0;
-    for (let i = 0; i < mesh.positions.length; i++) far = Math.max(far, Math.abs(mesh.positions[i]));
-    this.meshes.push({ vao, count: mesh.indices.length, extent: far });
+    for (let i = 0; i < P.length; i++) far = Math.max(far, Math.abs(P[i]));
+    this.meshes.push({ vao, count: nTri * 3, extent: far });
   }
 
   clear() { this.meshes = []; }
@@ -225,11 +293,13 @@ export class MeshPass {
     gl.uniformMatrix4fv(P("u_w2c"), false, w2c);
     gl.uniform4f(P("u_intr"), camera.fx, camera.fy, camera.cx, camera.cy);
     gl.uniform2f(P("u_size"), w, h);
+    gl.uniform1f(P("u_ambient"), this.shading ? MESH_AMBIENT : 1.0);
+    gl.uniform3f(P("u_eye"), t[0], t[1], t[2]);
     const extent = Math.max(1, ...this.meshes.map((x) => x.extent)) + Math.hypot(...t);
     gl.uniform2f(P("u_clip"), 1e-3 * extent, 4 * extent);
     for (const x of this.meshes) {
       gl.bindVertexArray(x.vao);
-      gl.drawElements(gl.TRIANGLES, x.count, gl.UNSIGNED_INT, 0);
+      gl.drawArrays(gl.TRIANGLES, 0, x.count);
     }
     gl.bindVertexArray(null);
     gl.disable(gl.DEPTH_TEST);

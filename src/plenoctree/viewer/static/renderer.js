@@ -124,6 +124,7 @@ void main() {
   vec3 dcam = vec3((px - u_intrinsics.z) / u_intrinsics.x, -(py - u_intrinsics.w) / u_intrinsics.y, -1.0);
   vec3 dir = normalize(mat3(u_c2w) * dcam);
   vec3 origin = u_c2w[3].xyz;
+  vec3 world_o = origin, world_d = dir;
   bool behind = false;
   if (u_ndc == 1) {
     // world ray -> NeRF NDC ray (plenoctree.datasets.ndc.to_ndc_rays, unit direction)
@@ -157,10 +158,21 @@ void main() {
   vec3 positive = step(0.0, d);
 
   vec3 background = u_background;
-  if (u_mesh == 1 && u_ndc == 0) {
+  if (u_mesh == 1) {
     // a mesh surface ends the ray there and replaces the background behind the volume
     ivec2 pix = ivec2(gl_FragCoord.xy);
     float tm = texelFetch(u_mesh_dist, pix, 0).r;
+    if (tm < 1e29 && u_ndc == 1) {
+      // world hit point -> NDC point -> distance along the unit NDC ray (before the near
+      // plane: negative, the mesh hides the whole volume)
+      vec3 p = world_o + tm * world_d;
+      if (p.z < 0.0) {
+        vec3 q = vec3(-u_ndc_cam.x * p.x / p.z, -u_ndc_cam.y * p.y / p.z, 1.0 + 2.0 * u_ndc_cam.z / p.z);
+        tm = max(dot(q - origin, dir), 0.0);
+      } else {
+        tm = 0.0;
+      }
+    }
     if (tm < 1e29) {
       t1 = min(t1, tm);
       background = texelFetch(u_mesh_color, pix, 0).rgb;

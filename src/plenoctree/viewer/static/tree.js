@@ -161,6 +161,24 @@ function nodeDepths(child, nNodes, fileName) {
 const halfPositive = (h) => (h & 0x8000) === 0 && (h & 0x7fff) !== 0;
 const halfFinite = (h) => (h & 0x7c00) !== 0x7c00;
 
+// The NDC space a forward-facing tree lives in (plenoctree.octree.ndc): the header's "ndc"
+// (native format_version 2, .plnz version 2) or the svox layout's ndc_config [width, height,
+// fx, fy, near]; null for world-space trees.
+async function readNdc(archive, header, fail) {
+  let n = header.ndc || null;
+  if (!n && archive.has("ndc_config")) {
+    const a = await archive.read("ndc_config");
+    if (a.dtype === "str" || a.data.length !== 5) fail("'ndc_config' must be 5 numbers (width, height, fx, fy, near)");
+    const v = Array.from(a.data, Number);
+    n = { width: v[0], height: v[1], fx: v[2], fy: v[3], near: v[4] };
+  }
+  if (!n) return null;
+  for (const k of ["width", "height", "fx", "fy", "near"]) {
+    if (!(Number.isFinite(n[k]) && n[k] > 0)) fail(`NDC setting '${k}' must be a positive number, got ${n[k]}`);
+  }
+  return { width: n.width, height: n.height, fx: n.fx, fy: n.fy, near: n.near };
+}
+
 // archive: NpzArchive. limits: {maxTextureSize, maxLayers, maxBytes}. onStatus(text) optional.
 export async function packTree(archive, limits, onStatus = () => {}) {
   const fileName = archive.fileName;
@@ -175,7 +193,7 @@ export async function packTree(archive, limits, onStatus = () => {}) {
   }
   if (archive.has("plnz_version")) {
     const v = scalar(await archive.read("plnz_version"));
-    if (v !== 1) fail(`unknown plnz_version ${v} (this viewer reads version 1)`);
+    if (v !== 1 && v !== 2) fail(`unknown plnz_version ${v} (this viewer reads versions 1, 2)`);
   }
   const childArr = await archive.read("child");
   if (childArr.shape.length !== 4 || childArr.shape.slice(1).join() !== "2,2,2" || childArr.shape[0] < 1) {
@@ -316,8 +334,9 @@ export async function packTree(archive, limits, onStatus = () => {}) {
     if (ed.shape.join() !== `${B},4`) fail(`'extra_data' must be [${B}, 4]`);
     sg = Float32Array.from(ed.data, Number);
   }
+  const ndc = await readNdc(archive, header, fail);
   return {
-    fileName, compressed, format, sg, offset, invradius, nNodes, nLeaves, maxDepth,
+    fileName, compressed, format, sg, offset, invradius, nNodes, nLeaves, maxDepth, ndc,
     bits: compressed ? Math.round(Math.log2(K)) : null, retain: nRet,
     child: { data: childTex, ...childPlan },
     data: { data: dataTex, ...dataPlan },
