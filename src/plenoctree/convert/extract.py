@@ -219,17 +219,6 @@ def _validate(cfg: ExtractConfig) -> None:
             raise ConfigError(f"{name} must be >= 0, got {v}")
 
 
-def _set_threads(n: int) -> None:
-    if n <= 0:
-        return
-    import torch
-
-    torch.set_num_threads(n)
-    import numba
-
-    numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
-
-
 def _load_run(cfg: ExtractConfig) -> tuple[Any, Any, float | None]:
     """``(field, train_config, nerf_val_psnr)`` of the run directory."""
     from ..nerf.checkpoint import model_from_checkpoint, read_checkpoint
@@ -311,7 +300,10 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
         from .._util import check_output_file
 
         check_output_file(Path(cfg.out) / "tree.npz" if Path(cfg.out).is_dir() else cfg.out)
-    _set_threads(cfg.threads)
+    if cfg.threads > 0:             # only when asked: a library call keeps the process's threads
+        from ..runtime import setup_threads
+
+        setup_threads(cfg.threads)
     mon = StageMonitor()
     limit = memory_limit(cfg.memory_gb)
     check_budget(f"a {cfg.grid}^3 extraction grid", estimate_grid_memory(cfg.grid), limit,
