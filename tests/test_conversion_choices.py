@@ -12,29 +12,11 @@ _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "conversion_choices
 
 
 def test_rows_on_a_tiny_run(tmp_path):
-    import torch
+    from nerf_fixtures import tiny_run_and_tree
 
-    from plenoctree.cli import main
-    from plenoctree.datasets import procedural
-    from plenoctree.nerf.checkpoint import save_checkpoint
-    from plenoctree.nerf.config import ModelConfig, preset
-    from plenoctree.nerf.model import NeRFModel
     from plenoctree.octree import load_tree
 
-    data = procedural.write_procedural_dataset(tmp_path / "data", n_train=3, n_val=0, n_test=2,
-                                               width=16, height=16, n_samples=64)
-    cfg = preset("cpu")
-    cfg.data, cfg.out, cfg.occ_res = str(data), str(tmp_path / "run"), 8
-    cfg.model = ModelConfig(encoding="posenc", pe_freqs=2, net_depth=1, net_width=16)
-    torch.manual_seed(0)
-    model = NeRFModel(cfg.model, [[-1.5] * 3, [1.5] * 3], occ_res=cfg.occ_res)
-    save_checkpoint(tmp_path / "run" / "checkpoint.pt", config=cfg, step=0, train_time_s=0.0,
-                    wall_time_s=0.0, model=model, optimizer=None, rng=None, trainer={},
-                    log={"train": [], "val": []})
-    tree = tmp_path / "tree.npz"
-    assert main(["extract", str(tmp_path / "run"), "--out", str(tree), "--grid", "16",
-                 "--samples", "2", "--bbox", "fixed", "--masking", "sigma",
-                 "--mask-alpha-thresh", "1e-12", "--no-eval", "--no-progress"]) == 0
+    data, _, tree = tiny_run_and_tree(tmp_path)
     spec = importlib.util.spec_from_file_location("conversion_choices", _PATH)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
