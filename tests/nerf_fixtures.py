@@ -60,29 +60,37 @@ def tiny_paper_config(data: Path, out: Path, steps: int = 3) -> TrainConfig:
     return cfg
 
 
-def tiny_run_and_tree(tmp_path: Path) -> tuple[Path, Path, Path]:
-    """``(data, run, tree)``: a 16x16 procedural dataset, an untrained tiny NeRF-SH run of it
-    (``tmp_path / "run"``) and its 16³ extracted tree (``tmp_path / "tree.npz"``)."""
+def tiny_run(root: Path, val_log: list | None = None) -> tuple[Path, Path]:
+    """``(data, run)``: a 16x16 procedural dataset under ``root / "data"`` and an untrained tiny
+    NeRF-SH run of it at ``root / "run"`` (``val_log``: its recorded validation entries)."""
     import torch
 
-    from plenoctree.cli import main
     from plenoctree.datasets import procedural
     from plenoctree.nerf.checkpoint import save_checkpoint
     from plenoctree.nerf.config import ModelConfig
     from plenoctree.nerf.model import NeRFModel
 
-    data = procedural.write_procedural_dataset(tmp_path / "data", n_train=3, n_val=0, n_test=2,
+    data = procedural.write_procedural_dataset(root / "data", n_train=3, n_val=0, n_test=2,
                                                width=16, height=16, n_samples=64)
     cfg = preset("cpu")
-    cfg.data, cfg.out, cfg.occ_res = str(data), str(tmp_path / "run"), 8
+    cfg.data, cfg.out, cfg.occ_res = str(data), str(root / "run"), 8
     cfg.model = ModelConfig(encoding="posenc", pe_freqs=2, net_depth=1, net_width=16)
     torch.manual_seed(0)
     model = NeRFModel(cfg.model, [[-1.5] * 3, [1.5] * 3], occ_res=cfg.occ_res)
-    save_checkpoint(tmp_path / "run" / "checkpoint.pt", config=cfg, step=0, train_time_s=0.0,
+    save_checkpoint(root / "run" / "checkpoint.pt", config=cfg, step=0, train_time_s=0.0,
                     wall_time_s=0.0, model=model, optimizer=None, rng=None, trainer={},
-                    log={"train": [], "val": []})
+                    log={"train": [], "val": list(val_log or [])})
+    return data, root / "run"
+
+
+def tiny_run_and_tree(tmp_path: Path) -> tuple[Path, Path, Path]:
+    """``(data, run, tree)``: :func:`tiny_run` under ``tmp_path`` and its 16³ extracted tree
+    (``tmp_path / "tree.npz"``)."""
+    from plenoctree.cli import main
+
+    data, run = tiny_run(tmp_path)
     tree = tmp_path / "tree.npz"
-    assert main(["extract", str(tmp_path / "run"), "--out", str(tree), "--grid", "16",
+    assert main(["extract", str(run), "--out", str(tree), "--grid", "16",
                  "--samples", "2", "--bbox", "fixed", "--masking", "sigma",
                  "--mask-alpha-thresh", "1e-12", "--no-eval", "--no-progress"]) == 0
-    return data, tmp_path / "run", tree
+    return data, run, tree

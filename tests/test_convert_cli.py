@@ -6,31 +6,18 @@ import dataclasses
 import json
 
 import pytest
-import torch
+from nerf_fixtures import tiny_run
 
 from plenoctree.cli import main
 from plenoctree.convert import ExtractConfig
-from plenoctree.datasets import procedural
-from plenoctree.nerf.checkpoint import save_checkpoint
-from plenoctree.nerf.config import ModelConfig, field_docs, preset
-from plenoctree.nerf.model import NeRFModel
+from plenoctree.nerf.config import field_docs
 from plenoctree.octree import load_tree
 
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
-    root = tmp_path_factory.mktemp("cli")
-    data = procedural.write_procedural_dataset(root / "data", n_train=3, n_val=0, n_test=2,
-                                               width=16, height=16, n_samples=64)
-    cfg = preset("cpu")
-    cfg.data, cfg.out, cfg.occ_res = str(data), str(root / "run"), 8
-    cfg.model = ModelConfig(encoding="posenc", pe_freqs=2, net_depth=1, net_width=16)
-    torch.manual_seed(0)
-    model = NeRFModel(cfg.model, [[-1.5] * 3, [1.5] * 3], occ_res=cfg.occ_res)
-    save_checkpoint(root / "run" / "checkpoint.pt", config=cfg, step=0, train_time_s=0.0,
-                    wall_time_s=0.0, model=model, optimizer=None, rng=None, trainer={},
-                    log={"train": [], "val": [{"step": 0, "psnr": 11.5}]})
-    return root / "run"
+    _, run = tiny_run(tmp_path_factory.mktemp("cli"), val_log=[{"step": 0, "psnr": 11.5}])
+    return run
 
 
 def test_extract_cli_end_to_end(run_dir, tmp_path, capsys):
