@@ -250,3 +250,22 @@ def test_default_finetune_ends_at_or_above_its_start_on_the_procedural_scene(tmp
                                   show_progress=False))    # 12 steps an epoch
     assert res.val_psnr_best > res.val_psnr_before and res.best_epoch > 0, res
     assert res.test_psnr_after >= res.test_psnr_before, res
+
+
+def test_checkpoint_interval(scene, tmp_path, monkeypatch):
+    """checkpoint_minutes 0 writes one at every validation; a long interval writes none until
+    an interrupt (a large tree's checkpoint is gigabytes)."""
+    import plenoctree.optim._loop as loop
+
+    calls = []
+    real = loop.save_checkpoint
+    monkeypatch.setattr(loop, "save_checkpoint", lambda *a, **k: (calls.append(1), real(*a, **k)))
+    kw = dict(epochs=4, val_every=1, optimizer="adam", lr=1e-2, continue_on_decrease=True,
+              test_views=-1)
+    finetune(cfg(scene, tmp_path / "a.npz", checkpoint_minutes=0, **kw))
+    assert len(calls) == 4
+    calls.clear()
+    finetune(cfg(scene, tmp_path / "b.npz", checkpoint_minutes=60, **kw))
+    assert calls == []
+    with pytest.raises(ConfigError, match="checkpoint_minutes"):
+        finetune(cfg(scene, tmp_path / "c.npz", checkpoint_minutes=-1, **kw))

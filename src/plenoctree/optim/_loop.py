@@ -213,7 +213,8 @@ def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, 
              ray_tile: int, val_every: int, stop_on_decrease: bool, seed: int, checkpoint: Path | None,
              resume: bool, fingerprint: dict, log: Callable[[dict], None],
              show_progress: bool | None = None, backoffs: int = 0, backoff_factor: float = 0.5,
-             lr_decay: float = 1.0) -> tuple[np.ndarray, LoopState]:
+             lr_decay: float = 1.0, checkpoint_every_s: float = 0.0
+             ) -> tuple[np.ndarray, LoopState]:
     """Optimise ``stepper``'s values on ``train``; return ``(best values, final state)``.
 
     One epoch is one pass over every training pixel in a random order: the images are cut into
@@ -233,8 +234,10 @@ def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, 
     ``backoff_factor²``) while back-offs remain, else ends the loop with
     ``state.stop_reason = "diverged: ..."`` and the best (last good) values restored.
 
-    The checkpoint is written after each validation (each ``val_every`` epochs without ``val``)
-    and on ``KeyboardInterrupt``; resuming from an interrupt inside an epoch replays that epoch
+    The checkpoint is written after a validation (each ``val_every`` epochs without ``val``)
+    when ``checkpoint_every_s`` seconds passed since the loop started or last wrote one (0:
+    after every validation; a large tree's checkpoint, values + best + optimiser moments, is
+    gigabytes), and on ``KeyboardInterrupt``; resuming from an interrupt inside an epoch replays that epoch
     (same ray order) from the values reached when it was interrupted.
     """
     scale = 1.0 / (3.0 * train.width * train.height)
@@ -244,6 +247,15 @@ def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, 
         state = load_checkpoint(checkpoint, stepper, best, fingerprint)
         log({"event": "resume", "checkpoint": str(checkpoint), "epochs_done": state.epochs_done})
     rng = np.random.default_rng(seed)
+    last_ckpt = time.perf_counter()
+
+    def save_if_due() -> None:
+        nonlocal last_ckpt
+        if checkpoint is None or time.perf_counter() - last_ckpt < checkpoint_every_s:
+            return
+        save_checkpoint(checkpoint, stepper, best, state, fingerprint)
+        last_ckpt = time.perf_counter()
+
     if state.rng_state is not None:
         rng.bit_generator.state = state.rng_state
 
@@ -347,8 +359,8 @@ def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, 
             if val is None:
                 np.copyto(best, stepper.values())
                 state.best_epoch = epoch
-                if checkpoint is not None and due:
-                    save_checkpoint(checkpoint, stepper, best, state, fingerprint)
+                if due:
+                    save_if_due()
             elif val_every > 0 and due:
                 p = validate(epoch)
                 log({"event": "val", "epoch": epoch, "val_psnr": p})
@@ -361,8 +373,8 @@ def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, 
                     if not back_off(backoff_factor, why):
                         state.stop_reason = why + (f" after {state.backoffs} learning-rate "
                                                    "back-offs" if backoffs else "")
-                if checkpoint is not None and not state.stop_reason:
-                    save_checkpoint(checkpoint, stepper, best, state, fingerprint)
+                if not state.stop_reason:
+                    save_if_due()
     except Diverged as e:
         state.stop_reason = f"diverged: {e}"
     except KeyboardInterrupt:
