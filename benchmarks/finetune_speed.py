@@ -18,6 +18,10 @@ of ``--repeat`` steps:
 - ``baseline``: the same step with the kernels as they were before issue 12 (frozen in
   ``benchmarks/baseline/grad_kernel.py``), timed interleaved with ``fast``; the JSON gives the
   ratio ``speedup_fast_over_baseline``;
+- ``adam`` / ``adam_before``: the fine-tuning default (lazy Adam, σ with its own learning rate)
+  as one fused kernel + one optimiser kernel, and as it was before the σ rate went into the
+  optimiser kernel (slabs merged, σ's update redone in numpy), interleaved; ``adam`` also gives
+  the split of its step (``kernel_ms``, ``optimizer_ms``, ``touched_cells``);
 - ``fast_1thread``: the same with one thread and one slab (what the race-free scatter costs /
   buys);
 - ``fast_tile1``: ``fast`` on independent random pixels (``--ray-tile 1``);
@@ -72,6 +76,53 @@ def baseline_step(st, o, d, tgt, scale):
     st.step_count += 1
     bk.step_touched(st.data2, st.sig, b.grad3, b.flags, b.touched, b.n_touched, bk.OPT_SGD,
                     st.lr, st._dummy, st._dummy, 0.0, 0.0, 0.0, float(st.step_count))
+
+
+def adam_merged_step(st, o, d, tgt, scale):
+    """``NumbaStepper.step`` with Adam and a separate σ learning rate as it was before the σ
+    rate went into ``step_touched``: slabs merged, then σ's update redone in numpy over the
+    touched cells (today's fused kernel; the optimiser kernel of ``baseline``)."""
+    from baseline import grad_kernel as bk
+    from plenoctree.optim._render_grad import fused_mse_numba
+    from plenoctree.optim._steppers import _ADAM_EPS, _BETAS
+
+    sse = fused_mse_numba(st.args, st.data2, o, d, tgt, scale, st.buf, merge=True)
+    b = st.buf
+    cells = b.touched_cells().copy()
+    g = b.grad[cells, -1].astype(np.float64)
+    s_old = st.data2[cells, -1].astype(np.float64)
+    st.step_count += 1
+    t = float(st.step_count)
+    bk.step_touched(st.data2, st.sig, b.grad3, b.flags, b.touched, b.n_touched, bk.OPT_ADAM,
+                    st.lr, st.m1, st.m2, _BETAS[0], _BETAS[1], _ADAM_EPS, t)
+    m1 = st.m1[cells, -1].astype(np.float64)
+    m2 = st.m2[cells, -1].astype(np.float64)
+    dirn = (m1 / (1 - _BETAS[0] ** t)) / (np.sqrt(m2 / (1 - _BETAS[1] ** t)) + _ADAM_EPS)
+    st.data2[cells, -1] = np.maximum(s_old - st.sigma_lr * dirn, 0.0)
+    st.sig[cells] = st.data2[cells, -1]
+    return sse
+
+
+def split_step(st, o, d, tgt, scale, repeat):
+    """Median ms of the two halves of ``st.step`` (Adam): the fused forward + backward kernel
+    and the optimiser kernel, timed apart."""
+    from plenoctree.optim import _render_grad_numba as k
+    from plenoctree.optim._render_grad import fused_mse_numba
+    from plenoctree.optim._steppers import _ADAM_EPS, _BETAS
+
+    tk, ts = [], []
+    b = st.buf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fused_mse_numba(st.args, st.data2, o, d, tgt, scale, b, merge=False)
+        t1 = time.perf_counter()
+        st.step_count += 1
+        k.step_touched(st.data2, st.sig, b.grad3, b.flags, b.touched, b.n_touched, k.OPT_ADAM,
+                       st.lr, st.sigma_lr, st.m1, st.m2, _BETAS[0], _BETAS[1], _ADAM_EPS,
+                       float(st.step_count))
+        ts.append(time.perf_counter() - t1)
+        tk.append(t1 - t0)
+    return statistics.median(tk) * 1e3, statistics.median(ts) * 1e3
 
 
 def camera_rays(tree, n_cams: int, size: int, batch: int, tile: int, rng):
@@ -179,6 +230,28 @@ def main() -> None:
         add(name, statistics.median(ts), (max(ts) - min(ts)) / 2, n)
     del sb
     rows["fast"]["touched_cells"] = st.last_touched
+    # the fine-tuning default: Adam with σ's own learning rate (in opacity units / h; tiny
+    # rates here, so the values stay put), against the path before it went into the kernel
+    h = float(tree.leaf_sizes().min())
+    sa = NumbaStepper(data2.copy(), kargs, "adam", 1e-6, sigma_lr=1e-6 / h)
+    sab = NumbaStepper(data2.copy(), kargs, "adam", 1e-6, sigma_lr=1e-6 / h)
+    sa.step(o, d, tgt, scale)
+    adam_merged_step(sab, o, d, tgt, scale)
+    both = {"adam": ([], []), "adam_before": ([], [])}
+    for _ in range(args.repeat):
+        for name, fn in (("adam", lambda: sa.step(o, d, tgt, scale)),
+                         ("adam_before", lambda: adam_merged_step(sab, o, d, tgt, scale))):
+            c0, t0 = time.process_time(), time.perf_counter()
+            fn()
+            both[name][0].append(time.perf_counter() - t0)
+            both[name][1].append(time.process_time() - c0)
+    for name, (ts, cs) in both.items():
+        _CPU.append(statistics.median(cs))
+        add(name, statistics.median(ts), (max(ts) - min(ts)) / 2, n)
+    del sab
+    k_ms, s_ms = split_step(sa, o, d, tgt, scale, args.repeat)
+    rows["adam"].update(kernel_ms=k_ms, optimizer_ms=s_ms, touched_cells=sa.last_touched)
+    del sa
     numba.set_num_threads(1)
     try:
         st1 = NumbaStepper(data2, kargs, "sgd", lr, n_chunks=1)
@@ -216,6 +289,7 @@ def main() -> None:
 
     speedup = rows["fast"]["rays_per_s"] / rows["twin"]["rays_per_s"] if "twin" in rows else None
     vs_base = rows["fast"]["rays_per_s"] / rows["baseline"]["rays_per_s"]
+    adam_vs_before = rows["adam"]["rays_per_s"] / rows["adam_before"]["rays_per_s"]
     print(f"tree: {tree_name}: {tree.n_leaves} leaves, {tree.data_format}, "
           f"{tree.data.nbytes / 2**20:.0f} MiB; {n_threads} numba threads; stop_thresh "
           f"{args.stop_thresh}; rays in {args.ray_tile}x{args.ray_tile} tiles")
@@ -227,6 +301,10 @@ def main() -> None:
               f"{r['rays_per_cpu_s'] / 1e6:>12.3f}")
     if speedup:
         print(f"fast / twin speed-up: {speedup:.1f}x")
+    a = rows["adam"]
+    print(f"adam (the finetune default) / adam_before (merged slabs + σ step in numpy): "
+          f"{adam_vs_before:.2f}x; adam's step = fused kernel {a['kernel_ms']:.1f} ms + "
+          f"optimiser {a['optimizer_ms']:.1f} ms over {a['touched_cells']} touched cells")
     print(f"fast / baseline (pre-issue-12 kernels, same run): {vs_base:.2f}x; load average "
           f"before {load_before[0]:.2f}, after {os.getloadavg()[0]:.2f}")
     machine = {**machine_info(), "loadavg_before": list(load_before),
@@ -237,7 +315,8 @@ def main() -> None:
                                    data_format=tree.data_format, stop_thresh=args.stop_thresh,
                                    ray_tile=args.ray_tile,
                                    results=rows, speedup_fast_over_twin=speedup,
-                                   speedup_fast_over_baseline=vs_base), indent=2) + "\n")
+                                   speedup_fast_over_baseline=vs_base,
+                                   speedup_adam_over_adam_before=adam_vs_before), indent=2) + "\n")
     print(f"wrote {out}")
 
 

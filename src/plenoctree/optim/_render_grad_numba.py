@@ -307,8 +307,8 @@ OPT_SGD, OPT_ADAM, OPT_RMSPROP = 0, 1, 2
 
 
 @njit(parallel=True, cache=True)
-def step_touched(data, sig, grad3, flags, touched, n_touched, opt, lr, m1, m2, beta1, beta2, eps,
-                 step):
+def step_touched(data, sig, grad3, flags, touched, n_touched, opt, lr, lr_sig, m1, m2, beta1,
+                 beta2, eps, step):
     """Apply one optimiser step to every touched cell, reading the gradient straight from the
     per-thread slabs (no separate merge), then re-zero slabs, flags and lists.
 
@@ -316,7 +316,8 @@ def step_touched(data, sig, grad3, flags, touched, n_touched, opt, lr, m1, m2, b
     ``m1, m2 [n_cells, D]`` updated only where the batch has a gradient, as
     ``torch.optim.SparseAdam``, bias correction by the global 1-based ``step``) or
     :data:`OPT_RMSPROP` (``m2 = β2 m2 + (1 - β2) g²``, ``data -= lr g / (√m2 + eps)``, lazy).
-    Tiny moments are flushed to 0 (no denormals). σ is then projected onto ``σ ≥ 0`` (the
+    σ (the last column) steps with ``lr_sig`` instead of ``lr`` (world σ units; pass ``lr`` for
+    one rate). Tiny moments are flushed to 0 (no denormals). σ is then projected onto ``σ ≥ 0`` (the
     renderer uses ``relu(σ)``, so no render changes, and the tree stays valid for
     ``save_tree``) and copied to ``sig``.
 
@@ -348,7 +349,7 @@ def step_touched(data, sig, grad3, flags, touched, n_touched, opt, lr, m1, m2, b
             row = data[cell]
             if opt == OPT_SGD:
                 for d in range(dim):
-                    row[d] -= lr * g[d]
+                    row[d] -= (lr if d < dim - 1 else lr_sig) * g[d]
             elif opt == OPT_ADAM:
                 for d in range(dim):
                     a = beta1 * m1[cell, d] + (1.0 - beta1) * g[d]
@@ -359,14 +360,15 @@ def step_touched(data, sig, grad3, flags, touched, n_touched, opt, lr, m1, m2, b
                         b = 0.0
                     m1[cell, d] = a
                     m2[cell, d] = b
-                    row[d] -= lr * (a / bc1) / (math.sqrt(b / bc2) + eps)
+                    row[d] -= (lr if d < dim - 1 else lr_sig) * (a / bc1) / (
+                        math.sqrt(b / bc2) + eps)
             else:
                 for d in range(dim):
                     b = beta2 * m2[cell, d] + (1.0 - beta2) * g[d] * g[d]
                     if b < 1e-30:
                         b = 0.0
                     m2[cell, d] = b
-                    row[d] -= lr * g[d] / (math.sqrt(b) + eps)
+                    row[d] -= (lr if d < dim - 1 else lr_sig) * g[d] / (math.sqrt(b) + eps)
             nonfinite = 0
             for d in range(dim):
                 g[d] = 0.0

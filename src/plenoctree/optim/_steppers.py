@@ -78,14 +78,9 @@ class NumbaStepper:
         from . import _render_grad_numba as k
         from ._render_grad import fused_mse_numba
 
-        separate = self.sigma_lr is not None and self.sigma_lr != self.lr
         sse = fused_mse_numba(self.args, self.data2, origins, dirs, targets, scale, self.buf,
-                              merge=separate)
+                              merge=False)
         b = self.buf
-        if separate:     # merged: slab 0 holds every gradient; keep σ's to redo its update
-            cells = b.touched_cells().copy()
-            g_sig = b.grad[cells, -1].astype(np.float64)
-            s_old = self.data2[cells, -1].astype(np.float64)
         self.last_touched = int(b.n_touched.sum())     # upper bound: lists may overlap
         self.step_count += 1
         opt = {"sgd": k.OPT_SGD, "adam": k.OPT_ADAM, "rmsprop": k.OPT_RMSPROP}[self.optimizer]
@@ -93,26 +88,10 @@ class NumbaStepper:
             else (0.0, _RMS_ALPHA, _RMS_EPS)
         m1 = self.m1 if self.m1 is not None else self._dummy
         m2 = self.m2 if self.m2 is not None else self._dummy
+        lr_sig = self.lr if self.sigma_lr is None else self.sigma_lr
         bad = k.step_touched(self.data2, self.sig, b.grad3, b.flags, b.touched, b.n_touched, opt,
-                             self.lr, m1, m2, beta1, beta2, eps, float(self.step_count))
-        if separate:
-            s_new = np.maximum(s_old - self.sigma_lr * self._direction(cells, g_sig), 0.0)
-            bad += int((~np.isfinite(s_new)).sum())
-            self.data2[cells, -1] = s_new
-            self.sig[cells] = self.data2[cells, -1]
+                             self.lr, lr_sig, m1, m2, beta1, beta2, eps, float(self.step_count))
         return sse, int(bad)
-
-    def _direction(self, cells: np.ndarray, g: np.ndarray) -> np.ndarray:
-        """The σ update per unit learning rate of the step just taken (moments already updated
-        by the kernel)."""
-        if self.optimizer == "sgd":
-            return g
-        m2 = self.m2[cells, -1].astype(np.float64)
-        if self.optimizer == "rmsprop":
-            return g / (np.sqrt(m2) + _RMS_EPS)
-        t = float(self.step_count)
-        m1 = self.m1[cells, -1].astype(np.float64)
-        return (m1 / (1 - _BETAS[0] ** t)) / (np.sqrt(m2 / (1 - _BETAS[1] ** t)) + _ADAM_EPS)
 
     def render(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """Render rays with the current values (no gradient): float32 ``[N, 3]``."""
