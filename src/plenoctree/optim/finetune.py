@@ -291,7 +291,12 @@ def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = Non
         train_set = ViewSet.from_dataset(train)
     del train
 
-    data2 = np.ascontiguousarray(tree.data, dtype=np.float32).reshape(-1, tree.data_dim).copy()
+    # The values trained in place: a view of the loaded tree's float32 data when it can be one
+    # (no second copy of a gigabyte-sized array; ``tree`` serves only its geometry from here on).
+    data2 = np.ascontiguousarray(tree.data, dtype=np.float32).reshape(-1, tree.data_dim)
+    if not data2.flags.writeable:
+        data2 = data2.copy()
+    del stored
     lr = DEFAULT_LR[cfg.optimizer] if cfg.lr is None else float(cfg.lr)
     h = float(tree.leaf_sizes().min())
     sigma_lr = None if cfg.optimizer == "sgd" else (
