@@ -81,8 +81,8 @@ def baseline_step(st, o, d, tgt, scale):
 def adam_merged_step(st, o, d, tgt, scale):
     """``NumbaStepper.step`` with Adam and a separate σ learning rate as it was before the σ
     rate went into ``step_touched``: slabs merged, then σ's update redone in numpy over the
-    touched cells (today's fused kernel; the optimiser kernel of ``baseline``)."""
-    from baseline import grad_kernel as bk
+    touched cells (today's kernels, the optimiser with one rate, then σ redone)."""
+    from plenoctree.optim import _render_grad_numba as bk
     from plenoctree.optim._render_grad import fused_mse_numba
     from plenoctree.optim._steppers import _ADAM_EPS, _BETAS
 
@@ -94,7 +94,7 @@ def adam_merged_step(st, o, d, tgt, scale):
     st.step_count += 1
     t = float(st.step_count)
     bk.step_touched(st.data2, st.sig, b.grad3, b.flags, b.touched, b.n_touched, bk.OPT_ADAM,
-                    st.lr, st.m1, st.m2, _BETAS[0], _BETAS[1], _ADAM_EPS, t)
+                    st.lr, st.lr, st.m1, st.m2, _BETAS[0], _BETAS[1], _ADAM_EPS, t)
     m1 = st.m1[cells, -1].astype(np.float64)
     m2 = st.m2[cells, -1].astype(np.float64)
     dirn = (m1 / (1 - _BETAS[0] ** t)) / (np.sqrt(m2 / (1 - _BETAS[1] ** t)) + _ADAM_EPS)

@@ -57,9 +57,10 @@ class ExtractConfig:
     """Cells per axis of the extraction grid, a power of two (paper: 512; CPU default 256)."""
     samples: int = 8
     """Random samples averaged per kept voxel (paper: 256)."""
-    averaging: str = "mean"
-    """Voxel value from its samples: mean (of σ and coefficients, the paper's) or opacity (σ
-    keeping the samples' mean opacity over the voxel side, opacity-weighted colour)."""
+    averaging: str = "opacity"
+    """Voxel value from its samples: opacity (the default: σ keeping the samples' mean opacity
+    over the voxel side, opacity-weighted colour; lego 256³: +0.4 dB raw) or mean (of σ and
+    coefficients, the paper's)."""
     masking: str = "weight"
     """Voxel filter: "weight" (max ray weight over the training views, the paper's) or "sigma"
     (alpha threshold; keeps hidden matter too)."""

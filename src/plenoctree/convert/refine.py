@@ -380,9 +380,10 @@ class RefineConfig:
     """Field samples per scored and per new leaf."""
     merge_tol: float = 0.0
     """Merge eight sibling leaves that agree within this (pixel units; 0 = no merging)."""
-    averaging: str = "mean"
-    """Value of a new leaf from its samples: mean (of σ and coefficients) or opacity (σ keeping
-    the samples' mean opacity, opacity-weighted colour; use the extraction's)."""
+    averaging: str = "opacity"
+    """Value of a new leaf from its samples: opacity (σ keeping the samples' mean opacity,
+    opacity-weighted colour; extraction's default) or mean (of σ and coefficients); use the
+    extraction's."""
     precision: str = "auto"
     """Saved precision: fp16, fp32 or auto (that of the input file)."""
     data: str = ""
