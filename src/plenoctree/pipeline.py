@@ -70,7 +70,7 @@ class PipelineConfig:
     finetune_epochs: int = DEFAULT_EPOCHS
     """maximum fine-tuning epochs (the learning rate backs off on a validation drop)"""
     finetune_lr: float | None = None
-    """fine-tuning learning rate (default: the fine-tuner's, Adam 1e-2)"""
+    """fine-tuning learning rate (default: the fine-tuner's, Adam 2e-2)"""
     compress_bits: int = 16
     """median-cut codebook bits per SH basis"""
     eval_views: int = 0

@@ -38,7 +38,7 @@ __all__ = ["OPTIMIZERS", "DEFAULT_LR", "NumbaStepper", "TorchStepper", "TritonSt
 OPTIMIZERS = ("sgd", "adam", "rmsprop")
 #: Default learning rates: SGD in the paper's units (per-pixel mean loss); Adam/RMSprop are
 #: scale-free (a step moves each value by about ``lr``).
-DEFAULT_LR = {"sgd": 1e7, "adam": 1e-2, "rmsprop": 1e-3}
+DEFAULT_LR = {"sgd": 1e7, "adam": 2e-2, "rmsprop": 1e-3}
 _BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
 _RMS_ALPHA = 0.99
