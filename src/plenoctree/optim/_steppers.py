@@ -107,6 +107,12 @@ class NumbaStepper:
         np.copyto(self.data2, values)
         np.copyto(self.sig, self.data2[:, -1])
 
+    def release(self) -> None:
+        """Drop the optimiser moments and gradient slabs (gigabytes on a large tree) once
+        training is over; :meth:`render` and :meth:`values` still work, :meth:`step` not."""
+        self.buf = None
+        self.m1 = self.m2 = None
+
     def state(self) -> dict[str, np.ndarray]:
         """Optimiser state for checkpoints."""
         out = {"step_count": np.int64(self.step_count)}
@@ -149,6 +155,12 @@ class TorchStepper:
         self.m1 = z() if optimizer == "adam" else None
         self.m2 = z() if optimizer in ("adam", "rmsprop") else None
         self.last_touched = 0
+
+    def release(self) -> None:
+        """Drop the optimiser moments and the gradient once training is over (see
+        :meth:`NumbaStepper.release`)."""
+        self.m1 = self.m2 = None
+        self.data.grad = None
 
     def _t(self, x: np.ndarray):
         return self.torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).to(self.device)

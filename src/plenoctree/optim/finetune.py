@@ -358,6 +358,7 @@ def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = Non
                            log=log, show_progress=cfg.show_progress,
                            backoffs=int(cfg.backoffs), lr_decay=float(cfg.lr_decay),
                            checkpoint_every_s=60.0 * float(cfg.checkpoint_minutes))
+    stepper.release()        # the moments and gradient slabs are not needed to save and score
 
     out_tree = dataclasses.replace(tree, data=best.reshape(tree.data.shape))
     try:
