@@ -80,8 +80,9 @@ def baseline_step(st, o, d, tgt, scale):
 
 def adam_merged_step(st, o, d, tgt, scale):
     """``NumbaStepper.step`` with Adam and a separate σ learning rate as it was before the σ
-    rate went into ``step_touched``: slabs merged, then σ's update redone in numpy over the
-    touched cells (today's kernels, the optimiser with one rate, then σ redone)."""
+    rate went into ``step_touched``: slabs merged, today's optimiser kernel with one rate,
+    then σ's update redone in numpy over the touched cells (a frozen copy of the removed
+    code)."""
     from plenoctree.optim import _render_grad_numba as bk
     from plenoctree.optim._render_grad import fused_mse_numba
     from plenoctree.optim._steppers import _ADAM_EPS, _BETAS
@@ -104,25 +105,32 @@ def adam_merged_step(st, o, d, tgt, scale):
 
 
 def split_step(st, o, d, tgt, scale, repeat):
-    """Median ms of the two halves of ``st.step`` (Adam): the fused forward + backward kernel
-    and the optimiser kernel, timed apart."""
-    from plenoctree.optim import _render_grad_numba as k
-    from plenoctree.optim._render_grad import fused_mse_numba
-    from plenoctree.optim._steppers import _ADAM_EPS, _BETAS
-
+    """Median ms of the two halves of ``st.step``: ``accumulate`` (the fused forward +
+    backward kernel) and ``apply`` (the optimiser kernel), timed apart."""
     tk, ts = [], []
-    b = st.buf
     for _ in range(repeat):
         t0 = time.perf_counter()
-        fused_mse_numba(st.args, st.data2, o, d, tgt, scale, b, merge=False)
+        st.accumulate(o, d, tgt, scale)
         t1 = time.perf_counter()
-        st.step_count += 1
-        k.step_touched(st.data2, st.sig, b.grad3, b.flags, b.touched, b.n_touched, k.OPT_ADAM,
-                       st.lr, st.sigma_lr, st.m1, st.m2, _BETAS[0], _BETAS[1], _ADAM_EPS,
-                       float(st.step_count))
+        st.apply()
         ts.append(time.perf_counter() - t1)
         tk.append(t1 - t0)
     return statistics.median(tk) * 1e3, statistics.median(ts) * 1e3
+
+
+def interleaved(paths, repeat, add, n):
+    """Time the ``(name, fn)`` pairs of ``paths`` in turn, ``repeat`` passes (so a noisy
+    machine slows them alike), and ``add`` each one's median wall time as a row."""
+    both = {name: ([], []) for name, _ in paths}
+    for _ in range(repeat):
+        for name, fn in paths:
+            c0, t0 = time.process_time(), time.perf_counter()
+            fn()
+            both[name][0].append(time.perf_counter() - t0)
+            both[name][1].append(time.process_time() - c0)
+    for name, (ts, cs) in both.items():
+        _CPU.append(statistics.median(cs))
+        add(name, statistics.median(ts), (max(ts) - min(ts)) / 2, n)
 
 
 def camera_rays(tree, n_cams: int, size: int, batch: int, tile: int, rng):
@@ -217,17 +225,8 @@ def main() -> None:
     sb = NumbaStepper(data2.copy(), kargs, "sgd", lr)
     st.step(o, d, tgt, scale)                                    # warm-up (compilation)
     baseline_step(sb, o, d, tgt, scale)
-    both = {"fast": ([], []), "baseline": ([], [])}
-    for _ in range(args.repeat):                                 # interleaved passes
-        for name, fn in (("fast", lambda: st.step(o, d, tgt, scale)),
-                         ("baseline", lambda: baseline_step(sb, o, d, tgt, scale))):
-            c0, t0 = time.process_time(), time.perf_counter()
-            fn()
-            both[name][0].append(time.perf_counter() - t0)
-            both[name][1].append(time.process_time() - c0)
-    for name, (ts, cs) in both.items():
-        _CPU.append(statistics.median(cs))
-        add(name, statistics.median(ts), (max(ts) - min(ts)) / 2, n)
+    interleaved((("fast", lambda: st.step(o, d, tgt, scale)),
+                 ("baseline", lambda: baseline_step(sb, o, d, tgt, scale))), args.repeat, add, n)
     del sb
     rows["fast"]["touched_cells"] = st.last_touched
     # the fine-tuning default: Adam with σ's own learning rate (in opacity units / h; tiny
@@ -237,17 +236,9 @@ def main() -> None:
     sab = NumbaStepper(data2.copy(), kargs, "adam", 1e-6, sigma_lr=1e-6 / h)
     sa.step(o, d, tgt, scale)
     adam_merged_step(sab, o, d, tgt, scale)
-    both = {"adam": ([], []), "adam_before": ([], [])}
-    for _ in range(args.repeat):
-        for name, fn in (("adam", lambda: sa.step(o, d, tgt, scale)),
-                         ("adam_before", lambda: adam_merged_step(sab, o, d, tgt, scale))):
-            c0, t0 = time.process_time(), time.perf_counter()
-            fn()
-            both[name][0].append(time.perf_counter() - t0)
-            both[name][1].append(time.process_time() - c0)
-    for name, (ts, cs) in both.items():
-        _CPU.append(statistics.median(cs))
-        add(name, statistics.median(ts), (max(ts) - min(ts)) / 2, n)
+    interleaved((("adam", lambda: sa.step(o, d, tgt, scale)),
+                 ("adam_before", lambda: adam_merged_step(sab, o, d, tgt, scale))),
+                args.repeat, add, n)
     del sab
     k_ms, s_ms = split_step(sa, o, d, tgt, scale, args.repeat)
     rows["adam"].update(kernel_ms=k_ms, optimizer_ms=s_ms, touched_cells=sa.last_touched)

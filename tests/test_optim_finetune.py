@@ -124,6 +124,13 @@ def test_torch_twin_backend_takes_the_same_steps(scene):
         moved = np.abs(fast.values() - d2).max()
         assert moved > 1e-3
         np.testing.assert_allclose(fast.values(), twin.values(), atol=2e-3 * moved)
+        # after training the steppers drop their optimiser state, and still render the same
+        before = fast.render(o, d)
+        fast.release()
+        twin.release()
+        assert fast.buf is None and fast.m1 is None and fast.m2 is None
+        assert twin.m1 is None and twin.data.grad is None
+        np.testing.assert_array_equal(fast.render(o, d), before)
 
 
 def test_edge_cases_do_not_crash(scene, tmp_path):

@@ -75,13 +75,26 @@ class NumbaStepper:
     def step(self, origins: np.ndarray, dirs: np.ndarray, targets: np.ndarray,
              scale: float) -> tuple[float, int]:
         """One step on a batch; returns ``(sum of squared errors, non-finite values written)``."""
-        from . import _render_grad_numba as k
+        sse = self.accumulate(origins, dirs, targets, scale)
+        return sse, self.apply()
+
+    def accumulate(self, origins: np.ndarray, dirs: np.ndarray, targets: np.ndarray,
+                   scale: float) -> float:
+        """First half of :meth:`step`: forward + analytic backward of the batch into the
+        per-thread slabs (the fused kernel); returns the sum of squared errors."""
         from ._render_grad import fused_mse_numba
 
         sse = fused_mse_numba(self.args, self.data2, origins, dirs, targets, scale, self.buf,
                               merge=False)
+        self.last_touched = int(self.buf.n_touched.sum())     # upper bound: lists may overlap
+        return sse
+
+    def apply(self) -> int:
+        """Second half of :meth:`step`: the optimiser kernel over the touched cells (σ at
+        ``sigma_lr``); returns the number of non-finite values written."""
+        from . import _render_grad_numba as k
+
         b = self.buf
-        self.last_touched = int(b.n_touched.sum())     # upper bound: lists may overlap
         self.step_count += 1
         opt = {"sgd": k.OPT_SGD, "adam": k.OPT_ADAM, "rmsprop": k.OPT_RMSPROP}[self.optimizer]
         beta1, beta2, eps = (_BETAS[0], _BETAS[1], _ADAM_EPS) if self.optimizer == "adam" \
@@ -89,9 +102,9 @@ class NumbaStepper:
         m1 = self.m1 if self.m1 is not None else self._dummy
         m2 = self.m2 if self.m2 is not None else self._dummy
         lr_sig = self.lr if self.sigma_lr is None else self.sigma_lr
-        bad = k.step_touched(self.data2, self.sig, b.grad3, b.flags, b.touched, b.n_touched, opt,
-                             self.lr, lr_sig, m1, m2, beta1, beta2, eps, float(self.step_count))
-        return sse, int(bad)
+        return int(k.step_touched(self.data2, self.sig, b.grad3, b.flags, b.touched,
+                                  b.n_touched, opt, self.lr, lr_sig, m1, m2, beta1, beta2, eps,
+                                  float(self.step_count)))
 
     def render(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """Render rays with the current values (no gradient): float32 ``[N, 3]``."""
