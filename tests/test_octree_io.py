@@ -432,3 +432,30 @@ def test_mutated_arrays(tmp_path, kind, data):
     path = write_npz(tmp_path / "m.npz", _set(arrays, **{key: a}))
     for loader in (load_tree, import_svox):
         _load_or_format_error(path, loader)
+
+
+def test_stored_members_read_directly_and_crc_checked(tmp_path):
+    """Uncompressed members are read straight from the archive (no zipfile copies); a flipped
+    byte in an array is caught by the member's CRC-32, and DEFLATE members load as before."""
+    good = tmp_path / "g.npz"
+    good.write_bytes(VALID["native"])
+    ref = load_tree(good)
+    with np.load(good, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    packed = tmp_path / "deflate.npz"
+    np.savez_compressed(packed, **arrays)
+    back = load_tree(packed)
+    np.testing.assert_array_equal(back.child, ref.child)
+    np.testing.assert_array_equal(back.data, ref.data)
+    with zipfile.ZipFile(good) as z:
+        info = z.getinfo("data.npy")
+    assert info.compress_type == zipfile.ZIP_STORED
+    blob = bytearray(VALID["native"])
+    local = blob[info.header_offset:info.header_offset + 30]
+    start = (info.header_offset + 30 + int.from_bytes(local[26:28], "little")
+             + int.from_bytes(local[28:30], "little"))
+    blob[start + info.file_size - 1] ^= 0x01      # last byte of the array payload
+    bad = tmp_path / "b.npz"
+    bad.write_bytes(bytes(blob))
+    with pytest.raises(TreeFormatError, match="CRC-32"):
+        load_tree(bad)

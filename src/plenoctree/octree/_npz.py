@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -143,19 +144,45 @@ class NpzReader:
         info, fortran = self._info[key]
         nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
         try:
-            buf = bytearray(nbytes)
-            with self._zip.open(info) as f:
-                f.seek(info.file_size - nbytes)
-                got = f.readinto(buf) if nbytes else 0
+            arr = np.empty(shape, dtype=dtype, order="F" if fortran else "C")
+            buf = memoryview(arr.reshape(-1, order="A")).cast("B") if nbytes else bytearray()
+            got = self._read_stored(info, nbytes, buf)
+            if got is None:                 # DEFLATE member: through zipfile
+                with self._zip.open(info) as f:
+                    f.seek(info.file_size - nbytes)
+                    got = f.readinto(buf) if nbytes else 0
+        except TreeFormatError:
+            raise
         except Exception as e:      # MemoryError, zlib.error, BadZipFile (CRC), EOFError, OSError
             self.fail(f"array {key!r}: cannot read ({type(e).__name__}: {e})")
         if got != nbytes:
             self.fail(f"array {key!r}: truncated ({got} of {nbytes} bytes)")
-        arr = np.ndarray(shape, dtype=dtype, buffer=buf, order="F" if fortran else "C")
         arr = np.ascontiguousarray(arr)
         if not arr.dtype.isnative:
             arr = arr.astype(arr.dtype.newbyteorder("="))
         return arr
+
+    def _read_stored(self, info: zipfile.ZipInfo, nbytes: int, buf: Any) -> int | None:
+        """Read an uncompressed member's last ``nbytes`` (its array) straight from the archive
+        into ``buf`` (one ``readinto``, no intermediate copies: ~10x faster than zipfile on a
+        1.2 GB tree) and check the member's CRC-32; returns the bytes read, or None for a
+        compressed member (read through zipfile)."""
+        if info.compress_type != zipfile.ZIP_STORED:
+            return None
+        with open(self.path, "rb") as f:
+            f.seek(info.header_offset)
+            local = f.read(30)
+            if len(local) != 30 or local[:4] != b"PK\x03\x04":
+                self.fail(f"member {info.filename!r}: bad local zip header")
+            start = (info.header_offset + 30 + int.from_bytes(local[26:28], "little")
+                     + int.from_bytes(local[28:30], "little"))
+            f.seek(start)
+            head = f.read(info.file_size - nbytes)          # the .npy header
+            got = f.readinto(buf) if nbytes else 0
+        crc = zlib.crc32(buf[:got], zlib.crc32(head))
+        if crc != info.CRC:
+            self.fail(f"member {info.filename!r}: CRC-32 mismatch (damaged file)")
+        return got
 
     # ------------------------------------------------------------------ typed scalars
     def scalar_int(self, key: str) -> int:
