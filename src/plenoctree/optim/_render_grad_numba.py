@@ -53,7 +53,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..render._march_numba import (MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, basis_values,
-                                   leaf_logits, look_ahead, ray_start)
+                                   leaf_logits, look_ahead, prefetch_row, ray_start)
 from ..render.options import KIND_RGBA
 
 __all__ = ["TILE", "grad_kernel", "merge_chunks", "step_touched", "OPT_SGD", "OPT_ADAM",
@@ -72,14 +72,16 @@ def initial_capacity(depth_limit: int) -> int:
 
 @njit(cache=True, fastmath=True, inline="always")
 def _trace_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg, b_lo, b_hi,
-               stop, eps, max_level, basis, st, stack, qc, qe, rec_cell, rec, out4):
+               stop, eps, max_level, basis, st, stack, qc, qe, rec_cell, rec, out4, grad,
+               want_grad):
     """March one ray (the renderer's traversal, :mod:`plenoctree.render._march_numba`, with
     its look-ahead) and record its σ > 0 segments.
 
     Writes ``Σ w c`` into ``out4[:3]`` and ``T_N`` into ``out4[3]``; fills ``basis[:n_b]`` (zero
     outside ``[b_lo, b_hi]``), ``rec_cell[s]`` and ``rec[s] = (δ, exp(-σδ), c_r, c_g, c_b)``.
     Returns the number of recorded segments, or ``-1`` when the record is full (the caller
-    grows it and traces again). Colour dot products run in the dtype of ``data`` (float32 in
+    grows it and traces again). With ``want_grad`` the gradient row ``grad[cell]`` of every
+    recorded segment is prefetched, so that the backward pass scatters into cached lines. Colour dot products run in the dtype of ``data`` (float32 in
     training, as in the renderer; float64 for gradcheck).
     """
     out4[0] = 0.0
@@ -123,6 +125,8 @@ def _trace_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg,
             cr = 1.0 / (1.0 + math.exp(-ar))    # exp in the data dtype, the rest float64
             cg = 1.0 / (1.0 + math.exp(-ag))
             cb = 1.0 / (1.0 + math.exp(-ab))
+            if want_grad:
+                prefetch_row(grad, cell)
             rec_cell[n_seg] = cell
             rec[n_seg, 0] = delta
             rec[n_seg, 1] = att
@@ -240,7 +244,7 @@ def grad_kernel(child, data, offset, invr, origins, dirs, aux, mode, scale, kind
                                    np.float64(dirs[i, 0]), np.float64(dirs[i, 1]),
                                    np.float64(dirs[i, 2]), kind, n_b, sg, b_lo, b_hi, stop,
                                    eps, MAX_LEVEL, basis, st, stack, qc, qe, rec_cell, rec,
-                                   out4)
+                                   out4, grad, mode != 2)
                 if n_seg >= 0:
                     break
                 grow = 2 * rec_cell.shape[0]          # rare: a private, larger record
@@ -304,6 +308,7 @@ def merge_chunks(grad3, flags, touched, n_touched):
 
 
 OPT_SGD, OPT_ADAM, OPT_RMSPROP = 0, 1, 2
+_AHEAD = 8         # touched cells between a prefetch and the update that reads it
 
 
 @njit(parallel=True, cache=True)
@@ -321,7 +326,9 @@ def step_touched(data, sig, grad3, flags, touched, n_touched, opt, lr, lr_sig, m
     renderer uses ``relu(σ)``, so no render changes, and the tree stays valid for
     ``save_tree``) and copied to ``sig``.
 
-    Each cell is handled once: by the first chunk whose list holds it, which sums the slabs of
+    The rows of the cell :data:`_AHEAD` places further down the list are prefetched (the list
+    is in touch order, so every row is a cache miss otherwise). Each cell is handled once: by
+    the first chunk whose list holds it, which sums the slabs of
     that chunk and the later ones that flag the cell and clears their flags. Returns the
     number of non-finite values written (0 when all is well).
     """
@@ -332,7 +339,16 @@ def step_touched(data, sig, grad3, flags, touched, n_touched, opt, lr, lr_sig, m
     bad = 0
     for c in range(n_chunks):
         m = n_touched[c]
+        gc = grad3[c]
         for j in prange(m):
+            if j + _AHEAD < m:              # the rows this thread updates a few cells later
+                ahead = touched[c, j + _AHEAD]
+                prefetch_row(data, ahead)
+                prefetch_row(gc, ahead)
+                if opt != OPT_SGD:
+                    prefetch_row(m2, ahead)
+                    if opt == OPT_ADAM:
+                        prefetch_row(m1, ahead)
             cell = touched[c, j]
             if flags[c, cell] == 0:
                 continue
