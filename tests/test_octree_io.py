@@ -459,3 +459,24 @@ def test_stored_members_read_directly_and_crc_checked(tmp_path):
     bad.write_bytes(bytes(blob))
     with pytest.raises(TreeFormatError, match="CRC-32"):
         load_tree(bad)
+
+
+def test_big_endian_and_fortran_members_load(tmp_path):
+    """Fortran-ordered members load C-contiguous; a big-endian array comes back native."""
+    from plenoctree.octree._npz import NpzReader
+
+    tree = Octree.dense(1, "SH1", seed=0)
+    path = tmp_path / "f.npz"
+    np.savez(path, format_version=np.int64(1),
+             header=np.array(json.dumps({"data_format": "SH1", "depth_limit": 1})),
+             child=tree.child, data=np.asfortranarray(tree.data),
+             offset=tree.offset, invradius3=tree.invradius)
+    back = load_tree(path)
+    assert back.data.flags.c_contiguous
+    np.testing.assert_array_equal(back.data, tree.data)
+    be = tmp_path / "be.npz"
+    np.savez(be, x=np.arange(12, dtype=">f8").reshape(3, 4))
+    with NpzReader(be) as r:
+        x = r.read("x")
+    assert x.dtype.isnative
+    np.testing.assert_array_equal(x, np.arange(12.0).reshape(3, 4))

@@ -144,8 +144,7 @@ class NpzReader:
         info, fortran = self._info[key]
         nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
         try:
-            arr = np.empty(shape, dtype=dtype, order="F" if fortran else "C")
-            buf = memoryview(arr.reshape(-1, order="A")).cast("B") if nbytes else bytearray()
+            buf = np.empty(nbytes, dtype=np.uint8)      # any dtype, any byte order
             got = self._read_stored(info, nbytes, buf)
             if got is None:                 # DEFLATE member: through zipfile
                 with self._zip.open(info) as f:
@@ -157,6 +156,7 @@ class NpzReader:
             self.fail(f"array {key!r}: cannot read ({type(e).__name__}: {e})")
         if got != nbytes:
             self.fail(f"array {key!r}: truncated ({got} of {nbytes} bytes)")
+        arr = buf.view(dtype).reshape(shape, order="F" if fortran else "C")
         arr = np.ascontiguousarray(arr)
         if not arr.dtype.isnative:
             arr = arr.astype(arr.dtype.newbyteorder("="))

@@ -81,8 +81,9 @@ def _trace_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg,
     outside ``[b_lo, b_hi]``), ``rec_cell[s]`` and ``rec[s] = (δ, exp(-σδ), c_r, c_g, c_b)``.
     Returns the number of recorded segments, or ``-1`` when the record is full (the caller
     grows it and traces again). With ``want_grad`` the gradient row ``grad[cell]`` of every
-    recorded segment is prefetched, so that the backward pass scatters into cached lines. Colour dot products run in the dtype of ``data`` (float32 in
-    training, as in the renderer; float64 for gradcheck).
+    recorded segment is prefetched, so that the backward pass scatters into cached lines.
+    Colour dot products run in the dtype of ``data`` (float32 in training, as in the
+    renderer; float64 for gradcheck).
     """
     out4[0] = 0.0
     out4[1] = 0.0
