@@ -71,8 +71,8 @@ def _gaussian_window(size: int = 11, sigma: float = 1.5) -> np.ndarray:
 def _blur_valid(z: np.ndarray, filt: np.ndarray) -> np.ndarray:
     """Separable ``valid`` correlation of the last two axes of ``z`` with the 1-D ``filt``
     (as ``conv2d`` with an ``[k, 1]`` then a ``[1, k]`` kernel), as ``k`` shifted
-    multiply-adds per axis: 10x faster than torch's conv2d for one-channel kernels (400x400
-    RGB: 22 ms against 290 ms)."""
+    multiply-adds per axis (torch's conv2d is slow for one-channel float64 kernels: a whole
+    400x400 SSIM takes 50 ms here against 142 ms, ``benchmarks/scoring_speed.py``)."""
     k = filt.shape[0]
     h, w = z.shape[-2] - k + 1, z.shape[-1] - k + 1
     rows = filt[0] * z[..., 0:h, :]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import struct
 import zipfile
 import zlib
 from pathlib import Path
@@ -164,23 +165,24 @@ class NpzReader:
 
     def _read_stored(self, info: zipfile.ZipInfo, nbytes: int, buf: Any) -> int | None:
         """Read an uncompressed member's last ``nbytes`` (its array) straight from the archive
-        into ``buf`` (one ``readinto``, no intermediate copies: ~10x faster than zipfile on a
-        1.2 GB tree) and check the member's CRC-32; returns the bytes read, or None for a
-        compressed member (read through zipfile)."""
+        into ``buf`` with one ``readinto`` (no intermediate copies: a 1.25 GB tree loads 2.2x
+        faster than through zipfile, ``benchmarks/scoring_speed.py``) and check the member's
+        CRC-32; the local header is parsed with zipfile's public ``structFileHeader``. Returns
+        the bytes read (the caller reports a short read), or None for a compressed member
+        (read through zipfile)."""
         if info.compress_type != zipfile.ZIP_STORED:
             return None
         with open(self.path, "rb") as f:
             f.seek(info.header_offset)
-            local = f.read(30)
-            if len(local) != 30 or local[:4] != b"PK\x03\x04":
+            local = f.read(zipfile.sizeFileHeader)
+            if (len(local) != zipfile.sizeFileHeader
+                    or local[:4] != zipfile.stringFileHeader):
                 self.fail(f"member {info.filename!r}: bad local zip header")
-            start = (info.header_offset + 30 + int.from_bytes(local[26:28], "little")
-                     + int.from_bytes(local[28:30], "little"))
-            f.seek(start)
+            *_, n_name, n_extra = struct.unpack(zipfile.structFileHeader, local)
+            f.seek(info.header_offset + zipfile.sizeFileHeader + n_name + n_extra)
             head = f.read(info.file_size - nbytes)          # the .npy header
             got = f.readinto(buf) if nbytes else 0
-        crc = zlib.crc32(buf[:got], zlib.crc32(head))
-        if crc != info.CRC:
+        if got == nbytes and zlib.crc32(buf, zlib.crc32(head)) != info.CRC:
             self.fail(f"member {info.filename!r}: CRC-32 mismatch (damaged file)")
         return got
 
