@@ -6,7 +6,7 @@ against the previous implementation in the same run.
   through ``zipfile``'s ``readinto`` (what the reader did before; no checks), on ``--tree`` (``lego``: the default extraction of
   ``shared/data/runs/lego_cpu_400``, cached once; or a path, e.g. a refined tree);
 - ``ssim``: :func:`plenoctree.metrics.ssim` (numpy separable blur) against the previous
-  torch ``conv2d`` blur (kept below as the baseline), on pairs of consecutive lego test views
+  torch ``conv2d`` blur (``benchmarks/baseline/scoring.py``), on pairs of consecutive lego test views
   at 400² (real content), with the largest difference of the two values.
 
 Usage::
@@ -28,31 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _trees import CACHE, ROOT, find_lego_run, load_bench_tree, machine_info  # noqa: E402
-
-
-def ssim_torch(pred: np.ndarray, gt: np.ndarray, window: int = 11, sigma: float = 1.5) -> float:
-    """The SSIM of the previous release (torch conv2d blur), the baseline."""
-    import torch
-
-    from plenoctree.metrics import _gaussian_window
-
-    p, g = pred.astype(np.float64)[None], gt.astype(np.float64)[None]
-    n, h, w, c = p.shape
-    filt = torch.from_numpy(_gaussian_window(window, sigma))
-    x = torch.from_numpy(np.ascontiguousarray(p.transpose(0, 3, 1, 2))).reshape(n * c, 1, h, w)
-    y = torch.from_numpy(np.ascontiguousarray(g.transpose(0, 3, 1, 2))).reshape(n * c, 1, h, w)
-    kh, kw = filt.view(1, 1, window, 1), filt.view(1, 1, 1, window)
-    conv = torch.nn.functional.conv2d
-    mu_x, mu_y, exx, eyy, exy = conv(conv(torch.cat([x, y, x * x, y * y, x * y]), kh),
-                                     kw).split(n * c)
-    sxx = torch.clamp(exx - mu_x ** 2, min=0.0)
-    syy = torch.clamp(eyy - mu_y ** 2, min=0.0)
-    sxy = exy - mu_x * mu_y
-    sxy = torch.sign(sxy) * torch.minimum(torch.sqrt(sxx * syy), sxy.abs())
-    c1, c2 = 0.01 ** 2, 0.03 ** 2
-    num = (2 * mu_x * mu_y + c1) * (2 * sxy + c2)
-    den = (mu_x ** 2 + mu_y ** 2 + c1) * (sxx + syy + c2)
-    return float((num / den).mean())
+from baseline.scoring import read_members_zipfile, ssim_torch  # noqa: E402
 
 
 def best_of(fn, repeats: int) -> float:
@@ -84,16 +60,8 @@ def main() -> int:
         path = Path(args.tree)
     load_tree(path)                                  # page cache warm for both paths
 
-    def by_zipfile():           # the previous reader: every member through ZipExtFile.readinto
-        import zipfile
-
-        with zipfile.ZipFile(path) as z:
-            for info in z.infolist():
-                with z.open(info) as f:
-                    f.readinto(bytearray(info.file_size))
-
     t_new = best_of(lambda: load_tree(path), args.repeats)
-    t_old = best_of(by_zipfile, args.repeats)
+    t_old = best_of(lambda: read_members_zipfile(path), args.repeats)
     mb = path.stat().st_size / 1e6
 
     run = find_lego_run()
