@@ -24,7 +24,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _trees import CACHE, ROOT, find_lego_run, load_bench_tree, machine_info  # noqa: E402
