@@ -21,10 +21,18 @@ Modes:
   :func:`plenoctree.pipeline.run_pipeline` into ``DIR`` (resumable), then measures as above::
 
       .venv/bin/python benchmarks/paper_table.py --full --out runs/lego_paper_table
-      .venv/bin/python benchmarks/paper_table.py --full --size 800 --out runs/lego_paper_800
+      .venv/bin/python benchmarks/paper_table.py --full --size 800 --train-minutes 40 \
+          --out runs/lego_paper_800
 
   (``--size 800`` trains, extracts, fine-tunes and scores at 800², the paper's protocol.) The
   per-stage wall minutes and peak RSS then come from the pipeline's ``summary.json``.
+* ``--run-dir DIR``: the table of a chain ``plenoctree run --out DIR`` already ran (nothing is
+  re-run): its artefacts, its own per-stage scores over the test views, wall minutes, CPU
+  minutes and peak RSS from ``DIR/summary.json``; FPS, the SH-truncated rows and the NeRF-SH
+  speed baselines are measured here::
+
+      plenoctree run --data ../shared/data/nerf_synthetic/lego --train-minutes 40 --out DIR
+      .venv/bin/python benchmarks/paper_table.py --run-dir DIR --size 800
 
 Scores: the first ``--views`` test views at 400² (default 200 = all). FPS: 1000 / median
 per-view render ms (numba, after one warm-up render) on ``--fps-views`` views at 400² and 800².
@@ -84,6 +92,11 @@ _SHORT = {"nerf_sh": "NeRF-SH (ours, CPU preset)", "raw": "raw", "refined": "ref
           "compressed": "compressed", "sh2": "ft SH9", "sh1": "ft SH4"}
 
 
+def _number(v):
+    """``v`` when it is a finite number, else None (e.g. LPIPS "skipped: ..." or NaN)."""
+    return float(v) if isinstance(v, (int, float)) and v == v else None
+
+
 def _fmt(v, spec: str) -> str:
     return "–" if v is None else format(v, spec)
 
@@ -105,8 +118,9 @@ def machine() -> dict:
 # --- measurements -----------------------------------------------------------------------
 def measure_tree(path: Path, data: Path, views: int, fps_views: int, work: Path,
                  downscale: int = 2, known: dict | None = None) -> dict:
-    """PSNR/SSIM of tree file ``path`` on the first ``views`` test views at 800/``downscale``²,
-    FPS at that size (median over those views) and at 800² (``fps_views`` views), MB on disk.
+    """PSNR/SSIM (LPIPS when it runs) of tree file ``path`` on the first ``views`` test views at
+    800/``downscale``², FPS at 400² and 800² (``fps_views`` views each; at 400² the scored
+    views' when that is the scoring size), MB on disk.
     ``known``: an ``eval.json`` of the same tree, size and views (the pipeline's): its scores
     are used instead of rendering the views again (800² FPS is still measured here)."""
     from plenoctree.evaluation import EvalConfig, eval_tree_file
@@ -121,9 +135,18 @@ def measure_tree(path: Path, data: Path, views: int, fps_views: int, work: Path,
                             log=quiet)
     r8 = eval_tree_file(EvalConfig(tree=path, data=data, downscale=1, limit=fps_views,
                                    out=work / f"{path.stem}_800", show_progress=False), log=quiet)
+    if downscale != 2:          # scored at another size: time 400² on its own
+        r4s = eval_tree_file(EvalConfig(tree=path, data=data, downscale=2, limit=fps_views,
+                                        out=work / f"{path.stem}_400fps", show_progress=False),
+                             log=quiet)
+    else:
+        r4s = r4
     return {"path": str(path), "psnr": r4["mean"]["psnr"], "ssim": r4["mean"]["ssim"],
-            "fps_400": r4["mean"]["fps"], "fps_800": r8["mean"]["fps"],
-            "ms_400": r4["mean"]["ms_per_frame"], "ms_800": r8["mean"]["ms_per_frame"],
+            "lpips": _number(r4["mean"].get("lpips")),
+            "lpips_note": r4["mean"].get("lpips") if isinstance(r4["mean"].get("lpips"), str)
+            else None,
+            "fps_400": r4s["mean"]["fps"], "fps_800": r8["mean"]["fps"],
+            "ms_400": r4s["mean"]["ms_per_frame"], "ms_800": r8["mean"]["ms_per_frame"],
             "mb": path.stat().st_size / 1e6, "n_leaves": r4["tree"]["n_leaves"],
             "data_format": r4["tree"]["data_format"], "views": r4["dataset"]["n_views"],
             "measure_s": time.perf_counter() - t0}
@@ -325,17 +348,20 @@ def table3_variants(path: Path) -> dict:
 
 # --- driver -----------------------------------------------------------------------------
 def run_full(out: Path, data: Path, views: int, downscale: int = 2, nerf: str = "",
-             finetune_epochs: int = 0) -> tuple[Path, Path, Path, Path | None, dict]:
+             finetune_epochs: int = 0, train_minutes: float = 0.0
+             ) -> tuple[Path, Path, Path, Path | None, dict]:
     """Run the whole chain on lego at 800/``downscale``² into ``out`` (resumable, with the
     ``plenoctree run`` defaults; ``nerf``: a trained NeRF-SH run to start from, as
-    ``plenoctree run --nerf``; ``finetune_epochs``: 0 = the run's default); return the
-    artefact paths and the pipeline's summary."""
+    ``plenoctree run --nerf``; ``finetune_epochs`` / ``train_minutes``: 0 = the run's
+    default); return the artefact paths and the pipeline's summary."""
     from plenoctree.pipeline import PipelineConfig, run_pipeline
 
     cfg = PipelineConfig(data=str(data), out=str(out), downscale=downscale, preset="cpu",
                          eval_views=views, video_frames=0, web=False, nerf=nerf)
     if finetune_epochs:
         cfg.finetune_epochs = finetune_epochs
+    if train_minutes:
+        cfg.train_minutes = train_minutes
     summary = run_pipeline(cfg)
     # the layout documented by run_pipeline
     plnz = out / "tree_ft.plnz"
@@ -364,11 +390,35 @@ def pipeline_stage_figures(summary: dict) -> dict:
     return {k: (times.get(v), peaks.get(v), cpu.get(v)) for k, v in stage.items()}
 
 
+def read_run_dir(run_dir: Path) -> tuple[Path, Path, Path | None, Path, Path | None, dict]:
+    """The artefacts and summary of a finished ``plenoctree run --out run_dir``: NeRF-SH run
+    (``run_dir/nerf`` or the ``--nerf`` it was given), raw, refined, fine-tuned and
+    compressed trees (layout of :func:`plenoctree.pipeline.run_pipeline`), ``summary.json``."""
+    from plenoctree.errors import ConfigError
+
+    summ = run_dir / "summary.json"
+    if not summ.is_file():
+        raise ConfigError(f"--run-dir {run_dir}: no summary.json (has `plenoctree run --out "
+                          f"{run_dir}` finished?)")
+    summary = json.loads(summ.read_text())
+    given = summary.get("config", {}).get("nerf") or ""
+    nerf = Path(given) if given else run_dir / "nerf"
+    tree, tree_ft = run_dir / "tree.npz", run_dir / "tree_ft.npz"
+    for p in (tree, tree_ft):
+        if not p.is_file():
+            raise ConfigError(f"--run-dir {run_dir}: {p.name} missing")
+    ref, plnz = run_dir / "tree_refined.npz", run_dir / "tree_ft.plnz"
+    return (nerf, tree, ref if ref.is_file() else None, tree_ft,
+            plnz if plnz.is_file() else None, summary)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     mode = ap.add_mutually_exclusive_group()
     mode.add_argument("--from-artefacts", action="store_true", default=True)
     mode.add_argument("--full", action="store_true", help="run the pipeline from scratch")
+    mode.add_argument("--run-dir", default="",
+                      help="a finished `plenoctree run --out DIR`: its artefacts and figures")
     ap.add_argument("--out", default="runs/lego_paper_table", help="--full output folder")
     ap.add_argument("--data", default=str(LEGO))
     ap.add_argument("--nerf-run", default=None,
@@ -381,6 +431,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="image size of training (--full) and scoring")
     ap.add_argument("--finetune-epochs", type=int, default=0,
                     help="--full: maximum fine-tuning epochs (0 = plenoctree run's default)")
+    ap.add_argument("--train-minutes", type=float, default=0.0,
+                    help="--full: NeRF-SH training budget (0 = plenoctree run's default)")
     ap.add_argument("--plnz", default="", help="compressed ft tree (default: compress here)")
     ap.add_argument("--views", type=int, default=200, help="test views scored at 400²")
     ap.add_argument("--fps-views", type=int, default=3, help="views timed at 800²")
@@ -398,12 +450,21 @@ def main(argv: list[str] | None = None) -> int:
     stage_figs: dict = {}
     if a.full:
         nerf_run, tree, tree_ft, plnz, summary = run_full(Path(a.out), data, a.views, down,
-                                                          a.nerf_run or "", a.finetune_epochs)
+                                                          a.nerf_run or "", a.finetune_epochs,
+                                                          a.train_minutes)
         tree_ref = Path(a.out) / "tree_refined.npz"
         stage_figs = pipeline_stage_figures(summary)
         known = pipeline_evals(Path(a.out))
         print(f"pipeline done ({summary.get('total_s', 0):.0f} s of stages); measuring",
               flush=True)
+    elif a.run_dir:
+        nerf_run, tree, tree_ref, tree_ft, plnz, summary = read_run_dir(Path(a.run_dir))
+        run_down = int(summary.get("config", {}).get("downscale", 1))
+        if run_down != down:
+            print(f"note: the run was made at {800 // run_down}², scored here at {a.size}²",
+                  flush=True)
+        stage_figs = pipeline_stage_figures(summary)
+        known = pipeline_evals(Path(a.run_dir)) if run_down == down else {}
     else:
         nerf_run = Path(a.nerf_run or ROOT / "runs/lego_cpu")
         tree, tree_ft = Path(a.tree), Path(a.tree_ft)
@@ -412,12 +473,14 @@ def main(argv: list[str] | None = None) -> int:
         plnz = Path(a.plnz) if a.plnz else None
     read = read_stage_times(nerf_run, tree, tree_ft)
     work = Path(tempfile.mkdtemp(prefix="paper_table_"))
-    res = {"mode": "full" if a.full else "from-artefacts", "views": a.views, "size": a.size,
+    res = {"mode": "full" if a.full else ("run-dir" if a.run_dir else "from-artefacts"),
+           "views": a.views, "size": a.size,
            "fps_views": a.fps_views, "machine": meta, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
            "read_from_artefacts": read,
            "inputs": {"nerf_run": str(nerf_run), "tree": str(tree), "tree_ft": str(tree_ft)},
-           "nerf_given": bool(a.full and a.nerf_run),
-           "finetune": summary.get("finetune") if a.full else None,
+           "nerf_given": bool(a.full and a.nerf_run) or bool(
+               a.run_dir and summary.get("config", {}).get("nerf")),
+           "finetune": summary.get("finetune") if (a.full or a.run_dir) else None,
            "rows": {}}
     rows = res["rows"]
 

@@ -112,3 +112,35 @@ def test_stage_rows_are_what_plenoctree_plot_reads(pt, tmp_path):
     json.dumps(rows)
     pytest.importorskip("matplotlib")
     assert plot_stages(rows, tmp_path / "s.png") and (tmp_path / "s.png").stat().st_size > 0
+
+
+def test_read_run_dir_layout_and_errors(pt, tmp_path):
+    """--run-dir: the artefacts of a finished `plenoctree run` folder, its own NeRF-SH or the
+    one it was given, and a clear error naming the folder when the run is incomplete."""
+    run = tmp_path / "chain"
+    run.mkdir()
+    with pytest.raises(ConfigError, match="no summary.json"):
+        pt.read_run_dir(run)
+    (run / "summary.json").write_text(json.dumps({"config": {"nerf": "", "downscale": 1}}))
+    (run / "tree.npz").write_bytes(b"x")
+    with pytest.raises(ConfigError, match="tree_ft.npz missing"):
+        pt.read_run_dir(run)
+    (run / "tree_ft.npz").write_bytes(b"x")
+    nerf, tree, ref, ft, plnz, summary = pt.read_run_dir(run)
+    assert (nerf, tree, ref, ft, plnz) == (run / "nerf", run / "tree.npz", None,
+                                            run / "tree_ft.npz", None)
+    assert summary["config"]["downscale"] == 1
+    (run / "tree_refined.npz").write_bytes(b"x")
+    (run / "tree_ft.plnz").write_bytes(b"x")
+    (run / "summary.json").write_text(json.dumps({"config": {"nerf": "/runs/given"}}))
+    nerf, _, ref, _, plnz, _ = pt.read_run_dir(run)
+    assert nerf == Path("/runs/given") and ref == run / "tree_refined.npz"
+    assert plnz == run / "tree_ft.plnz"
+
+
+def test_lpips_skip_note_is_not_a_number(pt):
+    assert pt._number("skipped: lpips not installed") is None
+    assert pt._number(float("nan")) is None and pt._number(0.25) == 0.25
+    res = copy.deepcopy(_fake(pt))
+    res["rows"]["ft"]["lpips"] = 0.031
+    assert "| 0.031 |" in pt.markdown_table(res)
