@@ -58,9 +58,16 @@ def _start(offset, invr, o, d, i, eps):
     return ray_start(offset, invr, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], eps)
 
 
+@njit(cache=True, fastmath=True, inline="always")
+def _absorb(data, cell, t, te, tr):
+    """Transmittance after segment ``[t, te]`` of ``cell`` (σ ≤ 0: unchanged)."""
+    s = data[cell, data.shape[1] - 1]
+    return tr * math.exp(-s * (te - t)) if s > 0.0 else tr
+
+
 @njit(parallel=True, cache=True, fastmath=True)
 def _march(child, data, offset, invr, o, d, eps, use_stack, out, nseg):
-    n, dim = o.shape[0], data.shape[1]
+    n = o.shape[0]
     for tile in prange((n + _TILE - 1) // _TILE):
         st = np.zeros(4, np.int64)
         stack = np.zeros(STACK_SIZE, np.int64)
@@ -73,11 +80,9 @@ def _march(child, data, offset, invr, o, d, eps, use_stack, out, nseg):
                 cell, te, _ = next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, t, et, t1,
                                         use_stack, MAX_LEVEL, st, stack)
                 k += 1
-                s = data[cell, dim - 1]
-                if s > 0.0:
-                    tr *= math.exp(-s * (te - t))
-                    if tr < _STOP:
-                        break
+                tr = _absorb(data, cell, t, te, tr)
+                if tr < _STOP:
+                    break
                 t = te
             out[i] = tr
             nseg[i] = k
@@ -85,7 +90,7 @@ def _march(child, data, offset, invr, o, d, eps, use_stack, out, nseg):
 
 @njit(parallel=True, cache=True, fastmath=True)
 def _interleave4(child, data, offset, invr, o, d, eps, out):
-    n, dim = o.shape[0], data.shape[1]
+    n = o.shape[0]
     for tile in prange((n + _TILE - 1) // _TILE):
         st = np.zeros((4, 4), np.int64)
         stack = np.zeros((4, STACK_SIZE), np.int64)
@@ -116,11 +121,8 @@ def _interleave4(child, data, offset, invr, o, d, eps, out):
                 cell, te, _ = next_leaf(child, r[k, 0], r[k, 1], r[k, 2], r[k, 3], r[k, 4],
                                         r[k, 5], r[k, 6], r[k, 7], r[k, 8], t, r[k, 11],
                                         r[k, 10], True, MAX_LEVEL, st[k], stack[k])
-                s = data[cell, dim - 1]
-                done = te >= r[k, 10]
-                if s > 0.0:
-                    out[idx[k]] *= math.exp(-s * (te - t))
-                    done = done or out[idx[k]] < _STOP
+                out[idx[k]] = _absorb(data, cell, t, te, out[idx[k]])
+                done = te >= r[k, 10] or out[idx[k]] < _STOP
                 r[k, 9] = te
                 if done:
                     idx[k] = -1
@@ -177,7 +179,7 @@ def _quant(p, v, ts):
 
 @njit(parallel=True, cache=True, fastmath=True)
 def _grid_march(grid, child, data, offset, invr, o, d, eps, out):
-    n, dim = o.shape[0], data.shape[1]
+    n = o.shape[0]
     for tile in prange((n + _TILE - 1) // _TILE):
         for i in range(tile * _TILE, min(n, tile * _TILE + _TILE)):
             _, _, _, px, py, pz, vx, vy, vz, ix, iy, iz, t0, t1, et = _start(offset, invr, o, d,
@@ -201,11 +203,9 @@ def _grid_march(grid, child, data, offset, invr, o, d, eps, out):
                     lv = level + 1
                 te = _exit(qx, qy, qz, QUANT_BITS - lv, px, py, pz, vx, vy, vz, ix, iy, iz, ts,
                            t1)
-                s = data[cell, dim - 1]
-                if s > 0.0:
-                    tr *= math.exp(-s * (te - t))
-                    if tr < _STOP:
-                        break
+                tr = _absorb(data, cell, t, te, tr)
+                if tr < _STOP:
+                    break
                 t = te
             out[i] = tr
 
@@ -214,7 +214,7 @@ def _grid_march(grid, child, data, offset, invr, o, d, eps, out):
 def _param(child, data, offset, invr, o, d, eps, out):
     """Frames per level: entry / mid / exit plane t per axis (sorted by the ray's direction),
     the node, and the smallest exit; the child holding p(t + ε) is one compare per axis."""
-    n, dim = o.shape[0], data.shape[1]
+    n = o.shape[0]
     for tile in prange((n + _TILE - 1) // _TILE):
         f = np.zeros((STACK_SIZE, 10))
         node = np.zeros(STACK_SIZE, np.int64)
@@ -261,11 +261,9 @@ def _param(child, data, offset, invr, o, d, eps, out):
                         f[sp, 9] = min(ex, min(ey, ez))
                         continue
                     te = min(max(min(ex, min(ey, ez)), ts), t1)
-                    s = data[cell, dim - 1]
-                    if s > 0.0:
-                        tr *= math.exp(-s * (te - t))
-                        if tr < _STOP:
-                            break
+                    tr = _absorb(data, cell, t, te, tr)
+                    if tr < _STOP:
+                        break
                     t = te
                     if t >= t1:
                         break
