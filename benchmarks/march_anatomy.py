@@ -43,9 +43,8 @@ from numba import njit, prange
 from _trees import ROOT, load_bench_tree, machine_info
 from render_speed import orbit_cameras
 
-from plenoctree.render._march_numba import (MAX_LEVEL, STACK_SIZE, next_leaf,  # noqa: E402
-                                            ray_start)
-from plenoctree.render.options import QUANT_BITS  # noqa: E402
+from plenoctree.render._march_numba import MAX_LEVEL, STACK_SIZE, next_leaf, ray_start
+from plenoctree.render.options import QUANT_BITS
 
 _S = float(2 ** QUANT_BITS)
 _G = 8                       # level of the dense table / uniform grid (256³)
@@ -340,28 +339,28 @@ def main(argv: list[str] | None = None) -> int:
     outs = {k: [np.zeros(n) for _ in views] for k in
             ("march", "root", "interleave4", "grid", "param", "geometry", "dda")}
     calls = {
-        "march": lambda v, k: _march(child, data, off, inv, *views[v], eps, True,
+        "march": lambda v: _march(child, data, off, inv, *views[v], eps, True,
                                      outs["march"][v], segs[v]),
-        "root": lambda v, k: _march(child, data, off, inv, *views[v], eps, False,
+        "root": lambda v: _march(child, data, off, inv, *views[v], eps, False,
                                     outs["root"][v], np.zeros(n, np.int64)),
-        "interleave4": lambda v, k: _interleave4(child, data, off, inv, *views[v], eps,
+        "interleave4": lambda v: _interleave4(child, data, off, inv, *views[v], eps,
                                                  outs["interleave4"][v]),
-        "grid": lambda v, k: _grid_march(grid, child, data, off, inv, *views[v], eps,
+        "grid": lambda v: _grid_march(grid, child, data, off, inv, *views[v], eps,
                                          outs["grid"][v]),
-        "param": lambda v, k: _param(child, data, off, inv, *views[v], eps, outs["param"][v]),
-        "geometry": lambda v, k: _geometry(off, inv, *views[v], eps, segs[v],
+        "param": lambda v: _param(child, data, off, inv, *views[v], eps, outs["param"][v]),
+        "geometry": lambda v: _geometry(off, inv, *views[v], eps, segs[v],
                                            outs["geometry"][v]),
-        "dda": lambda v, k: _dda(off, inv, *views[v], eps, segs[v], outs["dda"][v]),
+        "dda": lambda v: _dda(off, inv, *views[v], eps, segs[v], outs["dda"][v]),
     }
     times: dict[str, list[float]] = {k: [] for k in calls}
-    for k, f in calls.items():                         # warm-up (compile / cache load)
+    for f in calls.values():                           # warm-up (compile / cache load)
         for v in range(len(views)):
-            f(v, k)
+            f(v)
     for _ in range(a.repeats):                         # interleaved passes
         for k, f in calls.items():
             t0 = time.perf_counter()
             for v in range(len(views)):
-                f(v, k)
+                f(v)
             times[k].append((time.perf_counter() - t0) / len(views))
     seg = np.concatenate(segs)
     hit = seg > 0

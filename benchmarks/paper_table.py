@@ -135,16 +135,12 @@ def measure_tree(path: Path, data: Path, views: int, fps_views: int, work: Path,
                             log=quiet)
     r8 = eval_tree_file(EvalConfig(tree=path, data=data, downscale=1, limit=fps_views,
                                    out=work / f"{path.stem}_800", show_progress=False), log=quiet)
-    if downscale != 2:          # scored at another size: time 400² on its own
-        r4s = eval_tree_file(EvalConfig(tree=path, data=data, downscale=2, limit=fps_views,
-                                        out=work / f"{path.stem}_400fps", show_progress=False),
-                             log=quiet)
-    else:
-        r4s = r4
+    r4s = r4 if downscale == 2 else eval_tree_file(      # scored at 800²: time 400² here
+        EvalConfig(tree=path, data=data, downscale=2, limit=fps_views,
+                   out=work / f"{path.stem}_400fps", show_progress=False), log=quiet)
+    lp = r4["mean"].get("lpips")
     return {"path": str(path), "psnr": r4["mean"]["psnr"], "ssim": r4["mean"]["ssim"],
-            "lpips": _number(r4["mean"].get("lpips")),
-            "lpips_note": r4["mean"].get("lpips") if isinstance(r4["mean"].get("lpips"), str)
-            else None,
+            "lpips": _number(lp), "lpips_note": lp if isinstance(lp, str) else None,
             "fps_400": r4s["mean"]["fps"], "fps_800": r8["mean"]["fps"],
             "ms_400": r4s["mean"]["ms_per_frame"], "ms_800": r8["mean"]["ms_per_frame"],
             "mb": path.stat().st_size / 1e6, "n_leaves": r4["tree"]["n_leaves"],
@@ -349,11 +345,11 @@ def table3_variants(path: Path) -> dict:
 # --- driver -----------------------------------------------------------------------------
 def run_full(out: Path, data: Path, views: int, downscale: int = 2, nerf: str = "",
              finetune_epochs: int = 0, train_minutes: float = 0.0
-             ) -> tuple[Path, Path, Path, Path | None, dict]:
+             ) -> tuple[Path, Path, Path | None, Path, Path | None, dict]:
     """Run the whole chain on lego at 800/``downscale``² into ``out`` (resumable, with the
     ``plenoctree run`` defaults; ``nerf``: a trained NeRF-SH run to start from, as
     ``plenoctree run --nerf``; ``finetune_epochs`` / ``train_minutes``: 0 = the run's
-    default); return the artefact paths and the pipeline's summary."""
+    default); return :func:`read_run_dir` of ``out``."""
     from plenoctree.pipeline import PipelineConfig, run_pipeline
 
     cfg = PipelineConfig(data=str(data), out=str(out), downscale=downscale, preset="cpu",
@@ -362,11 +358,8 @@ def run_full(out: Path, data: Path, views: int, downscale: int = 2, nerf: str = 
         cfg.finetune_epochs = finetune_epochs
     if train_minutes:
         cfg.train_minutes = train_minutes
-    summary = run_pipeline(cfg)
-    # the layout documented by run_pipeline
-    plnz = out / "tree_ft.plnz"
-    return (Path(nerf) if nerf else out / "nerf", out / "tree.npz", out / "tree_ft.npz",
-            plnz if plnz.is_file() else None, summary)
+    run_pipeline(cfg)
+    return read_run_dir(out)
 
 
 def pipeline_evals(out: Path) -> dict:
@@ -395,21 +388,20 @@ def read_run_dir(run_dir: Path) -> tuple[Path, Path, Path | None, Path, Path | N
     (``run_dir/nerf`` or the ``--nerf`` it was given), raw, refined, fine-tuned and
     compressed trees (layout of :func:`plenoctree.pipeline.run_pipeline`), ``summary.json``."""
     from plenoctree.errors import ConfigError
+    from plenoctree.pipeline import run_layout
 
-    summ = run_dir / "summary.json"
+    summ = run_layout(run_dir).summary
     if not summ.is_file():
         raise ConfigError(f"--run-dir {run_dir}: no summary.json (has `plenoctree run --out "
                           f"{run_dir}` finished?)")
     summary = json.loads(summ.read_text())
-    given = summary.get("config", {}).get("nerf") or ""
-    nerf = Path(given) if given else run_dir / "nerf"
-    tree, tree_ft = run_dir / "tree.npz", run_dir / "tree_ft.npz"
-    for p in (tree, tree_ft):
+    lay = run_layout(run_dir, summary.get("config", {}).get("nerf") or "")
+    for p in (lay.tree, lay.ft):
         if not p.is_file():
             raise ConfigError(f"--run-dir {run_dir}: {p.name} missing")
-    ref, plnz = run_dir / "tree_refined.npz", run_dir / "tree_ft.plnz"
-    return (nerf, tree, ref if ref.is_file() else None, tree_ft,
-            plnz if plnz.is_file() else None, summary)
+    return (lay.nerf, lay.tree,
+            lay.refined if lay.refined.is_file() else None, lay.ft,
+            lay.compressed if lay.compressed.is_file() else None, summary)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -427,8 +419,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tree", default=str(ROOT / "runs/lego_cpu_extract/tree.npz"))
     ap.add_argument("--tree-refined", default="", help="adaptively refined tree (optional)")
     ap.add_argument("--tree-ft", default=str(ROOT / "runs/lego_ft/tree_ft.npz"))
-    ap.add_argument("--size", type=int, choices=(400, 800), default=400,
-                    help="image size of training (--full) and scoring")
+    ap.add_argument("--size", type=int, choices=(400, 800), default=None,
+                    help="image size of training (--full) and scoring (default 400; with "
+                         "--run-dir the run's own)")
     ap.add_argument("--finetune-epochs", type=int, default=0,
                     help="--full: maximum fine-tuning epochs (0 = plenoctree run's default)")
     ap.add_argument("--train-minutes", type=float, default=0.0,
@@ -446,26 +439,27 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     data = Path(a.data)
     meta = machine()
-    down = 800 // a.size
     stage_figs: dict = {}
+    if a.run_dir:
+        nerf_run, tree, tree_ref, tree_ft, plnz, summary = read_run_dir(Path(a.run_dir))
+        run_size = 800 // int(summary.get("config", {}).get("downscale", 1))
+        a.size = a.size or run_size
+        if run_size != a.size:
+            print(f"note: the run was made at {run_size}², scored here at {a.size}²",
+                  flush=True)
+        stage_figs = pipeline_stage_figures(summary)
+        known = pipeline_evals(Path(a.run_dir)) if run_size == a.size else {}
+    a.size = a.size or 400
+    down = 800 // a.size
     if a.full:
-        nerf_run, tree, tree_ft, plnz, summary = run_full(Path(a.out), data, a.views, down,
-                                                          a.nerf_run or "", a.finetune_epochs,
-                                                          a.train_minutes)
-        tree_ref = Path(a.out) / "tree_refined.npz"
+        nerf_run, tree, tree_ref, tree_ft, plnz, summary = run_full(
+            Path(a.out), data, a.views, down, a.nerf_run or "", a.finetune_epochs,
+            a.train_minutes)
         stage_figs = pipeline_stage_figures(summary)
         known = pipeline_evals(Path(a.out))
         print(f"pipeline done ({summary.get('total_s', 0):.0f} s of stages); measuring",
               flush=True)
-    elif a.run_dir:
-        nerf_run, tree, tree_ref, tree_ft, plnz, summary = read_run_dir(Path(a.run_dir))
-        run_down = int(summary.get("config", {}).get("downscale", 1))
-        if run_down != down:
-            print(f"note: the run was made at {800 // run_down}², scored here at {a.size}²",
-                  flush=True)
-        stage_figs = pipeline_stage_figures(summary)
-        known = pipeline_evals(Path(a.run_dir)) if run_down == down else {}
-    else:
+    elif not a.run_dir:
         nerf_run = Path(a.nerf_run or ROOT / "runs/lego_cpu")
         tree, tree_ft = Path(a.tree), Path(a.tree_ft)
         known = {}

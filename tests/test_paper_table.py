@@ -132,9 +132,14 @@ def test_read_run_dir_layout_and_errors(pt, tmp_path):
     assert summary["config"]["downscale"] == 1
     (run / "tree_refined.npz").write_bytes(b"x")
     (run / "tree_ft.plnz").write_bytes(b"x")
-    (run / "summary.json").write_text(json.dumps({"config": {"nerf": "/runs/given"}}))
+    given = tmp_path / "given"
+    (run / "summary.json").write_text(json.dumps({"config": {"nerf": str(given)}}))
+    with pytest.raises(ConfigError, match="checkpoint"):       # the run's --nerf is gone
+        pt.read_run_dir(run)
+    given.mkdir()
+    (given / "checkpoint.pt").write_bytes(b"x")
     nerf, _, ref, _, plnz, _ = pt.read_run_dir(run)
-    assert nerf == Path("/runs/given") and ref == run / "tree_refined.npz"
+    assert nerf == given and ref == run / "tree_refined.npz"
     assert plnz == run / "tree_ft.plnz"
 
 

@@ -232,6 +232,27 @@ def _given_nerf(path: str) -> Path:
     return p
 
 
+@dataclass(frozen=True)
+class RunLayout:
+    """Where :func:`run_pipeline` writes (and a reader of its output finds) each artefact."""
+
+    nerf: Path          # the NeRF-SH run folder (``OUT/nerf``, or the ``--nerf`` given)
+    tree: Path          # extracted octree
+    refined: Path       # adaptively refined octree (when ``refine_passes``)
+    ft: Path            # fine-tuned octree
+    compressed: Path    # its ``.plnz``
+    summary: Path       # ``summary.json``
+
+
+def run_layout(out: Any, nerf: str = "") -> RunLayout:
+    """The artefact paths of a run into ``out`` (``nerf``: the ``--nerf`` it was given, checked
+    to hold a checkpoint)."""
+    out = Path(out)
+    return RunLayout(_given_nerf(nerf) if nerf else out / "nerf", out / "tree.npz",
+                     out / "tree_refined.npz", out / "tree_ft.npz", out / "tree_ft.plnz",
+                     out / "summary.json")
+
+
 def _read_json(path: Path) -> dict:
     try:
         return json.loads(path.read_text())
@@ -273,10 +294,8 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
     if pcfg is None and not data.exists():
         raise ConfigError(f"{data}: dataset folder does not exist")
     common = {"data": str(data.resolve()), "format": cfg.format, "downscale": cfg.downscale}
-    run_dir, tree_raw, tree_ft = out / "nerf", out / "tree.npz", out / "tree_ft.npz"
-    if cfg.nerf:
-        run_dir = _given_nerf(cfg.nerf)
-    tree_c = out / "tree_ft.plnz"
+    lay = run_layout(out, cfg.nerf)
+    run_dir, tree_raw, tree_ft, tree_c = lay.nerf, lay.tree, lay.ft, lay.compressed
 
     # 1. NeRF-SH training (resumes from its checkpoint when a previous run was cut short).
     from .nerf.checkpoint import CHECKPOINT_NAME
@@ -310,7 +329,7 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
     if cfg.refine_passes > 0:
         from .convert.refine import RefineConfig, refine
 
-        tree_in = out / "tree_refined.npz"
+        tree_in = lay.refined
         rcfg = RefineConfig(tree=str(tree_raw), run_dir=str(run_dir), out=str(tree_in),
                             passes=cfg.refine_passes, threshold=cfg.refine_threshold,
                             data=str(data), seed=cfg.seed, show_progress=False,
@@ -435,7 +454,7 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
 
     summary = _summary(cfg, out, r, evals, _read_json(nerf_json),
                        _read_json(run_dir / "summary.json"), _finetune_outcome(tree_ft))
-    atomic_save_json(out / "summary.json", summary)
+    atomic_save_json(lay.summary, summary)
     from .plots import plot_stages               # PSNR against FPS and MB (needs matplotlib)
 
     plot_stages(summary["rows"], out / "stages.png", title=f"{Path(cfg.data or cfg.images).name}: stages")
