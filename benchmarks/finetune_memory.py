@@ -1,15 +1,22 @@
-"""Peak memory of ``plenoctree finetune`` on a real tree, with and without releasing the
-optimiser state before the final save.
+"""Peak memory of ``plenoctree finetune`` on a real tree, as shipped and with the gradient
+slabs as they were (dense).
 
 Usage: ``python benchmarks/finetune_memory.py TREE.npz --data DATASET [--downscale 2]
 [--epochs 1] [--out benchmarks/results/finetune_memory.json]``
 
-Each mode runs in its own subprocess (so one's pages do not count for the other): ``release``
-is ``finetune`` as shipped (the Adam moments and gradient slabs are dropped once training is
-over, :meth:`NumbaStepper.release`); ``keep`` is the same run with ``release`` made a no-op (the
-behaviour before). A thread samples the process RSS every 50 ms and notes the last line
-``finetune`` printed, so the table says in which phase the peak fell. Checkpoints are written
-at every validation (``checkpoint_minutes=0``), as a long run does. Prints a table, writes JSON.
+Each mode runs in its own subprocess (so one's pages do not count for the other), with the
+settings of ``plenoctree run``'s fine-tuning stage (no test split):
+
+- ``shipped``: ``finetune`` as it is: compact per-thread gradient slabs sized by the cells one
+  batch reaches (:class:`plenoctree.optim._render_grad.SparseGrad`);
+- ``dense_slabs``: the same run with every slab as large as the tree (``capacity = n_cells``)
+  and its pages touched at the start — the memory of the dense per-thread slabs used before,
+  whose pages a long run touches all of.
+
+A thread samples the process RSS every 50 ms and notes the last line ``finetune`` printed, so
+the table says in which phase the peak fell; the JSON also gives the sizes of the big arrays
+(values, Adam moments, slabs, training and validation images). Checkpoints are written at
+every validation (``checkpoint_minutes=0``), as a long run does. Prints a table, writes JSON.
 """
 
 from __future__ import annotations
@@ -33,13 +40,32 @@ def _rss_mb() -> int:
     return 0
 
 
-def child(tree: str, data: str, downscale: int, epochs: int, keep: bool, out: str) -> None:
+def child(tree: str, data: str, downscale: int, epochs: int, dense: bool, out: str) -> None:
     """One fine-tuning run; prints a JSON line with its peak RSS and the phase it fell in."""
-    from plenoctree.optim import _steppers
+    from plenoctree.optim import _loop, _render_grad, _steppers
     from plenoctree.optim.finetune import FinetuneConfig, finetune
 
-    if keep:
-        _steppers.NumbaStepper.release = lambda self: None
+    sizes: dict[str, int] = {}
+    make = _steppers.NumbaStepper.__init__
+
+    def init(self, data2, *a, **kw):
+        make(self, data2, *a, **kw)
+        if dense:
+            self.buf = _render_grad.SparseGrad(*data2.shape, data2.dtype, capacity=data2.shape[0])
+            self.buf.grad3.fill(0.0)
+        sizes.update(values=data2.nbytes, moments=sum(m.nbytes for m in (self.m1, self.m2)
+                                                      if m is not None),
+                     slabs=self.buf.nbytes)
+
+    _steppers.NumbaStepper.__init__ = init
+    loop = _loop.run_loop
+
+    def run_loop(stepper, train, val, **kw):
+        sizes.update(train_images=train.images.nbytes,
+                     val_images=0 if val is None else val.images.nbytes)
+        return loop(stepper, train, val, **kw)
+
+    _loop.run_loop = run_loop
     peak, phase = [0, "start"], ["start"]
 
     def sample() -> None:
@@ -57,7 +83,8 @@ def child(tree: str, data: str, downscale: int, epochs: int, keep: bool, out: st
              log_fn=lambda s: phase.__setitem__(0, s.strip()[:60]))
     time.sleep(0.1)
     print(json.dumps({"peak_rss_mb": peak[0], "peak_after": peak[1],
-                      "seconds": time.perf_counter() - t0}))
+                      "seconds": time.perf_counter() - t0,
+                      "array_mb": {k: round(v / 2**20) for k, v in sizes.items()}}))
 
 
 def main() -> None:
@@ -67,15 +94,15 @@ def main() -> None:
     ap.add_argument("--downscale", type=int, default=2)
     ap.add_argument("--epochs", type=int, default=1)
     ap.add_argument("--out", default="benchmarks/results/finetune_memory.json")
-    ap.add_argument("--child", choices=("keep", "release"), help=argparse.SUPPRESS)
+    ap.add_argument("--child", choices=("dense_slabs", "shipped"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     scratch = Path(args.out).with_suffix(".ft.npz")
     if args.child:
-        child(args.tree, args.data, args.downscale, args.epochs, args.child == "keep",
+        child(args.tree, args.data, args.downscale, args.epochs, args.child == "dense_slabs",
               str(scratch))
         return
     rows = {}
-    for mode in ("keep", "release"):
+    for mode in ("dense_slabs", "shipped"):
         res = subprocess.run([sys.executable, __file__, args.tree, "--data", args.data,
                               "--downscale", str(args.downscale), "--epochs", str(args.epochs),
                               "--out", args.out, "--child", mode],
@@ -84,9 +111,10 @@ def main() -> None:
     for p in (scratch, scratch.with_name(scratch.stem + ".log.jsonl"),
               scratch.with_name(scratch.stem + ".curve.png")):
         p.unlink(missing_ok=True)
-    print(f"{'mode':<8} {'peak RSS MB':>12} {'s':>7}  peak after")
+    print(f"{'mode':<12} {'peak RSS MB':>12} {'s':>7}  peak after")
     for mode, r in rows.items():
-        print(f"{mode:<8} {r['peak_rss_mb']:>12} {r['seconds']:>7.1f}  {r['peak_after']}")
+        print(f"{mode:<12} {r['peak_rss_mb']:>12} {r['seconds']:>7.1f}  {r['peak_after']}")
+        print(f"{'':<12} arrays (MB): {r['array_mb']}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"machine": machine_info(), "tree": args.tree,

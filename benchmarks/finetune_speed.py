@@ -18,10 +18,9 @@ of ``--repeat`` steps:
 - ``baseline``: the same step with the kernels as they were before issue 12 (frozen in
   ``benchmarks/baseline/grad_kernel.py``), timed interleaved with ``fast``; the JSON gives the
   ratio ``speedup_fast_over_baseline``;
-- ``adam`` / ``adam_before``: the fine-tuning default (lazy Adam, σ with its own learning rate)
-  as one fused kernel + one optimiser kernel, and as it was before the σ rate went into the
-  optimiser kernel (slabs merged, σ's update redone in numpy), interleaved; ``adam`` also gives
-  the split of its step (``kernel_ms``, ``optimizer_ms``, ``touched_cells``);
+- ``adam``: the fine-tuning default (lazy Adam, σ with its own learning rate) as one fused
+  kernel + one optimiser kernel, with the split of its step (``kernel_ms``, ``optimizer_ms``,
+  ``touched_cells``);
 - ``fast_1thread``: the same with one thread and one slab (what the race-free scatter costs /
   buys);
 - ``fast_tile1``: ``fast`` on independent random pixels (``--ray-tile 1``);
@@ -54,12 +53,15 @@ from _trees import load_bench_tree, machine_info
 
 
 def baseline_step(st, o, d, tgt, scale):
-    """``NumbaStepper.step`` (SGD) with the frozen pre-issue-12 kernels."""
+    """``NumbaStepper.step`` (SGD) with the frozen pre-issue-12 kernels and their dense slabs."""
     import numba
 
     from baseline import grad_kernel as bk
 
-    b, a = st.buf, st.args
+    a = st.args
+    if not hasattr(st, "dense"):
+        st.dense = bk.DenseSlabs(*st.data2.shape, st.buf.n_chunks)
+    b = st.dense
     o = np.ascontiguousarray(o, np.float32)
     d = np.ascontiguousarray(d, np.float32)
     t = np.ascontiguousarray(tgt, np.float64)
@@ -76,32 +78,6 @@ def baseline_step(st, o, d, tgt, scale):
     st.step_count += 1
     bk.step_touched(st.data2, st.sig, b.grad3, b.flags, b.touched, b.n_touched, bk.OPT_SGD,
                     st.lr, st._dummy, st._dummy, 0.0, 0.0, 0.0, float(st.step_count))
-
-
-def adam_merged_step(st, o, d, tgt, scale):
-    """``NumbaStepper.step`` with Adam and a separate σ learning rate as it was before the σ
-    rate went into ``step_touched``: slabs merged, today's optimiser kernel with one rate,
-    then σ's update redone in numpy over the touched cells (a frozen copy of the removed
-    code)."""
-    from plenoctree.optim import _render_grad_numba as bk
-    from plenoctree.optim._render_grad import fused_mse_numba
-    from plenoctree.optim._steppers import _ADAM_EPS, _BETAS
-
-    sse = fused_mse_numba(st.args, st.data2, o, d, tgt, scale, st.buf, merge=True)
-    b = st.buf
-    cells = b.touched_cells().copy()
-    g = b.grad[cells, -1].astype(np.float64)
-    s_old = st.data2[cells, -1].astype(np.float64)
-    st.step_count += 1
-    t = float(st.step_count)
-    bk.step_touched(st.data2, st.sig, b.grad3, b.flags, b.touched, b.n_touched, bk.OPT_ADAM,
-                    st.lr, st.lr, st.m1, st.m2, _BETAS[0], _BETAS[1], _ADAM_EPS, t)
-    m1 = st.m1[cells, -1].astype(np.float64)
-    m2 = st.m2[cells, -1].astype(np.float64)
-    dirn = (m1 / (1 - _BETAS[0] ** t)) / (np.sqrt(m2 / (1 - _BETAS[1] ** t)) + _ADAM_EPS)
-    st.data2[cells, -1] = np.maximum(s_old - st.sigma_lr * dirn, 0.0)
-    st.sig[cells] = st.data2[cells, -1]
-    return sse
 
 
 def split_step(st, o, d, tgt, scale, repeat):
@@ -229,17 +205,13 @@ def main() -> None:
                  ("baseline", lambda: baseline_step(sb, o, d, tgt, scale))), args.repeat, add, n)
     del sb
     rows["fast"]["touched_cells"] = st.last_touched
+    rows["fast"]["slab_mb"] = st.buf.nbytes / 2**20
     # the fine-tuning default: Adam with σ's own learning rate (in opacity units / h; tiny
-    # rates here, so the values stay put), against the path before it went into the kernel
+    # rates here, so the values stay put)
     h = float(tree.leaf_sizes().min())
     sa = NumbaStepper(data2.copy(), kargs, "adam", 1e-6, sigma_lr=1e-6 / h)
-    sab = NumbaStepper(data2.copy(), kargs, "adam", 1e-6, sigma_lr=1e-6 / h)
-    sa.step(o, d, tgt, scale)
-    adam_merged_step(sab, o, d, tgt, scale)
-    interleaved((("adam", lambda: sa.step(o, d, tgt, scale)),
-                 ("adam_before", lambda: adam_merged_step(sab, o, d, tgt, scale))),
-                args.repeat, add, n)
-    del sab
+    sec, sp = timed(lambda: sa.step(o, d, tgt, scale), args.repeat)
+    add("adam", sec, sp, n)
     k_ms, s_ms = split_step(sa, o, d, tgt, scale, args.repeat)
     rows["adam"].update(kernel_ms=k_ms, optimizer_ms=s_ms, touched_cells=sa.last_touched)
     del sa
@@ -280,7 +252,6 @@ def main() -> None:
 
     speedup = rows["fast"]["rays_per_s"] / rows["twin"]["rays_per_s"] if "twin" in rows else None
     vs_base = rows["fast"]["rays_per_s"] / rows["baseline"]["rays_per_s"]
-    adam_vs_before = rows["adam"]["rays_per_s"] / rows["adam_before"]["rays_per_s"]
     print(f"tree: {tree_name}: {tree.n_leaves} leaves, {tree.data_format}, "
           f"{tree.data.nbytes / 2**20:.0f} MiB; {n_threads} numba threads; stop_thresh "
           f"{args.stop_thresh}; rays in {args.ray_tile}x{args.ray_tile} tiles")
@@ -293,9 +264,10 @@ def main() -> None:
     if speedup:
         print(f"fast / twin speed-up: {speedup:.1f}x")
     a = rows["adam"]
-    print(f"adam (the finetune default) / adam_before (merged slabs + σ step in numpy): "
-          f"{adam_vs_before:.2f}x; adam's step = fused kernel {a['kernel_ms']:.1f} ms + "
-          f"optimiser {a['optimizer_ms']:.1f} ms over {a['touched_cells']} touched cells")
+    print(f"adam (the finetune default): step = fused kernel {a['kernel_ms']:.1f} ms + "
+          f"optimiser {a['optimizer_ms']:.1f} ms over {a['touched_cells']} touched cells; "
+          f"gradient slabs {rows['fast']['slab_mb']:.0f} MiB (dense ones: "
+          f"{st.buf.n_chunks * data2.nbytes / 2**20:.0f} MiB)")
     print(f"fast / baseline (pre-issue-12 kernels, same run): {vs_base:.2f}x; load average "
           f"before {load_before[0]:.2f}, after {os.getloadavg()[0]:.2f}")
     machine = {**machine_info(), "loadavg_before": list(load_before),
@@ -306,8 +278,7 @@ def main() -> None:
                                    data_format=tree.data_format, stop_thresh=args.stop_thresh,
                                    ray_tile=args.ray_tile,
                                    results=rows, speedup_fast_over_twin=speedup,
-                                   speedup_fast_over_baseline=vs_base,
-                                   speedup_adam_over_adam_before=adam_vs_before), indent=2) + "\n")
+                                   speedup_fast_over_baseline=vs_base), indent=2) + "\n")
     print(f"wrote {out}")
 
 

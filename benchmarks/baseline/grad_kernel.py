@@ -457,3 +457,16 @@ def pixel_rays(c2w, fx, fy, cx, cy, width, height, index, images, origins, dirs,
         for a3 in range(3):
             origins[j, a3] = c2w[img, a3, 3]
             targets[j, a3] = images[img, v, u, a3]
+
+
+class DenseSlabs:
+    """The slabs these kernels scatter into, as they were: one dense ``[n_cells, D]`` gradient
+    slab per thread, uint8 flags and an ``[n_cells]`` touched list each (today's fine-tuner
+    keeps compact slabs sized by the cells one batch reaches, ``optim._render_grad.SparseGrad``)."""
+
+    def __init__(self, n_cells, dim, n_chunks):
+        self.grad3 = np.zeros((n_chunks, n_cells, dim), dtype=np.float32)
+        self.flags = np.zeros((n_chunks, n_cells), dtype=np.uint8)
+        self.touched = np.zeros((n_chunks, n_cells), dtype=np.int64)
+        self.n_touched = np.zeros(n_chunks, dtype=np.int64)
+        self.sse = np.zeros(n_chunks, dtype=np.float64)

@@ -83,36 +83,65 @@ def kernel_args(tree: Any, options: RenderOptions | None = None) -> KernelArgs:
 
 
 class SparseGrad:
-    """Per-thread gradient slabs with touched-cell lists (see :mod:`._render_grad_numba`).
+    """Per-thread compact gradient slabs (see :mod:`._render_grad_numba`).
 
-    ``grad3 [n_chunks, n_cells, D]`` (``grad3[0]`` is the merged gradient after
-    :meth:`merge`), ``flags`` uint8 ``[n_chunks, n_cells]``, ``touched`` int64
-    ``[n_chunks, n_cells]``, ``n_touched`` int64 ``[n_chunks]``. Allocated with ``np.zeros``
-    (lazily zero-filled pages): memory actually used grows with the cells rays touch.
+    Slab ``t`` holds a row per cell its thread touched in the current batch, in touch order:
+    ``grad3 [n_chunks, cap, D]``, ``touched`` int64 ``[n_chunks, cap]`` (row → cell),
+    ``slot`` int32 ``[n_chunks, n_cells]`` (cell → row, ``-1`` untouched), ``n_touched`` /
+    ``need`` int64 ``[n_chunks]`` (rows used / cells that found the slab full). ``cap`` starts
+    at ``capacity`` (default ``min(n_cells, 2¹⁶)``) and grows with :meth:`grow` when a batch
+    reaches more cells (the kernels' wrapper then runs the batch again), so the memory is set by
+    the cells one batch reaches, not by the tree. After :meth:`merge` the dense gradient
+    ``grad [n_cells, D]`` and :meth:`touched_cells` are valid (the autograd path).
     """
 
     def __init__(self, n_cells: int, dim: int, dtype: Any = np.float32,
-                 n_chunks: int | None = None) -> None:
+                 n_chunks: int | None = None, capacity: int | None = None) -> None:
         self.n_chunks = int(n_chunks) if n_chunks else default_chunks()
-        self.grad3 = np.zeros((self.n_chunks, n_cells, dim), dtype=dtype)
-        self.flags = np.zeros((self.n_chunks, n_cells), dtype=np.uint8)
-        self.touched = np.zeros((self.n_chunks, n_cells), dtype=np.int64)
+        self.n_cells, self.dim, self.dtype = int(n_cells), int(dim), np.dtype(dtype)
+        self.slot = np.full((self.n_chunks, self.n_cells), -1, dtype=np.int32)
         self.n_touched = np.zeros(self.n_chunks, dtype=np.int64)
+        self.need = np.zeros(self.n_chunks, dtype=np.int64)
         self.sse = np.zeros(self.n_chunks, dtype=np.float64)
+        self.regrown = 0                     # batches run again after a growth
+        cap = min(self.n_cells, 1 << 16) if capacity is None else int(capacity)
+        self._allocate(max(1, min(cap, self.n_cells)))
+        self.grad: np.ndarray | None = None
+        self._cells = np.zeros(0, dtype=np.int64)
 
-    def merge(self) -> None:
-        """Sum the slabs into ``grad3[0]`` (touched cells only)."""
-        if self.n_chunks > 1:
-            _kernels().merge_chunks(self.grad3, self.flags, self.touched, self.n_touched)
+    def _allocate(self, cap: int) -> None:
+        self.cap = int(cap)
+        self.grad3 = np.zeros((self.n_chunks, self.cap, self.dim), dtype=self.dtype)
+        self.touched = np.zeros((self.n_chunks, self.cap), dtype=np.int64)
 
     @property
-    def grad(self) -> np.ndarray:
-        """The merged gradient ``[n_cells, D]`` (valid after :meth:`merge`)."""
-        return self.grad3[0]
+    def nbytes(self) -> int:
+        """Bytes held by the slabs, lists and slot maps."""
+        return int(self.grad3.nbytes + self.touched.nbytes + self.slot.nbytes)
+
+    def grow(self) -> None:
+        """After a batch that overflowed (``need.any()``): drop its partial gradient and make
+        every slab large enough for all the cells that batch reached (at least twice as large),
+        so running the batch again cannot overflow."""
+        wanted = int((self.n_touched + self.need).sum())
+        self.slot.fill(-1)
+        self.n_touched[:] = 0
+        self.need[:] = 0
+        self._allocate(min(self.n_cells, max(2 * self.cap, wanted)))
+        self.regrown += 1
+
+    def merge(self) -> None:
+        """Sum the slabs into the dense gradient :attr:`grad` ``[n_cells, D]`` (allocated
+        here), note the touched cells, and clear the slabs."""
+        cells = np.unique(np.concatenate([self.touched[c, : int(self.n_touched[c])]
+                                          for c in range(self.n_chunks)]))
+        dense = np.zeros((self.n_cells, self.dim), dtype=self.dtype)
+        _kernels().merge_chunks(self.grad3, self.slot, self.touched, self.n_touched, dense)
+        self.grad, self._cells = dense, cells
 
     def touched_cells(self) -> np.ndarray:
-        """Cells with a gradient in this batch (after :meth:`merge`), int64 ``[M]``."""
-        return self.touched[0, : int(self.n_touched[0])]
+        """Cells with a gradient in the merged batch, sorted, int64 ``[M]``."""
+        return self._cells
 
 
 def _rays(origins: Any, dirs: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -129,26 +158,34 @@ def _call(args: KernelArgs, data2: np.ndarray, o: np.ndarray, d: np.ndarray, aux
     if sg_buf is None:  # forward only: zero-row slabs, one per thread
         nch = default_chunks()
         grad3 = np.zeros((nch, 0, data2.shape[1]), dtype=data2.dtype)
-        flags = np.zeros((nch, 0), dtype=np.uint8)
+        slot = np.zeros((nch, 0), dtype=np.int32)
         touched = np.zeros((nch, 0), dtype=np.int64)
         n_t = np.zeros(nch, dtype=np.int64)
+        need = np.zeros(nch, dtype=np.int64)
         sse = np.zeros(nch, dtype=np.float64)
-    else:
-        grad3, flags, touched, n_t, sse = (sg_buf.grad3, sg_buf.flags, sg_buf.touched,
-                                           sg_buf.n_touched, sg_buf.sse)
-    sse[:] = 0.0
+    elif sg_buf.n_touched.any():        # a regrowth drops the slabs: they must hold nothing
+        raise ConfigError("gradient slabs still hold a batch: merge or step before the next")
     import numba
 
     threads = numba.get_num_threads()
     old_chunk = numba.get_parallel_chunksize()
     numba.set_parallel_chunksize(_CHUNK_TILES)
-    if threads > grad3.shape[0]:            # one slab per running thread (see grad_kernel)
-        numba.set_num_threads(grad3.shape[0])
     try:
-        k.grad_kernel(args.child, data2, args.offset, args.invr, o, d, aux, mode,
-                      float(scale), args.info.kind, args.info.basis_dim, args.sg, args.b_lo,
-                      args.b_hi, args.bg, args.stop, args.eps, args.cap0, rgb, grad3, flags,
-                      touched, n_t, sse)
+        while True:
+            if sg_buf is not None:
+                grad3, slot, touched, n_t, need, sse = (sg_buf.grad3, sg_buf.slot,
+                                                        sg_buf.touched, sg_buf.n_touched,
+                                                        sg_buf.need, sg_buf.sse)
+            sse[:] = 0.0
+            if threads > grad3.shape[0]:    # one slab per running thread (see grad_kernel)
+                numba.set_num_threads(grad3.shape[0])
+            k.grad_kernel(args.child, data2, args.offset, args.invr, o, d, aux, mode,
+                          float(scale), args.info.kind, args.info.basis_dim, args.sg, args.b_lo,
+                          args.b_hi, args.bg, args.stop, args.eps, args.cap0, rgb, grad3, slot,
+                          touched, n_t, need, sse)
+            if sg_buf is None or not need.any():
+                break
+            sg_buf.grow()                   # rare: larger slabs, the batch again
     finally:
         numba.set_num_threads(threads)
         numba.set_parallel_chunksize(old_chunk)
@@ -173,7 +210,7 @@ def backward_numba(args: KernelArgs, data2: np.ndarray, origins: Any, dirs: Any,
     if o.shape[0]:
         rgb = np.empty((o.shape[0], 3), dtype=np.float64)
         _call(args, data2, o, d, g, 0, 0.0, rgb, buf)
-        buf.merge()
+    buf.merge()
     return buf
 
 
@@ -187,9 +224,8 @@ def fused_mse_numba(args: KernelArgs, data2: np.ndarray, origins: np.ndarray, di
     t = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 3)
     if rgb is None:
         rgb = np.empty((o.shape[0], 3), dtype=np.float64)
-    if not o.shape[0]:
-        return 0.0
-    _call(args, data2, o, d, t, 1, scale, rgb, buffers)
+    if o.shape[0]:
+        _call(args, data2, o, d, t, 1, scale, rgb, buffers)
     if merge:
         buffers.merge()
-    return float(buffers.sse.sum())
+    return float(buffers.sse.sum()) if o.shape[0] else 0.0

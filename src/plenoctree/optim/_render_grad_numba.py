@@ -24,23 +24,27 @@ background ``c_N`` composited with the transmittance ``T_N`` left at the end):
   the tree is traversed once per ray; the record grows by doubling when a ray has more segments
   than its initial capacity.
 
-Race-free scatter: rays are processed in tiles of :data:`TILE` rays, scheduled dynamically
-over the threads; thread ``t`` accumulates into its own dense gradient slab ``grad3[t]`` (the
-shape of the cell data), flags each cell it touches in ``flags[t]`` and appends it to
-``touched[t]``. (Floating-point sums therefore depend on which thread ran which tile: results
-are reproducible to rounding, not bit for bit, with more than one thread.) :func:`merge_chunks` then adds slabs ``1..`` into slab 0 over their touched
-cells only (parallel over cells, each list is duplicate-free) and merges the touched lists (the
-autograd path needs the merged gradient). The optimiser kernel :func:`step_touched` instead
-reads the slabs directly: it visits every touched cell once, sums its slabs, updates it (SGD,
-lazy Adam or lazy RMSprop), projects σ onto σ ≥ 0 and re-zeroes the slabs, flags and lists.
-No work is proportional to the tree size: one step costs O(touched cells).
+Race-free scatter into compact slabs: rays are processed in tiles of :data:`TILE` rays,
+scheduled dynamically over the threads; thread ``t`` owns slab ``t``. A slab holds rows only for
+the cells its thread touched in this batch, in touch order: ``slot[t, cell]`` is the cell's row
+(``-1`` untouched), ``touched[t, row]`` the row's cell, ``grad3[t, row]`` its gradient. (So the
+gradient memory is set by the cells one batch reaches, ~10⁵, not by the tree, ~10⁷ cells: a
+dense slab per thread was 1.6 GB on lego's 800² tree.) A cell that finds its slab full gets
+``slot = -2``, is counted once in ``need[t]`` and gets no gradient; the caller then grows the
+slabs and runs the batch again (:mod:`._render_grad`). (Floating-point sums depend on which
+thread ran which tile: results are reproducible to rounding, not bit for bit, with more than
+one thread.) :func:`merge_chunks` adds every slab into a dense ``[n_cells, D]`` gradient (the
+autograd path needs one). The optimiser kernel :func:`step_touched` instead reads the slabs
+directly: it visits every touched cell once, sums its slabs, updates it (SGD, lazy Adam or
+lazy RMSprop), projects σ onto σ ≥ 0 and re-zeroes the slabs, slots and lists. No work is
+proportional to the tree size: one step costs O(touched cells).
 
 Arrays: ``child`` int32 ``[n_cells]`` (flat ``[n_nodes * 8]``), ``data`` float ``[n_cells, D]``
 (float32 for training; float64 works too, for ``gradcheck``; the march reads σ from the rows
 its look-ahead prefetched), ``sig`` ``[n_cells]`` the step kernels' copy of ``data[:, -1]``
 (kept in sync for their callers), ``grad3`` same dtype
-``[n_chunks, n_cells, D]``, ``flags`` uint8 ``[n_chunks, n_cells]``, ``touched`` int64
-``[n_chunks, n_cells]``, ``n_touched`` int64 ``[n_chunks]``. Geometry is computed in float64,
+``[n_chunks, cap, D]``, ``slot`` int32 ``[n_chunks, n_cells]``, ``touched`` int64
+``[n_chunks, cap]``, ``n_touched`` and ``need`` int64 ``[n_chunks]``. Geometry is computed in float64,
 as in the renderer.
 """
 
@@ -52,8 +56,9 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from ..render._march_numba import (MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, basis_values,
-                                   leaf_logits, look_ahead, prefetch_row, ray_start)
+from ..render._march_numba import (MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, _prefetch,
+                                   basis_values, leaf_logits, look_ahead, prefetch_row,
+                                   ray_start)
 from ..render.options import KIND_RGBA
 
 __all__ = ["TILE", "grad_kernel", "merge_chunks", "step_touched", "OPT_SGD", "OPT_ADAM",
@@ -72,16 +77,16 @@ def initial_capacity(depth_limit: int) -> int:
 
 @njit(cache=True, fastmath=True, inline="always")
 def _trace_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg, b_lo, b_hi,
-               stop, eps, max_level, basis, st, stack, qc, qe, rec_cell, rec, out4, grad,
-               want_grad):
+               stop, eps, max_level, basis, st, stack, qc, qe, rec_cell, rec, out4, slot,
+               chunk, want_grad):
     """March one ray (the renderer's traversal, :mod:`plenoctree.render._march_numba`, with
     its look-ahead) and record its σ > 0 segments.
 
     Writes ``Σ w c`` into ``out4[:3]`` and ``T_N`` into ``out4[3]``; fills ``basis[:n_b]`` (zero
     outside ``[b_lo, b_hi]``), ``rec_cell[s]`` and ``rec[s] = (δ, exp(-σδ), c_r, c_g, c_b)``.
     Returns the number of recorded segments, or ``-1`` when the record is full (the caller
-    grows it and traces again). With ``want_grad`` the gradient row ``grad[cell]`` of every
-    recorded segment is prefetched, so that the backward pass scatters into cached lines.
+    grows it and traces again). With ``want_grad`` the slot ``slot[chunk, cell]`` of every
+    recorded segment is prefetched, so that the backward pass finds its slab row at once.
     Colour dot products run in the dtype of ``data`` (float32 in training, as in the
     renderer; float64 for gradcheck).
     """
@@ -127,7 +132,7 @@ def _trace_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg,
             cg = 1.0 / (1.0 + math.exp(-ag))
             cb = 1.0 / (1.0 + math.exp(-ab))
             if want_grad:
-                prefetch_row(grad, cell)
+                _prefetch(slot, chunk, cell)
             rec_cell[n_seg] = cell
             rec[n_seg, 0] = delta
             rec[n_seg, 1] = att
@@ -148,10 +153,13 @@ def _trace_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg,
 
 @njit(cache=True, fastmath=True, inline="always")
 def _backprop_one(n_seg, rec_cell, rec, kind, n_b, b_lo, b_hi, basis, cr, cg, cb, gr, gg, gb,
-                  grad, flags, touched, n_touched):
-    """Scatter ``∂L/∂data`` of one ray (eq. 15 and 20) into ``grad``; returns the new
-    ``n_touched`` of this chunk's touched-cell list."""
+                  grad, slot, touched, n_touched, need):
+    """Scatter ``∂L/∂data`` of one ray (eq. 15 and 20) into this chunk's compact slab ``grad``
+    (row ``slot[cell]``, given to a cell on its first touch); returns the new ``(n_touched,
+    need)``. A cell that finds the slab full is marked ``-2``, counted once in ``need`` and
+    gets nothing (the caller grows the slabs and runs the batch again)."""
     dim = grad.shape[1]
+    cap = grad.shape[0]
     trans = 1.0
     pr = 0.0
     pg = 0.0
@@ -168,42 +176,53 @@ def _backprop_one(n_seg, rec_cell, rec, kind, n_b, b_lo, b_hi, basis, cr, cg, cb
         pr += w * c0
         pg += w * c1
         pb += w * c2
-        if flags[cell] == 0:
-            flags[cell] = 1
-            touched[n_touched] = cell
-            n_touched += 1
-        # density: δ_i Σ_ch g_ch (c_ch T_{i+1} - suffix_ch), suffix = C - P_i
-        gsig = delta * (gr * (c0 * t_next - (cr - pr)) + gg * (c1 * t_next - (cg - pg))
-                        + gb * (c2 * t_next - (cb - pb)))
-        grad[cell, dim - 1] += gsig
-        # colour: g_ch w c (1 - c) Y_b  (Y = basis, 0 outside [b_lo, b_hi])
-        g0 = gr * w * c0 * (1.0 - c0)
-        g1 = gg * w * c1 * (1.0 - c1)
-        g2 = gb * w * c2 * (1.0 - c2)
-        if kind == KIND_RGBA:
-            yb = basis[0]
-            grad[cell, 0] += g0 * yb
-            grad[cell, 1] += g1 * yb
-            grad[cell, 2] += g2 * yb
-        else:
-            for b in range(b_lo, b_hi + 1):
-                yb = basis[b]
-                grad[cell, b] += g0 * yb
-                grad[cell, n_b + b] += g1 * yb
-                grad[cell, 2 * n_b + b] += g2 * yb
+        row = slot[cell]
+        if row == -1:
+            if n_touched < cap:
+                row = n_touched
+                slot[cell] = row
+                touched[row] = cell
+                n_touched += 1
+            else:
+                slot[cell] = -2
+                need += 1
+        if row >= 0:
+            # density: δ_i Σ_ch g_ch (c_ch T_{i+1} - suffix_ch), suffix = C - P_i
+            gsig = delta * (gr * (c0 * t_next - (cr - pr)) + gg * (c1 * t_next - (cg - pg))
+                            + gb * (c2 * t_next - (cb - pb)))
+            grad[row, dim - 1] += gsig
+            # colour: g_ch w c (1 - c) Y_b  (Y = basis, 0 outside [b_lo, b_hi])
+            g0 = gr * w * c0 * (1.0 - c0)
+            g1 = gg * w * c1 * (1.0 - c1)
+            g2 = gb * w * c2 * (1.0 - c2)
+            if kind == KIND_RGBA:
+                yb = basis[0]
+                grad[row, 0] += g0 * yb
+                grad[row, 1] += g1 * yb
+                grad[row, 2] += g2 * yb
+            else:
+                for b in range(b_lo, b_hi + 1):
+                    yb = basis[b]
+                    grad[row, b] += g0 * yb
+                    grad[row, n_b + b] += g1 * yb
+                    grad[row, 2 * n_b + b] += g2 * yb
         trans = t_next
-    return n_touched
+    return n_touched, need
 
 
 @njit(parallel=True, cache=True, fastmath=True)
 def grad_kernel(child, data, offset, invr, origins, dirs, aux, mode, scale, kind, n_b, sg, b_lo,
-                b_hi, bg, stop, eps, cap0, rgb_out, grad3, flags, touched, n_touched, sse):
+                b_hi, bg, stop, eps, cap0, rgb_out, grad3, slot, touched, n_touched, need,
+                sse):
     """Forward + analytic backward for ``[N, 3]`` rays, accumulating into per-chunk slabs.
 
     ``mode == 0``: ``aux [N, 3]`` is ``∂L/∂rgb`` (autograd backward).
     ``mode == 1``: ``aux [N, 3]`` are target colours and ``L = scale · Σ_rays Σ_ch (C - aux)²``
     (fused MSE step; ``sse[t]`` accumulates thread ``t``'s un-scaled sum of squared errors).
     ``mode == 2``: forward only (``grad3`` is not touched).
+    Slab ``t`` (``grad3[t]``, ``slot[t]``, ``touched[t]``, ``n_touched[t]``, ``need[t]``) as in
+    the module docstring; ``need.any()`` after the call means the batch must be run again with
+    larger slabs.
     ``rgb_out [N, 3]`` receives the rendered colour ``C`` (background included).
 
     Work items are tiles of :data:`TILE` rays, scheduled dynamically; a tile runs on one thread
@@ -233,9 +252,10 @@ def grad_kernel(child, data, offset, invr, origins, dirs, aux, mode, scale, kind
         rec_cell = cell_all[c]
         rec = rec_all[c]
         grad = grad3[c]
-        flg = flags[c]
+        slt = slot[c]
         tch = touched[c]
         nt = n_touched[c]
+        nd = need[c]
         acc_sse = 0.0
         for i in range(tile * TILE, min(n, (tile + 1) * TILE)):
             while True:
@@ -245,7 +265,7 @@ def grad_kernel(child, data, offset, invr, origins, dirs, aux, mode, scale, kind
                                    np.float64(dirs[i, 0]), np.float64(dirs[i, 1]),
                                    np.float64(dirs[i, 2]), kind, n_b, sg, b_lo, b_hi, stop,
                                    eps, MAX_LEVEL, basis, st, stack, qc, qe, rec_cell, rec,
-                                   out4, grad, mode != 2)
+                                   out4, slot, c, mode != 2)
                 if n_seg >= 0:
                     break
                 grow = 2 * rec_cell.shape[0]          # rare: a private, larger record
@@ -274,38 +294,29 @@ def grad_kernel(child, data, offset, invr, origins, dirs, aux, mode, scale, kind
                 gb = aux[i, 2]
             if gr == 0.0 and gg == 0.0 and gb == 0.0:
                 continue
-            nt = _backprop_one(n_seg, rec_cell, rec, kind, n_b, b_lo, b_hi, basis, cr, cg,
-                               cb, gr, gg, gb, grad, flg, tch, nt)
+            nt, nd = _backprop_one(n_seg, rec_cell, rec, kind, n_b, b_lo, b_hi, basis, cr, cg,
+                                   cb, gr, gg, gb, grad, slt, tch, nt, nd)
         n_touched[c] = nt
+        need[c] = nd
         sse[c] += acc_sse
 
 
 @njit(parallel=True, cache=True)
-def merge_chunks(grad3, flags, touched, n_touched):
-    """Add slabs ``1..`` into slab 0 over their touched cells and merge the touched lists.
-
-    After the call ``grad3[0]`` holds the full gradient, ``touched[0, :n_touched[0]]`` lists
-    every touched cell once, and slabs ``1..`` and their flags/lists are zero again.
-    """
+def merge_chunks(grad3, slot, touched, n_touched, dense):
+    """Add every slab into the dense gradient ``dense [n_cells, D]`` (zeroed by the caller) and
+    clear the slabs, slots and lists (each list is duplicate-free, so the cells of one chunk
+    are added in parallel)."""
     n_chunks = grad3.shape[0]
     dim = grad3.shape[2]
-    for c in range(1, n_chunks):
+    for c in range(n_chunks):
         m = n_touched[c]
         for j in prange(m):
             cell = touched[c, j]
             for d in range(dim):
-                grad3[0, cell, d] += grad3[c, cell, d]
-                grad3[c, cell, d] = 0.0
-        cnt = n_touched[0]
-        for j in range(m):
-            cell = touched[c, j]
-            flags[c, cell] = 0
-            if flags[0, cell] == 0:
-                flags[0, cell] = 1
-                touched[0, cnt] = cell
-                cnt += 1
+                dense[cell, d] += grad3[c, j, d]
+                grad3[c, j, d] = 0.0
+            slot[c, cell] = -1
         n_touched[c] = 0
-        n_touched[0] = cnt
 
 
 OPT_SGD, OPT_ADAM, OPT_RMSPROP = 0, 1, 2
@@ -313,10 +324,10 @@ _AHEAD = 8         # touched cells between a prefetch and the update that reads 
 
 
 @njit(parallel=True, cache=True)
-def step_touched(data, sig, grad3, flags, touched, n_touched, opt, lr, lr_sig, m1, m2, beta1,
+def step_touched(data, sig, grad3, slot, touched, n_touched, opt, lr, lr_sig, m1, m2, beta1,
                  beta2, eps, step):
     """Apply one optimiser step to every touched cell, reading the gradient straight from the
-    per-thread slabs (no separate merge), then re-zero slabs, flags and lists.
+    per-thread slabs (no separate merge), then re-zero slabs, slots and lists.
 
     ``opt``: :data:`OPT_SGD` (``data -= lr g``), :data:`OPT_ADAM` (lazy Adam: moments
     ``m1, m2 [n_cells, D]`` updated only where the batch has a gradient, as
@@ -329,9 +340,9 @@ def step_touched(data, sig, grad3, flags, touched, n_touched, opt, lr, lr_sig, m
 
     The rows of the cell :data:`_AHEAD` places further down the list are prefetched (the list
     is in touch order, so every row is a cache miss otherwise). Each cell is handled once: by
-    the first chunk whose list holds it, which sums the slabs of
-    that chunk and the later ones that flag the cell and clears their flags. Returns the
-    number of non-finite values written (0 when all is well).
+    the first chunk whose list holds it, which sums its row of that chunk's slab and of the
+    later slabs that hold the cell and clears their slots. Returns the number of non-finite
+    values written (0 when all is well).
     """
     n_chunks = grad3.shape[0]
     dim = data.shape[1]
@@ -345,24 +356,24 @@ def step_touched(data, sig, grad3, flags, touched, n_touched, opt, lr, lr_sig, m
             if j + _AHEAD < m:              # the rows this thread updates a few cells later
                 ahead = touched[c, j + _AHEAD]
                 prefetch_row(data, ahead)
-                prefetch_row(gc, ahead)
                 if opt != OPT_SGD:
                     prefetch_row(m2, ahead)
                     if opt == OPT_ADAM:
                         prefetch_row(m1, ahead)
             cell = touched[c, j]
-            if flags[c, cell] == 0:
+            if slot[c, cell] < 0:           # an earlier chunk's list held it: done
                 continue
-            g = grad3[c, cell]
+            g = gc[j]
             # Fold the later slabs that hold this cell into slab c (0 + a + b, as before), so
-            # the update loops below are flag-free and vectorise over the D values.
+            # the update loops below are slot-free and vectorise over the D values.
             for k in range(c + 1, n_chunks):
-                if flags[k, cell] != 0:
-                    gk = grad3[k, cell]
+                r = slot[k, cell]
+                if r >= 0:
+                    gk = grad3[k, r]
                     for d in range(dim):
                         g[d] += gk[d]
                         gk[d] = 0.0
-                    flags[k, cell] = 0
+                    slot[k, cell] = -1
             row = data[cell]
             if opt == OPT_SGD:
                 for d in range(dim):
@@ -392,7 +403,7 @@ def step_touched(data, sig, grad3, flags, touched, n_touched, opt, lr, lr_sig, m
                 if not math.isfinite(row[d]):
                     nonfinite += 1
             bad += nonfinite
-            flags[c, cell] = 0
+            slot[c, cell] = -1
             if row[dim - 1] < 0.0:
                 row[dim - 1] = 0.0
             sig[cell] = row[dim - 1]

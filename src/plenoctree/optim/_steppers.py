@@ -102,7 +102,7 @@ class NumbaStepper:
         m1 = self.m1 if self.m1 is not None else self._dummy
         m2 = self.m2 if self.m2 is not None else self._dummy
         lr_sig = self.lr if self.sigma_lr is None else self.sigma_lr
-        return int(k.step_touched(self.data2, self.sig, b.grad3, b.flags, b.touched,
+        return int(k.step_touched(self.data2, self.sig, b.grad3, b.slot, b.touched,
                                   b.n_touched, opt, self.lr, lr_sig, m1, m2, beta1, beta2, eps,
                                   float(self.step_count)))
 

@@ -280,6 +280,7 @@ def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = Non
         if _has_split(Path(cfg.data), "val"):
             val_data = _load_split(cfg.data, "val", cfg)
             val_set = ViewSet.from_dataset(val_data, _subset(len(val_data), cfg.val_views))
+            del val_data                   # the view set holds its own copy of the images
             train_set = ViewSet.from_dataset(train)
         elif len(train) >= 2:
             n_hold = min(len(train) - 1, max(1, round(cfg.val_fraction * len(train))))
