@@ -142,6 +142,26 @@ def test_eval_cli(scene, tmp_path, capsys):
         assert rep["mean"]["lpips"].startswith("skipped: ") and "LPIPS skipped" in text
 
 
+def test_eval_spread_views(scene, tmp_path, monkeypatch):
+    """--views N --spread scores N views evenly spaced over the split (as render-nerf picks
+    them), the same as scoring the whole split and keeping those; plain --views the first N."""
+    from plenoctree.datasets import evenly_spaced, load_dataset
+
+    _no_lpips(monkeypatch)
+    data = tmp_path / "data"
+    write_procedural_dataset(data, n_train=1, n_val=1, n_test=5, width=W, height=W)
+    names = load_dataset(data, "test").names
+    want = [names[i] for i in evenly_spaced(len(names), 2)]          # views 0 and 2
+    assert main(["eval", str(scene / "tree.npz"), "--data", str(data), "--views", "2",
+                 "--spread", "--out", str(tmp_path / "s")]) == 0
+    spread = json.loads((tmp_path / "s" / "eval.json").read_text())
+    full = eval_tree_file(EvalConfig(scene / "tree.npz", data, out=tmp_path / "a"))
+    first = eval_tree_file(EvalConfig(scene / "tree.npz", data, limit=2, out=tmp_path / "f"))
+    assert [v["name"] for v in spread["views"]] == want != [v["name"] for v in first["views"]]
+    by_name = {v["name"]: v["psnr"] for v in full["views"]}
+    assert [v["psnr"] for v in spread["views"]] == pytest.approx([by_name[n] for n in want])
+
+
 def test_eval_bad_inputs(scene, tmp_path, capsys):
     assert main(["eval", str(tmp_path / "nope.npz"), "--data", str(scene / "data")]) == 1
     assert "nope.npz" in capsys.readouterr().err

@@ -149,3 +149,23 @@ def test_lpips_skip_note_is_not_a_number(pt):
     res = copy.deepcopy(_fake(pt))
     res["rows"]["ft"]["lpips"] = 0.031
     assert "| 0.031 |" in pt.markdown_table(res)
+
+
+@pytest.mark.parametrize("downscale", [1, 2])
+def test_nerf_timing_at_400_is_a_400_render(pt, tmp_path, monkeypatch, downscale):
+    """The NeRF-SH's 400² seconds come from a 400² render even when the views are scored at
+    800² (a --run-dir of an 800² run): the 400² speed-up is 400² against 400²."""
+    from plenoctree.nerf import evaluate
+
+    calls = []
+
+    def fake(run, split, views, downscale, out, data=None, with_ssim=True):
+        calls.append(downscale)
+        sec = {1: 4.0, 2: 1.0}[downscale]          # an 800² frame takes 4× a 400² one
+        return {"mean_psnr": 33.0, "mean_ssim": 0.97, "n_views": views,
+                "seconds": [sec] * views, "seconds_per_full_frame": sec, "model_mb": 23.6}
+
+    monkeypatch.setattr(evaluate, "render_nerf_views", fake)
+    r = pt.measure_nerf_cpu(tmp_path, 3, tmp_path, downscale, None)
+    assert (r["s_400"], r["s_800"], r["views"]) == (1.0, 4.0, 3)
+    assert calls[0] == downscale and sorted(set(calls)) == [1, 2]

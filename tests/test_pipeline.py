@@ -82,6 +82,11 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path):
     assert not (out2 / "nerf").exists() and ck.stat().st_mtime_ns == before
     assert "train" in s4["skipped"] and s4["rows"][0]["given"]
     assert (out2 / "tree_ft.npz").exists() and "(given run)" in (out2 / "summary.md").read_text()
+    # the given NeRF-SH's training time is shown on its row, not added to this chain's total
+    assert s4["given"] == ["train"] and s4["rows"][0]["seconds"] > 0
+    assert s4["total_s"] == pytest.approx(sum(v for k, v in s4["times_s"].items()
+                                              if v and k != "train"))
+    assert "training not counted" in (out2 / "summary.md").read_text()
     with pytest.raises(ConfigError, match="no checkpoint.pt"):
         run_pipeline(_tiny_cfg(scene, tmp_path / "x", nerf=str(tmp_path)), log=logs.append)
 

@@ -281,7 +281,11 @@ class EvalConfig:
     downscale: int = 1
     """Integer area downscale of the images (FPS is measured at the resulting size)."""
     limit: int | None = None
-    """Only the first N views."""
+    """Only N views: the first N, or with ``spread`` N evenly spaced over the split."""
+    spread: bool = False
+    """With ``limit``: score N views evenly spaced over the split (0, 20, 40, … of 200, as
+    ``render-nerf --views`` picks them) instead of the first N, which on a turntable split
+    are neighbours and not representative."""
     out: str | Path | None = None
     """Folder for ``eval.json`` and ``eval.md``; default ``<tree stem>_eval_<split>/`` next to
     the tree."""
@@ -331,7 +335,7 @@ def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
         BackendError for an unavailable renderer backend.
     """
     from .compress import is_compressed_file, load_any_tree
-    from .datasets import FORMATS, load_dataset
+    from .datasets import FORMATS, evenly_spaced, load_dataset
     from .errors import ConfigError, TreeFormatError
     from .metrics import _lpips_problem
 
@@ -350,8 +354,11 @@ def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
     backend = _resolved_backend(cfg.backend, device)
     tree = load_any_tree(tree_path)
     bg = tuple(float(b) for b in cfg.background) if cfg.background is not None else (1.0, 1.0, 1.0)
+    spread = bool(cfg.spread and cfg.limit)
     data = load_dataset(cfg.data, split=cfg.split, format=cfg.format, downscale=cfg.downscale,
-                        background=bg, limit=cfg.limit)
+                        background=bg, limit=None if spread else cfg.limit)
+    if spread:
+        data = data.select(evenly_spaced(len(data), cfg.limit))
     if len(data.cameras) == 0:
         raise ConfigError(f"{cfg.data}: split {cfg.split!r} has no views to evaluate")
     out = Path(cfg.out) if cfg.out is not None else \

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .._util import atomic_save_json, save_png
-from ..datasets import Dataset
+from ..datasets import Dataset, evenly_spaced
 from ..errors import ConfigError
 from ..evaluation import score_views
 from .config import TrainConfig
@@ -19,14 +19,6 @@ from .model import NeRFModel
 from .renderer import render_image
 
 __all__ = ["evenly_spaced", "evaluate_views", "render_nerf_views"]
-
-
-def evenly_spaced(n_total: int, n: int) -> list[int]:
-    """``n`` indices evenly spaced over ``range(n_total)`` starting at 0 (5 of 200: 0, 40, …)."""
-    if n <= 0 or n_total <= 0:
-        return []
-    n = min(n, n_total)
-    return [int(i * n_total // n) for i in range(n)]
 
 
 def evaluate_views(model: NeRFModel, data: Dataset, cfg: TrainConfig,
