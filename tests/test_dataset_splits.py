@@ -54,3 +54,21 @@ def test_nerfstudio_splits_follow_its_filenames_lists(tmp_path):
     (ns / "transforms.json").write_text("{not json")
     with pytest.raises(DatasetError):
         has_split(ns, "val", "nerfstudio")
+
+
+def test_take_views_first_or_spread_before_reading():
+    """Every loader's ``limit``/``spread`` rule (one helper): the first N frames, or N evenly
+    spaced ones, for the lists and index arrays the loaders hold; None keeps all."""
+    import numpy as np
+
+    from plenoctree.datasets import evenly_spaced
+    from plenoctree.datasets._files import take_views
+
+    frames = [f"r_{i}" for i in range(10)]
+    assert take_views(frames, None) is frames
+    assert take_views(frames, 3) == ["r_0", "r_1", "r_2"]
+    assert take_views(frames, 3, spread=True) == ["r_0", "r_3", "r_6"]
+    assert take_views(frames, 20, spread=True) == frames
+    sel = np.arange(0, 40, 4)
+    assert take_views(sel, 2, spread=True).tolist() == [0, 20]
+    assert evenly_spaced(200, 5) == [0, 40, 80, 120, 160] and evenly_spaced(5, 0) == []

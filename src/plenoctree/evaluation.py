@@ -335,7 +335,7 @@ def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
         BackendError for an unavailable renderer backend.
     """
     from .compress import is_compressed_file, load_any_tree
-    from .datasets import FORMATS, evenly_spaced, load_dataset
+    from .datasets import FORMATS, load_dataset
     from .errors import ConfigError, TreeFormatError
     from .metrics import _lpips_problem
 
@@ -354,11 +354,8 @@ def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
     backend = _resolved_backend(cfg.backend, device)
     tree = load_any_tree(tree_path)
     bg = tuple(float(b) for b in cfg.background) if cfg.background is not None else (1.0, 1.0, 1.0)
-    spread = bool(cfg.spread and cfg.limit)
     data = load_dataset(cfg.data, split=cfg.split, format=cfg.format, downscale=cfg.downscale,
-                        background=bg, limit=None if spread else cfg.limit)
-    if spread:
-        data = data.select(evenly_spaced(len(data), cfg.limit))
+                        background=bg, limit=cfg.limit, spread=cfg.spread)
     if len(data.cameras) == 0:
         raise ConfigError(f"{cfg.data}: split {cfg.split!r} has no views to evaluate")
     out = Path(cfg.out) if cfg.out is not None else \

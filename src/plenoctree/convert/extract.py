@@ -421,15 +421,12 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
 def _evaluate(res: ExtractResult, cfg: ExtractConfig, root: str, downscale: int,
               background: Any) -> None:
     """Test-split PSNR/SSIM of the raw tree (evenly spaced ``cfg.eval_views`` views)."""
+    from ..datasets import load_dataset
     from ..evaluation import evaluate_tree
     from ..render import RenderOptions
 
-    test = _load_split(root, "test", downscale, background)
-    if cfg.eval_views and cfg.eval_views < len(test):
-        idx = [int(i * len(test) // cfg.eval_views) for i in range(cfg.eval_views)]
-        test = dataclasses.replace(test, images=test.images[idx], cameras=test.cameras.select(idx),
-                                   names=[test.names[i] for i in idx],
-                                   alphas=None if test.alphas is None else test.alphas[idx])
+    test = load_dataset(root, split="test", downscale=downscale, background=background,
+                        limit=cfg.eval_views or None, spread=True)
     t0 = time.perf_counter()
     ev = evaluate_tree(res.tree, test, cfg.eval_out or None,
                        RenderOptions(background=tuple(float(b) for b in test.background)),

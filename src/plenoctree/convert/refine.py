@@ -452,11 +452,8 @@ def _eval_psnr(tree: Any, root: str, downscale: int, background: Any, n: int) ->
     from ..evaluation import evaluate_tree
     from ..render import RenderOptions
 
-    test = load_dataset(root, split="test", downscale=downscale, background=background)
-    idx = [int(i * len(test) // n) for i in range(min(n, len(test)))]
-    test = dataclasses.replace(test, images=test.images[idx], cameras=test.cameras.select(idx),
-                               names=[test.names[i] for i in idx],
-                               alphas=None if test.alphas is None else test.alphas[idx])
+    test = load_dataset(root, split="test", downscale=downscale, background=background,
+                        limit=n, spread=True)
     ev = evaluate_tree(tree, test, None, RenderOptions(background=tuple(test.background)),
                        show_progress=False)
     return float(ev.mean_psnr)

@@ -180,6 +180,27 @@ def _composite_into(arr: np.ndarray, factor: int, bg: np.ndarray,
     out_alpha[...] = a[..., 0]
 
 
+def evenly_spaced(n_total: int, n: int) -> list[int]:
+    """``n`` indices evenly spaced over ``range(n_total)`` starting at 0 (5 of 200: 0, 40, …)."""
+    if n <= 0 or n_total <= 0:
+        return []
+    n = min(n, n_total)
+    return [int(i * n_total // n) for i in range(n)]
+
+
+def take_views(items: Any, limit: int | None, spread: bool = False) -> Any:
+    """The loaders' ``limit`` / ``spread`` rule on a split's frames (list or 1-D array), before
+    any image is read: all of ``items`` when ``limit`` is None, else the first ``limit``, or
+    with ``spread`` ``limit`` of them evenly spaced (:func:`evenly_spaced`)."""
+    if limit is None:
+        return items
+    if not spread:
+        return items[:limit]
+    idx = evenly_spaced(len(items), limit)
+    return items[np.asarray(idx, dtype=np.int64)] if isinstance(items, np.ndarray) else \
+        [items[i] for i in idx]
+
+
 def _check_options(split: Any, downscale: Any, background: Any, limit: Any) -> np.ndarray:
     if not isinstance(split, str) or not split or any(c in split for c in "/\\\x00"):
         raise ConfigError(f"split must be a plain name like 'train', got {split!r}")

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._files import (_check_options, _finite_number, _frame_file_path, _image_path, _matrix,
-                     read_json_object)
+                     read_json_object, take_views)
 from ._images import load_images
 from .cameras import Cameras
 from .dataset import Dataset
@@ -75,7 +75,8 @@ def read_transforms(path: str | os.PathLike) -> tuple[dict, list[tuple[str, np.n
 
 def load_blender(root: str | os.PathLike, split: str = "train", downscale: int = 1,
                  background: Sequence[float] | float = (1.0, 1.0, 1.0),
-                 limit: int | None = None, num_threads: int | None = None) -> Dataset:
+                 limit: int | None = None, spread: bool = False,
+                 num_threads: int | None = None) -> Dataset:
     """Load one split of a Blender / NeRF-synthetic dataset.
 
     Args:
@@ -85,7 +86,8 @@ def load_blender(root: str | os.PathLike, split: str = "train", downscale: int =
             (premultiplied colour and alpha averaged, then composited) and the intrinsics scaled.
             Must divide the image size.
         background: RGB (or one grey value) in [0, 1] that transparent pixels are composited on.
-        limit: keep only the first ``limit`` frames.
+        limit: keep only the first ``limit`` frames (with ``spread``: ``limit`` frames evenly
+            spaced over the split).
         num_threads: image decoding threads (default ``min(8, cpu count)``).
 
     Returns:
@@ -103,8 +105,7 @@ def load_blender(root: str | os.PathLike, split: str = "train", downscale: int =
         raise DatasetError(f"{root}: dataset folder does not exist")
     json_path = root / f"transforms_{split}.json"
     meta, frames = read_transforms(json_path)
-    if limit is not None:
-        frames = frames[:limit]
+    frames = take_views(frames, limit, spread)
     paths = []
     for i, (fp, _) in enumerate(frames):
         try:

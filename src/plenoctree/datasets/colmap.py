@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, near_far_from_box
-from ._files import _check_options
+from ._files import _check_options, take_views
 from .cameras import Cameras
 from .colmap_model import colmap_c2w, find_colmap_model, read_colmap_model
 from .dataset import Dataset
@@ -164,14 +164,16 @@ def _split(n: int, split: str, where: Path) -> list[int]:
 
 def load_colmap(root: str | os.PathLike, split: str = "train", downscale: int = 1,
                 background: Sequence[float] | float = (1.0, 1.0, 1.0),
-                limit: int | None = None, num_threads: int | None = None,
+                limit: int | None = None, spread: bool = False,
+                num_threads: int | None = None,
                 scene: str = "auto", images: str = "images") -> Dataset:
     """Load one split of a COLMAP model folder (module docstring).
 
     Args:
         root: folder holding ``sparse/0`` (or ``sparse``) and ``images/``.
         split: "train", "val", "test" or "all". downscale: integer area-downscale factor
-            (``images_<f>/`` used when present). background, limit, num_threads: as the others.
+            (``images_<f>/`` used when present). background, limit, spread, num_threads: as the
+            other loaders.
         scene: "auto" (decided from the cameras), "360" or "forward" (NDC rays).
         images: name of the image folder under ``root``.
 
@@ -191,8 +193,7 @@ def load_colmap(root: str | os.PathLike, split: str = "train", downscale: int = 
     raw_c2w = np.stack([colmap_c2w(model.images[i][2], model.images[i][3]) for i in order])
     frame = normalize_scene(raw_c2w, model.points, scene)
     sel = _split(len(order), split, folder)
-    if limit is not None:
-        sel = sel[:limit]
+    sel = take_views(sel, limit, spread)
     f = int(downscale)
     img_dir = root / images
     pre = root / f"{images}_{f}"

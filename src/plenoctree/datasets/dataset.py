@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DatasetError
+from ._files import evenly_spaced
 from .cameras import Cameras
 
 __all__ = ["Dataset", "load_dataset", "detect_format", "has_split", "evenly_spaced", "FORMATS"]
@@ -64,24 +65,6 @@ class Dataset:
 
     def __len__(self) -> int:
         return len(self.cameras)
-
-    def select(self, indices: list[int] | np.ndarray) -> "Dataset":
-        """A new :class:`Dataset` of the views ``indices`` (images, cameras, names, alphas and
-        masks taken together)."""
-        idx = np.asarray(indices, dtype=np.int64)
-        pick = lambda a: None if a is None else a[idx]  # noqa: E731
-        return Dataset(self.images[idx], self.cameras.select(idx), self.near, self.far,
-                       self.scene_bbox, self.split, self.root, self.background,
-                       [self.names[i] for i in idx] if self.names else [],
-                       pick(self.alphas), pick(self.masks))
-
-
-def evenly_spaced(n_total: int, n: int) -> list[int]:
-    """``n`` indices evenly spaced over ``range(n_total)`` starting at 0 (5 of 200: 0, 40, …)."""
-    if n <= 0 or n_total <= 0:
-        return []
-    n = min(n, n_total)
-    return [int(i * n_total // n) for i in range(n)]
 
 
 FORMATS = ("blender", "llff", "nsvf", "nerfstudio", "colmap")
@@ -143,7 +126,8 @@ def load_dataset(root: str | os.PathLike, split: str = "train", format: str | No
             "all").
         format: one of :data:`FORMATS` to skip detection (:func:`detect_format`).
         **kw: options of the format's loader; all take ``downscale``, ``background``,
-            ``limit`` and ``num_threads`` (see :func:`~plenoctree.datasets.blender.load_blender`,
+            ``limit``, ``spread`` and ``num_threads`` (see
+            :func:`~plenoctree.datasets.blender.load_blender`,
             :func:`~plenoctree.datasets.llff.load_llff` (``llffhold``, ``ndc``, ``spherify``,
             ...), :func:`~plenoctree.datasets.nsvf.load_nsvf`,
             :func:`~plenoctree.datasets.nerfstudio.load_nerfstudio`,

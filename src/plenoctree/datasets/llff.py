@@ -39,7 +39,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import image_files, load_images, probe_size
-from ._files import _check_options
+from ._files import _check_options, take_views
 from .cameras import Cameras
 from .dataset import Dataset
 from .ndc import ndc_bounds
@@ -283,7 +283,8 @@ def _frustum_box(c2w: np.ndarray, k: np.ndarray, w: int, h: int, near: float,
 
 def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
               background: Sequence[float] | float = (1.0, 1.0, 1.0),
-              limit: int | None = None, num_threads: int | None = None,
+              limit: int | None = None, spread: bool = False,
+              num_threads: int | None = None,
               llffhold: int = LLFF_HOLD, ndc: bool | None = None, spherify: bool = False,
               recenter: bool = True, bd_factor: float | None = BD_FACTOR) -> Dataset:
     """Load one split of an LLFF capture.
@@ -294,7 +295,7 @@ def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
         downscale: integer factor; ``images_<downscale>/`` is used when present, otherwise
             ``images/`` is area-downscaled on the fly (the factor must divide the size).
         background: RGB for transparent pixels (PNGs with alpha). limit: first ``limit``
-            images of the split. num_threads: decoding threads.
+            images of the split (``spread``: evenly spaced). num_threads: decoding threads.
         llffhold: every ``llffhold``-th image is a test image (0: none).
         ndc: NDC rays (default: yes unless ``spherify``).
         spherify: spherical normalisation for inward-facing 360° captures (no NDC).
@@ -324,8 +325,7 @@ def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
     n = len(scene.c2w)
     folder, files, factor = _images_for(root, n, int(downscale))
     sel = _split_indices(n, split, llffhold, root / POSES_FILE)
-    if limit is not None:
-        sel = sel[:limit]
+    sel = take_views(sel, limit, spread)
     size = probe_size(files[sel[0]])
     fx, fy, cx, cy = _intrinsics(scene.hwf, size, folder)
     images, alphas, size2 = load_images([files[i] for i in sel], factor, bg, num_threads)

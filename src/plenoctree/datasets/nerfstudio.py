@@ -44,7 +44,7 @@ import numpy as np
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, load_masks, near_far_from_box
 from ._files import (_check_options, _finite_number, _frame_file_path, _image_path, _matrix,
-                     check_inside_dataset, read_json_object)
+                     check_inside_dataset, read_json_object, take_views)
 from .cameras import Cameras
 from .dataset import Dataset
 
@@ -198,7 +198,8 @@ def _scene_box(obj: dict, c2w: np.ndarray, path: Path) -> np.ndarray:
 
 def load_nerfstudio(root: str | os.PathLike, split: str = "train", downscale: int = 1,
                     background: Sequence[float] | float = (1.0, 1.0, 1.0),
-                    limit: int | None = None, num_threads: int | None = None) -> Dataset:
+                    limit: int | None = None, spread: bool = False,
+                    num_threads: int | None = None) -> Dataset:
     """Load one split of a nerfstudio / instant-ngp ``transforms.json`` capture.
 
     Args:
@@ -208,7 +209,8 @@ def load_nerfstudio(root: str | os.PathLike, split: str = "train", downscale: in
             ``<dir>_<downscale>/<name>`` is used when present (nerfstudio's layout), otherwise
             the image is area-downscaled on the fly (the factor must divide the size). Masks
             likewise.
-        background: RGB for transparent pixels. limit: first ``limit`` frames of the split.
+        background: RGB for transparent pixels. limit: first ``limit`` frames of the split
+        (``spread``: evenly spaced).
         num_threads: decoding threads.
 
     Returns:
@@ -229,8 +231,7 @@ def load_nerfstudio(root: str | os.PathLike, split: str = "train", downscale: in
     all_c2w = np.stack([f["c2w"] for f in frames])
     bbox = _scene_box(obj, all_c2w, path)
     idx = _split(obj, frames, split, path)
-    if limit is not None:
-        idx = idx[:limit]
+    idx = take_views(idx, limit, spread)
     f = int(downscale)
     pre = [_prescaled(root, frames[i]["file_path"], f, True) for i in idx]
     prescaled = f > 1 and all(p is not None for p in pre)

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import image_files, load_images, near_far_from_box
-from ._files import _check_options
+from ._files import _check_options, take_views
 from .cameras import Cameras
 from .dataset import Dataset
 
@@ -130,13 +130,15 @@ def _split_files(rgb: list[Path], split: str) -> list[Path]:
 
 def load_nsvf(root: str | os.PathLike, split: str = "train", downscale: int = 1,
               background: Sequence[float] | float = (1.0, 1.0, 1.0),
-              limit: int | None = None, num_threads: int | None = None) -> Dataset:
+              limit: int | None = None, spread: bool = False,
+              num_threads: int | None = None) -> Dataset:
     """Load one split of an NSVF-format scene (see the module docstring for the layout).
 
     Args:
         root: scene folder. split: "train", "val", "test" or "all".
         downscale: integer area-downscale factor (must divide the image size).
-        background: RGB for transparent pixels. limit: first ``limit`` images of the split.
+        background: RGB for transparent pixels. limit: first ``limit`` images of the split
+        (``spread``: evenly spaced).
         num_threads: decoding threads.
 
     Returns:
@@ -171,8 +173,7 @@ def load_nsvf(root: str | os.PathLike, split: str = "train", downscale: int = 1,
     if not files:
         raise DatasetError(f"{rgb_dir}: no images of split {split!r} (names starting with "
                            f"{NSVF_SPLIT_PREFIX.get(split, '')!r})")
-    if limit is not None:
-        files = files[:limit]
+    files = take_views(files, limit, spread)
     c2w = np.stack([read_pose(pose_stems[p.stem]) for p in files])
     all_c2w = np.stack([read_pose(p) for p in poses]) if split != "all" else c2w
     bbox_path = root / "bbox.txt"

@@ -35,7 +35,7 @@ from .checkpoint import CHECKPOINT_NAME, CheckpointError, model_from_checkpoint,
     read_checkpoint, save_checkpoint
 from .config import TrainConfig, config_json, validate
 from .encoding import HashGridEncoding
-from .evaluate import evaluate_views, evenly_spaced
+from .evaluate import evaluate_views
 from .model import NeRFModel
 from .renderer import autocast, render_rays_hierarchical, render_rays_occupancy
 from .runlog import RunLog
@@ -135,13 +135,8 @@ def load_val_views(cfg: TrainConfig) -> Dataset | None:
     """The ``val_views`` evenly spaced views of split ``val_split`` (None when 0 views)."""
     if cfg.val_views <= 0:
         return None
-    full = load_dataset(cfg.data, cfg.val_split, format=cfg.format, downscale=cfg.downscale,
-                        background=cfg.background)
-    idx = evenly_spaced(len(full), cfg.val_views)
-    return Dataset(images=full.images[idx].copy(), cameras=full.cameras.select(idx),
-                   near=full.near, far=full.far, scene_bbox=full.scene_bbox, split=full.split,
-                   root=full.root, background=full.background,
-                   names=[full.names[i] for i in idx], alphas=None)
+    return load_dataset(cfg.data, cfg.val_split, format=cfg.format, downscale=cfg.downscale,
+                        background=cfg.background, limit=cfg.val_views, spread=True)
 
 
 # ------------------------------------------------------------------ training

@@ -177,10 +177,11 @@ class FinetuneResult:
 
 
 def _subset(n: int, k: int) -> np.ndarray:
-    """``k`` evenly spaced indices of ``range(n)`` (all when ``k`` is 0 or >= n)."""
-    if k <= 0 or k >= n:
-        return np.arange(n)
-    return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
+    """``k`` evenly spaced indices of ``range(n)`` (all when ``k`` is 0 or >= n), by the
+    loaders' rule (:func:`~plenoctree.datasets.evenly_spaced`)."""
+    from ..datasets import evenly_spaced
+
+    return np.arange(n) if k <= 0 or k >= n else np.asarray(evenly_spaced(n, k), dtype=np.int64)
 
 
 def _check_tree(tree: Any, path: Any) -> None:
