@@ -92,12 +92,39 @@ def test_finetune_recovers_the_known_tree(scene, tmp_path, optimizer, lr):
     events = [json.loads(line)["event"] for line in open(tmp_path / "ft.log.jsonl")]
     assert events[0] == "start" and events[-1] == "end" and "val" in events
     assert not (tmp_path / "ft.ckpt.npz").exists()
+    # Adam says how its steps related to its eps; SGD has nothing to say
+    assert ("gradient_scale" in events) == (optimizer == "adam")
+    if optimizer == "adam":
+        assert 0.0 <= res.gradient_scale["share_below_eps"] <= 1.0
+    else:
+        assert res.gradient_scale is None
+
+
+def test_gradient_scale_tells_the_sgd_regime_from_the_scale_free_one():
+    """``gradient_scale`` compares each touched value's bias-corrected RMS gradient with ε."""
+    from plenoctree.optim._steppers import _ADAM_EPS, _BETAS, NumbaStepper, gradient_scale
+    from plenoctree.optim._render_grad import kernel_args
+
+    tree = known_tree()
+    d2 = tree.data.reshape(-1, tree.data_dim)
+    st = NumbaStepper(d2.copy(), kernel_args(tree, RenderOptions()), "adam", 1e-2)
+    st.step_count = 10
+    bc = 1.0 - _BETAS[1] ** 10
+    st.m2[:] = 0.0                               # untouched values do not count
+    st.m2[:3] = (0.01 * _ADAM_EPS) ** 2 * bc     # 3 rows far below eps: the SGD regime
+    st.m2[3:4] = (100 * _ADAM_EPS) ** 2 * bc     # 1 row far above: scale-free
+    gs = gradient_scale(st)
+    assert gs["values"] == 4 * tree.data_dim
+    assert gs["share_below_eps"] == pytest.approx(0.75)
+    assert gs["rms_p50"] == pytest.approx(0.01 * _ADAM_EPS, rel=1e-5)
+    st.release()
+    assert gradient_scale(st) is None
 
 
 def test_torch_twin_backend_takes_the_same_steps(scene):
     from plenoctree.optim._render_grad import kernel_args
     from plenoctree.optim._loop import ViewSet
-    from plenoctree.optim._steppers import NumbaStepper, TorchStepper
+    from plenoctree.optim._steppers import NumbaStepper, TorchStepper, gradient_scale
     from plenoctree.datasets import load_dataset
 
     tree = load_tree(scene / "noisy.npz")
@@ -124,6 +151,17 @@ def test_torch_twin_backend_takes_the_same_steps(scene):
         moved = np.abs(fast.values() - d2).max()
         assert moved > 1e-3
         np.testing.assert_allclose(fast.values(), twin.values(), atol=2e-3 * moved)
+        # both report the same gradient scale against their optimiser's eps (SGD: none)
+        gs_fast, gs_twin = gradient_scale(fast), gradient_scale(twin)
+        if optimizer == "sgd":
+            assert gs_fast is None and gs_twin is None
+        else:
+            # (numba flushes moments below 1e-30 to 0: a few more values count as untouched)
+            assert gs_fast["values"] == pytest.approx(gs_twin["values"], rel=0.01)
+            assert gs_fast["values"] > 0
+            assert gs_fast["rms_p50"] == pytest.approx(gs_twin["rms_p50"], rel=0.02)
+            assert gs_fast["share_below_eps"] == pytest.approx(gs_twin["share_below_eps"],
+                                                               abs=0.02)
         # after training the steppers drop their optimiser state, and still render the same
         before = fast.render(o, d)
         fast.release()
