@@ -14,8 +14,8 @@ original's epoch of per-image steps, and ``lr = 1e7`` is the paper's SGD learnin
 are updated); σ gets its own rate ``lr_sigma / h`` (h = finest leaf side). They would be
 scale-free (a step moving each value by about ``lr``, each leaf's opacity by about
 ``lr_sigma``) where a value's RMS gradient is large against their ε = 1e-8, but with this loss
-it rarely is: on lego's refined tree at 400² the median is ~2e-11, 99.999 % of the values below ε, and Adam steps as SGD with
-momentum at ``lr / ε`` for nearly every value. The run logs which (event ``gradient_scale``).
+it rarely is: on lego's refined tree at 400² the median is ~2e-11 (99.999 % of the values
+below ε), and Adam steps as SGD with momentum at ``lr / ε`` for nearly every value. The run logs which (event ``gradient_scale``).
 
 Defaults (Adam 2e-2 for colour and opacity, constant, 3 back-offs) chosen by measurement: on
 the procedural demo scene the paper's SGD 1e7 diverges (validation 34.97 → 27.46 dB, the input
