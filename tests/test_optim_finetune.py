@@ -100,6 +100,31 @@ def test_finetune_recovers_the_known_tree(scene, tmp_path, optimizer, lr):
         assert res.gradient_scale is None
 
 
+def test_val_and_test_views_are_the_evenly_spaced_ones_read_alone(scene, tmp_path, monkeypatch):
+    """``val_views`` / ``test_views`` pick evenly spaced views, and only those are read."""
+    import plenoctree.datasets.blender as blender
+    from plenoctree.datasets import evenly_spaced, load_dataset
+
+    read = []                                    # the image files each load decodes, in order
+    real = blender.load_images
+
+    def spy(paths, *a, **k):
+        read.append([Path(p).stem for p in paths])
+        return real(paths, *a, **k)
+
+    monkeypatch.setattr(blender, "load_images", spy)
+    lines = []
+    finetune(cfg(scene, tmp_path / "ft.npz", epochs=1, val_every=1, val_views=2, test_views=3,
+                 verbose=True), log_fn=lines.append)
+    got = read[1:]                               # read[0]: the training split
+    full = {s: load_dataset(scene / "data", s) for s in ("val", "test")}
+    want = {s: [full[s].names[i] for i in evenly_spaced(len(full[s]), k)]
+            for s, k in (("val", 2), ("test", 3))}
+    assert got == [want["val"], want["test"]]
+    assert any("/ 2 val views" in line for line in lines)
+    assert any("(3 views)" in line for line in lines)
+
+
 def test_gradient_scale_tells_the_sgd_regime_from_the_scale_free_one():
     """``gradient_scale`` compares each touched value's bias-corrected RMS gradient with ε."""
     from plenoctree.optim._steppers import _ADAM_EPS, _BETAS, NumbaStepper, gradient_scale

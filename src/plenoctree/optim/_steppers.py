@@ -19,9 +19,9 @@ side), which makes a scale-free step change a leaf's opacity by about ``lr_sigma
 RMSprop are scale-free only where a value's RMS gradient is large against their ε (1e-8); with
 this loss nearly none is (lego's refined tree at 400²: median ~2e-11, 99.999 % below ε), and
 there the step is ``(lr / ε) · m̂``: SGD with momentum (:func:`gradient_scale` measures which
-regime a run was in; ``finetune`` logs it). A truly scale-free Adam (ε 1e-14, lr 1e-3) scored lower on
-lego (test 33.25 against 33.38 dB, 12 epochs), so ε stays. ``lr`` and ``sigma_lr``
-may be changed between steps (learning-rate schedules and back-off).
+regime a run was in; ``finetune`` logs it). A truly scale-free Adam (ε 1e-14, lr 1e-3) scored
+lower on lego (test 33.25 against 33.38 dB, 12 epochs), so ε stays. ``lr`` and ``sigma_lr`` may
+be changed between steps (learning-rate schedules and back-off).
 
 After every step σ is projected onto ``σ ≥ 0`` (the renderer uses ``relu(σ)``; nothing that
 renders changes, and the tree stays valid for ``save_tree``).
@@ -288,7 +288,7 @@ def gradient_scale(stepper: Any, max_rows: int = 100_000) -> dict | None:
     against the optimiser's ε (None for SGD or once the moments are released).
 
     The update is ``lr · m̂ / (√v̂ + ε)``: scale-free (each value moves by about ``lr``) only
-    where ``√v̂ ≫ ε``; where ``√v̂ ≪ ε`` it is ``(lr / ε) · m̂``, plain SGD with momentum. With
+    where ``√v̂ ≫ ε``; where ``√v̂ ≪ ε`` it is ``(lr / ε) · m̂``, SGD (Adam: with momentum). With
     the per-pixel-mean loss the gradient of one leaf value is tiny (lego's refined tree at 400²:
     median ``√v̂`` ~2e-11, 99th percentile ~9e-10, 99.999 % below ε = 1e-8), so this says
     which of the two the run was. Computed on at most ``max_rows`` evenly strided cells.

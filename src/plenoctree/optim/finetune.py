@@ -15,7 +15,8 @@ are updated); σ gets its own rate ``lr_sigma / h`` (h = finest leaf side). They
 scale-free (a step moving each value by about ``lr``, each leaf's opacity by about
 ``lr_sigma``) where a value's RMS gradient is large against their ε = 1e-8, but with this loss
 it rarely is: on lego's refined tree at 400² the median is ~2e-11 (99.999 % of the values
-below ε), and Adam steps as SGD with momentum at ``lr / ε`` for nearly every value. The run logs which (event ``gradient_scale``).
+below ε), and Adam steps as SGD with momentum at ``lr / ε`` for nearly every value. The run
+logs which (event ``gradient_scale``).
 
 Defaults (Adam 2e-2 for colour and opacity, constant, 3 back-offs) chosen by measurement: on
 the procedural demo scene the paper's SGD 1e7 diverges (validation 34.97 → 27.46 dB, the input
@@ -182,14 +183,6 @@ class FinetuneResult:
         return d
 
 
-def _subset(n: int, k: int) -> np.ndarray:
-    """``k`` evenly spaced indices of ``range(n)`` (all when ``k`` is 0 or >= n), by the
-    loaders' rule (:func:`~plenoctree.datasets.evenly_spaced`)."""
-    from ..datasets import evenly_spaced
-
-    return np.arange(n) if k <= 0 or k >= n else np.asarray(evenly_spaced(n, k), dtype=np.int64)
-
-
 def _check_tree(tree: Any, path: Any) -> None:
     if tree.n_leaves == 0:
         raise ConfigError(f"{path}: the tree has no leaves: nothing to fine-tune")
@@ -212,10 +205,12 @@ def _check_overlap(tree: Any, data: Any, tree_path: Any) -> None:
                           "tree or dataset?")
 
 
-def _load_split(root: Any, split: str, cfg: FinetuneConfig) -> Any:
+def _load_split(root: Any, split: str, cfg: FinetuneConfig, views: int = 0) -> Any:
+    """Split ``split`` of ``root``: all views, or ``views`` evenly spaced ones (only those read)."""
     from ..datasets import load_dataset
 
-    kw: dict[str, Any] = {"downscale": int(cfg.downscale)}
+    kw: dict[str, Any] = {"downscale": int(cfg.downscale), "limit": views if views > 0 else None,
+                          "spread": True}
     if cfg.background is not None:
         kw["background"] = tuple(float(v) for v in cfg.background)
     return load_dataset(root, split, **kw)
@@ -261,6 +256,7 @@ def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = Non
     from ..render import RenderOptions
     from ._loop import ViewSet, render_views_psnr, run_loop
     from ._steppers import DEFAULT_LR, gradient_scale, make_stepper
+    from ..datasets._files import take_views
 
     cfg = config.validated()
     t_start = time.perf_counter()
@@ -285,15 +281,16 @@ def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = Non
     val_set = None
     if cfg.val_every > 0:
         if _has_split(Path(cfg.data), "val"):
-            val_data = _load_split(cfg.data, "val", cfg)
-            val_set = ViewSet.from_dataset(val_data, _subset(len(val_data), cfg.val_views))
+            val_data = _load_split(cfg.data, "val", cfg, cfg.val_views)
+            val_set = ViewSet.from_dataset(val_data)
             del val_data                   # the view set holds its own copy of the images
             train_set = ViewSet.from_dataset(train)
         elif len(train) >= 2:
             n_hold = min(len(train) - 1, max(1, round(cfg.val_fraction * len(train))))
             perm = rng.permutation(len(train))
             hold, keep = np.sort(perm[:n_hold]), np.sort(perm[n_hold:])
-            val_set = ViewSet.from_dataset(train, hold[_subset(len(hold), cfg.val_views)])
+            val_set = ViewSet.from_dataset(train, take_views(hold, cfg.val_views or None,
+                                                             spread=True))
             train_set = ViewSet.from_dataset(train, keep)
         else:
             raise DatasetError(f"{cfg.data}: no val split and a single training image: cannot "
@@ -325,8 +322,8 @@ def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = Non
 
     test_set = None
     if cfg.test_views >= 0 and _has_split(Path(cfg.data), "test"):
-        test = _load_split(cfg.data, "test", cfg)
-        test_set = ViewSet.from_dataset(test, _subset(len(test), cfg.test_views))
+        test = _load_split(cfg.data, "test", cfg, cfg.test_views)
+        test_set = ViewSet.from_dataset(test)
         del test
     test_before = render_views_psnr(stepper, test_set) if test_set is not None else None
     if test_before is not None:
@@ -371,7 +368,8 @@ def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = Non
         log({"event": "gradient_scale", **scale})
         say(f"  {cfg.optimizer}: {100 * scale['share_below_eps']:.1f} % of the touched values had "
             f"an RMS gradient below its eps {scale['eps']:g} (median {scale['rms_p50']:.2g}): "
-            "there it stepped as SGD with momentum, lr/eps")
+            f"there it stepped as SGD{' with momentum' if cfg.optimizer == 'adam' else ''} at "
+            "lr/eps")
     stepper.release()        # the moments and gradient slabs are not needed to save and score
 
     out_tree = dataclasses.replace(tree, data=best.reshape(tree.data.shape))
