@@ -366,7 +366,7 @@ def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = Non
     scale = gradient_scale(stepper)
     if scale is not None and scale["values"]:
         log({"event": "gradient_scale", **scale})
-        say(f"  {cfg.optimizer}: {100 * scale['share_below_eps']:.1f} % of the touched values had "
+        say(f"  {cfg.optimizer}: {100 * scale['share_below_eps']:.3f} % of the touched values had "
             f"an RMS gradient below its eps {scale['eps']:g} (median {scale['rms_p50']:.2g}): "
             f"there it stepped as SGD{' with momentum' if cfg.optimizer == 'adam' else ''} at "
             "lr/eps")
