@@ -8,7 +8,9 @@ repository (extracted once into ``benchmarks/results/cache``), else the procedur
 SH-degree-3 tree; ``--tree lego | procedural | ff | PATH`` (see ``benchmarks/_trees.py``). Rays: random pixels of 32 cameras (800×800, the NeRF-synthetic
 field of view) on a sphere around the tree's box looking at its centre, drawn as the
 fine-tuning loop draws them (random ``--ray-tile``² pixel tiles); targets random colours (every
-ray then has a gradient, so the backward does its full work).
+ray then has a gradient, so the backward does its full work). A tree with its own scene
+(``ff``: the forward-facing NDC tree) takes its rays from that scene's training cameras instead
+(NDC rays at 504×378, as ``finetune`` draws them).
 
 Measured in the same run, each after a warm-up step (JIT compilation), median and half-spread
 of ``--repeat`` steps:
@@ -129,6 +131,22 @@ def camera_rays(tree, n_cams: int, size: int, batch: int, tile: int, rng):
     return views, idx, o, d
 
 
+def dataset_rays(root: str, batch: int, tile: int, rng):
+    """Random ``tile × tile`` pixel tiles of the training views of the dataset at ``root`` (the
+    forward-facing tree's own scene: NDC rays from its cameras, as ``finetune`` draws them);
+    returns the view set, pixel indices, origins and dirs ``[M, 3]``."""
+    from plenoctree.datasets import load_dataset
+    from plenoctree.optim._loop import ViewSet
+
+    views = ViewSet.from_dataset(load_dataset(root, "train"))
+    tiles = rng.choice(views.n_tiles(tile), size=min(views.n_tiles(tile),
+                                                      max(1, batch // (tile * tile))),
+                       replace=False)
+    idx = views.tile_pixels(tiles, tile)
+    o, d, _ = views.rays(idx)
+    return views, idx, o, d
+
+
 _CPU: list[float] = []
 
 
@@ -175,10 +193,15 @@ def main() -> None:
     tree_name = desc["source"]
     opts = RenderOptions(stop_thresh=args.stop_thresh)
     rng = np.random.default_rng(0)
-    views, idx, o, d = camera_rays(tree, 32, args.size, args.batch, args.ray_tile, rng)
+    def draw(batch, tile, gen):
+        if desc.get("data"):     # a tree with its own scene (forward-facing: NDC rays)
+            return dataset_rays(desc["data"], batch, tile, gen)
+        return camera_rays(tree, 32, args.size, batch, tile, gen)
+
+    views, idx, o, d = draw(args.batch, args.ray_tile, rng)
     n = o.shape[0]
     tgt = rng.uniform(0, 1, size=(n, 3)).astype(np.float32)
-    scale = 1.0 / (3 * args.size * args.size)
+    scale = 1.0 / (3 * views.width * views.height)
     lr = 1e-3   # tiny: keeps the values (and so the work per ray) stable across repeats
     n_threads = numba.get_num_threads()
     rows = {}
@@ -224,7 +247,7 @@ def main() -> None:
         numba.set_num_threads(n_threads)
     del st1
     if args.ray_tile != 1:
-        _, _, o1, d1 = camera_rays(tree, 32, args.size, n, 1, np.random.default_rng(1))
+        _, _, o1, d1 = draw(n, 1, np.random.default_rng(1))
         sec, sp = timed(lambda: st.step(o1, d1, tgt[:o1.shape[0]], scale), args.repeat)
         add("fast_tile1", sec, sp, o1.shape[0])
 

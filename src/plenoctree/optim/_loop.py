@@ -33,10 +33,10 @@ class ViewSet:
 
     ``cameras`` (the dataset's :class:`~plenoctree.datasets.Cameras`) and ``cam_index``
     (int64 ``[N]``, view ``i`` is camera ``cam_index[i]``) are the source of truth for rays
-    when given: with NDC or per-camera intrinsics the rays come from
-    :meth:`~plenoctree.datasets.Cameras.pixel_rays` / ``rays(i)``; otherwise the numba kernel
-    (same arithmetic) is used. (All cameras are kept, not a selection, because the NDC space
-    depends on every camera's focal length.)
+    when given: each view's camera is packed once (its own intrinsics; for an NDC set the NDC
+    reference camera of all cameras, which is why they are all kept) and the numba kernel makes
+    the batch's rays, equal to ``cameras.rays(i)`` — pinhole or NDC, shared or per-camera
+    intrinsics alike. Without ``cameras``: pinhole cameras from ``c2w`` and the intrinsics.
     """
 
     c2w: np.ndarray
@@ -50,6 +50,7 @@ class ViewSet:
     names: list[str]
     cameras: Any = None
     cam_index: np.ndarray | None = None
+    _packed: np.ndarray | None = field(default=None, init=False, repr=False)
 
     @classmethod
     def from_dataset(cls, data: Any, indices: Any = None) -> ViewSet:
@@ -70,29 +71,30 @@ class ViewSet:
         return len(self) * self.width * self.height
 
     @property
-    def _general(self) -> bool:
-        """Rays need the :class:`Cameras` (NDC or per-camera intrinsics), not the fast kernel."""
-        c = self.cameras
-        return c is not None and self.cam_index is not None and (
-            bool(c.ndc) or bool(c.per_camera_intrinsics))
+    def packed_cameras(self) -> np.ndarray:
+        """float64 ``[N, CAM_SIZE]``: view ``i``'s camera as the ray kernels take it (made once)."""
+        from ..render._render_numba import CAM_SIZE, pack_camera, pack_cameras
+
+        if self._packed is None:
+            if self.cameras is not None and self.cam_index is not None:
+                self._packed = pack_cameras(self.cameras, self.cam_index)
+            else:
+                self._packed = np.stack([pack_camera(c, self.fx, self.fy, self.cx, self.cy)
+                                         for c in self.c2w]) if len(self) else np.zeros((0, CAM_SIZE))
+        return self._packed
 
     def rays(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``origins, dirs, targets`` float32 ``[M, 3]`` of flat pixel indices ``index [M]``
         (``img * H * W + row * W + col``); the rays equal ``cameras.rays(img)[row, col]``."""
-        index = np.ascontiguousarray(index, np.int64)
-        if self._general:
-            img, pix = np.divmod(index, self.height * self.width)
-            row, col = np.divmod(pix, self.width)
-            o, d = self.cameras.pixel_rays(self.cam_index[img], col, row)
-            return o, d, np.ascontiguousarray(self.images[img, row, col])
         from ._render_grad_numba import pixel_rays
 
+        index = np.ascontiguousarray(index, np.int64)
         m = index.shape[0]
         o = np.empty((m, 3), np.float32)
         d = np.empty((m, 3), np.float32)
         t = np.empty((m, 3), np.float32)
-        pixel_rays(self.c2w, float(self.fx), float(self.fy), float(self.cx), float(self.cy),
-                   int(self.width), int(self.height), index, self.images, o, d, t)
+        pixel_rays(self.packed_cameras, int(self.width), int(self.height), index, self.images,
+                   o, d, t)
         return o, d, t
 
     def n_tiles(self, k: int) -> int:
@@ -118,7 +120,7 @@ class ViewSet:
         """``origins, dirs [H * W, 3]`` of view ``i`` (``cameras.rays(i)`` when known)."""
         from ..datasets import generate_rays
 
-        if self._general:
+        if self.cameras is not None and self.cam_index is not None:
             o, d = self.cameras.rays(int(self.cam_index[i]))
             return o.reshape(-1, 3), d.reshape(-1, 3)
         o, d = generate_rays(self.c2w[i], self.fx, self.fy, self.cx, self.cy, self.width,

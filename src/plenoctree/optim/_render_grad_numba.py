@@ -57,8 +57,9 @@ import numpy as np
 from numba import njit, prange
 
 from ..render._march_numba import (MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, _prefetch,
-                                   basis_values, leaf_logits, look_ahead, prefetch_row,
-                                   ray_start)
+                                   basis_values, leaf_logits, look_ahead, pad_scratch,
+                                   prefetch_row, ray_start)
+from ..render._render_numba import _camera_ray
 from ..render.options import KIND_RGBA
 
 __all__ = ["TILE", "grad_kernel", "merge_chunks", "step_touched", "OPT_SGD", "OPT_ADAM",
@@ -232,15 +233,17 @@ def grad_kernel(child, data, offset, invr, origins, dirs, aux, mode, scale, kind
     n = origins.shape[0]
     n_chunks = grad3.shape[0]
     n_tiles = (n + TILE - 1) // TILE
-    # per-thread scratch (thread t uses row t; the caller runs at most n_chunks threads)
-    basis_all = np.zeros((n_chunks, max(25, n_b)), dtype=data.dtype)
-    stack_all = np.zeros((n_chunks, STACK_SIZE), dtype=np.int64)
-    st_all = np.zeros((n_chunks, 4), dtype=np.int64)
-    out_all = np.zeros((n_chunks, 4), dtype=np.float64)
-    qc_all = np.zeros((n_chunks, QUEUE), dtype=np.int64)
-    qe_all = np.zeros((n_chunks, QUEUE), dtype=np.float64)
-    cell_all = np.empty((n_chunks, cap0), dtype=np.int64)
-    rec_all = np.empty((n_chunks, cap0, _REC), dtype=np.float64)
+    # Per-thread scratch: thread t uses row t (the caller runs at most n_chunks threads); rows
+    # padded by pad_scratch, so no two threads write one cache line (st, the look-ahead queue
+    # and out4 are written at every segment: sharing lines made two threads as slow as one).
+    basis_all = np.zeros((n_chunks, pad_scratch(max(25, n_b), 4)), dtype=data.dtype)
+    stack_all = np.zeros((n_chunks, pad_scratch(STACK_SIZE, 8)), dtype=np.int64)
+    st_all = np.zeros((n_chunks, pad_scratch(4, 8)), dtype=np.int64)
+    out_all = np.zeros((n_chunks, pad_scratch(4, 8)), dtype=np.float64)
+    qc_all = np.zeros((n_chunks, pad_scratch(QUEUE, 8)), dtype=np.int64)
+    qe_all = np.zeros((n_chunks, pad_scratch(QUEUE, 8)), dtype=np.float64)
+    cell_all = np.empty((n_chunks, pad_scratch(cap0, 8)), dtype=np.int64)
+    rec_all = np.empty((n_chunks, pad_scratch(cap0 * _REC, 8)), dtype=np.float64)
     for tile in prange(n_tiles):
         c = numba.get_thread_id()
         basis = basis_all[c]
@@ -249,8 +252,8 @@ def grad_kernel(child, data, offset, invr, origins, dirs, aux, mode, scale, kind
         out4 = out_all[c]
         qc = qc_all[c]
         qe = qe_all[c]
-        rec_cell = cell_all[c]
-        rec = rec_all[c]
+        rec_cell = cell_all[c][:cap0]
+        rec = rec_all[c][:cap0 * _REC].reshape(cap0, _REC)
         grad = grad3[c]
         slt = slot[c]
         tch = touched[c]
@@ -412,12 +415,13 @@ def step_touched(data, sig, grad3, slot, touched, n_touched, opt, lr, lr_sig, m1
 
 
 @njit(parallel=True, cache=True)
-def pixel_rays(c2w, fx, fy, cx, cy, width, height, index, images, origins, dirs, targets):
+def pixel_rays(cams, width, height, index, images, origins, dirs, targets):
     """Rays and target colours of flat pixel indices ``index [M]`` (``img * H * W + v * W + u``).
 
-    Same convention and arithmetic as ``datasets.cameras.generate_rays`` (float64, then float32):
-    ``d_cam = ((u + 0.5 - cx) / fx, -(v + 0.5 - cy) / fy, -1)``, rotated by ``c2w[:3, :3]``,
-    normalised. Writes ``origins, dirs, targets [M, 3]``.
+    Image ``img`` is seen by the camera packed in ``cams[img]`` (``render._render_numba
+    .pack_cameras``: its own intrinsics, NDC rays for an NDC set); each ray is made by the
+    renderer's ``_camera_ray``, so it equals ``Cameras.rays(img)[v, u]`` (pinhole and NDC, shared
+    or per-camera intrinsics). Writes ``origins, dirs, targets [M, 3]`` float32.
     """
     hw = height * width
     for j in prange(index.shape[0]):
@@ -426,15 +430,12 @@ def pixel_rays(c2w, fx, fy, cx, cy, width, height, index, images, origins, dirs,
         rem = k - img * hw
         v = rem // width
         u = rem - v * width
-        a = (u + 0.5 - cx) / fx
-        b = -(v + 0.5 - cy) / fy
-        x = a * np.float64(c2w[img, 0, 0]) + b * np.float64(c2w[img, 0, 1]) - np.float64(c2w[img, 0, 2])
-        y = a * np.float64(c2w[img, 1, 0]) + b * np.float64(c2w[img, 1, 1]) - np.float64(c2w[img, 1, 2])
-        z = a * np.float64(c2w[img, 2, 0]) + b * np.float64(c2w[img, 2, 1]) - np.float64(c2w[img, 2, 2])
-        nrm = math.sqrt(x * x + y * y + z * z)
-        dirs[j, 0] = x / nrm
-        dirs[j, 1] = y / nrm
-        dirs[j, 2] = z / nrm
+        ox, oy, oz, dx, dy, dz = _camera_ray(cams[img], u, v)
+        origins[j, 0] = ox
+        origins[j, 1] = oy
+        origins[j, 2] = oz
+        dirs[j, 0] = dx
+        dirs[j, 1] = dy
+        dirs[j, 2] = dz
         for a3 in range(3):
-            origins[j, a3] = c2w[img, a3, 3]
             targets[j, a3] = images[img, v, u, a3]

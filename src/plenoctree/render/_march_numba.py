@@ -38,6 +38,7 @@ from ..octree.limits import MAX_DEPTH, max_steps
 from .options import KIND_RGBA, KIND_SG, KIND_SH, QUANT_BITS
 
 __all__ = ["ray_start", "next_leaf", "look_ahead", "prefetch_row", "basis_values", "leaf_logits",
+           "pad_scratch", "SCRATCH_PAD",
            "STACK_SIZE", "MAX_LEVEL", "MAX_STEPS", "LOOKAHEAD", "QUEUE"]
 
 #: Deepest node level a descent reaches (= the deepest cell depth a tree may have; deeper
@@ -65,6 +66,19 @@ _C1 = _sh.SH_C1
 _C20, _C21, _C22, _C23, _C24 = _sh.SH_C2
 _C30, _C31, _C32, _C33, _C34, _C35, _C36 = _sh.SH_C3
 _C40, _C41, _C42, _C43, _C44, _C45, _C46, _C47, _C48 = _sh.SH_C4
+
+
+#: Bytes every per-thread scratch array of the parallel kernels is padded to (two 64-byte
+#: lines): the march state is written at every segment, and two threads writing one cache
+#: line (false sharing) made two threads no faster than one.
+SCRATCH_PAD = 128
+
+
+@njit(cache=True, inline="always")
+def pad_scratch(n, itemsize):
+    """``n`` elements of ``itemsize`` bytes rounded up to a whole number of :data:`SCRATCH_PAD` bytes."""
+    per = SCRATCH_PAD // itemsize
+    return (n + per - 1) // per * per
 
 
 _PREFETCH = "llvm.prefetch.p0" if _llvm.llvm_version_info[0] >= 17 else "llvm.prefetch.p0i8"

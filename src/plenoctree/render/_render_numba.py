@@ -26,7 +26,7 @@ from ._march_numba import (MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, basis_values
 from .options import KIND_SG, FormatInfo, RenderOptions
 
 __all__ = ["render_rays_numba", "ray_stats_numba", "Prepared", "prepare", "render_prepared",
-           "pack_camera", "render_camera_prepared", "empty_outputs", "TILE", "TILE_2D", "CHUNK_TILES", "STAT_NAMES"]
+           "pack_camera", "pack_cameras", "render_camera_prepared", "empty_outputs", "TILE", "TILE_2D", "CHUNK_TILES", "STAT_NAMES"]
 
 TILE = 64          # rays per work item when the image width is unknown (one row of rays)
 TILE_2D = (8, 8)   # pixels per work item of an image (1.2x faster than 64x1 rows on lego)
@@ -323,6 +323,19 @@ def pack_camera(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float,
         nfx, nfy, nw, nh, near = (float(v) for v in ndc)
         cam[17:20] = -2.0 * nfx / nw, -2.0 * nfy / nh, near
     return cam
+
+
+def pack_cameras(cameras: Any, indices: Any = None) -> np.ndarray:
+    """float64 ``[M, CAM_SIZE]``: :func:`pack_camera` of each camera ``indices`` (default all)
+    of a :class:`~plenoctree.datasets.Cameras`, with its own intrinsics and, for an NDC set,
+    the NDC reference camera of the whole set (``cameras.ndc_focal``)."""
+    idx = np.arange(len(cameras)) if indices is None else np.asarray(indices, np.int64)
+    ndc = ((*cameras.ndc_focal, cameras.width, cameras.height, cameras.ndc_near)
+           if cameras.ndc else None)
+    out = np.empty((idx.size, CAM_SIZE), np.float64)
+    for j, i in enumerate(idx):
+        out[j] = pack_camera(cameras.c2w[int(i)], *cameras.intrinsics(int(i)), ndc=ndc)
+    return out
 
 
 def render_camera_prepared(p: Prepared, cam: np.ndarray, width: int, height: int,
