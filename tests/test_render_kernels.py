@@ -233,3 +233,20 @@ def test_kernels_bound_the_descent_on_too_deep_trees():
     buf = SparseGrad(data2.shape[0], 4, np.float32)
     sse = fused_mse_numba(args, data2, o, d, np.zeros((128, 3), np.float32), 1.0, buf)
     assert np.isfinite(sse) and np.isfinite(buf.grad).all()
+
+
+def test_per_thread_scratch_rows_never_share_a_cache_line():
+    """pad_scratch rounds every per-thread row up to SCRATCH_PAD (two 64-byte lines), so two
+    threads' rows of the kernels' scratch cannot share a line (false sharing made two threads as
+    slow as one in the fine-tuning kernel)."""
+    from plenoctree.render._march_numba import SCRATCH_PAD, pad_scratch
+
+    assert SCRATCH_PAD >= 128
+    for n, size in ((1, 8), (4, 8), (8, 8), (16, 8), (17, 8), (25, 4), (49, 4), (1000, 8)):
+        padded = pad_scratch(n, size)
+        assert padded >= n and (padded * size) % SCRATCH_PAD == 0
+        assert padded * size - n * size < SCRATCH_PAD
+    # the rows as the fine-tuning kernel lays them out: row t's used bytes end a full line
+    # before row t + 1's start
+    row = pad_scratch(4, 8) * 8
+    assert row - 4 * 8 >= 64

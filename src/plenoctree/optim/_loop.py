@@ -79,8 +79,9 @@ class ViewSet:
             if self.cameras is not None and self.cam_index is not None:
                 self._packed = pack_cameras(self.cameras, self.cam_index)
             else:
-                self._packed = np.stack([pack_camera(c, self.fx, self.fy, self.cx, self.cy)
-                                         for c in self.c2w]) if len(self) else np.zeros((0, CAM_SIZE))
+                self._packed = np.zeros((len(self), CAM_SIZE))
+                for i, c in enumerate(self.c2w):
+                    self._packed[i] = pack_camera(c, self.fx, self.fy, self.cx, self.cy)
         return self._packed
 
     def rays(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -283,8 +283,7 @@ def _numba_render_camera(tree: Any, cameras: Any, index: int,
     o, d = cameras.pixel_rays(np.full(4, i), cols, rows)
     _check_rays(o, d)
     _check_origins(o, _vec3(tree.offset), _vec3(tree.invradius))
-    ndc = (*cameras.ndc_focal, w, h, cameras.ndc_near) if cameras.ndc else None
-    cam = _render_numba.pack_camera(cameras.c2w[i], *cameras.intrinsics(i), ndc=ndc)
+    cam = _render_numba.pack_cameras(cameras, [i])[0]
 
     def to_np(x: Any) -> np.ndarray:
         return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x

@@ -76,7 +76,7 @@ SCRATCH_PAD = 128
 
 @njit(cache=True, inline="always")
 def pad_scratch(n, itemsize):
-    """``n`` elements of ``itemsize`` bytes rounded up to a whole number of :data:`SCRATCH_PAD` bytes."""
+    """``n`` elements of ``itemsize`` bytes, rounded up to whole :data:`SCRATCH_PAD` bytes."""
     per = SCRATCH_PAD // itemsize
     return (n + per - 1) // per * per
 
