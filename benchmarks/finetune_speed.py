@@ -111,9 +111,9 @@ def interleaved(paths, repeat, add, n):
         add(name, statistics.median(ts), (max(ts) - min(ts)) / 2, n)
 
 
-def camera_rays(tree, n_cams: int, size: int, batch: int, tile: int, rng):
-    """Random ``tile × tile`` pixel tiles of ``n_cams`` cameras around the tree (about ``batch``
-    rays); returns the view set, pixel indices, origins and dirs ``[M, 3]``."""
+def orbit_views(tree, n_cams: int, size: int, rng):
+    """``n_cams`` cameras (``size``², the NeRF-synthetic field of view) at random points of a
+    sphere around the tree's box, looking at its centre, as a view set (images unused)."""
     from plenoctree.datasets.procedural import CAMERA_ANGLE_X, look_at
     from plenoctree.optim._loop import ViewSet
 
@@ -123,28 +123,31 @@ def camera_rays(tree, n_cams: int, size: int, batch: int, tile: int, rng):
     c2w = np.stack([look_at(center + 2.7 * radius * vi, center) for vi in v]).astype(np.float32)
     fx = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
     imgs = np.zeros((n_cams, 1, 1, 3), np.float32)
-    views = ViewSet(c2w, fx, fx, size / 2, size / 2, size, size,
-                    np.broadcast_to(imgs, (n_cams, size, size, 3)), [])
-    tiles = rng.choice(views.n_tiles(tile), size=max(1, batch // (tile * tile)), replace=False)
-    idx = views.tile_pixels(tiles, tile)
-    o, d, _ = views.rays(idx)
-    return views, idx, o, d
+    return ViewSet(c2w, fx, fx, size / 2, size / 2, size, size,
+                   np.broadcast_to(imgs, (n_cams, size, size, 3)), [])
 
 
-def dataset_rays(root: str, batch: int, tile: int, rng):
-    """Random ``tile × tile`` pixel tiles of the training views of the dataset at ``root`` (the
-    forward-facing tree's own scene: NDC rays from its cameras, as ``finetune`` draws them);
-    returns the view set, pixel indices, origins and dirs ``[M, 3]``."""
-    from plenoctree.datasets import load_dataset
-    from plenoctree.optim._loop import ViewSet
+def bench_views(tree, desc: dict, size: int, rng):
+    """The views a batch is drawn from: a tree with its own scene (``ff``: the forward-facing
+    NDC tree) uses that scene's training cameras (NDC rays at 504×378, as ``finetune`` does),
+    any other tree 32 orbit cameras (:func:`orbit_views`)."""
+    if desc.get("data"):
+        from plenoctree.datasets import load_dataset
+        from plenoctree.optim._loop import ViewSet
 
-    views = ViewSet.from_dataset(load_dataset(root, "train"))
-    tiles = rng.choice(views.n_tiles(tile), size=min(views.n_tiles(tile),
-                                                      max(1, batch // (tile * tile))),
+        return ViewSet.from_dataset(load_dataset(desc["data"], "train"))
+    return orbit_views(tree, 32, size, rng)
+
+
+def draw_rays(views, batch: int, tile: int, rng):
+    """Random ``tile × tile`` pixel tiles of ``views`` (about ``batch`` rays), as the fine-tuning
+    loop draws them; returns pixel indices, origins and dirs ``[M, 3]``."""
+    n_tiles = views.n_tiles(tile)
+    tiles = rng.choice(n_tiles, size=min(n_tiles, max(1, batch // (tile * tile))),
                        replace=False)
     idx = views.tile_pixels(tiles, tile)
     o, d, _ = views.rays(idx)
-    return views, idx, o, d
+    return idx, o, d
 
 
 _CPU: list[float] = []
@@ -193,12 +196,8 @@ def main() -> None:
     tree_name = desc["source"]
     opts = RenderOptions(stop_thresh=args.stop_thresh)
     rng = np.random.default_rng(0)
-    def draw(batch, tile, gen):
-        if desc.get("data"):     # a tree with its own scene (forward-facing: NDC rays)
-            return dataset_rays(desc["data"], batch, tile, gen)
-        return camera_rays(tree, 32, args.size, batch, tile, gen)
-
-    views, idx, o, d = draw(args.batch, args.ray_tile, rng)
+    views = bench_views(tree, desc, args.size, rng)
+    idx, o, d = draw_rays(views, args.batch, args.ray_tile, rng)
     n = o.shape[0]
     tgt = rng.uniform(0, 1, size=(n, 3)).astype(np.float32)
     scale = 1.0 / (3 * views.width * views.height)
@@ -247,7 +246,7 @@ def main() -> None:
         numba.set_num_threads(n_threads)
     del st1
     if args.ray_tile != 1:
-        _, _, o1, d1 = draw(n, 1, np.random.default_rng(1))
+        _, o1, d1 = draw_rays(views, n, 1, np.random.default_rng(1))
         sec, sp = timed(lambda: st.step(o1, d1, tgt[:o1.shape[0]], scale), args.repeat)
         add("fast_tile1", sec, sp, o1.shape[0])
 

@@ -31,12 +31,12 @@ class ViewSet:
     """Posed images to train or validate on: ``c2w [N, 4, 4]``, the intrinsics of the first
     camera, ``images`` float32 ``[N, H, W, 3]``, and their names.
 
-    ``cameras`` (the dataset's :class:`~plenoctree.datasets.Cameras`) and ``cam_index``
-    (int64 ``[N]``, view ``i`` is camera ``cam_index[i]``) are the source of truth for rays
-    when given: each view's camera is packed once (its own intrinsics; for an NDC set the NDC
-    reference camera of all cameras, which is why they are all kept) and the numba kernel makes
-    the batch's rays, equal to ``cameras.rays(i)`` — pinhole or NDC, shared or per-camera
-    intrinsics alike. Without ``cameras``: pinhole cameras from ``c2w`` and the intrinsics.
+    ``cameras`` (the dataset's :class:`~plenoctree.datasets.Cameras`; default: pinhole cameras
+    from ``c2w`` and the intrinsics) and ``cam_index`` (int64 ``[N]``, view ``i`` is camera
+    ``cam_index[i]``) are the source of truth for rays: each view's camera is packed once into
+    ``packed_cameras`` (its own intrinsics; for an NDC set the NDC reference camera of all the
+    cameras, which is why they are all kept) and one numba kernel makes a batch's rays, equal to
+    ``cameras.rays(i)`` — pinhole or NDC, shared or per-camera intrinsics alike.
     """
 
     c2w: np.ndarray
@@ -50,7 +50,17 @@ class ViewSet:
     names: list[str]
     cameras: Any = None
     cam_index: np.ndarray | None = None
-    _packed: np.ndarray | None = field(default=None, init=False, repr=False)
+    packed_cameras: np.ndarray = field(init=False, repr=False)   # float64 [N, CAM_SIZE]
+
+    def __post_init__(self) -> None:
+        from ..datasets import Cameras
+        from ..render._render_numba import pack_cameras
+
+        if self.cameras is None:
+            self.cameras = Cameras(self.c2w, float(self.fx), float(self.fy), float(self.cx),
+                                   float(self.cy), int(self.width), int(self.height))
+            self.cam_index = np.arange(len(self), dtype=np.int64)
+        self.packed_cameras = pack_cameras(self.cameras, self.cam_index)
 
     @classmethod
     def from_dataset(cls, data: Any, indices: Any = None) -> ViewSet:
@@ -69,20 +79,6 @@ class ViewSet:
     @property
     def n_rays(self) -> int:
         return len(self) * self.width * self.height
-
-    @property
-    def packed_cameras(self) -> np.ndarray:
-        """float64 ``[N, CAM_SIZE]``: view ``i``'s camera as the ray kernels take it (made once)."""
-        from ..render._render_numba import CAM_SIZE, pack_camera, pack_cameras
-
-        if self._packed is None:
-            if self.cameras is not None and self.cam_index is not None:
-                self._packed = pack_cameras(self.cameras, self.cam_index)
-            else:
-                self._packed = np.zeros((len(self), CAM_SIZE))
-                for i, c in enumerate(self.c2w):
-                    self._packed[i] = pack_camera(c, self.fx, self.fy, self.cx, self.cy)
-        return self._packed
 
     def rays(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``origins, dirs, targets`` float32 ``[M, 3]`` of flat pixel indices ``index [M]``
@@ -118,14 +114,8 @@ class ViewSet:
         return flat.reshape(-1)
 
     def view_rays(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """``origins, dirs [H * W, 3]`` of view ``i`` (``cameras.rays(i)`` when known)."""
-        from ..datasets import generate_rays
-
-        if self.cameras is not None and self.cam_index is not None:
-            o, d = self.cameras.rays(int(self.cam_index[i]))
-            return o.reshape(-1, 3), d.reshape(-1, 3)
-        o, d = generate_rays(self.c2w[i], self.fx, self.fy, self.cx, self.cy, self.width,
-                             self.height)
+        """``origins, dirs [H * W, 3]`` of view ``i`` (``cameras.rays``)."""
+        o, d = self.cameras.rays(int(self.cam_index[i]))
         return o.reshape(-1, 3), d.reshape(-1, 3)
 
 
