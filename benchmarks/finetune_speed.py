@@ -16,7 +16,9 @@ Measured in the same run, each after a warm-up step (JIT compilation), median an
 of ``--repeat`` steps:
 
 - ``fast``: the fine-tuning path (one fused numba kernel: forward + analytic backward into
-  per-thread slabs, merge, sparse SGD step) with all numba threads;
+  per-thread slabs, merge, sparse SGD step) with all numba threads and, as ``finetune`` runs
+  it, empty-space skipping (:mod:`plenoctree.render.empty_skip`);
+- ``fast_noskip``: the same without empty-space skipping, timed interleaved with ``fast``;
 - ``baseline``: the same step with the kernels as they were before issue 12 (frozen in
   ``benchmarks/baseline/grad_kernel.py``), timed interleaved with ``fast``; the JSON gives the
   ratio ``speedup_fast_over_baseline``;
@@ -216,16 +218,20 @@ def main() -> None:
     add("render_only", sec, sp, n)
 
     data2 = np.ascontiguousarray(tree.data, np.float32).reshape(-1, tree.data_dim).copy()
-    kargs = kernel_args(tree, opts)
+    kplain = kernel_args(tree, opts)
+    kargs = kernel_args(tree, opts, skip_from=data2)   # as `finetune`: empty-space skipping
     sec, sp = timed(lambda: forward_numba(kargs, data2, o, d), args.repeat)
     add("forward_only", sec, sp, n)
     st = NumbaStepper(data2, kargs, "sgd", lr)
-    sb = NumbaStepper(data2.copy(), kargs, "sgd", lr)
+    sn = NumbaStepper(data2.copy(), kplain, "sgd", lr)
+    sb = NumbaStepper(data2.copy(), kplain, "sgd", lr)
     st.step(o, d, tgt, scale)                                    # warm-up (compilation)
+    sn.step(o, d, tgt, scale)
     baseline_step(sb, o, d, tgt, scale)
     interleaved((("fast", lambda: st.step(o, d, tgt, scale)),
+                 ("fast_noskip", lambda: sn.step(o, d, tgt, scale)),
                  ("baseline", lambda: baseline_step(sb, o, d, tgt, scale))), args.repeat, add, n)
-    del sb
+    del sb, sn
     rows["fast"]["touched_cells"] = st.last_touched
     rows["fast"]["slab_mb"] = st.buf.nbytes / 2**20
     # the fine-tuning default: Adam with σ's own learning rate (in opacity units / h; tiny
@@ -290,6 +296,8 @@ def main() -> None:
           f"optimiser {a['optimizer_ms']:.1f} ms over {a['touched_cells']} touched cells; "
           f"gradient slabs {rows['fast']['slab_mb']:.0f} MiB (dense ones: "
           f"{st.buf.n_chunks * data2.nbytes / 2**20:.0f} MiB)")
+    print(f"fast / fast_noskip (empty-space skipping, same run): "
+          f"{rows['fast']['rays_per_s'] / rows['fast_noskip']['rays_per_s']:.2f}x")
     print(f"fast / baseline (pre-issue-12 kernels, same run): {vs_base:.2f}x; load average "
           f"before {load_before[0]:.2f}, after {os.getloadavg()[0]:.2f}")
     machine = {**machine_info(), "loadavg_before": list(load_before),

@@ -10,7 +10,11 @@ robust to other jobs sharing the cores).
 
 Paths:
 - ``numba``: the public :func:`plenoctree.render_image` (camera in, image out: the kernel makes
-  each pixel's ray itself) — what ``render``/``eval``/``video`` get;
+  each pixel's ray itself) on the tree prepared by ``tree_to_device(tree, "cpu")`` (float32
+  arrays and the empty-space skip tables, :mod:`plenoctree.render.empty_skip`) — what
+  ``eval``/``video`` get;
+- ``noskip``: the same on the plain tree (no skip tables): ``noskip / numba`` is what
+  empty-space skipping buys;
 - ``rays``: the public :func:`plenoctree.render_rays` on ray arrays made before timing (input
   checks + kernel: the API for arbitrary rays);
 - ``kernel``: the same kernel called with prepared ray arrays (so ``rays - kernel`` is the time
@@ -100,11 +104,13 @@ def summarise(per_frame_s: list[float], cpu_per_frame_s: list[float],
             "repeats": len(per_frame_s)}
 
 
-def ray_counters(tree: Any, views: list, opts: Any) -> dict[str, float]:
+def ray_counters(tree: Any, views: list, opts: Any, skip: Any = None) -> dict[str, float]:
+    """Per-ray counters of the render march over ``views`` (``skip``: with these empty-space
+    skip tables, as the renderer marches a prepared tree)."""
     from plenoctree.render._render_numba import STAT_NAMES, ray_stats_numba
 
     s = np.concatenate([ray_stats_numba(tree.child, tree.data, tree.offset, tree.invradius,
-                                        o.reshape(-1, 3), d.reshape(-1, 3), opts)
+                                        o.reshape(-1, 3), d.reshape(-1, 3), opts, skip=skip)
                         for o, d in views])
     col = {n: s[:, k] for k, n in enumerate(STAT_NAMES)}
     hit = col["hit"] > 0
@@ -135,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="JSON path (default benchmarks/results/render_speed_<tree>.json)")
     args = ap.parse_args(argv)
 
-    from plenoctree.render import RenderOptions, render_image, render_rays
+    from plenoctree.render import RenderOptions, render_image, render_rays, tree_to_device
     from plenoctree.render import _render_numba as kern
     from plenoctree.render.options import parse_data_format
 
@@ -151,7 +157,10 @@ def main(argv: list[str] | None = None) -> int:
         sets = {f"{s}x{s}": (orbit_cameras(args.views, s), list(range(args.views)))
                 for s in args.sizes}
 
-    paths = ["numba", "rays", "kernel"] + ([] if args.no_baseline else ["baseline"])
+    fast = tree_to_device(tree, "cpu")                 # as eval / video prepare the tree
+    print(f"empty-space skip tables: {fast.empty_skip.seconds:.1f} s, "
+          f"{fast.empty_skip.nbytes / 2**20:.1f} MiB", file=sys.stderr)
+    paths = ["numba", "noskip", "rays", "kernel"] + ([] if args.no_baseline else ["baseline"])
     results: dict[str, dict[str, Any]] = {p: {} for p in paths + ["torch"]}
     counters, breakdown, max_diff = {}, {}, {}
     for key, (cams, idx) in sets.items():
@@ -163,13 +172,17 @@ def main(argv: list[str] | None = None) -> int:
 
         def run_public():
             for i in idx:
+                render_image(fast, cams, i, opts, backend="numba")
+
+        def run_noskip():
+            for i in idx:
                 render_image(tree, cams, i, opts, backend="numba")
 
         def run_rays():
             for o, d in views:
-                render_rays(tree, o, d, opts, backend="numba")
+                render_rays(fast, o, d, opts, backend="numba")
 
-        prepared = kern.prepare(tree, info, opts)
+        prepared = kern.prepare(fast, info, opts)
         outs = [kern.empty_outputs(len(o)) for o, _ in flat]
         width = cams.width
 
@@ -177,8 +190,8 @@ def main(argv: list[str] | None = None) -> int:
             for (o, d), out in zip(flat, outs):
                 kern.render_prepared(prepared, o, d, out, width=width)
 
-        fns: dict[str, Callable[[], Any]] = {"numba": run_public, "rays": run_rays,
-                                             "kernel": run_kernel}
+        fns: dict[str, Callable[[], Any]] = {"numba": run_public, "noskip": run_noskip,
+                                             "rays": run_rays, "kernel": run_kernel}
         if "baseline" in paths:
             from baseline import render_kernel as base
 
@@ -211,11 +224,14 @@ def main(argv: list[str] | None = None) -> int:
                                           [c / n_sub * n_px for c in cpu], n_px)
         results["torch"][key].update(extrapolated=True, rays_timed=n_sub)
         max_diff[key] = max(max(
+            float((render_image(fast, cams, i, opts, backend="numba").rgb.reshape(-1, 3)
+                   [::stride] - ref).abs().max()),
             float((render_image(tree, cams, i, opts, backend="numba").rgb.reshape(-1, 3)
                    [::stride] - ref).abs().max()),
-            float((render_rays(tree, o, d, opts, backend="numba").rgb - ref).abs().max()))
+            float((render_rays(fast, o, d, opts, backend="numba").rgb - ref).abs().max()))
             for i, (o, d), ref in zip(idx, subsets, twin))
         counters[key] = ray_counters(tree, views, opts)
+        counters[key]["with_skip"] = ray_counters(tree, views, opts, fast.empty_skip)
         pub, ker = results["numba"][key]["ms_per_frame"], results["kernel"][key]["ms_per_frame"]
         breakdown[key] = {"raygen_ms": raygen_ms, "outside_kernel_ms": pub - ker,
                           "rays_api_outside_kernel_ms": results["rays"][key]["ms_per_frame"] - ker,
@@ -227,12 +243,16 @@ def main(argv: list[str] | None = None) -> int:
 
     ratio = ({k: results["baseline"][k]["ms_per_frame"] / results["numba"][k]["ms_per_frame"]
               for k in sets} if "baseline" in paths else {})
+    skip_ratio = {k: results["noskip"][k]["ms_per_frame"] / results["numba"][k]["ms_per_frame"]
+                  for k in sets}
     report = {
         "benchmark": "render_speed", "tree": desc, "views": args.views,
         "sets": list(sets), "repeats": args.repeats,
         "options": {"stop_thresh": opts.stop_thresh, "background": list(opts.background)},
         "results": results, "ray_counters": counters, "time_breakdown": breakdown,
-        "speedup_numba_over_baseline": ratio,
+        "speedup_numba_over_baseline": ratio, "speedup_skip_over_noskip": skip_ratio,
+        "empty_skip": {"seconds": fast.empty_skip.seconds, "mib": fast.empty_skip.nbytes / 2**20,
+                       "grid_bits": fast.empty_skip.grid_bits},
         "max_abs_diff_rgb_numba_vs_torch": max_diff,
         "machine": {**machine_info(), "loadavg_before": list(load_before),
                     "loadavg_after": list(os.getloadavg())},
@@ -253,13 +273,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| {name}{note} | {k} | {r['ms_per_frame']:.1f} | {r['ms_min']:.1f}–"
                   f"{r['ms_max']:.1f} | {r['fps']:.2f} | {r['mrays_per_s']:.2f} | "
                   f"{r['cpu_ms_per_frame']:.1f} |")
-    print("\n| size | hit rays | leaves/hit ray | σ>0 leaves | negligible (w<1e-4) | child reads "
+    print("\n| size | hit rays | leaves/hit ray (with skip) | σ>0 leaves | negligible (w<1e-4) | child reads "
           "| stopped early | numpy raygen ms | render_image − kernel ms | render_rays − kernel ms "
           "| kernel ns/ray/core |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for k in sets:
         c, b = counters[k], breakdown[k]
-        print(f"| {k} | {c['hit_fraction']:.1%} | {c['leaves_per_hit_ray']:.1f} | "
+        print(f"| {k} | {c['hit_fraction']:.1%} | {c['leaves_per_hit_ray']:.1f} "
+              f"({c['with_skip']['leaves_per_hit_ray']:.1f}) | "
               f"{c['sigma_leaves_per_hit_ray']:.1f} | {c['negligible_per_hit_ray']:.1f} | "
               f"{c['descent_per_hit_ray']:.1f} | {c['stopped_fraction_of_hit']:.1%} | "
               f"{b['raygen_ms']:.1f} | {b['outside_kernel_ms']:.1f} | "
@@ -268,6 +289,7 @@ def main(argv: list[str] | None = None) -> int:
     print()
     for k in sets:
         sp = f"{ratio[k]:.2f}x a pre-issue-12 frame; " if ratio else ""
+        sp += f"{skip_ratio[k]:.2f}x without empty-space skipping; "
         print(f"{k}: numba {results['numba'][k]['fps']:.1f} FPS, {sp}max |Δ rgb| numba/rays vs "
               f"twin = {max_diff[k]:.2e}")
     m = report["machine"]

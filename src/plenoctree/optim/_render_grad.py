@@ -5,7 +5,7 @@ Nothing here compiles at import; :mod:`._render_grad_numba` is imported on first
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -36,7 +36,7 @@ def default_chunks() -> int:
 class KernelArgs:
     """Tree geometry and renderer options, packed as the kernels want them."""
 
-    child: np.ndarray          # int32 [n_cells]
+    child: np.ndarray          # int32 [n_cells] (empty-skip rows: render.empty_skip)
     offset: np.ndarray         # float64 [3]
     invr: np.ndarray           # float64 [3]
     info: FormatInfo
@@ -47,6 +47,8 @@ class KernelArgs:
     stop: float
     eps: float
     cap0: int                  # initial per-ray segment record capacity
+    skip: np.ndarray = field(default_factory=lambda: np.zeros((1, 8), np.uint8))
+    shift: int = 0             # skip units -> integer coordinates
 
     @property
     def n_cells(self) -> int:
@@ -59,8 +61,14 @@ def _np(x: Any) -> np.ndarray:
     return np.asarray(x)
 
 
-def kernel_args(tree: Any, options: RenderOptions | None = None) -> KernelArgs:
-    """Pack ``tree`` (an :class:`~plenoctree.octree.Octree`, geometry only) and ``options``."""
+def kernel_args(tree: Any, options: RenderOptions | None = None,
+                skip_from: np.ndarray | None = None) -> KernelArgs:
+    """Pack ``tree`` (an :class:`~plenoctree.octree.Octree`, geometry only) and ``options``.
+
+    ``skip_from``: values ``[n_cells, D]`` whose empty leaves (σ ≤ 0) the kernels may skip
+    (:mod:`plenoctree.render.empty_skip`). Only for values that never turn an empty leaf
+    non-empty — fine-tuning from them: a σ ≤ 0 leaf gets no gradient and stays empty — not
+    for arbitrary values (gradcheck, autograd)."""
     from ._render_grad_numba import initial_capacity
 
     opts = (options if options is not None else RenderOptions()).validated()
@@ -77,9 +85,15 @@ def kernel_args(tree: Any, options: RenderOptions | None = None) -> KernelArgs:
     off = np.broadcast_to(np.asarray(_np(tree.offset), np.float64).reshape(-1), (3,)).copy()
     inv = np.broadcast_to(np.asarray(_np(tree.invradius), np.float64).reshape(-1), (3,)).copy()
     depth = int(getattr(tree, "depth_limit", 10))
-    return KernelArgs(np.ascontiguousarray(child, dtype=np.int32).reshape(-1), off, inv, info, sg,
-                      b_lo, b_hi, np.asarray(opts.background, np.float64), float(opts.stop_thresh),
-                      float(opts.step_eps), initial_capacity(depth))
+    flat = np.ascontiguousarray(child, dtype=np.int32).reshape(-1)
+    args = KernelArgs(flat, off, inv, info, sg, b_lo, b_hi, np.asarray(opts.background, np.float64),
+                      float(opts.stop_thresh), float(opts.step_eps), initial_capacity(depth))
+    if skip_from is not None:
+        from ..render.empty_skip import skip_tables
+
+        t = skip_tables(flat, np.asarray(skip_from).reshape(flat.shape[0], -1))
+        args.child, args.skip, args.shift = t.child, t.skip, int(t.shift)
+    return args
 
 
 class SparseGrad:
@@ -179,8 +193,8 @@ def _call(args: KernelArgs, data2: np.ndarray, o: np.ndarray, d: np.ndarray, aux
             sse[:] = 0.0
             if threads > grad3.shape[0]:    # one slab per running thread (see grad_kernel)
                 numba.set_num_threads(grad3.shape[0])
-            k.grad_kernel(args.child, data2, args.offset, args.invr, o, d, aux, mode,
-                          float(scale), args.info.kind, args.info.basis_dim, args.sg, args.b_lo,
+            k.grad_kernel(args.child, args.skip, args.shift, data2, args.offset, args.invr, o, d,
+                          aux, mode, float(scale), args.info.kind, args.info.basis_dim, args.sg, args.b_lo,
                           args.b_hi, args.bg, args.stop, args.eps, args.cap0, rgb, grad3, slot,
                           touched, n_t, need, sse)
             if sg_buf is None or not need.any():

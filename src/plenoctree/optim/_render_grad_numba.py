@@ -58,7 +58,7 @@ from numba import njit, prange
 
 from ..render._march_numba import (MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, _prefetch,
                                    basis_values, leaf_logits, look_ahead, pad_scratch,
-                                   prefetch_row, ray_start)
+                                   prefetch_row, ray_octant, ray_start)
 from ..render._render_numba import _camera_ray
 from ..render.options import KIND_RGBA
 
@@ -77,11 +77,12 @@ def initial_capacity(depth_limit: int) -> int:
 
 
 @njit(cache=True, fastmath=True, inline="always")
-def _trace_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg, b_lo, b_hi,
-               stop, eps, max_level, basis, st, stack, qc, qe, rec_cell, rec, out4, slot,
-               chunk, want_grad):
-    """March one ray (the renderer's traversal, :mod:`plenoctree.render._march_numba`, with
-    its look-ahead) and record its σ > 0 segments.
+def _trace_one(child, skip, shift, data, offset, invr, origins, dirs, i, kind, n_b, sg, b_lo,
+               b_hi, stop, eps, basis, st, stack, qc, qe, rec_cell, rec, out4, slot, chunk,
+               want_grad):
+    """March ray ``i`` of ``origins, dirs`` (the renderer's traversal,
+    :mod:`plenoctree.render._march_numba`, with its look-ahead and, when ``child`` carries
+    them, empty-space skips) and record its σ > 0 segments.
 
     Writes ``Σ w c`` into ``out4[:3]`` and ``T_N`` into ``out4[3]``; fills ``basis[:n_b]`` (zero
     outside ``[b_lo, b_hi]``), ``rec_cell[s]`` and ``rec[s] = (δ, exp(-σδ), c_r, c_g, c_b)``.
@@ -95,11 +96,15 @@ def _trace_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg,
     out4[1] = 0.0
     out4[2] = 0.0
     out4[3] = 1.0
+    # float64 scalars: the direction is normalised in float64 (as the twin)
     dx, dy, dz, px, py, pz, vx, vy, vz, ix, iy, iz, t0, t1, eps_t = ray_start(
-        offset, invr, ox, oy, oz, dx, dy, dz, eps)
+        offset, invr, np.float64(origins[i, 0]), np.float64(origins[i, 1]),
+        np.float64(origins[i, 2]), np.float64(dirs[i, 0]), np.float64(dirs[i, 1]),
+        np.float64(dirs[i, 2]), eps)
     if not t0 < t1:
         return 0
     basis_values(kind, n_b, dx, dy, dz, sg, b_lo, b_hi, basis)
+    oc = ray_octant(vx, vy, vz)
     dim = data.shape[1]
     cap = rec_cell.shape[0]
     n_seg = 0
@@ -113,9 +118,9 @@ def _trace_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg,
     tq = t0
     steps = 0
     while True:
-        tail, tq, steps = look_ahead(child, data, px, py, pz, vx, vy, vz, ix, iy, iz, eps_t, t1,
-                                     True, max_level, MAX_STEPS, st, stack, qc, qe, head, tail,
-                                     tq, steps)
+        tail, tq, steps = look_ahead(child, skip, shift, oc, data, px, py, pz, vx, vy, vz, ix,
+                                     iy, iz, eps_t, t1, True, MAX_LEVEL, MAX_STEPS, st, stack,
+                                     qc, qe, head, tail, tq, steps)
         if head == tail:
             break
         cell = qc[head & _QMASK]
@@ -212,9 +217,9 @@ def _backprop_one(n_seg, rec_cell, rec, kind, n_b, b_lo, b_hi, basis, cr, cg, cb
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def grad_kernel(child, data, offset, invr, origins, dirs, aux, mode, scale, kind, n_b, sg, b_lo,
-                b_hi, bg, stop, eps, cap0, rgb_out, grad3, slot, touched, n_touched, need,
-                sse):
+def grad_kernel(child, skip, shift, data, offset, invr, origins, dirs, aux, mode, scale, kind, n_b,
+                sg, b_lo, b_hi, bg, stop, eps, cap0, rgb_out, grad3, slot, touched, n_touched,
+                need, sse):
     """Forward + analytic backward for ``[N, 3]`` rays, accumulating into per-chunk slabs.
 
     ``mode == 0``: ``aux [N, 3]`` is ``∂L/∂rgb`` (autograd backward).
@@ -262,13 +267,9 @@ def grad_kernel(child, data, offset, invr, origins, dirs, aux, mode, scale, kind
         acc_sse = 0.0
         for i in range(tile * TILE, min(n, (tile + 1) * TILE)):
             while True:
-                # float64 scalars: the direction is normalised in float64 (as the twin)
-                n_seg = _trace_one(child, data, offset, invr, np.float64(origins[i, 0]),
-                                   np.float64(origins[i, 1]), np.float64(origins[i, 2]),
-                                   np.float64(dirs[i, 0]), np.float64(dirs[i, 1]),
-                                   np.float64(dirs[i, 2]), kind, n_b, sg, b_lo, b_hi, stop,
-                                   eps, MAX_LEVEL, basis, st, stack, qc, qe, rec_cell, rec,
-                                   out4, slot, c, mode != 2)
+                n_seg = _trace_one(child, skip, shift, data, offset, invr, origins, dirs, i,
+                                   kind, n_b, sg, b_lo, b_hi, stop, eps, basis, st, stack, qc,
+                                   qe, rec_cell, rec, out4, slot, c, mode != 2)
                 if n_seg >= 0:
                     break
                 grow = 2 * rec_cell.shape[0]          # rare: a private, larger record

@@ -347,4 +347,6 @@ def _numba_stepper(data2: np.ndarray, tree: Any, options: Any, optimizer: str,
                    lr: float, sigma_lr: float | None = None, device: Any = None) -> NumbaStepper:
     from ._render_grad import kernel_args
 
-    return NumbaStepper(data2, kernel_args(tree, options), optimizer, lr, sigma_lr=sigma_lr)
+    # Empty leaves stay empty in fine-tuning (no gradient reaches σ ≤ 0): rays may skip them.
+    return NumbaStepper(data2, kernel_args(tree, options, skip_from=data2), optimizer, lr,
+                        sigma_lr=sigma_lr)

@@ -24,7 +24,7 @@ from ..errors import ConfigError, TreeFormatError
 from .options import FormatInfo, RenderOptions, RenderOutput, parse_data_format
 
 __all__ = ["RenderOptions", "RenderOutput", "available_backends", "render_rays", "render_image",
-           "tree_to_device"]
+           "tree_to_device", "CpuTree", "DeviceTree"]
 
 def available_backends(device: Any = None) -> list[str]:
     """Render backends usable here (on ``device`` when given), fastest first."""
@@ -176,7 +176,8 @@ def _numba_render(tree: Any, info: FormatInfo, origins: Any, dirs: Any, opts: Re
 
     rgb, depth, alpha = _render_numba.render_rays_numba(
         to_np(tree.child), to_np(tree.data), _vec3(tree.offset), _vec3(tree.invradius), info,
-        _extra(tree), to_np(origins), to_np(dirs), opts, width=width)
+        _extra(tree), to_np(origins), to_np(dirs), opts, width=width,
+        skip=getattr(tree, "empty_skip", None))
     return RenderOutput(torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(alpha))
 
 
@@ -229,11 +230,44 @@ class DeviceTree:
         self.device = dev
 
 
+class CpuTree:
+    """A tree prepared once for many frames on the CPU (see :func:`tree_to_device`).
+
+    Same attributes as :class:`~plenoctree.octree.Octree` that the renderers read (``child``
+    int32, ``data`` float32 — the tree's own arrays when they already are, not copies —
+    ``offset``, ``invradius``, ``data_format``, ``extra_data``), plus ``empty_skip``: the
+    numba renderer's empty-space skip tables (:mod:`.empty_skip`), made from the tree as it is
+    now. It is a snapshot of which leaves are empty: render an edited tree through a new one.
+    """
+
+    def __init__(self, tree: Any) -> None:
+        from .empty_skip import skip_tables
+
+        def to_np(x: Any) -> np.ndarray:
+            return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+        self.child = np.ascontiguousarray(to_np(tree.child), dtype=np.int32)
+        self.data = np.ascontiguousarray(to_np(tree.data), dtype=np.float32)
+        self.offset, self.invradius = _vec3(tree.offset), _vec3(tree.invradius)
+        self.data_format = tree.data_format
+        self.extra_data = _extra(tree)
+        self.device = torch.device("cpu")
+        n = self.child.shape[0] * 8
+        self.empty_skip = skip_tables(self.child.reshape(n), self.data.reshape(n, -1))
+
+
 def tree_to_device(tree: Any, device: Any) -> Any:
-    """``tree`` with its arrays on ``device`` once (a :class:`DeviceTree`), so that a GPU
-    renders many frames without copying the tree each time; ``tree`` itself for the CPU."""
+    """``tree`` prepared once for rendering many frames on ``device``: a :class:`DeviceTree`
+    (its arrays on the GPU, so frames do not copy the tree) or, for the CPU, a
+    :class:`CpuTree` (float32 arrays and the numba renderer's empty-space skip tables:
+    the same images, fewer segments per ray)."""
     dev = torch.device(device)
-    if dev.type == "cpu" or isinstance(tree, DeviceTree) and tree.device == dev:
+    if dev.type == "cpu":
+        if isinstance(tree, CpuTree):
+            return tree
+        _tree_info(tree)                     # a malformed tree fails here, not in the tables
+        return CpuTree(tree)
+    if isinstance(tree, DeviceTree) and tree.device == dev:
         return tree
     return DeviceTree(tree, dev)
 
@@ -289,7 +323,8 @@ def _numba_render_camera(tree: Any, cameras: Any, index: int,
         return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x
 
     p = _render_numba._prepare(to_np(tree.child), to_np(tree.data), _vec3(tree.offset),
-                               _vec3(tree.invradius), info, _extra(tree), opts)
+                               _vec3(tree.invradius), info, _extra(tree), opts,
+                               getattr(tree, "empty_skip", None))
     rgb, depth, alpha = _render_numba.empty_outputs(w * h)
     _render_numba.render_camera_prepared(p, cam, w, h, (rgb, depth, alpha))
     return RenderOutput(torch.from_numpy(rgb.reshape(h, w, 3)), torch.from_numpy(depth.reshape(h, w)),

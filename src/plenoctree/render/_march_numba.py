@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from llvmlite import binding as _llvm
 from llvmlite import ir as _ir
 from numba import njit
@@ -37,7 +38,7 @@ from .. import sh as _sh
 from ..octree.limits import MAX_DEPTH, max_steps
 from .options import KIND_RGBA, KIND_SG, KIND_SH, QUANT_BITS
 
-__all__ = ["ray_start", "next_leaf", "look_ahead", "prefetch_row", "basis_values", "leaf_logits",
+__all__ = ["ray_start", "ray_octant", "next_leaf", "look_ahead", "prefetch_row", "basis_values", "leaf_logits",
            "pad_scratch", "SCRATCH_PAD",
            "STACK_SIZE", "MAX_LEVEL", "MAX_STEPS", "LOOKAHEAD", "QUEUE"]
 
@@ -217,14 +218,27 @@ def ray_start(offset, invr, ox, oy, oz, dx, dy, dz, eps):
     return dx, dy, dz, px, py, pz, vx, vy, vz, ix, iy, iz, t0, t1, eps_t
 
 
+@njit(cache=True, inline="always")
+def ray_octant(vx, vy, vz):
+    """Octant of a direction, ``4·[vx ≥ 0] + 2·[vy ≥ 0] + [vz ≥ 0]`` (the column of
+    :mod:`.empty_skip`'s tables)."""
+    return (4 if vx >= 0.0 else 0) + (2 if vy >= 0.0 else 0) + (1 if vz >= 0.0 else 0)
+
+
 @njit(cache=True, fastmath=True, inline="always")
-def next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps_t, t1, use_stack, max_level, st, stack):
+def next_leaf(child, skip, shift, oc, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps_t, t1,
+              use_stack, max_level, st, stack):
     """The leaf holding ``p(t + eps_t)`` and the end of its segment.
 
     Returns ``(cell, t_end, n_desc)``: the flat cell index (``node * 8 + i*4 + j*2 + k``), the
     segment end ``min(max(exit, t + eps_t), t1)`` and the number of ``child`` reads this lookup
     made. ``use_stack=False`` descends from the root every time (the reference the tests
-    compare the stack against)."""
+    compare the stack against).
+
+    Empty-space skipping (:mod:`.empty_skip`): an empty leaf whose ``child`` entry is
+    ``-(row + 1)`` pushes its exit planes forward by ``skip[row, oc] << shift`` integer units
+    (``oc``: :func:`ray_octant`), so the segment runs to the end of the empty region ahead;
+    with a plain ``child`` (no negative entries) nothing changes."""
     ts = t + eps_t
     # Clamp first, then truncate (= floor for non-negative values).
     qx = int(min(max((px + ts * vx) * _SCALE, 0.0), _SCALE - 1.0))
@@ -246,7 +260,7 @@ def next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps_t, t1, use_stack
         cell = node * 8 + (((qx >> sh) & 1) << 2) + (((qy >> sh) & 1) << 1) + ((qz >> sh) & 1)
         c = child[cell]
         n_desc += 1
-        if c == 0 or level >= max_level:
+        if c <= 0 or level >= max_level:
             break
         node += c
         level += 1
@@ -256,10 +270,13 @@ def next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps_t, t1, use_stack
     st[2] = qy
     st[3] = qz
     sh = _TOP - level
-    # Exit face of the leaf: its low (d < 0) or high (d >= 0) side per axis.
-    bx = (((qx >> sh) + (1 if vx >= 0.0 else 0)) << sh) * _INV_SCALE
-    by = (((qy >> sh) + (1 if vy >= 0.0 else 0)) << sh) * _INV_SCALE
-    bz = (((qz >> sh) + (1 if vz >= 0.0 else 0)) << sh) * _INV_SCALE
+    r = 0
+    if c < 0:
+        r = np.int64(skip[-c - 1, oc]) << shift
+    # Exit face of the leaf (pushed by r): its low (d < 0) or high (d >= 0) side per axis.
+    bx = ((((qx >> sh) + 1) << sh) + r if vx >= 0.0 else ((qx >> sh) << sh) - r) * _INV_SCALE
+    by = ((((qy >> sh) + 1) << sh) + r if vy >= 0.0 else ((qy >> sh) << sh) - r) * _INV_SCALE
+    bz = ((((qz >> sh) + 1) << sh) + r if vz >= 0.0 else ((qz >> sh) << sh) - r) * _INV_SCALE
     tx = (bx - px) * ix
     ty = (by - py) * iy
     tz = (bz - pz) * iz
@@ -268,8 +285,8 @@ def next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps_t, t1, use_stack
 
 
 @njit(cache=True, fastmath=True, inline="always")
-def look_ahead(child, data, px, py, pz, vx, vy, vz, ix, iy, iz, eps_t, t1, use_stack, max_level,
-               max_steps, st, stack, qc, qe, head, tail, tq, steps):
+def look_ahead(child, skip, shift, oc, data, px, py, pz, vx, vy, vz, ix, iy, iz, eps_t, t1,
+               use_stack, max_level, max_steps, st, stack, qc, qe, head, tail, tq, steps):
     """Look up leaves ahead of the one being shaded, up to :data:`LOOKAHEAD` queued.
 
     The queue ``qc`` (cells, int64 ``[QUEUE]``), ``qe`` (segment ends, float64 ``[QUEUE]``)
@@ -279,15 +296,15 @@ def look_ahead(child, data, px, py, pz, vx, vy, vz, ix, iy, iz, eps_t, t1, use_s
     prefetched, so that by the time the ray shades it (reads σ, and the colour when σ > 0) the
     row is in cache: the memory latency of the next leaves overlaps the work on this one. A ray
     that stops early has looked up a few leaves it never shades (their values are not used).
-    The segments are exactly those of repeated :func:`next_leaf` calls (``use_stack``: see
-    there). Start a ray with ``head = tail = steps = 0``, ``tq = t0`` and :func:`next_leaf`'s
+    The segments are exactly those of repeated :func:`next_leaf` calls (``use_stack``,
+    ``skip``: see there). Start a ray with ``head = tail = steps = 0``, ``tq = t0`` and :func:`next_leaf`'s
     ``st[1] = -1``.
 
     Returns ``(tail, tq, steps)``."""
     while tail - head < LOOKAHEAD and tq < t1 and steps < max_steps:
         steps += 1
-        cell, t_end, _ = next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, tq, eps_t, t1,
-                                   use_stack, max_level, st, stack)
+        cell, t_end, _ = next_leaf(child, skip, shift, oc, px, py, pz, vx, vy, vz, ix, iy, iz,
+                                   tq, eps_t, t1, use_stack, max_level, st, stack)
         qc[tail & _QMASK] = cell
         qe[tail & _QMASK] = t_end
         tail += 1

@@ -4,7 +4,8 @@ cached on disk), and its per-ray counters.
 Same semantics as the torch twin (:mod:`plenoctree.render._torch_impl`, the spec); the
 traversal is :mod:`._march_numba`'s, shared with the fine-tuning kernels. Per ray: the
 direction, its tree-space version, its reciprocal and the SH/SG basis are computed once;
-leaves with σ ≤ 0 are skipped without touching their colour coefficients; early termination
+leaves with σ ≤ 0 are skipped without touching their colour coefficients (and, with a tree's
+empty-space skip tables, :mod:`.empty_skip`, whole empty regions in one segment); early termination
 when T < stop_thresh. Rays of an image are processed in 8×8-pixel tiles (neighbouring rays share
 nodes and leaves in cache) with dynamic scheduling over the tiles
 (``numba.set_parallel_chunksize``), so both cores stay busy when one half of the image is
@@ -22,7 +23,8 @@ import numpy as np
 from numba import njit, prange
 
 from ._march_numba import (MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, basis_values, leaf_logits,
-                           look_ahead, next_leaf, ray_start)
+                           look_ahead, next_leaf, ray_octant, ray_start)
+from .empty_skip import SkipTables, no_skip
 from .options import KIND_SG, FormatInfo, RenderOptions
 
 __all__ = ["render_rays_numba", "ray_stats_numba", "Prepared", "prepare", "render_prepared",
@@ -41,8 +43,9 @@ NEGLIGIBLE_WEIGHT = 1e-4   # a σ > 0 segment with w = T (1 - e^{-σδ}) below t
 
 
 @njit(cache=True, fastmath=True, inline="always")
-def _render_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg, b_lo, b_hi,
-                stop, eps, use_stack, max_level, max_steps, basis, st, stack, qc, qe, out3):
+def _render_one(child, skip, shift, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg,
+                b_lo, b_hi, stop, eps, use_stack, max_level, max_steps, basis, st, stack, qc, qe,
+                out3):
     """March one ray (at most ``max_steps`` segments, looked up ahead of shading by
     :func:`look_ahead`); returns (T, Σw, Σw t_mid) and writes Σ w c into ``out3``."""
     out3[0] = 0.0
@@ -53,6 +56,7 @@ def _render_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg
     if not t0 < t1:
         return 1.0, 0.0, 0.0
     basis_values(kind, n_b, dx, dy, dz, sg, b_lo, b_hi, basis)
+    oc = ray_octant(vx, vy, vz)
     dim = data.shape[1]
     trans = 1.0
     w_sum = 0.0
@@ -66,9 +70,9 @@ def _render_one(child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg
     tq = t0
     steps = 0
     while True:
-        tail, tq, steps = look_ahead(child, data, px, py, pz, vx, vy, vz, ix, iy, iz, eps_t, t1,
-                                     use_stack, max_level, max_steps, st, stack, qc, qe, head,
-                                     tail, tq, steps)
+        tail, tq, steps = look_ahead(child, skip, shift, oc, data, px, py, pz, vx, vy, vz, ix,
+                                     iy, iz, eps_t, t1, use_stack, max_level, max_steps, st,
+                                     stack, qc, qe, head, tail, tq, steps)
         if head == tail:
             break
         cell = qc[head & _QMASK]
@@ -138,9 +142,9 @@ def _camera_ray(cam, u, v):
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def _render_kernel(child, data, offset, invr, origins, dirs, cam, kind, n_b, sg, b_lo, b_hi, bg,
-                   stop, eps, use_stack, max_level, max_steps, n, width, tile_w, tile_h, rgb,
-                   depth, alpha):
+def _render_kernel(child, skip, shift, data, offset, invr, origins, dirs, cam, kind, n_b, sg, b_lo,
+                   b_hi, bg, stop, eps, use_stack, max_level, max_steps, n, width, tile_w, tile_h,
+                   rgb, depth, alpha):
     """``n`` rays ``i = y * width + x`` in tiles of ``tile_w × tile_h`` pixels (one work item
     each): read from ``origins, dirs [n, 3]`` (``cam[0] == CAM_ARRAYS``) or made for pixel
     ``(x, y)`` of the camera ``cam`` (:func:`_camera_ray`; the arrays are then unused)."""
@@ -168,9 +172,9 @@ def _render_kernel(child, data, offset, invr, origins, dirs, cam, kind, n_b, sg,
                     ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
                     dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
                 trans, w_sum, wt_sum = _render_one(
-                    child, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg, b_lo,
-                    b_hi, stop, eps, use_stack, max_level, max_steps, basis, st, stack, qc, qe,
-                    acc)
+                    child, skip, shift, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b,
+                    sg, b_lo, b_hi, stop, eps, use_stack, max_level, max_steps, basis, st, stack,
+                    qc, qe, acc)
                 for ch in range(3):
                     rgb[i, ch] = acc[ch] + trans * bg[ch]
                 depth[i] = wt_sum / max(w_sum, 1e-10)
@@ -178,8 +182,8 @@ def _render_kernel(child, data, offset, invr, origins, dirs, cam, kind, n_b, sg,
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def _stats_kernel(child, data, offset, invr, origins, dirs, stop, eps, negligible, max_level,
-                  max_steps, out):
+def _stats_kernel(child, skip, shift, data, offset, invr, origins, dirs, stop, eps, negligible,
+                  max_level, max_steps, out):
     """Per-ray counters of the renderer's march (same segments, same early stop): ``out [N, 6]``
     int64 columns :data:`STAT_NAMES`."""
     n = origins.shape[0]
@@ -194,13 +198,14 @@ def _stats_kernel(child, data, offset, invr, origins, dirs, stop, eps, negligibl
             dirs[i, 2], eps)
         if not t0 < t1:
             continue
+        oc = ray_octant(vx, vy, vz)
         out[i, 4] = 1
         trans = 1.0
         t = t0
         st[1] = -1
         while t < t1 and out[i, 0] < max_steps:
-            cell, t_end, n_desc = next_leaf(child, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps_t,
-                                            t1, True, max_level, st, stack)
+            cell, t_end, n_desc = next_leaf(child, skip, shift, oc, px, py, pz, vx, vy, vz, ix,
+                                            iy, iz, t, eps_t, t1, True, max_level, st, stack)
             out[i, 0] += 1
             out[i, 3] += n_desc
             sigma = data[cell, dim - 1]
@@ -231,7 +236,9 @@ def _vec(x: np.ndarray) -> np.ndarray:
 class Prepared:
     """The kernel's arguments for one tree and one set of options (see :func:`prepare`)."""
 
-    child: np.ndarray          # int32 [n_cells]
+    child: np.ndarray          # int32 [n_cells] (with empty-skip rows: see .empty_skip)
+    skip: np.ndarray           # uint8 [rows, 8] empty-space skips per ray octant
+    shift: int                 # skip units -> integer coordinates
     data: np.ndarray           # float32 [n_cells, D]
     offset: np.ndarray         # float64 [3]
     invr: np.ndarray           # float64 [3]
@@ -247,20 +254,25 @@ class Prepared:
 
 
 def prepare(tree: Any, info: FormatInfo, options: RenderOptions) -> Prepared:
-    """Pack ``tree`` (child, data, box, extra_data) and ``options`` for :func:`render_prepared`."""
+    """Pack ``tree`` (child, data, box, extra_data, and its ``empty_skip`` tables when it has
+    them: see :func:`plenoctree.render.tree_to_device`) and ``options`` for
+    :func:`render_prepared`."""
     return _prepare(tree.child, tree.data, tree.offset, tree.invradius, info,
-                    getattr(tree, "extra_data", None), options)
+                    getattr(tree, "extra_data", None), options, getattr(tree, "empty_skip", None))
 
 
-def _prepare(child, data, offset, invradius, info, extra_data, options) -> Prepared:
+def _prepare(child, data, offset, invradius, info, extra_data, options,
+             skip: SkipTables | None = None) -> Prepared:
+    """``skip``: the tree's :class:`~.empty_skip.SkipTables` (None: no skipping)."""
     child_flat, data2 = _flat(child, data)
+    tables = skip if skip is not None else no_skip(child_flat)
     if extra_data is not None and info.kind == KIND_SG:
         sg = np.ascontiguousarray(extra_data, dtype=np.float64).reshape(info.basis_dim, 4)
     else:
         sg = np.zeros((1, 4), dtype=np.float64)
     b_lo, b_hi = options.basis_range(info.basis_dim)
-    return Prepared(child_flat, data2, _vec(offset), _vec(invradius), info.kind, info.basis_dim,
-                    sg, b_lo, b_hi, np.asarray(options.background, dtype=np.float64),
+    return Prepared(tables.child, tables.skip, int(tables.shift), data2, _vec(offset),
+                    _vec(invradius), info.kind, info.basis_dim, sg, b_lo, b_hi, np.asarray(options.background, dtype=np.float64),
                     float(options.stop_thresh), float(options.step_eps), MAX_STEPS)
 
 
@@ -287,9 +299,9 @@ def _launch(p: Prepared, origins: np.ndarray, dirs: np.ndarray, cam: np.ndarray,
     old = numba.get_parallel_chunksize()
     numba.set_parallel_chunksize(max(1, int(chunk_tiles)))
     try:
-        _render_kernel(p.child, p.data, p.offset, p.invr, origins, dirs, cam, p.kind, p.n_b,
-                       p.sg, p.b_lo, p.b_hi, p.bg, p.stop, p.eps, bool(use_stack), MAX_LEVEL,
-                       p.max_steps, int(n), int(width), max(1, int(tw)), max(1, int(th)),
+        _render_kernel(p.child, p.skip, p.shift, p.data, p.offset, p.invr, origins, dirs, cam,
+                       p.kind, p.n_b, p.sg, p.b_lo, p.b_hi, p.bg, p.stop, p.eps, bool(use_stack),
+                       MAX_LEVEL, p.max_steps, int(n), int(width), max(1, int(tw)), max(1, int(th)),
                        rgb.reshape(n, 3), depth.reshape(n), alpha.reshape(n))
     finally:
         numba.set_parallel_chunksize(old)
@@ -354,7 +366,8 @@ def render_rays_numba(child: np.ndarray, data: np.ndarray, offset: np.ndarray,
                       invradius: np.ndarray, info: FormatInfo, extra_data: np.ndarray | None,
                       origins: np.ndarray, dirs: np.ndarray, options: RenderOptions,
                       use_stack: bool = True, width: int = 0,
-                      tile: tuple[int, int] | None = None, chunk_tiles: int = CHUNK_TILES
+                      tile: tuple[int, int] | None = None, chunk_tiles: int = CHUNK_TILES,
+                      skip: SkipTables | None = None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Render ``[N, 3]`` rays with the numba kernel; returns float32 ``rgb [N,3], depth [N],
     alpha [N]`` (numpy).
@@ -363,9 +376,10 @@ def render_rays_numba(child: np.ndarray, data: np.ndarray, offset: np.ndarray,
     float32 contiguous if needed; float32 trees are used in place), geometry in float64 inside
     the kernel. ``use_stack=False`` re-descends from the root at every step (the reference the
     tests compare the ancestor stack against); ``width``/``tile``: see :func:`render_prepared`;
-    ``chunk_tiles`` work items form one dynamic-scheduling chunk.
+    ``chunk_tiles`` work items form one dynamic-scheduling chunk; ``skip``: the tree's
+    empty-space skip tables (:mod:`.empty_skip`; None: every leaf is visited).
     """
-    p = _prepare(child, data, offset, invradius, info, extra_data, options)
+    p = _prepare(child, data, offset, invradius, info, extra_data, options, skip)
     o = np.ascontiguousarray(origins, dtype=np.float32).reshape(-1, 3)
     d = np.ascontiguousarray(dirs, dtype=np.float32).reshape(-1, 3)
     out = empty_outputs(o.shape[0])
@@ -375,17 +389,20 @@ def render_rays_numba(child: np.ndarray, data: np.ndarray, offset: np.ndarray,
 
 def ray_stats_numba(child: np.ndarray, data: np.ndarray, offset: np.ndarray,
                     invradius: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
-                    options: RenderOptions, negligible: float = NEGLIGIBLE_WEIGHT) -> np.ndarray:
+                    options: RenderOptions, negligible: float = NEGLIGIBLE_WEIGHT,
+                    skip: SkipTables | None = None) -> np.ndarray:
     """Per-ray counters of the render march, int64 ``[N, 6]``, columns :data:`STAT_NAMES`:
     leaves visited (segments), leaves with σ > 0, σ > 0 segments of weight < ``negligible``,
     ``child`` reads of the descents, hit the box (0/1), stopped early at ``T < stop_thresh``
-    (0/1). For benchmarks: where a real ray's time goes."""
+    (0/1). For benchmarks: where a real ray's time goes. ``skip``: count the march with these
+    empty-space skip tables (as the renderer does with them)."""
     child_flat, data2 = _flat(child, data)
+    tables = skip if skip is not None else no_skip(child_flat)
     o = np.ascontiguousarray(origins, dtype=np.float32).reshape(-1, 3)
     d = np.ascontiguousarray(dirs, dtype=np.float32).reshape(-1, 3)
     out = np.zeros((o.shape[0], len(STAT_NAMES)), dtype=np.int64)
     if o.shape[0]:
-        _stats_kernel(child_flat, data2, _vec(offset), _vec(invradius), o, d,
-                      float(options.stop_thresh), float(options.step_eps), float(negligible),
-                      MAX_LEVEL, MAX_STEPS, out)
+        _stats_kernel(tables.child, tables.skip, int(tables.shift), data2, _vec(offset),
+                      _vec(invradius), o, d, float(options.stop_thresh), float(options.step_eps),
+                      float(negligible), MAX_LEVEL, MAX_STEPS, out)
     return out
