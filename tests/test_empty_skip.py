@@ -102,6 +102,7 @@ def test_skipping_renders_the_same_image(fmt):
     fast = tree_to_device(tree, "cpu")
     assert isinstance(fast, CpuTree) and fast.empty_skip.skip.shape[0] > 10
     assert tree_to_device(fast, "cpu") is fast
+    assert not np.shares_memory(fast.child, tree.child)       # its topology: a private copy
     for seed in (1, 2):
         o, d = _image_rays(tree, 23, 29, seed=seed)
         for opts in (RenderOptions(), RenderOptions(stop_thresh=0.0, background=(0.2, 0.3, 0.4))):

@@ -107,7 +107,8 @@ def _tree_info(tree: Any) -> FormatInfo:
     from ..octree.check import check_box, check_child_cached
     try:
         check_box(_vec3(tree.offset), inv if inv.size == 3 else np.repeat(inv, 3), "render: tree")
-        check_child_cached(tree, "render: tree")        # once per tree object and child version
+        if not isinstance(tree, CpuTree):   # a CpuTree's child: a private copy, checked once
+            check_child_cached(tree, "render: tree")    # once per tree object and child version
     except TreeFormatError as e:
         raise ConfigError(str(e)) from None
     return parse_data_format(tree.data_format, data.shape[-1], getattr(tree, "extra_data", None))
@@ -234,10 +235,12 @@ class CpuTree:
     """A tree prepared once for many frames on the CPU (see :func:`tree_to_device`).
 
     Same attributes as :class:`~plenoctree.octree.Octree` that the renderers read (``child``
-    int32, ``data`` float32 — the tree's own arrays when they already are, not copies —
-    ``offset``, ``invradius``, ``data_format``, ``extra_data``), plus ``empty_skip``: the
-    numba renderer's empty-space skip tables (:mod:`.empty_skip`), made from the tree as it is
-    now. It is a snapshot of which leaves are empty: render an edited tree through a new one.
+    int32, a checked private copy, so frames skip the per-call topology fingerprint; ``data``
+    float32 — the tree's own array when it already is one, not a copy —; ``offset``,
+    ``invradius``, ``data_format``, ``extra_data``), plus ``empty_skip``: the numba renderer's
+    empty-space skip tables (:mod:`.empty_skip`), made from the tree as it is now. It is a
+    snapshot of the topology and of which leaves are empty: render an edited tree through a new
+    one.
     """
 
     def __init__(self, tree: Any) -> None:
@@ -246,7 +249,7 @@ class CpuTree:
         def to_np(x: Any) -> np.ndarray:
             return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
-        self.child = np.ascontiguousarray(to_np(tree.child), dtype=np.int32)
+        self.child = np.array(to_np(tree.child), dtype=np.int32, order="C")   # a copy
         self.data = np.ascontiguousarray(to_np(tree.data), dtype=np.float32)
         self.offset, self.invradius = _vec3(tree.offset), _vec3(tree.invradius)
         self.data_format = tree.data_format
