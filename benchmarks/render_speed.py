@@ -273,7 +273,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| {name}{note} | {k} | {r['ms_per_frame']:.1f} | {r['ms_min']:.1f}–"
                   f"{r['ms_max']:.1f} | {r['fps']:.2f} | {r['mrays_per_s']:.2f} | "
                   f"{r['cpu_ms_per_frame']:.1f} |")
-    print("\n| size | hit rays | leaves/hit ray (with skip) | σ>0 leaves | negligible (w<1e-4) | child reads "
+    print("\n| size | hit rays | leaves/hit ray (with skip) | σ>0 leaves | negligible (w<1e-4) "
+          "| child reads "
           "| stopped early | numpy raygen ms | render_image − kernel ms | render_rays − kernel ms "
           "| kernel ns/ray/core |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")

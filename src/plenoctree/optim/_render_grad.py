@@ -194,9 +194,9 @@ def _call(args: KernelArgs, data2: np.ndarray, o: np.ndarray, d: np.ndarray, aux
             if threads > grad3.shape[0]:    # one slab per running thread (see grad_kernel)
                 numba.set_num_threads(grad3.shape[0])
             k.grad_kernel(args.child, args.skip, args.shift, data2, args.offset, args.invr, o, d,
-                          aux, mode, float(scale), args.info.kind, args.info.basis_dim, args.sg, args.b_lo,
-                          args.b_hi, args.bg, args.stop, args.eps, args.cap0, rgb, grad3, slot,
-                          touched, n_t, need, sse)
+                          aux, mode, float(scale), args.info.kind, args.info.basis_dim, args.sg,
+                          args.b_lo, args.b_hi, args.bg, args.stop, args.eps, args.cap0, rgb,
+                          grad3, slot, touched, n_t, need, sse)
             if sg_buf is None or not need.any():
                 break
             sg_buf.grow()                   # rare: larger slabs, the batch again

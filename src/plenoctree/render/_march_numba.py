@@ -38,8 +38,8 @@ from .. import sh as _sh
 from ..octree.limits import MAX_DEPTH, max_steps
 from .options import KIND_RGBA, KIND_SG, KIND_SH, QUANT_BITS
 
-__all__ = ["ray_start", "ray_octant", "next_leaf", "look_ahead", "prefetch_row", "basis_values", "leaf_logits",
-           "pad_scratch", "SCRATCH_PAD",
+__all__ = ["ray_start", "ray_octant", "next_leaf", "look_ahead", "prefetch_row", "basis_values",
+           "leaf_logits", "pad_scratch", "SCRATCH_PAD",
            "STACK_SIZE", "MAX_LEVEL", "MAX_STEPS", "LOOKAHEAD", "QUEUE"]
 
 #: Deepest node level a descent reaches (= the deepest cell depth a tree may have; deeper
@@ -297,8 +297,8 @@ def look_ahead(child, skip, shift, oc, data, px, py, pz, vx, vy, vz, ix, iy, iz,
     row is in cache: the memory latency of the next leaves overlaps the work on this one. A ray
     that stops early has looked up a few leaves it never shades (their values are not used).
     The segments are exactly those of repeated :func:`next_leaf` calls (``use_stack``,
-    ``skip``: see there). Start a ray with ``head = tail = steps = 0``, ``tq = t0`` and :func:`next_leaf`'s
-    ``st[1] = -1``.
+    ``skip``: see there). Start a ray with ``head = tail = steps = 0``, ``tq = t0`` and
+    :func:`next_leaf`'s ``st[1] = -1``.
 
     Returns ``(tail, tq, steps)``."""
     while tail - head < LOOKAHEAD and tq < t1 and steps < max_steps:

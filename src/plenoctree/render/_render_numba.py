@@ -272,8 +272,9 @@ def _prepare(child, data, offset, invradius, info, extra_data, options,
         sg = np.zeros((1, 4), dtype=np.float64)
     b_lo, b_hi = options.basis_range(info.basis_dim)
     return Prepared(tables.child, tables.skip, int(tables.shift), data2, _vec(offset),
-                    _vec(invradius), info.kind, info.basis_dim, sg, b_lo, b_hi, np.asarray(options.background, dtype=np.float64),
-                    float(options.stop_thresh), float(options.step_eps), MAX_STEPS)
+                    _vec(invradius), info.kind, info.basis_dim, sg, b_lo, b_hi,
+                    np.asarray(options.background, dtype=np.float64), float(options.stop_thresh),
+                    float(options.step_eps), MAX_STEPS)
 
 
 def empty_outputs(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
