@@ -47,12 +47,12 @@ from _trees import ROOT, load_bench_tree, machine_info
 from render_speed import orbit_cameras
 
 from plenoctree.render._march_numba import MAX_LEVEL, STACK_SIZE, next_leaf, ray_octant, ray_start
+from plenoctree.render.empty_skip import NO_SKIP, skip_tables
 from plenoctree.render.options import QUANT_BITS
 
 _S = float(2 ** QUANT_BITS)
 _G = 8                       # level of the dense table / uniform grid (256³)
 _TILE = 64
-_NO_SKIP = np.zeros((1, 8), np.uint8)      # a plain child array: no empty-space skipping
 _STOP = 0.01
 
 
@@ -122,7 +122,7 @@ def _interleave4(child, data, offset, invr, o, d, eps, out):
                     continue
                 alive += 1
                 t = r[k, 9]
-                cell, te, _ = next_leaf(child, _NO_SKIP, 0, 0, r[k, 0], r[k, 1], r[k, 2], r[k, 3],
+                cell, te, _ = next_leaf(child, NO_SKIP, 0, 0, r[k, 0], r[k, 1], r[k, 2], r[k, 3],
                                         r[k, 4], r[k, 5], r[k, 6], r[k, 7], r[k, 8], t, r[k, 11],
                                         r[k, 10], True, MAX_LEVEL, st[k], stack[k])
                 out[idx[k]] = _absorb(data, cell, t, te, out[idx[k]])
@@ -327,7 +327,6 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
 
     from plenoctree.render._render_numba import _flat, _vec
-    from plenoctree.render.empty_skip import skip_tables
 
     tree, desc = load_bench_tree(a.tree, log=lambda m: print(m, file=sys.stderr))
     child, data = _flat(tree.child, tree.data)
@@ -346,11 +345,11 @@ def main(argv: list[str] | None = None) -> int:
     outs = {k: [np.zeros(n) for _ in views] for k in
             ("march", "empty_skip", "root", "interleave4", "grid", "param", "geometry", "dda")}
     calls = {
-        "march": lambda v: _march(child, _NO_SKIP, 0, data, off, inv, *views[v], eps, True,
+        "march": lambda v: _march(child, NO_SKIP, 0, data, off, inv, *views[v], eps, True,
                                   outs["march"][v], segs[v]),
         "empty_skip": lambda v: _march(sk.child, sk.skip, sk.shift, data, off, inv, *views[v],
                                        eps, True, outs["empty_skip"][v], skip_segs[v]),
-        "root": lambda v: _march(child, _NO_SKIP, 0, data, off, inv, *views[v], eps, False,
+        "root": lambda v: _march(child, NO_SKIP, 0, data, off, inv, *views[v], eps, False,
                                  outs["root"][v], np.zeros(n, np.int64)),
         "interleave4": lambda v: _interleave4(child, data, off, inv, *views[v], eps,
                                                  outs["interleave4"][v]),

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from test_render_kernels import _compare, _grid_tree, _image_rays, _subdivide
+from test_render_kernels import _compare, _ff_tree, _grid_tree, _image_rays, _subdivide
 
 from plenoctree.octree import Octree
 from plenoctree.render import CpuTree, RenderOptions, render_image, render_rays, tree_to_device
+from plenoctree.render._render_numba import _flat
 from plenoctree.render.empty_skip import skip_tables
 
 
@@ -32,17 +33,11 @@ def _sparse_tree(seed: int, fmt: str = "SH4") -> Octree:
     return tree
 
 
-def _flat(tree: Octree) -> tuple[np.ndarray, np.ndarray]:
-    n = tree.n_nodes * 8
-    return (np.ascontiguousarray(tree.child, np.int32).reshape(n),
-            np.ascontiguousarray(tree.data, np.float32).reshape(n, -1))
-
-
 def test_skip_regions_hold_no_occupied_leaf():
     """Every (empty leaf, ray octant): the leaf's box with its forward faces pushed by the
     table's skip overlaps no σ > 0 leaf (brute force over all pairs)."""
     tree = _sparse_tree(3)
-    child, data = _flat(tree)
+    child, data = _flat(tree.child, tree.data)       # the kernels' flat arrays
     t = skip_tables(child, data)
     assert t.grid_bits == tree.max_depth + 1 and t.skip.shape[1] == 8
     depth, corner, size = tree._leaf_geometry()
@@ -82,7 +77,7 @@ def test_skip_grows_only_forward_into_free_space():
     values[4, 4, 4] = (1, 1, 1, 5.0)
     mask = np.ones((res, res, res), bool)
     tree = Octree.from_grid(values, mask, 0.0, 1.0, "RGBA")
-    child, data = _flat(tree)
+    child, data = _flat(tree.child, tree.data)       # the kernels' flat arrays
     t = skip_tables(child, data)
     _, corner, _ = tree._leaf_geometry()
     node, i, j, k = tree.leaf_indices()
@@ -144,14 +139,7 @@ def test_skipping_visits_fewer_leaves():
 
 
 def test_ndc_tree_skips_too(tmp_path):
-    from plenoctree.datasets.forward_facing import (forward_facing_tree,
-                                                    write_forward_facing_dataset)
-    from plenoctree.datasets.llff import load_llff
-
-    root = write_forward_facing_dataset(tmp_path / "ff", n_images=3, width=24, height=18,
-                                        n_samples=16)
-    tree = forward_facing_tree(root, 32)
-    cams = load_llff(root, split="all").cameras
+    tree, cams = _ff_tree(tmp_path)
     fast = tree_to_device(tree, "cpu")
     for i in range(len(cams)):
         a = render_image(tree, cams, i, backend="numba")

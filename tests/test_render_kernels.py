@@ -94,15 +94,19 @@ def test_image_tiles_equal_flat_rays():
         torch.testing.assert_close(a.reshape(b.shape), b, rtol=0, atol=0)
 
 
-def test_ndc_forward_facing_tree_matches_twin(tmp_path):
+def _ff_tree(tmp_path) -> tuple[Octree, object]:
+    """A small forward-facing NDC tree (32³) and the NDC cameras of its 24×18 scene."""
     from plenoctree.datasets.forward_facing import (forward_facing_tree,
                                                     write_forward_facing_dataset)
     from plenoctree.datasets.llff import load_llff
 
     root = write_forward_facing_dataset(tmp_path / "ff", n_images=3, width=24, height=18,
                                         n_samples=16)
-    tree = forward_facing_tree(root, 32)
-    cams = load_llff(root, split="all").cameras
+    return forward_facing_tree(root, 32), load_llff(root, split="all").cameras
+
+
+def test_ndc_forward_facing_tree_matches_twin(tmp_path):
+    tree, cams = _ff_tree(tmp_path)
     assert cams.ndc
     o, d = cams.rays(1)
     _compare(tree, o, d, RenderOptions())
@@ -141,16 +145,10 @@ def test_render_image_makes_the_rays_in_the_kernel():
 
 
 def test_render_image_makes_ndc_rays_in_the_kernel(tmp_path):
-    from plenoctree.datasets.forward_facing import (forward_facing_tree,
-                                                    write_forward_facing_dataset)
-    from plenoctree.datasets.llff import load_llff
     from plenoctree.errors import ConfigError
     from plenoctree.render import render_image
 
-    root = write_forward_facing_dataset(tmp_path / "ff", n_images=3, width=24, height=18,
-                                        n_samples=16)
-    tree = forward_facing_tree(root, 32)
-    cams = load_llff(root, split="all").cameras
+    tree, cams = _ff_tree(tmp_path)
     for i in range(len(cams)):
         _same_as_array_rays(tree, cams, i, RenderOptions(), twin=i == 1)
     back = cams.c2w.copy()

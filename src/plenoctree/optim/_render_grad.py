@@ -5,7 +5,7 @@ Nothing here compiles at import; :mod:`._render_grad_numba` is imported on first
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -47,8 +47,8 @@ class KernelArgs:
     stop: float
     eps: float
     cap0: int                  # initial per-ray segment record capacity
-    skip: np.ndarray = field(default_factory=lambda: np.zeros((1, 8), np.uint8))
-    shift: int = 0             # skip units -> integer coordinates
+    skip: np.ndarray           # uint8 [rows, 8] empty-space skips (render.empty_skip)
+    shift: int                 # skip units -> integer coordinates
 
     @property
     def n_cells(self) -> int:
@@ -69,6 +69,7 @@ def kernel_args(tree: Any, options: RenderOptions | None = None,
     (:mod:`plenoctree.render.empty_skip`). Only for values that never turn an empty leaf
     non-empty — fine-tuning from them: a σ ≤ 0 leaf gets no gradient and stays empty — not
     for arbitrary values (gradcheck, autograd)."""
+    from ..render.empty_skip import no_skip, skip_tables
     from ._render_grad_numba import initial_capacity
 
     opts = (options if options is not None else RenderOptions()).validated()
@@ -86,14 +87,11 @@ def kernel_args(tree: Any, options: RenderOptions | None = None,
     inv = np.broadcast_to(np.asarray(_np(tree.invradius), np.float64).reshape(-1), (3,)).copy()
     depth = int(getattr(tree, "depth_limit", 10))
     flat = np.ascontiguousarray(child, dtype=np.int32).reshape(-1)
-    args = KernelArgs(flat, off, inv, info, sg, b_lo, b_hi, np.asarray(opts.background, np.float64),
-                      float(opts.stop_thresh), float(opts.step_eps), initial_capacity(depth))
-    if skip_from is not None:
-        from ..render.empty_skip import skip_tables
-
-        t = skip_tables(flat, np.asarray(skip_from).reshape(flat.shape[0], -1))
-        args.child, args.skip, args.shift = t.child, t.skip, int(t.shift)
-    return args
+    t = (no_skip(flat) if skip_from is None
+         else skip_tables(flat, np.asarray(skip_from).reshape(flat.shape[0], -1)))
+    return KernelArgs(t.child, off, inv, info, sg, b_lo, b_hi,
+                      np.asarray(opts.background, np.float64), float(opts.stop_thresh),
+                      float(opts.step_eps), initial_capacity(depth), t.skip, int(t.shift))
 
 
 class SparseGrad:

@@ -114,6 +114,11 @@ def _tree_info(tree: Any) -> FormatInfo:
     return parse_data_format(tree.data_format, data.shape[-1], getattr(tree, "extra_data", None))
 
 
+def _to_np(x: Any) -> np.ndarray:
+    """A numpy view of a CPU tensor (or the array itself)."""
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
 def _vec3(x: Any) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
@@ -172,12 +177,9 @@ def _numba_render(tree: Any, info: FormatInfo, origins: Any, dirs: Any, opts: Re
     ``width``: the image width when the rays are an image's pixels in row-major order."""
     from . import _render_numba
 
-    def to_np(x: Any) -> np.ndarray:
-        return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x
-
     rgb, depth, alpha = _render_numba.render_rays_numba(
-        to_np(tree.child), to_np(tree.data), _vec3(tree.offset), _vec3(tree.invradius), info,
-        _extra(tree), to_np(origins), to_np(dirs), opts, width=width,
+        _to_np(tree.child), _to_np(tree.data), _vec3(tree.offset), _vec3(tree.invradius), info,
+        _extra(tree), _to_np(origins), _to_np(dirs), opts, width=width,
         skip=getattr(tree, "empty_skip", None))
     return RenderOutput(torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(alpha))
 
@@ -246,11 +248,8 @@ class CpuTree:
     def __init__(self, tree: Any) -> None:
         from .empty_skip import skip_tables
 
-        def to_np(x: Any) -> np.ndarray:
-            return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
-
-        self.child = np.array(to_np(tree.child), dtype=np.int32, order="C")   # a copy
-        self.data = np.ascontiguousarray(to_np(tree.data), dtype=np.float32)
+        self.child = np.array(_to_np(tree.child), dtype=np.int32, order="C")   # a copy
+        self.data = np.ascontiguousarray(_to_np(tree.data), dtype=np.float32)
         self.offset, self.invradius = _vec3(tree.offset), _vec3(tree.invradius)
         self.data_format = tree.data_format
         self.extra_data = _extra(tree)
@@ -322,10 +321,7 @@ def _numba_render_camera(tree: Any, cameras: Any, index: int,
     _check_origins(o, _vec3(tree.offset), _vec3(tree.invradius))
     cam = _render_numba.pack_cameras(cameras, [i])[0]
 
-    def to_np(x: Any) -> np.ndarray:
-        return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x
-
-    p = _render_numba._prepare(to_np(tree.child), to_np(tree.data), _vec3(tree.offset),
+    p = _render_numba._prepare(_to_np(tree.child), _to_np(tree.data), _vec3(tree.offset),
                                _vec3(tree.invradius), info, _extra(tree), opts,
                                getattr(tree, "empty_skip", None))
     rgb, depth, alpha = _render_numba.empty_outputs(w * h)

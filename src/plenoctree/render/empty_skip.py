@@ -40,7 +40,7 @@ from numba import njit
 
 from .options import QUANT_BITS
 
-__all__ = ["SkipTables", "skip_tables", "no_skip", "MAX_GRID_BITS"]
+__all__ = ["SkipTables", "skip_tables", "no_skip", "NO_SKIP", "MAX_GRID_BITS"]
 
 #: Finest skip grid: 256³ cells (16 MiB per octant pass); finer gave no fewer segments on lego.
 MAX_GRID_BITS = 8
@@ -64,12 +64,13 @@ class SkipTables:
         return int(self.child.nbytes + self.skip.nbytes)
 
 
-_NO_SKIP = np.zeros((1, 8), dtype=np.uint8)
+#: The skip table of a plain ``child`` array (no entry refers to it).
+NO_SKIP = np.zeros((1, 8), dtype=np.uint8)
 
 
 def no_skip(child_flat: np.ndarray) -> SkipTables:
     """Tables that skip nothing (``child`` as it is): the kernels' path without skipping."""
-    return SkipTables(child_flat, _NO_SKIP, 0)
+    return SkipTables(child_flat, NO_SKIP, 0)
 
 
 @njit(cache=True)
@@ -131,43 +132,29 @@ def _occupancy(child, data, depth, corner, gbits, occ):
 
 @njit(cache=True)
 def _forward_cubes(occ, sx, sy, sz, out):
-    """``out[x, y, z]``: side (≤ 255) of the largest empty cube with its back corner at the
-    cell, growing towards ``+x`` if ``sx`` else ``-x`` (and so on); outside the grid is empty."""
+    """``out[x + 1, y + 1, z + 1]``: side (≤ 255) of the largest empty cube with its back corner
+    at cell ``(x, y, z)``, growing towards ``+x`` if ``sx`` else ``-x`` (and so on). ``out`` is
+    ``[g + 2]³`` with a border of 255 (outside the grid is empty), so every cell reads its 7
+    forward neighbours without bounds checks."""
     g = occ.shape[0]
     ex = 1 if sx else -1
     ey = 1 if sy else -1
     ez = 1 if sz else -1
     for a in range(g):
         x = g - 1 - a if sx else a
-        nx = x + ex
-        inx = 0 <= nx < g
+        x1, nx = x + 1, x + 1 + ex
         for b in range(g):
             y = g - 1 - b if sy else b
-            ny = y + ey
-            iny = 0 <= ny < g
+            y1, ny = y + 1, y + 1 + ey
             for c in range(g):
                 z = g - 1 - c if sz else c
+                z1, nz = z + 1, z + 1 + ez
                 if occ[x, y, z]:
-                    out[x, y, z] = 0
+                    out[x1, y1, z1] = 0
                     continue
-                nz = z + ez
-                inz = 0 <= nz < g
-                m = 255
-                if inx:
-                    m = min(m, out[nx, y, z])
-                    if iny:
-                        m = min(m, out[nx, ny, z])
-                        if inz:
-                            m = min(m, out[nx, ny, nz])
-                    if inz:
-                        m = min(m, out[nx, y, nz])
-                if iny:
-                    m = min(m, out[x, ny, z])
-                    if inz:
-                        m = min(m, out[x, ny, nz])
-                if inz:
-                    m = min(m, out[x, y, nz])
-                out[x, y, z] = min(m + 1, 255)
+                m = min(out[nx, y1, z1], out[x1, ny, z1], out[x1, y1, nz], out[nx, ny, z1],
+                        out[nx, y1, nz], out[x1, ny, nz], out[nx, ny, nz])
+                out[x1, y1, z1] = min(m + 1, 255)
 
 
 @njit(cache=True)
@@ -180,7 +167,7 @@ def _octant_skips(empty, depth, corner, gbits, cubes, o, r):
         bx = gx if sx else gx + s - 1
         by = gy if sy else gy + s - 1
         bz = gz if sz else gz + s - 1
-        r[j, o] = max(np.int64(cubes[bx, by, bz]) - s, 0)
+        r[j, o] = max(np.int64(cubes[bx + 1, by + 1, bz + 1]) - s, 0)
 
 
 def skip_tables(child_flat: np.ndarray, data2: np.ndarray) -> SkipTables:
@@ -196,12 +183,12 @@ def skip_tables(child_flat: np.ndarray, data2: np.ndarray) -> SkipTables:
     empty = _occupancy(child_flat, data2, depth, corner, gbits, occ)
     r = np.zeros((empty.size, 8), dtype=np.uint8)
     if empty.size:
-        cubes = np.empty((g, g, g), dtype=np.uint8)
+        cubes = np.full((g + 2, g + 2, g + 2), 255, dtype=np.uint8)    # border: empty
         for o in range(8):
             _forward_cubes(occ, (o >> 2) & 1, (o >> 1) & 1, o & 1, cubes)
             _octant_skips(empty, depth, corner, gbits, cubes, o, r)
     rows = np.flatnonzero(r.any(axis=1))
     child = child_flat.copy()
     child[empty[rows]] = -(np.arange(rows.size, dtype=np.int32) + 1)
-    skip = np.ascontiguousarray(r[rows]) if rows.size else _NO_SKIP
+    skip = np.ascontiguousarray(r[rows]) if rows.size else NO_SKIP
     return SkipTables(child, skip, QUANT_BITS - gbits, gbits, time.perf_counter() - t0)
