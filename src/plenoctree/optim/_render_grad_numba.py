@@ -327,7 +327,39 @@ OPT_SGD, OPT_ADAM, OPT_RMSPROP = 0, 1, 2
 _AHEAD = 8         # touched cells between a prefetch and the update that reads it
 
 
-@njit(parallel=True, cache=True)
+#: fastmath flags of the optimiser: reassociation, contraction, approximate reciprocals; not
+#: ``nnan`` / ``ninf`` (the kernel counts non-finite values, which those flags would fold away).
+_OPT_MATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+
+
+@njit(cache=True, fastmath=_OPT_MATH, inline="always")
+def _adam_span(row, m1r, m2r, g, lo, hi, b1, b2, c1, c2, lr_c, ib2, eps, tiny):
+    """Lazy Adam on ``row[lo:hi]`` in float32 (the dtype of the values and moments, as
+    ``torch.optim.Adam`` computes): ``lr_c`` is the learning rate over the first moment's bias
+    correction, ``ib2`` the reciprocal of the second's; moments below ``tiny`` flush to 0."""
+    zero = np.float32(0.0)
+    for d in range(lo, hi):
+        a = b1 * m1r[d] + c1 * g[d]
+        b = b2 * m2r[d] + c2 * (g[d] * g[d])
+        a = a if abs(a) >= tiny else zero
+        b = b if b >= tiny else zero
+        m1r[d] = a
+        m2r[d] = b
+        row[d] -= lr_c * a / (math.sqrt(b * ib2) + eps)
+
+
+@njit(cache=True, fastmath=_OPT_MATH, inline="always")
+def _rmsprop_span(row, m2r, g, lo, hi, b2, c2, lr, eps, tiny):
+    """Lazy RMSprop on ``row[lo:hi]`` in float32 (see :func:`_adam_span`)."""
+    zero = np.float32(0.0)
+    for d in range(lo, hi):
+        b = b2 * m2r[d] + c2 * (g[d] * g[d])
+        b = b if b >= tiny else zero
+        m2r[d] = b
+        row[d] -= lr * g[d] / (math.sqrt(b) + eps)
+
+
+@njit(parallel=True, cache=True, fastmath=_OPT_MATH)
 def step_touched(data, sig, grad3, slot, touched, n_touched, opt, lr, lr_sig, m1, m2, beta1,
                  beta2, eps, step):
     """Apply one optimiser step to every touched cell, reading the gradient straight from the
@@ -338,8 +370,9 @@ def step_touched(data, sig, grad3, slot, touched, n_touched, opt, lr, lr_sig, m1
     ``torch.optim.SparseAdam``, bias correction by the global 1-based ``step``) or
     :data:`OPT_RMSPROP` (``m2 = β2 m2 + (1 - β2) g²``, ``data -= lr g / (√m2 + eps)``, lazy).
     σ (the last column) steps with ``lr_sig`` instead of ``lr`` (world σ units; pass ``lr`` for
-    one rate). Tiny moments are flushed to 0 (no denormals). σ is then projected onto ``σ ≥ 0`` (the
-    renderer uses ``relu(σ)``, so no render changes, and the tree stays valid for
+    one rate). The updates run in float32, the dtype of the values and moments, and vectorise
+    over a row. Tiny moments are flushed to 0 (no denormals). σ is then projected onto
+    ``σ ≥ 0`` (the renderer uses ``relu(σ)``, so no render changes, and the tree stays valid for
     ``save_tree``) and copied to ``sig``.
 
     The rows of the cell :data:`_AHEAD` places further down the list are prefetched (the list
@@ -350,8 +383,16 @@ def step_touched(data, sig, grad3, slot, touched, n_touched, opt, lr, lr_sig, m1
     """
     n_chunks = grad3.shape[0]
     dim = data.shape[1]
+    f32 = np.float32
     bc1 = 1.0 - beta1 ** step
     bc2 = 1.0 - beta2 ** step
+    b1, b2, c1, c2 = f32(beta1), f32(beta2), f32(1.0 - beta1), f32(1.0 - beta2)
+    e, tiny = f32(eps), f32(1e-30)
+    lr32, lrs32 = f32(lr), f32(lr_sig)
+    if opt == OPT_ADAM:
+        lr_c, lrs_c, ib2 = f32(lr / bc1), f32(lr_sig / bc1), f32(1.0 / bc2)
+    else:
+        lr_c, lrs_c, ib2 = lr32, lrs32, f32(1.0)
     bad = 0
     for c in range(n_chunks):
         m = n_touched[c]
@@ -380,27 +421,17 @@ def step_touched(data, sig, grad3, slot, touched, n_touched, opt, lr, lr_sig, m1
                     slot[k, cell] = -1
             row = data[cell]
             if opt == OPT_SGD:
-                for d in range(dim):
-                    row[d] -= (lr if d < dim - 1 else lr_sig) * g[d]
+                for d in range(dim - 1):
+                    row[d] -= lr32 * g[d]
+                row[dim - 1] -= lrs32 * g[dim - 1]
             elif opt == OPT_ADAM:
-                for d in range(dim):
-                    a = beta1 * m1[cell, d] + (1.0 - beta1) * g[d]
-                    b = beta2 * m2[cell, d] + (1.0 - beta2) * g[d] * g[d]
-                    if abs(a) < 1e-30:
-                        a = 0.0
-                    if b < 1e-30:
-                        b = 0.0
-                    m1[cell, d] = a
-                    m2[cell, d] = b
-                    row[d] -= (lr if d < dim - 1 else lr_sig) * (a / bc1) / (
-                        math.sqrt(b / bc2) + eps)
+                _adam_span(row, m1[cell], m2[cell], g, 0, dim - 1, b1, b2, c1, c2, lr_c, ib2,
+                           e, tiny)
+                _adam_span(row, m1[cell], m2[cell], g, dim - 1, dim, b1, b2, c1, c2, lrs_c,
+                           ib2, e, tiny)
             else:
-                for d in range(dim):
-                    b = beta2 * m2[cell, d] + (1.0 - beta2) * g[d] * g[d]
-                    if b < 1e-30:
-                        b = 0.0
-                    m2[cell, d] = b
-                    row[d] -= (lr if d < dim - 1 else lr_sig) * g[d] / (math.sqrt(b) + eps)
+                _rmsprop_span(row, m2[cell], g, 0, dim - 1, b2, c2, lr32, e, tiny)
+                _rmsprop_span(row, m2[cell], g, dim - 1, dim, b2, c2, lrs32, e, tiny)
             nonfinite = 0
             for d in range(dim):
                 g[d] = 0.0
