@@ -13,6 +13,9 @@ as ``march`` here). Variants:
 - ``root``: the same, descending from the root at every segment (``use_stack=False``);
 - ``interleave4``: ``march`` on four rays at once, round robin (hides latency if the march
   waited on memory);
+- ``predict``: the next leaf predicted from the exit face (the neighbour's integer
+  coordinates, no float → integer conversion on the dependency chain), verified against the
+  twin's lookup point ``p(t + ε)`` and looked up from it when they disagree (exact);
 - ``grid``: the leaf looked up in a dense 256³ table of cell indices (64 MiB) instead of the
   descent (one load, no data-dependent loop, the twin's exact lookup);
 - ``param``: a parametric top-down traversal (Revelles et al. 2000: child planes by midpoint
@@ -132,6 +135,88 @@ def _interleave4(child, data, offset, invr, o, d, eps, out):
                     idx[k] = -1
             if alive == 0 and nxt >= end:
                 break
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _descend(child, qx, qy, qz, rx, ry, rz, level, lim, stack):
+    """``next_leaf``'s descent from ``stack[level]``: bits of ``q`` down to level ``lim``, of
+    ``r`` below it. Returns ``(cell, level, the coordinates used last)``."""
+    node = stack[level]
+    while True:
+        if level > lim:
+            qx, qy, qz = rx, ry, rz
+        sh = QUANT_BITS - 1 - level
+        cell = node * 8 + (((qx >> sh) & 1) << 2) + (((qy >> sh) & 1) << 1) + ((qz >> sh) & 1)
+        c = child[cell]
+        if c <= 0 or level >= MAX_LEVEL:
+            return cell, level, qx, qy, qz
+        node += c
+        level += 1
+        stack[level] = node
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _up(level, qx, qy, qz, st):
+    """Deepest level of the path in ``st`` that still holds ``q`` (``next_leaf``'s loop)."""
+    diff = (qx ^ st[1]) | (qy ^ st[2]) | (qz ^ st[3])
+    while level > 0 and (diff >> (QUANT_BITS - level)) != 0:
+        level -= 1
+    return level
+
+
+@njit(parallel=True, cache=True, fastmath=True)
+def _predict(child, data, offset, invr, o, d, eps, out):
+    """The next leaf predicted from the exit face (the neighbour's integer coordinates: one
+    add, no float → integer conversion on the chain), verified against the twin's lookup point
+    ``p(t + ε)`` (computed off the chain) and looked up again from it when they disagree."""
+    n = o.shape[0]
+    top = (1 << QUANT_BITS) - 1
+    for tile in prange((n + _TILE - 1) // _TILE):
+        st = np.zeros(5, np.int64)            # level, path coordinates, predicted exit axis
+        stack = np.zeros(STACK_SIZE, np.int64)
+        for i in range(tile * _TILE, min(n, tile * _TILE + _TILE)):
+            _, _, _, px, py, pz, vx, vy, vz, ix, iy, iz, t0, t1, et = _start(offset, invr, o, d,
+                                                                               i, eps)
+            tr, t = 1.0, t0
+            st[0], st[1], st[4], stack[0] = 0, -1, -1, 0
+            while t < t1:
+                ts = t + et
+                rx, ry, rz = _quant(px, vx, ts), _quant(py, vy, ts), _quant(pz, vz, ts)
+                a, lev0, ok = st[4], st[0], False
+                if a >= 0:
+                    sh = QUANT_BITS - 1 - lev0
+                    ax, ay, az = st[1], st[2], st[3]
+                    if a == 0:
+                        ax = ((ax >> sh) + 1) << sh if vx >= 0.0 else ((ax >> sh) << sh) - 1
+                    elif a == 1:
+                        ay = ((ay >> sh) + 1) << sh if vy >= 0.0 else ((ay >> sh) << sh) - 1
+                    else:
+                        az = ((az >> sh) + 1) << sh if vz >= 0.0 else ((az >> sh) << sh) - 1
+                    if ((ax | ay | az) & ~top) == 0:
+                        cell, level, qx, qy, qz = _descend(child, ax, ay, az, rx, ry, rz,
+                                                           _up(lev0, ax, ay, az, st), lev0, stack)
+                        ok = (((rx ^ ax) | (ry ^ ay) | (rz ^ az))
+                              >> (QUANT_BITS - 1 - min(level, lev0))) == 0
+                        if not ok:                # the stack now holds the predicted path
+                            st[0], st[1], st[2], st[3] = min(level, lev0), ax, ay, az
+                if not ok:
+                    level = _up(st[0], rx, ry, rz, st) if st[1] >= 0 else 0
+                    cell, level, qx, qy, qz = _descend(child, rx, ry, rz, rx, ry, rz, level,
+                                                       MAX_LEVEL, stack)
+                st[0], st[1], st[2], st[3] = level, qx, qy, qz
+                sh = QUANT_BITS - 1 - level
+                bx = ((((qx >> sh) + 1) << sh) if vx >= 0.0 else ((qx >> sh) << sh)) / _S
+                by = ((((qy >> sh) + 1) << sh) if vy >= 0.0 else ((qy >> sh) << sh)) / _S
+                bz = ((((qz >> sh) + 1) << sh) if vz >= 0.0 else ((qz >> sh) << sh)) / _S
+                tx, ty, tz = (bx - px) * ix, (by - py) * iy, (bz - pz) * iz
+                m = min(tx, min(ty, tz))
+                te = min(max(m, ts), t1)
+                st[4] = (0 if tx == m else (1 if ty == m else 2)) if m >= ts else -1
+                tr = _absorb(data, cell, t, te, tr)
+                if tr < _STOP:
+                    break
+                t = te
+            out[i] = tr
 
 
 @njit(cache=True, inline="always")
@@ -343,7 +428,8 @@ def main(argv: list[str] | None = None) -> int:
     segs = [np.zeros(n, np.int64) for _ in views]
     skip_segs = [np.zeros(n, np.int64) for _ in views]
     outs = {k: [np.zeros(n) for _ in views] for k in
-            ("march", "empty_skip", "root", "interleave4", "grid", "param", "geometry", "dda")}
+            ("march", "empty_skip", "root", "interleave4", "predict", "grid", "param",
+              "geometry", "dda")}
     calls = {
         "march": lambda v: _march(child, NO_SKIP, 0, data, off, inv, *views[v], eps, True,
                                   outs["march"][v], segs[v]),
@@ -353,6 +439,8 @@ def main(argv: list[str] | None = None) -> int:
                                  outs["root"][v], np.zeros(n, np.int64)),
         "interleave4": lambda v: _interleave4(child, data, off, inv, *views[v], eps,
                                                  outs["interleave4"][v]),
+        "predict": lambda v: _predict(child, data, off, inv, *views[v], eps,
+                                      outs["predict"][v]),
         "grid": lambda v: _grid_march(grid, child, data, off, inv, *views[v], eps,
                                          outs["grid"][v]),
         "param": lambda v: _param(child, data, off, inv, *views[v], eps, outs["param"][v]),
