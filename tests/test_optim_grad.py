@@ -162,7 +162,6 @@ def test_fused_mse_gradient_equals_autograd_of_the_loss():
 def test_edge_rays_empty_opaque_and_no_rays():
     tree = random_tree("SH4", seed=40)
     opts = RenderOptions(stop_thresh=0.01, background=(0.1, 0.2, 0.3))
-    args = kernel_args(tree, opts)
     # no rays at all
     data = torch.tensor(tree.data, requires_grad=True)
     rgb = render_rays_differentiable(data, tree, np.zeros((0, 3)), np.ones((0, 3)), opts)
@@ -269,3 +268,52 @@ def test_full_slabs_grow_and_the_batch_runs_again():
     with pytest.raises(ConfigError, match="still hold a batch"):
         b.accumulate(o, d, tgt, 1e-3)
         b.accumulate(o, d, tgt, 1e-3)
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "rmsprop"])
+def test_optimiser_kernel_steps_as_torch_in_float32(optimizer):
+    """``step_touched`` on hand-filled slabs (two chunks sharing a cell) equals torch's own
+    optimiser on the summed gradient, float32, σ (last column) at its own rate and kept ≥ 0."""
+    from plenoctree.optim import _render_grad_numba as k
+
+    rng = np.random.default_rng(7)
+    n_cells, dim, lr, lr_sig = 10, 5, 1e-2, 3e-2
+    rows = [np.array([3, 7]), np.array([7, 9])]          # cell 7 is in both chunks' lists
+    data = rng.normal(size=(n_cells, dim)).astype(np.float32)
+    data[:, -1] = np.abs(data[:, -1]) + 0.05
+    data[9, -1] = 1e-4                                   # its σ step goes below 0: clamped
+    m1, m2, sig = np.zeros_like(data), np.zeros_like(data), data[:, -1].copy()
+    start = data.copy()
+    colour = torch.tensor(data[:, :-1], requires_grad=True)
+    sigma = torch.tensor(data[:, -1:], requires_grad=True)
+    groups = [{"params": [colour], "lr": lr}, {"params": [sigma], "lr": lr_sig}]
+    ref = (torch.optim.Adam(groups, betas=(0.9, 0.999), eps=1e-8) if optimizer == "adam"
+           else torch.optim.RMSprop(groups, alpha=0.99, eps=1e-8))
+    opt = k.OPT_ADAM if optimizer == "adam" else k.OPT_RMSPROP
+    beta1 = 0.9 if optimizer == "adam" else 0.0
+    beta2 = 0.999 if optimizer == "adam" else 0.99
+    for step in range(1, 4):
+        grad3 = np.zeros((2, 4, dim), np.float32)
+        slot = np.full((2, n_cells), -1, np.int32)
+        touched = np.zeros((2, 4), np.int64)
+        dense = np.zeros((n_cells, dim), np.float32)
+        for c, cells in enumerate(rows):
+            for j, cell in enumerate(cells):
+                grad3[c, j] = rng.normal(size=dim)
+                grad3[c, j, -1] = 1.0 if cell == 9 else grad3[c, j, -1]
+                slot[c, cell], touched[c, j] = j, cell
+                dense[cell] += grad3[c, j]
+        bad = k.step_touched(data, sig, grad3, slot, touched, np.array([2, 2], np.int64), opt,
+                             lr, lr_sig, m1, m2, beta1, beta2, 1e-8, float(step))
+        assert bad == 0 and not grad3.any() and (slot == -1).all()
+        ref.zero_grad()
+        colour.grad, sigma.grad = torch.tensor(dense[:, :-1]), torch.tensor(dense[:, -1:])
+        ref.step()
+        with torch.no_grad():
+            sigma.clamp_(min=0.0)
+        want = torch.cat([colour, sigma], 1).detach().numpy()
+        np.testing.assert_allclose(data, want, rtol=1e-5, atol=1e-6)
+        np.testing.assert_array_equal(sig, data[:, -1])
+    untouched = [0, 1, 2, 4, 5, 6, 8]
+    assert data[9, -1] == 0.0 and (data[untouched] == start[untouched]).all()
+    assert (m1[untouched] == 0).all() and (m2[untouched] == 0).all()
