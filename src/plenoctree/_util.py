@@ -30,6 +30,8 @@ __all__ = [
     "progress",
     "LogProgress",
     "check_shape",
+    "to_numpy",
+    "vec3",
 ]
 
 
@@ -242,11 +244,22 @@ def atomic_save_json(path: str | os.PathLike, obj: Any) -> None:
         f.write("\n")
 
 
+def to_numpy(x: Any) -> np.ndarray:
+    """``x`` as a numpy array: a torch tensor detached and moved to the CPU (a view of a CPU
+    tensor), anything else through ``np.asarray``."""
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def vec3(x: Any) -> np.ndarray:
+    """A scalar or 3 numbers (numpy or torch) as a new float64 ``[3]`` array."""
+    return np.broadcast_to(np.asarray(to_numpy(x), np.float64).reshape(-1), (3,)).copy()
+
+
 def to_uint8(img: Any) -> np.ndarray:
     """Convert a float image in [0, 1] (numpy or torch, [H, W] or [H, W, C]) to uint8."""
-    if hasattr(img, "detach"):
-        img = img.detach().cpu().numpy()
-    img = np.asarray(img)
+    img = to_numpy(img)
     if img.dtype == np.uint8:
         return img
     return (np.clip(np.nan_to_num(img.astype(np.float32)), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)

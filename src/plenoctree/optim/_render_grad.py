@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from .._util import to_numpy, vec3
 from ..errors import ConfigError
 from ..render.options import KIND_SG, FormatInfo, RenderOptions, parse_data_format
 
@@ -55,12 +56,6 @@ class KernelArgs:
         return int(self.child.shape[0])
 
 
-def _np(x: Any) -> np.ndarray:
-    if hasattr(x, "detach"):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x)
-
-
 def kernel_args(tree: Any, options: RenderOptions | None = None,
                 skip_from: np.ndarray | None = None) -> KernelArgs:
     """Pack ``tree`` (an :class:`~plenoctree.octree.Octree`, geometry only) and ``options``.
@@ -73,18 +68,17 @@ def kernel_args(tree: Any, options: RenderOptions | None = None,
     from ._render_grad_numba import initial_capacity
 
     opts = (options if options is not None else RenderOptions()).validated()
-    child = _np(tree.child)
+    child = to_numpy(tree.child)
     data_dim = int(tree.data.shape[-1])
     extra = getattr(tree, "extra_data", None)
-    extra = None if extra is None else _np(extra)
+    extra = None if extra is None else to_numpy(extra)
     info = parse_data_format(tree.data_format, data_dim, extra)
     if info.kind == KIND_SG:
         sg = np.ascontiguousarray(extra, dtype=np.float64).reshape(info.basis_dim, 4)
     else:
         sg = np.zeros((1, 4), dtype=np.float64)
     b_lo, b_hi = opts.basis_range(info.basis_dim)
-    off = np.broadcast_to(np.asarray(_np(tree.offset), np.float64).reshape(-1), (3,)).copy()
-    inv = np.broadcast_to(np.asarray(_np(tree.invradius), np.float64).reshape(-1), (3,)).copy()
+    off, inv = vec3(tree.offset), vec3(tree.invradius)
     depth = int(getattr(tree, "depth_limit", 10))
     flat = np.ascontiguousarray(child, dtype=np.int32).reshape(-1)
     t = (no_skip(flat) if skip_from is None
@@ -157,8 +151,8 @@ class SparseGrad:
 
 
 def _rays(origins: Any, dirs: Any) -> tuple[np.ndarray, np.ndarray]:
-    o = np.ascontiguousarray(_np(origins), dtype=np.float32).reshape(-1, 3)
-    d = np.ascontiguousarray(_np(dirs), dtype=np.float32).reshape(-1, 3)
+    o = np.ascontiguousarray(to_numpy(origins), dtype=np.float32).reshape(-1, 3)
+    d = np.ascontiguousarray(to_numpy(dirs), dtype=np.float32).reshape(-1, 3)
     if o.shape != d.shape:
         raise ConfigError(f"origins and dirs must have the same shape, got {o.shape} and {d.shape}")
     return o, d

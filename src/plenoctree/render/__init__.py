@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from .. import backend as _backend
+from .._util import to_numpy, vec3
 from ..errors import ConfigError, TreeFormatError
 from .options import FormatInfo, RenderOptions, RenderOutput, parse_data_format
 
@@ -106,23 +107,12 @@ def _tree_info(tree: Any) -> FormatInfo:
         raise ConfigError(f"tree.invradius: must be finite and > 0, got {inv.tolist()}")
     from ..octree.check import check_box, check_child_cached
     try:
-        check_box(_vec3(tree.offset), inv if inv.size == 3 else np.repeat(inv, 3), "render: tree")
+        check_box(vec3(tree.offset), inv if inv.size == 3 else np.repeat(inv, 3), "render: tree")
         if not isinstance(tree, CpuTree):   # a CpuTree's child: a private copy, checked once
             check_child_cached(tree, "render: tree")    # once per tree object and child version
     except TreeFormatError as e:
         raise ConfigError(str(e)) from None
     return parse_data_format(tree.data_format, data.shape[-1], getattr(tree, "extra_data", None))
-
-
-def _to_np(x: Any) -> np.ndarray:
-    """A numpy view of a CPU tensor (or the array itself)."""
-    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
-
-
-def _vec3(x: Any) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
-    return np.broadcast_to(np.asarray(x, dtype=np.float64).reshape(-1), (3,)).copy()
 
 
 def render_rays(tree: Any, origins: Any, dirs: Any, options: RenderOptions | None = None,
@@ -161,7 +151,7 @@ def render_rays(tree: Any, origins: Any, dirs: Any, options: RenderOptions | Non
                   torch.device("cpu"))
     name = _backend.resolve("render", backend, device)
     batch = tuple(origins.shape[:-1])
-    _check_origins(origins, _vec3(tree.offset), _vec3(tree.invradius))
+    _check_origins(origins, vec3(tree.offset), vec3(tree.invradius))
     # The numba kernel marches the pixels of an image in 2-D tiles when it knows the width.
     hint = {"width": int(batch[-1])} if name == "numba" and len(batch) >= 2 else {}
     out = _backend.implementation("render", name)(
@@ -178,8 +168,8 @@ def _numba_render(tree: Any, info: FormatInfo, origins: Any, dirs: Any, opts: Re
     from . import _render_numba
 
     rgb, depth, alpha = _render_numba.render_rays_numba(
-        _to_np(tree.child), _to_np(tree.data), _vec3(tree.offset), _vec3(tree.invradius), info,
-        _extra(tree), _to_np(origins), _to_np(dirs), opts, width=width,
+        to_numpy(tree.child), to_numpy(tree.data), vec3(tree.offset), vec3(tree.invradius), info,
+        _extra(tree), to_numpy(origins), to_numpy(dirs), opts, width=width,
         skip=getattr(tree, "empty_skip", None))
     return RenderOutput(torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(alpha))
 
@@ -198,15 +188,13 @@ def _render_torch(tree: Any, info: FormatInfo, origins: Any, dirs: Any, opts: Re
         data = data.float()
     o = origins if isinstance(origins, torch.Tensor) else torch.from_numpy(origins)
     d = dirs if isinstance(dirs, torch.Tensor) else torch.from_numpy(dirs)
-    return render_rays_torch(tree.child, data, _vec3(tree.offset), _vec3(tree.invradius),
+    return render_rays_torch(tree.child, data, vec3(tree.offset), vec3(tree.invradius),
                              info.name, _extra(tree), o, d, opts)
 
 
 def _extra(tree: Any) -> Any:
     extra = getattr(tree, "extra_data", None)
-    if isinstance(extra, torch.Tensor):
-        extra = extra.detach().cpu().numpy()
-    return extra
+    return None if extra is None else to_numpy(extra)
 
 
 class DeviceTree:
@@ -227,7 +215,7 @@ class DeviceTree:
             torch.from_numpy(np.ascontiguousarray(tree.child))
         self.child = child.to(device=dev, dtype=torch.int32).contiguous()
         self.data = data.to(dev).contiguous()
-        self.offset, self.invradius = _vec3(tree.offset), _vec3(tree.invradius)
+        self.offset, self.invradius = vec3(tree.offset), vec3(tree.invradius)
         self.data_format = tree.data_format
         self.extra_data = _extra(tree)
         self.device = dev
@@ -248,9 +236,9 @@ class CpuTree:
     def __init__(self, tree: Any) -> None:
         from .empty_skip import skip_tables
 
-        self.child = np.array(_to_np(tree.child), dtype=np.int32, order="C")   # a copy
-        self.data = np.ascontiguousarray(_to_np(tree.data), dtype=np.float32)
-        self.offset, self.invradius = _vec3(tree.offset), _vec3(tree.invradius)
+        self.child = np.array(to_numpy(tree.child), dtype=np.int32, order="C")   # a copy
+        self.data = np.ascontiguousarray(to_numpy(tree.data), dtype=np.float32)
+        self.offset, self.invradius = vec3(tree.offset), vec3(tree.invradius)
         self.data_format = tree.data_format
         self.extra_data = _extra(tree)
         self.device = torch.device("cpu")
@@ -318,11 +306,11 @@ def _numba_render_camera(tree: Any, cameras: Any, index: int,
     cols, rows = np.array([0, w - 1, 0, w - 1]), np.array([0, 0, h - 1, h - 1])
     o, d = cameras.pixel_rays(np.full(4, i), cols, rows)
     _check_rays(o, d)
-    _check_origins(o, _vec3(tree.offset), _vec3(tree.invradius))
+    _check_origins(o, vec3(tree.offset), vec3(tree.invradius))
     cam = _render_numba.pack_cameras(cameras, [i])[0]
 
-    p = _render_numba._prepare(_to_np(tree.child), _to_np(tree.data), _vec3(tree.offset),
-                               _vec3(tree.invradius), info, _extra(tree), opts,
+    p = _render_numba._prepare(to_numpy(tree.child), to_numpy(tree.data), vec3(tree.offset),
+                               vec3(tree.invradius), info, _extra(tree), opts,
                                getattr(tree, "empty_skip", None))
     rgb, depth, alpha = _render_numba.empty_outputs(w * h)
     _render_numba.render_camera_prepared(p, cam, w, h, (rgb, depth, alpha))

@@ -288,10 +288,11 @@ def render_backend(tree: Any, info: Any, origins: Any, dirs: Any, opts: RenderOp
     """Op ``render`` of :mod:`plenoctree.backend`: rays ``[N, 3]`` on ``device`` (CUDA, or
     the CPU in interpreter mode); numpy rays are moved to ``device``."""
     from .._triton import require_triton
-    from . import _extra, _vec3
+    from .._util import vec3
+    from . import _extra
 
     require_triton(device, "render")
     o = origins if isinstance(origins, torch.Tensor) else torch.from_numpy(origins)
     d = dirs if isinstance(dirs, torch.Tensor) else torch.from_numpy(dirs)
-    return render_rays_triton(tree.child, tree.data, _vec3(tree.offset), _vec3(tree.invradius),
+    return render_rays_triton(tree.child, tree.data, vec3(tree.offset), vec3(tree.invradius),
                               info.name, _extra(tree), o.to(device), d.to(device), opts)
