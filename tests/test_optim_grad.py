@@ -281,7 +281,7 @@ def test_optimiser_kernel_steps_as_torch_in_float32(optimizer):
     rows = [np.array([3, 7]), np.array([7, 9])]          # cell 7 is in both chunks' lists
     data = rng.normal(size=(n_cells, dim)).astype(np.float32)
     data[:, -1] = np.abs(data[:, -1]) + 0.05
-    data[9, -1] = 1e-4                                   # its σ step goes below 0: clamped
+    data[9, -1] = 1e-4                                   # its σ step ends below 0: clamped
     m1, m2, sig = np.zeros_like(data), np.zeros_like(data), data[:, -1].copy()
     start = data.copy()
     colour = torch.tensor(data[:, :-1], requires_grad=True)
@@ -300,7 +300,8 @@ def test_optimiser_kernel_steps_as_torch_in_float32(optimizer):
         for c, cells in enumerate(rows):
             for j, cell in enumerate(cells):
                 grad3[c, j] = rng.normal(size=dim)
-                grad3[c, j, -1] = 1.0 if cell == 9 else grad3[c, j, -1]
+                if cell == 9:
+                    grad3[c, j, -1] = 1.0                # pushes its σ below 0
                 slot[c, cell], touched[c, j] = j, cell
                 dense[cell] += grad3[c, j]
         bad = k.step_touched(data, sig, grad3, slot, touched, np.array([2, 2], np.int64), opt,

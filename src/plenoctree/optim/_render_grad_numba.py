@@ -384,15 +384,12 @@ def step_touched(data, sig, grad3, slot, touched, n_touched, opt, lr, lr_sig, m1
     n_chunks = grad3.shape[0]
     dim = data.shape[1]
     f32 = np.float32
-    bc1 = 1.0 - beta1 ** step
-    bc2 = 1.0 - beta2 ** step
+    # Adam's bias corrections (1 for the others), folded into the rates
+    bc1 = 1.0 - beta1 ** step if opt == OPT_ADAM else 1.0
+    bc2 = 1.0 - beta2 ** step if opt == OPT_ADAM else 1.0
+    lr_c, lrs_c, ib2 = f32(lr / bc1), f32(lr_sig / bc1), f32(1.0 / bc2)
     b1, b2, c1, c2 = f32(beta1), f32(beta2), f32(1.0 - beta1), f32(1.0 - beta2)
     e, tiny = f32(eps), f32(1e-30)
-    lr32, lrs32 = f32(lr), f32(lr_sig)
-    if opt == OPT_ADAM:
-        lr_c, lrs_c, ib2 = f32(lr / bc1), f32(lr_sig / bc1), f32(1.0 / bc2)
-    else:
-        lr_c, lrs_c, ib2 = lr32, lrs32, f32(1.0)
     bad = 0
     for c in range(n_chunks):
         m = n_touched[c]
@@ -422,16 +419,16 @@ def step_touched(data, sig, grad3, slot, touched, n_touched, opt, lr, lr_sig, m1
             row = data[cell]
             if opt == OPT_SGD:
                 for d in range(dim - 1):
-                    row[d] -= lr32 * g[d]
-                row[dim - 1] -= lrs32 * g[dim - 1]
+                    row[d] -= lr_c * g[d]
+                row[dim - 1] -= lrs_c * g[dim - 1]
             elif opt == OPT_ADAM:
                 _adam_span(row, m1[cell], m2[cell], g, 0, dim - 1, b1, b2, c1, c2, lr_c, ib2,
                            e, tiny)
                 _adam_span(row, m1[cell], m2[cell], g, dim - 1, dim, b1, b2, c1, c2, lrs_c,
                            ib2, e, tiny)
             else:
-                _rmsprop_span(row, m2[cell], g, 0, dim - 1, b2, c2, lr32, e, tiny)
-                _rmsprop_span(row, m2[cell], g, dim - 1, dim, b2, c2, lrs32, e, tiny)
+                _rmsprop_span(row, m2[cell], g, 0, dim - 1, b2, c2, lr_c, e, tiny)
+                _rmsprop_span(row, m2[cell], g, dim - 1, dim, b2, c2, lrs_c, e, tiny)
             nonfinite = 0
             for d in range(dim):
                 g[d] = 0.0
