@@ -49,7 +49,8 @@ from numba import njit, prange
 from _trees import ROOT, load_bench_tree, machine_info
 from render_speed import orbit_cameras
 
-from plenoctree.render._march_numba import MAX_LEVEL, STACK_SIZE, next_leaf, ray_octant, ray_start
+from plenoctree.render._march_numba import (MAX_LEVEL, STACK_SIZE, common_level, next_leaf,
+                                            ray_octant, ray_start)
 from plenoctree.render.empty_skip import NO_SKIP, skip_tables
 from plenoctree.render.options import QUANT_BITS
 
@@ -155,15 +156,6 @@ def _descend(child, qx, qy, qz, rx, ry, rz, level, lim, stack):
         stack[level] = node
 
 
-@njit(cache=True, fastmath=True, inline="always")
-def _up(level, qx, qy, qz, st):
-    """Deepest level of the path in ``st`` that still holds ``q`` (``next_leaf``'s loop)."""
-    diff = (qx ^ st[1]) | (qy ^ st[2]) | (qz ^ st[3])
-    while level > 0 and (diff >> (QUANT_BITS - level)) != 0:
-        level -= 1
-    return level
-
-
 @njit(parallel=True, cache=True, fastmath=True)
 def _predict(child, data, offset, invr, o, d, eps, out):
     """The next leaf predicted from the exit face (the neighbour's integer coordinates: one
@@ -193,14 +185,15 @@ def _predict(child, data, offset, invr, o, d, eps, out):
                     else:
                         az = ((az >> sh) + 1) << sh if vz >= 0.0 else ((az >> sh) << sh) - 1
                     if ((ax | ay | az) & ~top) == 0:
-                        cell, level, qx, qy, qz = _descend(child, ax, ay, az, rx, ry, rz,
-                                                           _up(lev0, ax, ay, az, st), lev0, stack)
+                        up = common_level(lev0, ax, ay, az, st)
+                        cell, level, qx, qy, qz = _descend(child, ax, ay, az, rx, ry, rz, up,
+                                                           lev0, stack)
                         ok = (((rx ^ ax) | (ry ^ ay) | (rz ^ az))
                               >> (QUANT_BITS - 1 - min(level, lev0))) == 0
                         if not ok:                # the stack now holds the predicted path
                             st[0], st[1], st[2], st[3] = min(level, lev0), ax, ay, az
                 if not ok:
-                    level = _up(st[0], rx, ry, rz, st) if st[1] >= 0 else 0
+                    level = common_level(st[0], rx, ry, rz, st) if st[1] >= 0 else 0
                     cell, level, qx, qy, qz = _descend(child, rx, ry, rz, rx, ry, rz, level,
                                                        MAX_LEVEL, stack)
                 st[0], st[1], st[2], st[3] = level, qx, qy, qz

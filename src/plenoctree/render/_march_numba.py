@@ -38,8 +38,8 @@ from .. import sh as _sh
 from ..octree.limits import MAX_DEPTH, max_steps
 from .options import KIND_RGBA, KIND_SG, KIND_SH, QUANT_BITS
 
-__all__ = ["ray_start", "ray_octant", "next_leaf", "look_ahead", "prefetch_row", "basis_values",
-           "leaf_logits", "pad_scratch", "SCRATCH_PAD",
+__all__ = ["ray_start", "ray_octant", "common_level", "next_leaf", "look_ahead", "prefetch_row",
+           "basis_values", "leaf_logits", "pad_scratch", "SCRATCH_PAD",
            "STACK_SIZE", "MAX_LEVEL", "MAX_STEPS", "LOOKAHEAD", "QUEUE"]
 
 #: Deepest node level a descent reaches (= the deepest cell depth a tree may have; deeper
@@ -225,6 +225,17 @@ def ray_octant(vx, vy, vz):
     return (4 if vx >= 0.0 else 0) + (2 if vy >= 0.0 else 0) + (1 if vz >= 0.0 else 0)
 
 
+@njit(cache=True, inline="always")
+def common_level(level, qx, qy, qz, st):
+    """Deepest level ``<= level`` whose node on the previous lookup's path (integer point
+    ``st[1:4]``) also holds the integer point ``q``: the highest bit in which the two points
+    differ names it."""
+    diff = (qx ^ st[1]) | (qy ^ st[2]) | (qz ^ st[3])
+    while level > 0 and (diff >> (QUANT_BITS - level)) != 0:
+        level -= 1
+    return level
+
+
 @njit(cache=True, fastmath=True, inline="always")
 def next_leaf(child, skip, shift, oc, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps_t, t1,
               use_stack, max_level, st, stack):
@@ -246,10 +257,7 @@ def next_leaf(child, skip, shift, oc, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps
     qz = int(min(max((pz + ts * vz) * _SCALE, 0.0), _SCALE - 1.0))
     level = st[0]
     if use_stack and st[1] >= 0:
-        # Deepest level whose node is shared with the previous path.
-        diff = (qx ^ st[1]) | (qy ^ st[2]) | (qz ^ st[3])
-        while level > 0 and (diff >> (QUANT_BITS - level)) != 0:
-            level -= 1
+        level = common_level(level, qx, qy, qz, st)
     else:
         level = 0
         stack[0] = 0
