@@ -51,6 +51,37 @@ def test_numba_matches_torch_twin(n_features):
     assert (ga != 0).sum() > 100
 
 
+def test_numba_kernels_do_not_depend_on_the_thread_count():
+    """The level loops deal levels out round-robin by thread count; every level still owns its
+    output slice and table rows, so one thread and two give the same bits."""
+    import numba
+
+    from plenoctree.nerf import _hashgrid_numba as K
+
+    res, off, hashed = hashgrid_levels(7, 4, 80, 9)
+    for t in (1, 2, 3, 7, 16):
+        assert sorted(K._levels(res, t).tolist()) == list(range(7))
+    assert K._levels(res, 2).tolist() == [0, 2, 4, 6, 1, 3, 5]
+    rng = np.random.default_rng(3)
+    table = rng.standard_normal((int(off[-1]), 2)).astype(np.float32)
+    x = rng.random((500, 3)).astype(np.float32)
+    x[:4] = [0.0, 1.0, 0.5]
+    g = rng.standard_normal((500, 14)).astype(np.float32)
+    outs = []
+    for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+        prev = numba.get_num_threads()
+        numba.set_num_threads(threads)
+        try:
+            out = np.empty((500, 14), np.float32)
+            K.hashgrid_forward(x, table, res, off, hashed, out)
+            grad = np.zeros_like(table)
+            K.hashgrid_backward(x, g, res, off, hashed, grad)
+        finally:
+            numba.set_num_threads(prev)
+        outs.append((out, grad))
+    assert np.array_equal(outs[0][0], outs[1][0]) and np.array_equal(outs[0][1], outs[1][1])
+
+
 def test_twin_gradcheck_float64():
     res, off, hashed = hashgrid_levels(3, 2, 9, 6)
     assert hashed.any() and (~hashed).any()

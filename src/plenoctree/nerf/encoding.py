@@ -156,8 +156,7 @@ class _HashGridNumba(torch.autograd.Function):
 
         (x,) = ctx.saved_tensors
         res, offsets, hashed, tshape = ctx.layout
-        n_lev, n_feat = len(res), tshape[1]
-        g = grad_out.float().reshape(-1, n_lev, n_feat).transpose(0, 1).contiguous()  # [L, N, F]
+        g = grad_out.float().contiguous()                                    # [N, L * F]
         table = ctx.table
         if table is not None:
             if table.grad is None:
