@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -78,6 +79,59 @@ def test_march_numba_matches_torch(cap):
     torch.testing.assert_close(k, k.round(), atol=2e-3, rtol=0)
     if cap:
         assert int(a.counts.max()) <= cap
+
+
+def _shell_mask(g):
+    """A thick spherical shell and a small cube: large empty cubes around and inside."""
+    ijk = torch.stack(torch.meshgrid(*[torch.arange(g)] * 3, indexing="ij"), -1).float()
+    r = ((ijk + 0.5) / g - 0.5).norm(dim=-1)
+    mask = (r > 0.2) & (r < 0.28)
+    mask[2:4, 20:23, 5:7] = True
+    return mask
+
+
+def test_empty_levels_are_the_largest_empty_aligned_cubes():
+    from plenoctree.nerf import _march_numba as K
+
+    mask = _shell_mask(32)
+    levels = np.empty((32, 32, 32), np.uint8)
+    K.empty_levels(mask.numpy(), levels)
+    m = mask.numpy()
+    assert np.all((levels == K.OCCUPIED) == m)
+    for lev in range(6):
+        s = 1 << lev
+        blocks = m.reshape(32 // s, s, 32 // s, s, 32 // s, s).any(axis=(1, 3, 5))
+        empty = np.repeat(np.repeat(np.repeat(~blocks, s, 0), s, 1), s, 2)
+        # a cell's level is >= lev exactly when its aligned 2^lev cube is empty
+        assert np.array_equal((levels >= lev) & ~m, empty), lev
+    assert levels[~m].max() >= 3                     # the corners' empty 8-cell cubes
+
+
+@pytest.mark.parametrize("cap", [0, 2])
+def test_march_jumps_over_empty_cubes_with_the_twins_samples(cap):
+    """Rays through large empty cubes, many lattice steps per cell, some axis-parallel or
+    grazing cube faces: the numba kernels (which jump) emit exactly the twin's samples."""
+    o, d, t0, t1, jit, g = _rays(400, 5)
+    d[:40] = torch.tensor([1.0, 0.0, 0.0])             # axis-parallel, along cell faces
+    o[:40] = torch.tensor([-2.0, 0.0, 0.0]) + (torch.arange(40)[:, None] % 8) * torch.tensor(
+        [0.0, 2.0 / 32, 2.0 / 32]) - torch.tensor([0.0, 0.5, 0.5])
+    d[40:80] = torch.nn.functional.normalize(torch.tensor([1.0, 1e-6, 0.3]), dim=0)
+    o[40:80] = torch.tensor([-2.0, 2.0 / 32 * 3, -0.5]) + torch.randn((40, 3), generator=g) * 1e-3
+    t0, t1 = ray_aabb(o, d, BOX)
+    t0 = t0.clamp(min=0.0)
+    mask = _shell_mask(32)
+    k0 = torch.randint(0, 3, (400,), generator=g)
+    a = march_rays(o, d, t0, t1, jit, 0.004, mask, BOX, k_start=k0, max_per_ray=cap,
+                   backend="numba")
+    b = march_rays(o, d, t0, t1, jit, 0.004, mask, BOX, k_start=k0, max_per_ray=cap,
+                   backend="torch")
+    assert len(a) > 400
+    _assert_same(a, b)
+    # the same mask object marched again after an in-place change: the jumps follow it
+    mask[:, :, :] = ~mask
+    a = march_rays(o, d, t0, t1, jit, 0.004, mask, BOX, max_per_ray=cap, backend="numba")
+    b = march_rays(o, d, t0, t1, jit, 0.004, mask, BOX, max_per_ray=cap, backend="torch")
+    _assert_same(a, b)
 
 
 def test_march_in_waves_equals_one_march():

@@ -216,14 +216,33 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, t_min: torch.Tensor,
                                                   step, mask, bbox, max_per_ray)
 
 
+_LEVELS_CACHE: dict = {}
+
+
+def _empty_levels(mask: torch.Tensor) -> np.ndarray:
+    """:func:`._march_numba.empty_levels` of a CPU ``mask``, computed once per mask content: the
+    trainer marches ~3 times a step and updates its grid in place every 16 steps. The cache
+    holds the last mask itself (so its memory cannot be reused by another tensor) and its
+    in-place version counter (bumped by every torch write to it)."""
+    from . import _march_numba as K
+
+    if _LEVELS_CACHE.get("mask") is mask and _LEVELS_CACHE.get("version") == mask._version:
+        return _LEVELS_CACHE["levels"]
+    levels = np.empty(tuple(mask.shape), np.uint8)
+    K.empty_levels(mask.contiguous().numpy(), levels)
+    _LEVELS_CACHE.update(mask=mask, version=mask._version, levels=levels)
+    return levels
+
+
 def _march_numba(origins, dirs, t_min, t_max, jitter, k_start, step, mask, bbox, max_per_ray
                  ) -> PackedSamples:
-    """The numba marching kernels (CPU tensors); the same samples as :func:`_march_torch`."""
+    """The numba marching kernels (CPU tensors); the same samples as :func:`_march_torch`,
+    crossing empty cubes of the grid in jumps (see :mod:`._march_numba`)."""
     from . import _march_numba as K
 
     n_rays = origins.shape[0]
     lo, inv = _grid_consts(mask, bbox)
-    m = mask.contiguous().numpy()
+    m = _empty_levels(mask)
     counts = np.empty(n_rays, np.int64)
     k_next = np.empty(n_rays, np.int64)
     done = np.empty(n_rays, np.bool_)
