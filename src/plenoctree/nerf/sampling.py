@@ -219,8 +219,9 @@ def march_rays(origins: torch.Tensor, dirs: torch.Tensor, t_min: torch.Tensor,
 _LEVELS_CACHE: dict = {}
 
 
-def _empty_levels(mask: torch.Tensor) -> np.ndarray:
-    """:func:`._march_numba.empty_levels` of a CPU ``mask``, computed once per mask content: the
+def _empty_levels(mask: torch.Tensor) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`._march_numba.empty_levels` of a CPU ``mask`` and its
+    :func:`~._march_numba.coarse_levels` (+ their shift), computed once per mask content: the
     trainer marches ~3 times a step and updates its grid in place every 16 steps. The cache
     holds the last mask itself (so its memory cannot be reused by another tensor) and its
     in-place version counter (bumped by every torch write to it)."""
@@ -228,10 +229,14 @@ def _empty_levels(mask: torch.Tensor) -> np.ndarray:
 
     if _LEVELS_CACHE.get("mask") is mask and _LEVELS_CACHE.get("version") == mask._version:
         return _LEVELS_CACHE["levels"]
-    levels = np.empty(tuple(mask.shape), np.uint8)
+    g = int(mask.shape[0])
+    levels = np.empty((g, g, g), np.uint8)
     K.empty_levels(mask.contiguous().numpy(), levels)
-    _LEVELS_CACHE.update(mask=mask, version=mask._version, levels=levels)
-    return levels
+    cs = K.coarse_shift(g)
+    coarse = np.empty((g >> cs,) * 3, np.uint8)
+    K.coarse_levels(levels, coarse)
+    _LEVELS_CACHE.update(mask=mask, version=mask._version, levels=(levels, coarse, cs))
+    return levels, coarse, cs
 
 
 def _march_numba(origins, dirs, t_min, t_max, jitter, k_start, step, mask, bbox, max_per_ray
@@ -242,12 +247,12 @@ def _march_numba(origins, dirs, t_min, t_max, jitter, k_start, step, mask, bbox,
 
     n_rays = origins.shape[0]
     lo, inv = _grid_consts(mask, bbox)
-    m = _empty_levels(mask)
+    levels, coarse, cs = _empty_levels(mask)
     counts = np.empty(n_rays, np.int64)
     k_next = np.empty(n_rays, np.int64)
     done = np.empty(n_rays, np.bool_)
     args = (origins.numpy(), dirs.numpy(), t_min.numpy(), t_max.numpy(), jitter.numpy(),
-            k_start.numpy(), np.float32(step), m, lo, inv)
+            k_start.numpy(), np.float32(step), levels, coarse, np.int64(cs), lo, inv)
     K.march_count(*args, int(max_per_ray), counts, k_next, done)
     offsets = np.zeros(n_rays + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
