@@ -7,6 +7,9 @@ Method: every figure comes from the package's own code paths on real data (lego 
   rays/s and samples/s the trainer itself logs (samples = network evaluations).
 * Paper preset (fp32, and bf16 autocast as a variant): ``--paper-steps`` steps of 1024 rays
   with 64 coarse + 192 fine network samples per ray; median over the steps after the first two.
+* ``--resume RUN``: only the steady-state throughput of a trained run continued for
+  ``--resume-steps`` steps (see :func:`bench_resume`); run under two code versions
+  (``PYTHONPATH=OLD/src``) to compare them.
 * render-nerf: seconds per 800x800 frame with the network, chunked, no gradients. The paper
   preset is timed on ``--render-rows`` rows of test view 0 and extrapolated (a full frame takes
   minutes); the CPU preset renders the whole frame.
@@ -21,10 +24,10 @@ import argparse
 import json
 import os
 import platform
+import shutil
 import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 if os.name == "posix" and "OMP_WAIT_POLICY" not in os.environ:
@@ -73,6 +76,29 @@ def bench_cpu(data: str, downscale: int, minutes: float, root: Path) -> dict:
             "occupancy": rows[-1]["occupancy"], "run": cfg.out}
 
 
+def bench_resume(run: str, data: str, steps: int, root: Path) -> dict:
+    """Steady-state CPU-preset throughput: a copy of the trained run ``run`` (a ``train`` or
+    ``plenoctree run`` NeRF directory with its optimizer state) trained ``steps`` more steps;
+    median of the log rows after the first 10 steps (the late-training state where most of a
+    run's steps are spent: settled occupancy grid, ~6 samples per ray)."""
+    from plenoctree.nerf.config import config_from_dict
+
+    src = Path(run)
+    dst = root / "resumed"
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("val", "render_*"))
+    cfg = config_from_dict(json.loads((dst / "config.json").read_text()))
+    step0 = int(torch.load(dst / "checkpoint.pt", map_location="cpu", weights_only=False)["step"])
+    cfg.out, cfg.data = str(dst), data
+    cfg.minutes, cfg.max_steps, cfg.val_views, cfg.log_every = 0.0, step0 + steps, 0, 5
+    cfg.ckpt_every_s, cfg.val_every_s = 1e9, 1e9
+    train(cfg, resume=True, quiet=True)
+    rows = [r for r in _rows(dst) if r["step"] > step0 + 10]
+    return {"run": run, "from_step": step0, "steps": steps,
+            "rays_per_s": statistics.median(r["rays_per_s"] for r in rows),
+            "samples_per_s": statistics.median(r["samples_per_s"] for r in rows),
+            "samples_per_ray": statistics.median(r["samples_per_ray"] for r in rows)}
+
+
 def bench_paper(data: str, downscale: int, steps: int, amp: str, root: Path) -> dict:
     cfg = preset("paper")
     cfg.data, cfg.out, cfg.downscale = data, str(root / f"paper_{amp}"), downscale
@@ -109,11 +135,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--render-rows", type=int, default=8,
                     help="rows of the 800x800 frame timed for the paper preset")
     ap.add_argument("--threads", type=int, default=0)
+    ap.add_argument("--resume", default="",
+                    help="measure only the steady-state throughput of this trained run "
+                         "(e.g. DIR/nerf of `plenoctree run`) continued --resume-steps steps; "
+                         "run it under each code version to compare them")
+    ap.add_argument("--resume-steps", type=int, default=100)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "nerf_speed.json"))
     args = ap.parse_args(argv)
     setup_threads(args.threads)
     machine = _machine()
     out: dict = {"machine": machine, "args": vars(args)}
+    if args.resume:
+        with tempfile.TemporaryDirectory(prefix="nerf_speed_") as tmp:
+            r = out["cpu_resumed"] = bench_resume(args.resume, args.data, args.resume_steps,
+                                                  Path(tmp))
+        machine["loadavg_end"] = os.getloadavg()
+        text = (f"NeRF-SH CPU preset, steady state: {args.resume} from step {r['from_step']}, "
+                f"{r['steps']} steps: {r['rays_per_s']:.0f} rays/s, {r['samples_per_s']:.0f} "
+                f"samples/s, {r['samples_per_ray']:.2f} samples/ray (load average "
+                f"{machine['loadavg_start'][0]:.2f} → {machine['loadavg_end'][0]:.2f})")
+        return _finish(out, text, args.out)
     with tempfile.TemporaryDirectory(prefix="nerf_speed_") as tmp:
         root = Path(tmp)
         out["cpu_train"] = bench_cpu(args.data, args.downscale, args.cpu_minutes, root)
@@ -145,12 +186,15 @@ def main(argv: list[str] | None = None) -> int:
         f"cpu preset vs paper preset training: {c['rays_per_s'] / p['rays_per_s']:.0f}x rays/s; "
         f"render: {pr['seconds_per_frame'] / cr['seconds_per_frame']:.0f}x faster per frame",
     ]
-    text = "\n".join(lines)
+    return _finish(out, "\n".join(lines), args.out)
+
+
+def _finish(out: dict, text: str, path: str) -> int:
     print(text)
     out["table"] = text
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=2, default=float) + "\n")
-    print(f"\nwrote {args.out}")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(out, indent=2, default=float) + "\n")
+    print(f"\nwrote {path}")
     return 0
 
 
