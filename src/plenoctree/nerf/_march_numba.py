@@ -125,8 +125,10 @@ def _skip(k, t, cx, cy, cz, ux, uy, uz, lev, dx, dy, dz, inv, t0, t1, jr, step):
             t_exit = min(t_exit, t + (b1 - u) / v)
         elif v < 0.0:
             t_exit = min(t_exit, t + (b0 - u) / v)
-    kk = np.int64(math.floor((t_exit - np.float64(t0)) / np.float64(step) - np.float64(jr))) - 1
-    return max(k, kk)
+    n_steps = (t_exit - np.float64(t0)) / np.float64(step) - np.float64(jr)
+    if not n_steps < 4e18:                       # an infinite t_max and a zero direction
+        return k
+    return max(k, np.int64(math.floor(n_steps)) - 1)
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
