@@ -61,17 +61,20 @@ def _assert_same(a, b):
     torch.testing.assert_close(a.points, b.points, atol=0, rtol=0)
 
 
+def _numba_equals_twin(*args, **kw):
+    """``march_rays(*args, **kw)`` with the numba kernels, checked equal to the torch twin's."""
+    a = march_rays(*args, **kw, backend="numba")
+    _assert_same(a, march_rays(*args, **kw, backend="torch"))
+    return a
+
+
 @pytest.mark.parametrize("cap", [0, 3])
 def test_march_numba_matches_torch(cap):
     o, d, t0, t1, jit, g = _rays(300, 1)
     mask = torch.rand((16, 16, 16), generator=g) < 0.3
     k0 = torch.randint(0, 5, (300,), generator=g)
-    a = march_rays(o, d, t0, t1, jit, 0.05, mask, BOX, k_start=k0, max_per_ray=cap,
-                   backend="numba")
-    b = march_rays(o, d, t0, t1, jit, 0.05, mask, BOX, k_start=k0, max_per_ray=cap,
-                   backend="torch")
+    a = _numba_equals_twin(o, d, t0, t1, jit, 0.05, mask, BOX, k_start=k0, max_per_ray=cap)
     assert len(a) > 300
-    _assert_same(a, b)
     # every sample lies in an occupied cell and on the ray's lattice
     c = ((a.points - BOX[0]) / 2.0 * 16).floor().long()
     assert mask[c[:, 0], c[:, 1], c[:, 2]].all()
@@ -129,17 +132,11 @@ def test_march_jumps_over_empty_cubes_with_the_twins_samples(cap):
     t0 = t0.clamp(min=0.0)
     mask = _shell_mask(32)
     k0 = torch.randint(0, 3, (400,), generator=g)
-    a = march_rays(o, d, t0, t1, jit, 0.004, mask, BOX, k_start=k0, max_per_ray=cap,
-                   backend="numba")
-    b = march_rays(o, d, t0, t1, jit, 0.004, mask, BOX, k_start=k0, max_per_ray=cap,
-                   backend="torch")
+    a = _numba_equals_twin(o, d, t0, t1, jit, 0.004, mask, BOX, k_start=k0, max_per_ray=cap)
     assert len(a) > 400
-    _assert_same(a, b)
     # the same mask object marched again after an in-place change: the jumps follow it
     mask[:, :, :] = ~mask
-    a = march_rays(o, d, t0, t1, jit, 0.004, mask, BOX, max_per_ray=cap, backend="numba")
-    b = march_rays(o, d, t0, t1, jit, 0.004, mask, BOX, max_per_ray=cap, backend="torch")
-    _assert_same(a, b)
+    assert len(_numba_equals_twin(o, d, t0, t1, jit, 0.004, mask, BOX, max_per_ray=cap)) > 400
 
 
 def test_march_in_waves_equals_one_march():
