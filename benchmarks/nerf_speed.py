@@ -81,17 +81,21 @@ def bench_resume(run: str, data: str, steps: int, root: Path) -> dict:
     ``plenoctree run`` NeRF directory with its optimizer state) trained ``steps`` more steps;
     median of the log rows after the first 10 steps (the late-training state where most of a
     run's steps are spent: settled occupancy grid, ~6 samples per ray)."""
-    from plenoctree.nerf.config import config_from_dict
+    from plenoctree.nerf.checkpoint import CheckpointError, read_checkpoint
 
-    src = Path(run)
     dst = root / "resumed"
-    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("val", "render_*"))
-    cfg = config_from_dict(json.loads((dst / "config.json").read_text()))
-    step0 = int(torch.load(dst / "checkpoint.pt", map_location="cpu", weights_only=False)["step"])
-    cfg.out, cfg.data = str(dst), data
-    cfg.minutes, cfg.max_steps, cfg.val_views, cfg.log_every = 0.0, step0 + steps, 0, 5
-    cfg.ckpt_every_s, cfg.val_every_s = 1e9, 1e9
-    train(cfg, resume=True, quiet=True)
+    shutil.copytree(Path(run), dst, ignore=shutil.ignore_patterns("val", "render_*"))
+    try:
+        ck = read_checkpoint(dst)
+        cfg, step0 = ck["config"], int(ck["step"])
+        cfg.out, cfg.data = str(dst), data
+        cfg.minutes, cfg.max_steps, cfg.val_views, cfg.log_every = 0.0, step0 + steps, 0, 5
+        cfg.ckpt_every_s, cfg.val_every_s = 1e9, 1e9
+        train(cfg, resume=True, quiet=True)
+    except CheckpointError as e:
+        raise SystemExit(f"nerf_speed.py --resume {run}: {e} (it needs a run that can resume: "
+                         "the NeRF directory of `train` or `plenoctree run`, with its optimizer "
+                         "state)") from None
     rows = [r for r in _rows(dst) if r["step"] > step0 + 10]
     return {"run": run, "from_step": step0, "steps": steps,
             "rays_per_s": statistics.median(r["rays_per_s"] for r in rows),
