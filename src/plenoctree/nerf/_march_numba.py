@@ -72,15 +72,12 @@ def coarse_shift(g: int) -> int:
 
 
 @nb.njit(cache=True, nogil=True)
-def coarse_levels(levels, out):  # pragma: no cover - compiled
+def coarse_levels(levels, cs, out):  # pragma: no cover - compiled
     """``out [G >> cs]³`` (uint8): the level shared by all cells of each aligned ``2^cs``-cell
     cube when the cube is empty (its cells then all lie in the same largest empty cube),
     :data:`MIXED` otherwise. 4 KB for a 128³ grid: the empty-space lookups of a march stay in
     the first-level cache instead of missing in the 2 MB ``levels`` array at every jump."""
     gc = out.shape[0]
-    cs = 0
-    while (gc << cs) < levels.shape[0]:
-        cs += 1
     for i in range(gc):
         for j in range(gc):
             for k in range(gc):

@@ -234,7 +234,7 @@ def _empty_levels(mask: torch.Tensor) -> tuple[np.ndarray, np.ndarray, int]:
     K.empty_levels(mask.contiguous().numpy(), levels)
     cs = K.coarse_shift(g)
     coarse = np.empty((g >> cs,) * 3, np.uint8)
-    K.coarse_levels(levels, coarse)
+    K.coarse_levels(levels, cs, coarse)
     _LEVELS_CACHE.update(mask=mask, version=mask._version, levels=(levels, coarse, cs))
     return levels, coarse, cs
 
