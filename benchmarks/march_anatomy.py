@@ -16,6 +16,9 @@ as ``march`` here). Variants:
 - ``predict``: the next leaf predicted from the exit face (the neighbour's integer
   coordinates, no float → integer conversion on the dependency chain), verified against the
   twin's lookup point ``p(t + ε)`` and looked up from it when they disagree (exact);
+- ``level_loop`` / ``level_clz``: ``march`` written with this file's helpers, the common
+  ancestor's level found by ``common_level``'s loop, or without a branch by a count of
+  leading zeros (their ratio is the figure: a predicted branch lets the CPU run ahead);
 - ``grid``: the leaf looked up in a dense 256³ table of cell indices (64 MiB) instead of the
   descent (one load, no data-dependent loop, the twin's exact lookup);
 - ``param``: a parametric top-down traversal (Revelles et al. 2000: child planes by midpoint
@@ -45,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 from numba import njit, prange
+from numba.cpython.unsafe.numbers import leading_zeros
 
 from _trees import ROOT, load_bench_tree, machine_info
 from render_speed import orbit_cameras
@@ -205,6 +209,42 @@ def _predict(child, data, offset, invr, o, d, eps, out):
                 m = min(tx, min(ty, tz))
                 te = min(max(m, ts), t1)
                 st[4] = (0 if tx == m else (1 if ty == m else 2)) if m >= ts else -1
+                tr = _absorb(data, cell, t, te, tr)
+                if tr < _STOP:
+                    break
+                t = te
+            out[i] = tr
+
+
+@njit(parallel=True, cache=True, fastmath=True)
+def _level_march(child, data, offset, invr, o, d, eps, use_clz, out):
+    """``march`` written with this file's helpers, the common ancestor's level found by
+    ``common_level``'s loop (``use_clz=False``, row ``level_loop``) or without a branch from a
+    count of leading zeros of the coordinates' difference (row ``level_clz``)."""
+    n = o.shape[0]
+    for tile in prange((n + _TILE - 1) // _TILE):
+        st = np.zeros(4, np.int64)
+        stack = np.zeros(STACK_SIZE, np.int64)
+        for i in range(tile * _TILE, min(n, tile * _TILE + _TILE)):
+            _, _, _, px, py, pz, vx, vy, vz, ix, iy, iz, t0, t1, et = _start(offset, invr, o, d,
+                                                                               i, eps)
+            tr, t = 1.0, t0
+            st[0], st[1], stack[0] = 0, -1, 0
+            while t < t1:
+                ts = t + et
+                qx, qy, qz = _quant(px, vx, ts), _quant(py, vy, ts), _quant(pz, vz, ts)
+                if st[1] < 0:
+                    level = 0
+                elif use_clz:
+                    diff = np.uint64((qx ^ st[1]) | (qy ^ st[2]) | (qz ^ st[3]))
+                    level = min(st[0], QUANT_BITS - 64 + np.int64(leading_zeros(diff)))
+                else:
+                    level = common_level(st[0], qx, qy, qz, st)
+                cell, level, qx, qy, qz = _descend(child, qx, qy, qz, qx, qy, qz, level,
+                                                   MAX_LEVEL, stack)
+                st[0], st[1], st[2], st[3] = level, qx, qy, qz
+                te = _exit(qx, qy, qz, QUANT_BITS - 1 - level, px, py, pz, vx, vy, vz, ix, iy,
+                           iz, ts, t1)
                 tr = _absorb(data, cell, t, te, tr)
                 if tr < _STOP:
                     break
@@ -421,8 +461,8 @@ def main(argv: list[str] | None = None) -> int:
     segs = [np.zeros(n, np.int64) for _ in views]
     skip_segs = [np.zeros(n, np.int64) for _ in views]
     outs = {k: [np.zeros(n) for _ in views] for k in
-            ("march", "empty_skip", "root", "interleave4", "predict", "grid", "param",
-              "geometry", "dda")}
+            ("march", "empty_skip", "root", "interleave4", "predict", "level_loop", "level_clz",
+             "grid", "param", "geometry", "dda")}
     calls = {
         "march": lambda v: _march(child, NO_SKIP, 0, data, off, inv, *views[v], eps, True,
                                   outs["march"][v], segs[v]),
@@ -434,6 +474,10 @@ def main(argv: list[str] | None = None) -> int:
                                                  outs["interleave4"][v]),
         "predict": lambda v: _predict(child, data, off, inv, *views[v], eps,
                                       outs["predict"][v]),
+        "level_loop": lambda v: _level_march(child, data, off, inv, *views[v], eps, False,
+                                             outs["level_loop"][v]),
+        "level_clz": lambda v: _level_march(child, data, off, inv, *views[v], eps, True,
+                                            outs["level_clz"][v]),
         "grid": lambda v: _grid_march(grid, child, data, off, inv, *views[v], eps,
                                          outs["grid"][v]),
         "param": lambda v: _param(child, data, off, inv, *views[v], eps, outs["param"][v]),
