@@ -92,6 +92,7 @@ def test_finetune_recovers_the_known_tree(scene, tmp_path, optimizer, lr):
     events = [json.loads(line)["event"] for line in open(tmp_path / "ft.log.jsonl")]
     assert events[0] == "start" and events[-1] == "end" and "val" in events
     assert not (tmp_path / "ft.ckpt.npz").exists()
+    assert not list(tmp_path.glob("*.best-*.f32"))      # nor the best values' files
     # Adam says how its steps related to its eps; SGD has nothing to say
     assert ("gradient_scale" in events) == (optimizer == "adam")
     if optimizer == "adam":
@@ -225,16 +226,24 @@ def test_resume_continues_exactly(scene, tmp_path):
     with pytest.raises(KeyboardInterrupt):
         finetune(cfg(scene, tmp_path / "b.npz", verbose=True, **kw), log_fn=interrupt)
     assert (tmp_path / "b.ckpt.npz").exists() and not (tmp_path / "b.npz").exists()
+    assert list(tmp_path.glob("b.ckpt.best-*.f32"))     # the checkpoint's best values
     res = finetune(cfg(scene, tmp_path / "b.npz", resume=True, **kw))
     assert res.epochs_run == ref.epochs_run == 4
     np.testing.assert_allclose(load_tree(tmp_path / "b.npz").data,
                                load_tree(tmp_path / "a.npz").data, rtol=1e-4, atol=1e-4)
-    assert not (tmp_path / "b.ckpt.npz").exists()
+    assert not (tmp_path / "b.ckpt.npz").exists() and not list(tmp_path.glob("b.ckpt.best-*"))
     # a checkpoint of another run is refused
     save_ck = tmp_path / "c.ckpt.npz"
     shutil.copy(tmp_path / "a.npz", save_ck)
     with pytest.raises(ConfigError, match="checkpoint"):
         finetune(cfg(scene, tmp_path / "c.npz", resume=True, **kw))
+    # a checkpoint whose best values' file is gone is refused, naming the file
+    with pytest.raises(KeyboardInterrupt):
+        finetune(cfg(scene, tmp_path / "d.npz", verbose=True, **kw), log_fn=interrupt)
+    for p in tmp_path.glob("d.ckpt.best-*.f32"):
+        p.unlink()
+    with pytest.raises(ConfigError, match=r"d\.ckpt\.best-\d+\.f32.*missing"):
+        finetune(cfg(scene, tmp_path / "d.npz", resume=True, **kw))
 
 
 def test_holdout_validation_and_fp16_precision(scene, tmp_path):

@@ -61,7 +61,8 @@ def _checked(tree: Octree, what: str) -> None:
 
 
 def _to_fp16(data: np.ndarray, what: str) -> np.ndarray:
-    peak = float(np.max(np.abs(data))) if data.size else 0.0
+    # max and min, not max(abs(...)): no temporary as large as the tree's data
+    peak = max(float(data.max()), -float(data.min())) if data.size else 0.0
     if peak > _FP16_MAX:
         raise ValueError(f"{what}: data values up to {peak:.6g} exceed the float16 range "
                          f"(max {_FP16_MAX:g}); save with precision='fp32' or rescale")
@@ -140,7 +141,7 @@ def save_tree(tree: Octree, path: str | os.PathLike, precision: str = "fp32",
         raise ValueError(f"save_tree: precision must be 'fp16' or 'fp32', got {precision!r}")
     _checked(tree, f"save_tree({os.fspath(path)})")
     data = _to_fp16(tree.data, f"save_tree({os.fspath(path)})") if precision == "fp16" \
-        else tree.data.astype(np.float32)
+        else np.asarray(tree.data, dtype=np.float32)   # no copy of float32 data (GBs at 800²)
     header = {
         "format": "plenoctree-tree",
         "data_format": tree.data_format,

@@ -444,13 +444,14 @@ def step_touched(data, sig, grad3, slot, touched, n_touched, opt, lr, lr_sig, m1
 
 
 @njit(parallel=True, cache=True)
-def pixel_rays(cams, width, height, index, images, origins, dirs, targets):
+def pixel_rays(cams, width, height, index, images, unit, origins, dirs, targets):
     """Rays and target colours of flat pixel indices ``index [M]`` (``img * H * W + v * W + u``).
 
     Image ``img`` is seen by the camera packed in ``cams[img]`` (``render._render_numba
     .pack_cameras``: its own intrinsics, NDC rays for an NDC set); each ray is made by the
     renderer's ``_camera_ray``, so it equals ``Cameras.rays(img)[v, u]`` (pinhole and NDC, shared
-    or per-camera intrinsics). Writes ``origins, dirs, targets [M, 3]`` float32.
+    or per-camera intrinsics). Writes ``origins, dirs, targets [M, 3]`` float32; a target is
+    ``images[img, v, u] * unit`` (``images`` float32, ``unit`` 1, or uint16, ``unit`` 1 / 65535).
     """
     hw = height * width
     for j in prange(index.shape[0]):
@@ -467,4 +468,4 @@ def pixel_rays(cams, width, height, index, images, origins, dirs, targets):
         dirs[j, 1] = dy
         dirs[j, 2] = dz
         for a3 in range(3):
-            targets[j, a3] = images[img, v, u, a3]
+            targets[j, a3] = images[img, v, u, a3] * unit

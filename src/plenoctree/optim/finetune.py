@@ -254,7 +254,7 @@ def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = Non
     """
     from ..octree import load_tree, save_tree
     from ..render import RenderOptions
-    from ._loop import ViewSet, render_views_psnr, run_loop
+    from ._loop import ViewSet, remove_best_files, render_views_psnr, run_loop
     from ._steppers import DEFAULT_LR, gradient_scale, make_stepper
     from ..datasets._files import take_views
 
@@ -355,6 +355,8 @@ def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = Non
                    "seed": int(cfg.seed), "backend": stepper.backend}
     log({"event": "start", "config": {k: (str(v) if isinstance(v, os.PathLike) else v)
                                       for k, v in asdict(cfg).items()}})
+    if not cfg.resume:
+        remove_best_files(ckpt)           # those of an earlier run: its checkpoint is replaced
     best, state = run_loop(stepper, train_set, val_set, epochs=int(cfg.epochs),
                            batch_rays=int(cfg.batch_rays), ray_tile=int(cfg.ray_tile),
                            val_every=int(cfg.val_every),
@@ -402,4 +404,5 @@ def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = Non
                           f"(epoch {state.best_epoch}) in {out}; try a smaller --lr")
     if ckpt.exists():
         ckpt.unlink()
+    remove_best_files(ckpt)
     return result
