@@ -280,18 +280,17 @@ def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, 
     (same ray order) from the values reached when it was interrupted.
     """
     scale = 1.0 / (3.0 * train.width * train.height)
-    values = stepper.values()
+    values = stepper.values()          # one read (a copy from the device for torch steppers)
     best = BestValues(values.shape, values.dtype,
                       None if checkpoint is None else checkpoint.with_suffix(""))
-    del values
     state = LoopState()
-    if resume and checkpoint is not None and checkpoint.exists():
+    values_are_best = not (resume and checkpoint is not None and checkpoint.exists())
+    if values_are_best:
+        best.store(values)
+    del values
+    if not values_are_best:
         state = load_checkpoint(checkpoint, stepper, best, fingerprint)
         log({"event": "resume", "checkpoint": str(checkpoint), "epochs_done": state.epochs_done})
-        values_are_best = False
-    else:
-        best.store(stepper.values())
-        values_are_best = True
     rng = np.random.default_rng(seed)
     last_ckpt = time.perf_counter()
 
