@@ -53,6 +53,40 @@ def test_refinement_lowers_the_error_against_the_field(coarse, tmp_path):
     np.testing.assert_array_equal(load_tree(tmp_path / "n.npz").query(pts), t2.query(pts))
 
 
+def test_subdivide_assembles_like_concatenate_then_compact(coarse, monkeypatch):
+    """The subdivided tree is written straight into breadth-first order, in blocks of old
+    nodes: it equals the slow twin (new nodes appended, then :func:`compact_tree`), also for
+    an input with an unreachable node (dropped) and with blocks smaller than the tree."""
+    import dataclasses
+
+    from plenoctree.convert import refine as refine_mod
+
+    f, tree = coarse
+    sig = tree.leaf_data()[:, -1]
+    leaves = np.flatnonzero(sig > 0)[::3]
+    stray = dataclasses.replace(                      # one unreachable node at the end
+        tree, child=np.concatenate([tree.child, np.zeros((1, 2, 2, 2), np.int32)]),
+        data=np.concatenate([tree.data, np.full((1, 2, 2, 2, tree.data_dim), 7, np.float32)]))
+    monkeypatch.setattr(refine_mod, "_COPY_NODES", 5)
+    got, spread = subdivide_leaves(stray, leaves, f, samples=4, seed=3)
+    # the twin: append the children, point the split cells at them, compact
+    (node, i, j, k), _, _, _ = refine_mod._leaf_boxes(tree)
+    kids, _ = subdivide_leaves(tree, leaves, f, samples=4, seed=3)
+    kid_vals = kids.query(tree.leaf_centers()[leaves][:, None, :] + 0.25 * (
+        2 * refine_mod._CELL[None] - 1) * tree.leaf_sizes()[leaves][:, None, :])
+    n, m = tree.n_nodes, leaves.size
+    child = np.concatenate([tree.child, np.zeros((m, 2, 2, 2), np.int32)])
+    data = np.concatenate([tree.data, kid_vals.reshape(m, 2, 2, 2, -1).astype(np.float32)])
+    pn, pi, pj, pk = node[leaves], i[leaves], j[leaves], k[leaves]
+    child[pn, pi, pj, pk] = n + np.arange(m) - pn
+    data[pn, pi, pj, pk] = 0
+    twin = compact_tree(dataclasses.replace(tree, child=child, data=data,
+                                            depth_limit=got.depth_limit))
+    np.testing.assert_array_equal(got.child, twin.child)
+    np.testing.assert_array_equal(got.data, twin.data)
+    assert got.n_nodes == tree.n_nodes + m and (spread >= 0).sum() == 8 * m
+
+
 def test_subdivide_renders_the_same_where_nothing_changes(coarse):
     """Compaction keeps every value: a tree subdivided nowhere queries identically, and a
     subdivided leaf's children are the field's means in their own boxes."""

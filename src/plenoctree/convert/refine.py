@@ -44,6 +44,9 @@ from ..octree.limits import MAX_DEPTH
 __all__ = ["RefineConfig", "RefineResult", "refine", "refine_tree", "leaf_spread",
            "subdivide_leaves", "merge_leaves", "compact_tree", "field_error", "MAX_DEPTH"]
 
+_COPY_NODES = 1 << 13
+"""Old nodes copied per block when a subdivided tree is assembled (13 MB of SH16 float32)."""
+
 _CELL = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.float64)
 
 
@@ -148,11 +151,14 @@ def field_error(tree: Any, field_: Any, n_points: int = 200_000, seed: int = 1,
 
 
 # ---------------------------------------------------------------------- structure edits
-def compact_tree(tree: Any) -> Any:
-    """The same tree with nodes renumbered breadth-first from the root (a level's nodes ordered
-    by parent, then cell ``i, j, k``, as the builders do); unreachable nodes are dropped."""
-    n = tree.n_nodes
-    flat = tree.child.reshape(n, 8).astype(np.int64)
+def _bfs_order(child: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Breadth-first renumbering of a node array ``child [n, 2, 2, 2]`` (relative offsets).
+
+    Returns ``(order, new_child)``: ``order [n']`` the old index of each new node (a level's
+    nodes ordered by parent, then cell ``i, j, k``, as the builders do; unreachable nodes are
+    left out) and ``new_child [n', 2, 2, 2]`` int32 offsets in the new numbering."""
+    n = child.shape[0]
+    flat = child.reshape(n, 8).astype(np.int64)
     levels = [np.zeros(1, np.int64)]
     while True:
         sub = flat[levels[-1]]
@@ -166,9 +172,20 @@ def compact_tree(tree: Any) -> Any:
     ch = flat[order]
     tgt = np.where(ch > 0, order[:, None] + ch, 0)
     newch = np.where(ch > 0, new[tgt] - np.arange(order.size)[:, None], 0)
-    return dataclasses.replace(tree, child=newch.astype(np.int32).reshape(-1, 2, 2, 2),
-                               data=np.ascontiguousarray(tree.data[order]),
+    return order, newch.astype(np.int32).reshape(-1, 2, 2, 2)
+
+
+def compact_tree(tree: Any) -> Any:
+    """The same tree with nodes renumbered breadth-first from the root (a level's nodes ordered
+    by parent, then cell ``i, j, k``, as the builders do); unreachable nodes are dropped."""
+    order, child = _bfs_order(tree.child)
+    return dataclasses.replace(tree, child=child, data=np.ascontiguousarray(tree.data[order]),
                                depth_limit=int(tree.depth_limit))
+
+
+def _leaf_sigma(tree: Any) -> np.ndarray:
+    """σ of every leaf ``[n_leaves]`` (leaf order) without copying the other channels."""
+    return tree.data[..., -1][tree.child == 0]
 
 
 def subdivide_leaves(tree: Any, leaves: np.ndarray, field_: Any, samples: int = 8,
@@ -202,14 +219,27 @@ def subdivide_leaves(tree: Any, leaves: np.ndarray, field_: Any, samples: int = 
                                                 tree.data_format, tree.basis_dim, dim,
                                                 averaging)
             bar.update(e - s)
+    # The new nodes go after the old ones, then everything is renumbered breadth-first; the
+    # data are written once, straight to their new places (no concatenated intermediate: this
+    # step held the refinement's memory peak, three tree-sized arrays at lego 800²).
     n = tree.n_nodes
     child = np.concatenate([tree.child, np.zeros((m, 2, 2, 2), np.int32)])
-    data = np.concatenate([tree.data, vals.reshape(m, 2, 2, 2, dim).astype(tree.data.dtype)])
     pn, pi, pj, pk = node[leaves], i[leaves], j[leaves], k[leaves]
     child[pn, pi, pj, pk] = (n + np.arange(m) - pn).astype(np.int32)
-    data[pn, pi, pj, pk] = 0
+    order, child = _bfs_order(child)
+    pos = np.full(n + m, -1, np.int64)
+    pos[order] = np.arange(order.size)
+    data = np.empty((order.size, 2, 2, 2, dim), tree.data.dtype)
+    step = _COPY_NODES
+    for s in range(0, n, step):                        # old nodes (a dropped one has pos -1)
+        p = pos[s:min(s + step, n)]
+        ok = p >= 0
+        data[p[ok]] = tree.data[s:s + step][ok]
+    data[pos[n:]] = vals.reshape(m, 2, 2, 2, dim)     # new nodes (cast to the tree's dtype)
+    del vals
+    data[pos[pn], pi, pj, pk] = 0                      # the split cells are inner now
     new_depth = max(int(tree.depth_limit), int(depth[leaves].max()) + 1)
-    out = compact_tree(dataclasses.replace(tree, child=child, data=data, depth_limit=new_depth))
+    out = dataclasses.replace(tree, child=child, data=data, depth_limit=new_depth)
     # children keep their order through compaction only per level; recompute their spread order
     return out, _children_spread_order(tree, out, leaves, spread)
 
@@ -317,7 +347,7 @@ def refine_tree(tree: Any, field_: Any, *, passes: int = 1, threshold: float = 0
     for p in range(passes):
         t0 = time.perf_counter()
         depth = tree.leaf_depths()
-        sig = tree.leaf_data()[:, -1]
+        sig = _leaf_sigma(tree)
         if cand is None:
             cand = np.flatnonzero(sig > 0)
             scores = leaf_spread(tree, field_, samples, seed + p, chunk, cand, show_progress)
@@ -340,7 +370,7 @@ def refine_tree(tree: Any, field_: Any, *, passes: int = 1, threshold: float = 0
         records.append(rec)
         log(f"refine pass {p + 1}: subdivided {k} of {rec['scored']} scored leaves -> "
             f"{rec['leaves']} leaves, depth {rec['max_depth']} ({rec['seconds']} s)")
-        new_sig = tree.leaf_data()[:, -1]
+        new_sig = _leaf_sigma(tree)
         cand = np.flatnonzero((child_spread >= 0) & (new_sig > 0))
         scores = child_spread[cand]
     if merge_tol > 0:
@@ -469,10 +499,11 @@ def refine(cfg: RefineConfig, log=print) -> RefineResult:
     cfg = cfg.validated()
     if not cfg.tree:
         raise ConfigError("refine: give the tree to refine")
-    stored = load_tree(cfg.tree, keep_dtype=True)
+    tree = load_tree(cfg.tree, keep_dtype=True)
     precision = cfg.precision if cfg.precision != "auto" else (
-        "fp16" if stored.data.dtype == np.float16 else "fp32")
-    tree = stored.astype(np.float32) if stored.data.dtype != np.float32 else stored
+        "fp16" if tree.data.dtype == np.float16 else "fp32")
+    if tree.data.dtype != np.float32:
+        tree = tree.astype(np.float32)                 # the stored copy is freed here
     field_, train_cfg, _ = _load_run(ExtractConfig(run_dir=cfg.run_dir, device=cfg.device))
     if field_.data_format != tree.data_format:
         raise ConfigError(f"{cfg.tree}: the tree is {tree.data_format} but the run's model gives "
