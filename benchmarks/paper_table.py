@@ -564,8 +564,8 @@ def main(argv: list[str] | None = None) -> int:
 
     atomic_save_json(out / "paper_table.json", res)
     with atomic_write(out / "paper_table.md", "w") as f:
-        given = (f", NeRF-SH given: {nerf_run} (trained before this run; its training time is not counted)"
-                 if res["nerf_given"] else "")
+        given = (f", NeRF-SH given: {nerf_run} (trained before this run; its training time is "
+                 "not counted)" if res["nerf_given"] else "")
         f.write(f"# lego {a.size}², CPU ({meta['cpu_count']} cores, load {meta['loadavg']})"
                 f"{given}\n\n")
         f.write(md)
