@@ -61,30 +61,28 @@ def test_subdivide_assembles_like_concatenate_then_compact(coarse, monkeypatch):
 
     from plenoctree.convert import refine as refine_mod
 
-    f, tree = coarse
-    sig = tree.leaf_data()[:, -1]
-    leaves = np.flatnonzero(sig > 0)[::3]
+    _, tree = coarse
+    (node, i, j, k), _, _, _ = refine_mod._leaf_boxes(tree)
+    leaves = np.flatnonzero(tree.leaf_data()[:, -1] > 0)[::3]
+    cells = (node[leaves], i[leaves], j[leaves], k[leaves])
+    n, m, dim = tree.n_nodes, leaves.size, tree.data_dim
+    vals = np.random.default_rng(3).random((8 * m, dim), dtype=np.float32) + 0.5
     stray = dataclasses.replace(                      # one unreachable node at the end
         tree, child=np.concatenate([tree.child, np.zeros((1, 2, 2, 2), np.int32)]),
-        data=np.concatenate([tree.data, np.full((1, 2, 2, 2, tree.data_dim), 7, np.float32)]))
+        data=np.concatenate([tree.data, np.full((1, 2, 2, 2, dim), 7, np.float32)]))
     monkeypatch.setattr(refine_mod, "_COPY_NODES", 5)
-    got, spread = subdivide_leaves(stray, leaves, f, samples=4, seed=3)
+    got = refine_mod._with_children(stray, cells, vals, tree.depth_limit + 1)
     # the twin: append the children, point the split cells at them, compact
-    (node, i, j, k), _, _, _ = refine_mod._leaf_boxes(tree)
-    kids, _ = subdivide_leaves(tree, leaves, f, samples=4, seed=3)
-    kid_vals = kids.query(tree.leaf_centers()[leaves][:, None, :] + 0.25 * (
-        2 * refine_mod._CELL[None] - 1) * tree.leaf_sizes()[leaves][:, None, :])
-    n, m = tree.n_nodes, leaves.size
     child = np.concatenate([tree.child, np.zeros((m, 2, 2, 2), np.int32)])
-    data = np.concatenate([tree.data, kid_vals.reshape(m, 2, 2, 2, -1).astype(np.float32)])
-    pn, pi, pj, pk = node[leaves], i[leaves], j[leaves], k[leaves]
-    child[pn, pi, pj, pk] = n + np.arange(m) - pn
-    data[pn, pi, pj, pk] = 0
+    data = np.concatenate([tree.data, vals.reshape(m, 2, 2, 2, dim)])
+    child[cells] = n + np.arange(m) - cells[0]
+    data[cells] = 0
     twin = compact_tree(dataclasses.replace(tree, child=child, data=data,
-                                            depth_limit=got.depth_limit))
+                                            depth_limit=tree.depth_limit + 1))
     np.testing.assert_array_equal(got.child, twin.child)
     np.testing.assert_array_equal(got.data, twin.data)
-    assert got.n_nodes == tree.n_nodes + m and (spread >= 0).sum() == 8 * m
+    assert got.n_nodes == n + m and got.depth_limit == tree.depth_limit + 1
+    got.check_integrity()
 
 
 def test_subdivide_renders_the_same_where_nothing_changes(coarse):

@@ -202,12 +202,27 @@ def subdivide_leaves(tree: Any, leaves: np.ndarray, field_: Any, samples: int = 
     (node, i, j, k), lo, size, depth = _leaf_boxes(tree)
     if leaves.size == 0:
         return tree, np.zeros(0, np.float32)
-    if int(depth[leaves].max()) + 1 > MAX_DEPTH:
-        raise ConfigError(f"subdividing would create cells of depth {int(depth[leaves].max()) + 1}"
-                          f" > the depth limit {MAX_DEPTH}")
-    m, dim = leaves.size, tree.data_dim
-    half = size[leaves] / 2.0
-    clo = (lo[leaves][:, None, :] + _CELL[None] * half[:, None, :]).reshape(-1, 3)
+    new_depth = int(depth[leaves].max()) + 1
+    if new_depth > MAX_DEPTH:
+        raise ConfigError(f"subdividing would create cells of depth {new_depth} > the depth "
+                          f"limit {MAX_DEPTH}")
+    vals, spread = _child_values(tree, lo[leaves], size[leaves], field_, samples, seed, chunk,
+                                 show_progress, averaging)
+    out = _with_children(tree, (node[leaves], i[leaves], j[leaves], k[leaves]), vals,
+                         max(int(tree.depth_limit), new_depth))
+    del vals
+    # children keep their order through compaction only per level; recompute their spread order
+    return out, _children_spread_order(tree, out, leaves, spread)
+
+
+def _child_values(tree: Any, lo: np.ndarray, size: np.ndarray, field_: Any, samples: int,
+                  seed: int, chunk: int, show_progress: bool | None, averaging: str
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Values ``[8 M, data_dim]`` float32 and spread ``[8 M]`` of the children of the M leaves
+    whose boxes are ``lo, size [M, 3]`` (world units; order: leaf, then cell ``i, j, k``)."""
+    m, dim = lo.shape[0], tree.data_dim
+    half = size / 2.0
+    clo = (lo[:, None, :] + _CELL[None] * half[:, None, :]).reshape(-1, 3)
     chalf = np.repeat(half, 8, axis=0)
     vals = np.empty((8 * m, dim), np.float32)
     spread = np.empty(8 * m, np.float32)
@@ -219,29 +234,33 @@ def subdivide_leaves(tree: Any, leaves: np.ndarray, field_: Any, samples: int = 
                                                 tree.data_format, tree.basis_dim, dim,
                                                 averaging)
             bar.update(e - s)
-    # The new nodes go after the old ones, then everything is renumbered breadth-first; the
-    # data are written once, straight to their new places (no concatenated intermediate: this
-    # step held the refinement's memory peak, three tree-sized arrays at lego 800²).
-    n = tree.n_nodes
+    return vals, spread
+
+
+def _with_children(tree: Any, cells: tuple[np.ndarray, ...], vals: np.ndarray,
+                   depth_limit: int) -> Any:
+    """``tree`` with the leaf cells ``cells = (node, i, j, k)`` (M each) turned into nodes whose
+    8 cells hold ``vals [8 M, data_dim]`` (order: leaf, then cell), renumbered breadth-first.
+
+    Equal to appending the new nodes and calling :func:`compact_tree` (tested), but the data are
+    written once, straight to their new places: the concatenated intermediate held the
+    refinement's memory peak (three tree-sized arrays at lego 800²). Old nodes are copied in
+    blocks of ``_COPY_NODES``; unreachable ones are dropped."""
+    pn, pi, pj, pk = cells
+    n, m = tree.n_nodes, pn.size
     child = np.concatenate([tree.child, np.zeros((m, 2, 2, 2), np.int32)])
-    pn, pi, pj, pk = node[leaves], i[leaves], j[leaves], k[leaves]
     child[pn, pi, pj, pk] = (n + np.arange(m) - pn).astype(np.int32)
     order, child = _bfs_order(child)
     pos = np.full(n + m, -1, np.int64)
     pos[order] = np.arange(order.size)
-    data = np.empty((order.size, 2, 2, 2, dim), tree.data.dtype)
-    step = _COPY_NODES
-    for s in range(0, n, step):                        # old nodes (a dropped one has pos -1)
-        p = pos[s:min(s + step, n)]
+    data = np.empty((order.size, 2, 2, 2, tree.data_dim), tree.data.dtype)
+    for s in range(0, n, _COPY_NODES):
+        p = pos[s:min(s + _COPY_NODES, n)]
         ok = p >= 0
-        data[p[ok]] = tree.data[s:s + step][ok]
-    data[pos[n:]] = vals.reshape(m, 2, 2, 2, dim)     # new nodes (cast to the tree's dtype)
-    del vals
-    data[pos[pn], pi, pj, pk] = 0                      # the split cells are inner now
-    new_depth = max(int(tree.depth_limit), int(depth[leaves].max()) + 1)
-    out = dataclasses.replace(tree, child=child, data=data, depth_limit=new_depth)
-    # children keep their order through compaction only per level; recompute their spread order
-    return out, _children_spread_order(tree, out, leaves, spread)
+        data[p[ok]] = tree.data[s:s + _COPY_NODES][ok]
+    data[pos[n:]] = vals.reshape(m, 2, 2, 2, -1)      # cast to the tree's dtype
+    data[pos[pn], pi, pj, pk] = 0                     # the split cells are inner now
+    return dataclasses.replace(tree, child=child, data=data, depth_limit=int(depth_limit))
 
 
 def _children_spread_order(old: Any, new: Any, leaves: np.ndarray, spread: np.ndarray

@@ -287,7 +287,7 @@ def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, 
     values_are_best = not (resume and checkpoint is not None and checkpoint.exists())
     if values_are_best:
         best.store(values)
-    del values
+    del values                         # freed before a checkpoint's values are loaded
     if not values_are_best:
         state = load_checkpoint(checkpoint, stepper, best, fingerprint)
         log({"event": "resume", "checkpoint": str(checkpoint), "epochs_done": state.epochs_done})
