@@ -49,6 +49,8 @@ def test_skip_regions_hold_no_occupied_leaf():
     rows = -t.child[cell] - 1
     has = t.child[cell] < 0
     assert has.sum() > 50 and (sigma[has] <= 0).all()          # only empty leaves skip
+    assert (has == ~full).all()          # every empty leaf is marked (row 0: no skip)
+    assert (t.skip[0] == 0).all() and (rows[has] > 0).sum() < has.sum()
     assert (t.child[t.child >= 0] == child[t.child >= 0]).all()
     unit = 2.0 ** -t.grid_bits
     pushed = 0

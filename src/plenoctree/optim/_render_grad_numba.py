@@ -126,6 +126,9 @@ def _trace_one(child, skip, shift, data, offset, invr, origins, dirs, i, kind, n
         cell = qc[head & _QMASK]
         t_end = qe[head & _QMASK]
         head += 1
+        if cell < 0:                        # an empty leaf (look_ahead): no segment recorded
+            t = t_end
+            continue
         sigma = data[cell, dim - 1]         # the row look_ahead prefetched
         if sigma > 0.0:
             if n_seg == cap:

@@ -305,17 +305,22 @@ def look_ahead(child, skip, shift, oc, data, px, py, pz, vx, vy, vz, ix, iy, iz,
     row is in cache: the memory latency of the next leaves overlaps the work on this one. A ray
     that stops early has looked up a few leaves it never shades (their values are not used).
     The segments are exactly those of repeated :func:`next_leaf` calls (``use_stack``,
-    ``skip``: see there). Start a ray with ``head = tail = steps = 0``, ``tq = t0`` and
-    :func:`next_leaf`'s ``st[1] = -1``.
+    ``skip``: see there). A leaf whose ``child`` entry is negative (empty, :mod:`.empty_skip`)
+    is queued as ``-1 - cell`` and its row not prefetched: the caller skips a negative cell
+    without reading its σ (with a plain ``child`` every leaf is queued as itself). Start a ray
+    with ``head = tail = steps = 0``, ``tq = t0`` and :func:`next_leaf`'s ``st[1] = -1``.
 
     Returns ``(tail, tq, steps)``."""
     while tail - head < LOOKAHEAD and tq < t1 and steps < max_steps:
         steps += 1
         cell, t_end, _ = next_leaf(child, skip, shift, oc, px, py, pz, vx, vy, vz, ix, iy, iz,
                                    tq, eps_t, t1, use_stack, max_level, st, stack)
+        if child[cell] < 0:         # an empty leaf of the skip tables: its row is not needed
+            cell = -1 - cell
+        else:
+            prefetch_row(data, cell)
         qc[tail & _QMASK] = cell
         qe[tail & _QMASK] = t_end
         tail += 1
         tq = t_end
-        prefetch_row(data, cell)
     return tail, tq, steps

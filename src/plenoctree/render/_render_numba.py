@@ -78,6 +78,9 @@ def _render_one(child, skip, shift, data, offset, invr, ox, oy, oz, dx, dy, dz, 
         cell = qc[head & _QMASK]
         t_end = qe[head & _QMASK]
         head += 1
+        if cell < 0:                    # an empty leaf (look_ahead): T unchanged
+            t = t_end
+            continue
         sigma = data[cell, dim - 1]
         if sigma > 0.0:
             att = math.exp(-sigma * (t_end - t))
