@@ -7,8 +7,8 @@ direction, its tree-space version, its reciprocal and the SH/SG basis are comput
 leaves with σ ≤ 0 are skipped without touching their colour coefficients (and, with a tree's
 empty-space skip tables, :mod:`.empty_skip`, whole empty regions in one segment); early termination
 when T < stop_thresh. Rays of an image are processed in 24×24-pixel tiles (neighbouring rays,
-also those of the row above, share nodes and leaves in cache) with dynamic scheduling over the tiles
-(``numba.set_parallel_chunksize``), so both cores stay busy when one half of the image is
+also those of the row above, share nodes and leaves in cache) with dynamic scheduling over the
+tiles (``numba.set_parallel_chunksize``), so both cores stay busy when one half of the image is
 empty.
 """
 
