@@ -91,3 +91,31 @@ def test_dataset_masks_shape_checked(tmp_path):
     assert Dataset(**kw, masks=np.ones((1, 4, 4), np.float32)).masks.shape == (1, 4, 4)
     with pytest.raises(DatasetError, match="masks have shape"):
         Dataset(**kw, masks=np.ones((1, 4, 5), np.float32))
+
+
+@pytest.mark.parametrize("size, target, want", [
+    ((800, 800), 4, 4), ((504, 378), 4, 6), ((504, 378), 2, 2), ((1000, 750), 3, 5),
+    ((18, 12), 4, 6), ((1001, 750), 4, 1), ((13, 13), 4, 13), ((20, 12), 8, 4)])
+def test_common_downscale_divides_both_sizes(size, target, want):
+    from plenoctree.datasets import common_downscale
+
+    f = common_downscale(*size, target)
+    assert f == want and size[0] % f == 0 and size[1] % f == 0
+
+
+def test_load_cameras_where_4_does_not_divide(tmp_path):
+    """An LLFF capture 18×12 px (4 does not divide 18): the cameras load small (downscale 6)
+    with the poses and field of view of the full-size load."""
+    from plenoctree.datasets import load_cameras
+
+    root = write_forward_facing_dataset(tmp_path / "ff", n_images=9, width=18, height=12,
+                                        n_samples=8)
+    with pytest.raises(DatasetError, match="downscale 4 does not divide"):
+        load_dataset(root, "train", downscale=4)
+    small, full = load_cameras(root, "train"), load_dataset(root, "train")
+    c, f = small.cameras, full.cameras
+    assert (c.width, c.height) == (3, 2) and small.names == full.names
+    np.testing.assert_allclose(c.c2w, f.c2w)
+    np.testing.assert_allclose([c.fx / c.width, c.fy / c.height, c.ndc_focal[0] / c.width],
+                               [f.fx / f.width, f.fy / f.height, f.ndc_focal[0] / f.width])
+    assert c.ndc and f.ndc

@@ -156,3 +156,17 @@ def test_demo_on_a_user_dataset(scene, tmp_path, capsys):
     assert "downscale 1 (16 px), grid 16" in text and "plenoctree view" in text
     assert not (out / "data").exists()  # the user's data is used, no procedural scene written
     assert (out / "eval_ft" / "renders").is_dir()
+
+
+def test_pipeline_on_llff_capture_whose_size_4_does_not_divide(tmp_path):
+    """A forward-facing LLFF capture 18×12 px (like LLFF's 504×378: 4 divides neither 18 nor
+    378): every stage runs, the web bundle's training cameras load at a dividing downscale."""
+    from plenoctree.datasets.forward_facing import write_forward_facing_dataset
+
+    data = write_forward_facing_dataset(tmp_path / "ff", n_images=9, width=18, height=12,
+                                        n_samples=8)
+    out = tmp_path / "run"
+    run_pipeline(_tiny_cfg(data, out, video_frames=0), log=lambda *_: None)
+    cfg = json.loads((out / "web" / "config.json").read_text())
+    assert cfg["cameras"]["width"] == 3 and cfg["ndc"]["width"] == 3
+    assert (out / "summary.md").exists()

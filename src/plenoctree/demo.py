@@ -106,14 +106,12 @@ def _run_procedural(cfg: DemoConfig, out: Path, log) -> dict:
 
 def _run_on_dataset(cfg: DemoConfig, out: Path, log) -> dict:
     """The demo chain on a user dataset, with the resolution and grid scaled to its images."""
-    from .datasets import load_dataset
+    from .datasets import common_downscale, load_dataset
     from .pipeline import PipelineConfig, run_pipeline
 
     probe = load_dataset(cfg.data, "train", limit=1)
     width = probe.cameras.width
-    downscale = max(1, -(-width // 400))
-    while width % downscale:
-        downscale += 1
+    downscale = common_downscale(width, probe.cameras.height, max(1, -(-width // 400)))
     size = width // downscale
     grid = max(cfg.grid, 256) if size >= 256 else cfg.grid
     log(f"[demo] {cfg.data}: {width} px wide -> downscale {downscale} ({size} px), grid {grid}³")

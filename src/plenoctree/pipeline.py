@@ -433,10 +433,10 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
     # 8. Static web-viewer bundle and orbit video.
     if cfg.web:
         def do_web():
-            from .datasets import load_dataset
+            from .datasets import load_cameras
             from .viewer.export import export_web
 
-            train = load_dataset(data, split="train", format=cfg.format, downscale=4)
+            train = load_cameras(data, split="train", format=cfg.format)
             export_web(tree_c, out / "web", overwrite=True, cameras=train.cameras,
                        camera_names=train.names)        # (NDC scenes: + the NDC camera)
 

@@ -67,15 +67,16 @@ def _check_tree(path: Path) -> None:
 def _cameras_extra(cfg: PageConfig) -> dict:
     """config.json entries for --data: the split's cameras (first view, list, jumps).
 
-    The images are loaded at downscale 4 only to read the poses cheaply: the page uses the
-    poses and the field of view (fx, fy relative to width, height), which downscaling keeps.
+    The images are loaded small (:func:`~plenoctree.datasets.load_cameras`) only to read the
+    poses cheaply: the page uses the poses and the field of view (fx, fy relative to width,
+    height), which downscaling keeps.
     """
     if not cfg.data:
         return {}
-    from ..datasets import load_dataset
+    from ..datasets import load_cameras
     from ..viewer.export import cameras_config
 
-    data = load_dataset(cfg.data, split=cfg.split, downscale=4)
+    data = load_cameras(cfg.data, split=cfg.split)
     return cameras_config(data.cameras, data.names)
 
 

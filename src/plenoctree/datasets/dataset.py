@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,7 +13,8 @@ from ..errors import DatasetError
 from ._files import evenly_spaced
 from .cameras import Cameras
 
-__all__ = ["Dataset", "load_dataset", "detect_format", "has_split", "evenly_spaced", "FORMATS"]
+__all__ = ["Dataset", "load_dataset", "load_cameras", "common_downscale", "detect_format",
+           "has_split", "evenly_spaced", "FORMATS"]
 
 
 @dataclass
@@ -158,6 +160,27 @@ def load_dataset(root: str | os.PathLike, split: str = "train", format: str | No
         if "unexpected keyword argument" in str(e):
             raise ConfigError(f"{fmt} loader: {e}") from None
         raise
+
+
+def common_downscale(width: int, height: int, target: int) -> int:
+    """An integer downscale factor for ``width × height`` images near ``target``: the smallest
+    one ≥ ``target`` that divides both sizes (the loaders' area downscale needs that), else the
+    largest one below it (1 at worst). E.g. 504×378, target 4 → 6; 800×800, target 4 → 4."""
+    g = math.gcd(int(width), int(height))
+    divisors = [d for d in range(1, g + 1) if g % d == 0]
+    above = [d for d in divisors if d >= target]
+    return min(above) if above else max(d for d in divisors if d <= target)
+
+
+def load_cameras(root: str | os.PathLike, split: str = "train", format: str | None = None
+                 ) -> Dataset:
+    """Split ``split`` loaded only for its cameras and names, cheaply: the images at a
+    downscale near 4 that divides their size (:func:`common_downscale`; one image is read at
+    full size first to learn it). The poses and the field of view (fx, fy relative to width,
+    height) are those of any downscale; ``images`` are small and not meant to be used."""
+    probe = load_dataset(root, split=split, format=format, limit=1)
+    factor = common_downscale(probe.cameras.width, probe.cameras.height, 4)
+    return load_dataset(root, split=split, format=format, downscale=factor)
 
 
 def has_split(root: str | os.PathLike, split: str, format: str | None = None) -> bool:
