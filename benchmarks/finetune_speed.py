@@ -189,12 +189,20 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=800, help="camera image size (pixels)")
     ap.add_argument("--stop-thresh", type=float, default=0.01)
     ap.add_argument("--skip-twin", action="store_true")
+    ap.add_argument("--data", default=None,
+                    help="dataset of the tree: draw the batch from its training cameras (as "
+                         "finetune does) instead of orbit views; needed for an NDC tree file")
     ap.add_argument("--out", default=None,
                     help="JSON (default benchmarks/results/finetune_speed_<tree>.json)")
     args = ap.parse_args()
 
     load_before = os.getloadavg()
     tree, desc = load_bench_tree(args.tree, 256)
+    if args.data:
+        desc["data"] = str(args.data)
+    elif getattr(tree, "ndc", None) is not None and not desc.get("data"):
+        raise SystemExit(f"{desc['source']}: a forward-facing (NDC) tree; pass --data DIR (its "
+                         "capture) to draw rays from its own cameras, not from orbit views")
     tree_name = desc["source"]
     opts = RenderOptions(stop_thresh=args.stop_thresh)
     rng = np.random.default_rng(0)

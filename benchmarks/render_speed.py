@@ -38,6 +38,7 @@ Usage (each ≤ 2-3 min on 2 loaded cores)::
     .venv/bin/python benchmarks/render_speed.py --tree procedural
     .venv/bin/python benchmarks/render_speed.py --tree ff        # forward-facing NDC, 504x378
     .venv/bin/python benchmarks/render_speed.py --tree my.npz --sizes 400
+    .venv/bin/python benchmarks/render_speed.py --tree out/ff/tree_ft.npz --data DIR  # its views
 
 Writes ``benchmarks/results/render_speed_<tree>.json`` (``--out``) and prints markdown tables.
 """
@@ -81,6 +82,17 @@ def ff_cameras(root: str, n_views: int) -> tuple[Any, list[int]]:
     cams = load_llff(root, split="all").cameras
     idx = np.linspace(0, len(cams) - 1, n_views).round().astype(int)
     return cams, [int(i) for i in idx]
+
+
+def data_cameras(root: str, n_views: int) -> tuple[Any, list[int]]:
+    """The test cameras of the dataset at ``root`` (any format; NDC ones for a forward-facing
+    capture) and ``n_views`` indices evenly spread over them: a tree measured from the views it
+    was made for."""
+    from plenoctree.datasets import load_dataset
+
+    cams = load_dataset(root, split="test").cameras
+    idx = np.linspace(0, len(cams) - 1, min(n_views, len(cams))).round().astype(int)
+    return cams, sorted({int(i) for i in idx})
 
 
 def time_passes(fn: Callable[[], Any], repeats: int) -> tuple[list[float], list[float]]:
@@ -131,6 +143,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[400, 800],
                     help="image sizes (px; orbit views)")
     ap.add_argument("--views", type=int, default=4, help="views per pass")
+    ap.add_argument("--data", default=None,
+                    help="dataset of the tree: time its test views (at their own size) instead "
+                         "of orbit views; needed for a forward-facing (NDC) tree file")
     ap.add_argument("--repeats", type=int, default=5, help="timed passes per path and size")
     ap.add_argument("--twin-rays", type=int, default=8000,
                     help="rays per view rendered by the torch twin (strided subset)")
@@ -150,9 +165,16 @@ def main(argv: list[str] | None = None) -> int:
                                  log=lambda m: print(m, file=sys.stderr))
     info = parse_data_format(tree.data_format, tree.data_dim, tree.extra_data)
     opts = RenderOptions(stop_thresh=args.stop_thresh)
-    if desc["kind"] == "forward_facing":
+    if args.data:
+        cams, idx = data_cameras(args.data, args.views)
+        sets = {f"{cams.width}x{cams.height}": (cams, idx)}
+        desc["views_from"] = str(args.data)
+    elif desc["kind"] == "forward_facing":
         cams, idx = ff_cameras(desc["data"], args.views)
         sets = {f"{cams.width}x{cams.height}": (cams, idx)}
+    elif getattr(tree, "ndc", None) is not None:
+        raise SystemExit(f"{desc['source']}: a forward-facing (NDC) tree; pass --data DIR (its "
+                         "capture) to time it from its own cameras, not from orbit views")
     else:
         sets = {f"{s}x{s}": (orbit_cameras(args.views, s), list(range(args.views)))
                 for s in args.sizes}
