@@ -64,8 +64,13 @@ def _ff_tree(resolution: int) -> tuple[Any, dict]:
 
 
 def load_bench_tree(name: str | None, resolution: int = 256,
-                    log: Any = print) -> tuple[Any, dict]:
-    """``(tree, description)`` for ``--tree`` (see the module docstring)."""
+                    log: Any = print, data: str | None = None) -> tuple[Any, dict]:
+    """``(tree, description)`` for ``--tree`` (see the module docstring).
+
+    ``data``: the tree's dataset (``--data``): ``description["data"]`` then names it, and the
+    benchmarks take their views from its cameras instead of orbit views (the ``ff`` tree names
+    its own). A forward-facing (NDC) tree file without ``data`` is refused: orbit views mean
+    nothing in NDC space."""
     name = name or default_tree_name()
     t0 = time.perf_counter()
     if name == "lego":
@@ -81,6 +86,11 @@ def load_bench_tree(name: str | None, resolution: int = 256,
         from plenoctree.octree import load_tree
 
         tree, desc = load_tree(name), {"kind": "file", "source": str(name)}
+    if data:
+        desc["data"] = str(data)
+    elif getattr(tree, "ndc", None) is not None and not desc.get("data"):
+        raise SystemExit(f"{desc['source']}: a forward-facing (NDC) tree; pass --data DIR (its "
+                         "capture) to time it from its own cameras, not from orbit views")
     desc.update(data_format=tree.data_format, n_nodes=int(tree.n_nodes),
                 n_leaves=int(tree.n_leaves), max_depth=int(tree.max_depth),
                 data_mb=tree.data.nbytes / 2**20, load_s=time.perf_counter() - t0)

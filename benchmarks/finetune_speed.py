@@ -197,12 +197,7 @@ def main() -> None:
     args = ap.parse_args()
 
     load_before = os.getloadavg()
-    tree, desc = load_bench_tree(args.tree, 256)
-    if args.data:
-        desc["data"] = str(args.data)
-    elif getattr(tree, "ndc", None) is not None and not desc.get("data"):
-        raise SystemExit(f"{desc['source']}: a forward-facing (NDC) tree; pass --data DIR (its "
-                         "capture) to draw rays from its own cameras, not from orbit views")
+    tree, desc = load_bench_tree(args.tree, 256, data=args.data)
     tree_name = desc["source"]
     opts = RenderOptions(stop_thresh=args.stop_thresh)
     rng = np.random.default_rng(0)

@@ -75,22 +75,13 @@ def orbit_cameras(n_views: int, size: int) -> Any:
     return Cameras(np.stack(c2w), fx, fx, size / 2.0, size / 2.0, size, size)
 
 
-def ff_cameras(root: str, n_views: int) -> tuple[Any, list[int]]:
-    """The LLFF capture's own (NDC) cameras and ``n_views`` indices evenly spread over them."""
-    from plenoctree.datasets.llff import load_llff
-
-    cams = load_llff(root, split="all").cameras
-    idx = np.linspace(0, len(cams) - 1, n_views).round().astype(int)
-    return cams, [int(i) for i in idx]
-
-
-def data_cameras(root: str, n_views: int) -> tuple[Any, list[int]]:
-    """The test cameras of the dataset at ``root`` (any format; NDC ones for a forward-facing
-    capture) and ``n_views`` indices evenly spread over them: a tree measured from the views it
-    was made for."""
+def data_cameras(root: str, n_views: int, split: str = "test") -> tuple[Any, list[int]]:
+    """The ``split`` cameras of the dataset at ``root`` (any format; NDC ones for a
+    forward-facing capture) and up to ``n_views`` indices evenly spread over them: a tree timed
+    from the views it was made for."""
     from plenoctree.datasets import load_dataset
 
-    cams = load_dataset(root, split="test").cameras
+    cams = load_dataset(root, split=split).cameras
     idx = np.linspace(0, len(cams) - 1, min(n_views, len(cams))).round().astype(int)
     return cams, sorted({int(i) for i in idx})
 
@@ -162,19 +153,13 @@ def main(argv: list[str] | None = None) -> int:
 
     load_before = os.getloadavg()
     tree, desc = load_bench_tree(args.tree, args.resolution,
-                                 log=lambda m: print(m, file=sys.stderr))
+                                 log=lambda m: print(m, file=sys.stderr), data=args.data)
     info = parse_data_format(tree.data_format, tree.data_dim, tree.extra_data)
     opts = RenderOptions(stop_thresh=args.stop_thresh)
-    if args.data:
-        cams, idx = data_cameras(args.data, args.views)
+    if desc.get("data"):      # --data, or the ff tree's own capture (all its cameras)
+        cams, idx = data_cameras(desc["data"], args.views,
+                                 "all" if desc["kind"] == "forward_facing" else "test")
         sets = {f"{cams.width}x{cams.height}": (cams, idx)}
-        desc["views_from"] = str(args.data)
-    elif desc["kind"] == "forward_facing":
-        cams, idx = ff_cameras(desc["data"], args.views)
-        sets = {f"{cams.width}x{cams.height}": (cams, idx)}
-    elif getattr(tree, "ndc", None) is not None:
-        raise SystemExit(f"{desc['source']}: a forward-facing (NDC) tree; pass --data DIR (its "
-                         "capture) to time it from its own cameras, not from orbit views")
     else:
         sets = {f"{s}x{s}": (orbit_cameras(args.views, s), list(range(args.views)))
                 for s in args.sizes}
