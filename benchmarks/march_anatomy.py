@@ -53,8 +53,8 @@ from numba.cpython.unsafe.numbers import leading_zeros
 from _trees import ROOT, load_bench_tree, machine_info
 from render_speed import orbit_cameras
 
-from plenoctree.render._march_numba import (MAX_LEVEL, STACK_SIZE, common_level, next_leaf,
-                                            ray_octant, ray_start)
+from plenoctree.render._march_numba import (MARCH_MATH, MAX_LEVEL, STACK_SIZE, common_level,
+                                            next_leaf, ray_octant, ray_start)
 from plenoctree.render.empty_skip import NO_SKIP, skip_tables
 from plenoctree.render.options import QUANT_BITS
 
@@ -64,27 +64,39 @@ _TILE = 64
 _STOP = 0.01
 
 
-@njit(cache=True, fastmath=True, inline="always")
-def _start(offset, invr, o, d, i, eps):
+@njit(cache=True, fastmath=MARCH_MATH, inline="always")
+def _start_grid(offset, invr, o, d, i, eps):
+    """:func:`ray_start` of ray ``i``: origin, direction and reciprocal in grid units (what
+    ``next_leaf`` takes)."""
     return ray_start(offset, invr, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2], eps)
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=MARCH_MATH, inline="always")
+def _start(offset, invr, o, d, i, eps):
+    """The same in tree-space units (divided back by the power-of-two scale: exact), for this
+    file's own traversals."""
+    dx, dy, dz, px, py, pz, vx, vy, vz, ix, iy, iz, t0, t1, et = _start_grid(offset, invr, o, d,
+                                                                             i, eps)
+    return (dx, dy, dz, px / _S, py / _S, pz / _S, vx / _S, vy / _S, vz / _S, ix * _S, iy * _S,
+            iz * _S, t0, t1, et)
+
+
+@njit(cache=True, fastmath=MARCH_MATH, inline="always")
 def _absorb(data, cell, t, te, tr):
     """Transmittance after segment ``[t, te]`` of ``cell`` (σ ≤ 0: unchanged)."""
     s = data[cell, data.shape[1] - 1]
     return tr * math.exp(-s * (te - t)) if s > 0.0 else tr
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=True, fastmath=MARCH_MATH)
 def _march(child, skip, shift, data, offset, invr, o, d, eps, use_stack, out, nseg):
     n = o.shape[0]
     for tile in prange((n + _TILE - 1) // _TILE):
         st = np.zeros(4, np.int64)
         stack = np.zeros(STACK_SIZE, np.int64)
         for i in range(tile * _TILE, min(n, tile * _TILE + _TILE)):
-            _, _, _, px, py, pz, vx, vy, vz, ix, iy, iz, t0, t1, et = _start(offset, invr, o, d,
-                                                                               i, eps)
+            _, _, _, px, py, pz, vx, vy, vz, ix, iy, iz, t0, t1, et = _start_grid(
+                offset, invr, o, d, i, eps)
             tr, k, t = 1.0, 0, t0
             st[0], st[1], stack[0] = 0, -1, 0
             oc = ray_octant(vx, vy, vz)
@@ -100,7 +112,7 @@ def _march(child, skip, shift, data, offset, invr, o, d, eps, use_stack, out, ns
             nseg[i] = k
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=True, fastmath=MARCH_MATH)
 def _interleave4(child, data, offset, invr, o, d, eps, out):
     n = o.shape[0]
     for tile in prange((n + _TILE - 1) // _TILE):
@@ -114,7 +126,7 @@ def _interleave4(child, data, offset, invr, o, d, eps, out):
                 while idx[k] < 0 and nxt < end:
                     i = nxt
                     nxt += 1
-                    _, _, _, px, py, pz, vx, vy, vz, ix, iy, iz, t0, t1, et = _start(
+                    _, _, _, px, py, pz, vx, vy, vz, ix, iy, iz, t0, t1, et = _start_grid(
                         offset, invr, o, d, i, eps)
                     if not t0 < t1:
                         out[i] = 1.0
@@ -142,7 +154,7 @@ def _interleave4(child, data, offset, invr, o, d, eps, out):
                 break
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=MARCH_MATH, inline="always")
 def _descend(child, qx, qy, qz, rx, ry, rz, level, lim, stack):
     """``next_leaf``'s descent from ``stack[level]``: bits of ``q`` down to level ``lim``, of
     ``r`` below it. Returns ``(cell, level, the coordinates used last)``."""
@@ -160,7 +172,7 @@ def _descend(child, qx, qy, qz, rx, ry, rz, level, lim, stack):
         stack[level] = node
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=True, fastmath=MARCH_MATH)
 def _predict(child, data, offset, invr, o, d, eps, out):
     """The next leaf predicted from the exit face (the neighbour's integer coordinates: one
     add, no float → integer conversion on the chain), verified against the twin's lookup point
@@ -216,7 +228,7 @@ def _predict(child, data, offset, invr, o, d, eps, out):
             out[i] = tr
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=True, fastmath=MARCH_MATH)
 def _level_march(child, data, offset, invr, o, d, eps, use_clz, out):
     """``march`` written with this file's helpers, the common ancestor's level found by
     ``common_level``'s loop (``use_clz=False``, row ``level_loop``) or without a branch from a
@@ -286,7 +298,7 @@ def _build_grid(child, grid):
                         grid[_gidx(x, y, z)] = e
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=MARCH_MATH, inline="always")
 def _exit(qx, qy, qz, sh, px, py, pz, vx, vy, vz, ix, iy, iz, ts, t1):
     bx = (((qx >> sh) + (1 if vx >= 0.0 else 0)) << sh) / _S
     by = (((qy >> sh) + (1 if vy >= 0.0 else 0)) << sh) / _S
@@ -294,12 +306,12 @@ def _exit(qx, qy, qz, sh, px, py, pz, vx, vy, vz, ix, iy, iz, ts, t1):
     return min(max(min((bx - px) * ix, min((by - py) * iy, (bz - pz) * iz)), ts), t1)
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=MARCH_MATH, inline="always")
 def _quant(p, v, ts):
     return int(min(max((p + ts * v) * _S, 0.0), _S - 1.0))
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=True, fastmath=MARCH_MATH)
 def _grid_march(grid, child, data, offset, invr, o, d, eps, out):
     n = o.shape[0]
     for tile in prange((n + _TILE - 1) // _TILE):
@@ -332,7 +344,7 @@ def _grid_march(grid, child, data, offset, invr, o, d, eps, out):
             out[i] = tr
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=True, fastmath=MARCH_MATH)
 def _param(child, data, offset, invr, o, d, eps, out):
     """Frames per level: entry / mid / exit plane t per axis (sorted by the ray's direction),
     the node, and the smallest exit; the child holding p(t + ε) is one compare per axis."""
@@ -392,7 +404,7 @@ def _param(child, data, offset, invr, o, d, eps, out):
             out[i] = tr
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=True, fastmath=MARCH_MATH)
 def _geometry(offset, invr, o, d, eps, nseg, out):
     n = o.shape[0]
     for tile in prange((n + _TILE - 1) // _TILE):
@@ -407,7 +419,7 @@ def _geometry(offset, invr, o, d, eps, nseg, out):
             out[i] = t
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=True, fastmath=MARCH_MATH)
 def _dda(offset, invr, o, d, eps, nseg, out):
     n = o.shape[0]
     cs = 1.0 / (1 << _G)

@@ -248,3 +248,22 @@ def test_per_thread_scratch_rows_never_share_a_cache_line():
     # before row t + 1's start
     row = pad_scratch(4, 8) * 8
     assert row - 4 * 8 >= 64
+
+
+def test_marching_kernels_compile_without_value_changing_fastmath_flags():
+    """Every numba kernel that marches uses MARCH_MATH (no reassociation, contraction or
+    approximate functions): with fastmath=True the render kernel loaded from numba's disk cache
+    was optimised differently from the freshly compiled one, and a few lookups of a lego view
+    landed in the neighbouring leaf (4.6e-3 from the twin). The colour dot product
+    (leaf_logits, float32, not on the march's path) may reassociate."""
+    from plenoctree.optim import _render_grad_numba as g
+    from plenoctree.render import _march_numba as m
+    from plenoctree.render import _render_numba as r
+
+    assert set(m.MARCH_MATH) <= {"nnan", "ninf", "nsz"}
+    for f in (m.ray_start, m.next_leaf, m.look_ahead, m.basis_values, r._render_one,
+              r._camera_ray, r._render_kernel, r._stats_kernel, g._trace_one, g._backprop_one,
+              g.grad_kernel):
+        flags = f.targetoptions.get("fastmath")
+        assert flags is not True and set(flags or ()) <= set(m.MARCH_MATH), f.py_func.__name__
+    assert "inline" not in m.leaf_logits.targetoptions    # compiled with its own flags

@@ -56,9 +56,9 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from ..render._march_numba import (MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, _prefetch,
-                                   basis_values, leaf_logits, look_ahead, pad_scratch,
-                                   prefetch_row, ray_octant, ray_start)
+from ..render._march_numba import (MARCH_MATH, MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE,
+                                   _prefetch, basis_values, leaf_logits, look_ahead,
+                                   pad_scratch, prefetch_row, ray_octant, ray_start)
 from ..render._render_numba import _camera_ray
 from ..render.options import KIND_RGBA
 
@@ -76,7 +76,7 @@ def initial_capacity(depth_limit: int) -> int:
     return int(3 * (2 << max(0, min(int(depth_limit), 20))) + 64)
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=MARCH_MATH, inline="always")
 def _trace_one(child, skip, shift, data, offset, invr, origins, dirs, i, kind, n_b, sg, b_lo,
                b_hi, stop, eps, basis, st, stack, qc, qe, rec_cell, rec, out4, slot, chunk,
                want_grad):
@@ -160,7 +160,7 @@ def _trace_one(child, skip, shift, data, offset, invr, origins, dirs, i, kind, n
     return n_seg
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=MARCH_MATH, inline="always")
 def _backprop_one(n_seg, rec_cell, rec, kind, n_b, b_lo, b_hi, basis, cr, cg, cb, gr, gg, gb,
                   grad, slot, touched, n_touched, need):
     """Scatter ``∂L/∂data`` of one ray (eq. 15 and 20) into this chunk's compact slab ``grad``
@@ -219,7 +219,7 @@ def _backprop_one(n_seg, rec_cell, rec, kind, n_b, b_lo, b_hi, basis, cr, cg, cb
     return n_touched, need
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=True, fastmath=MARCH_MATH)
 def grad_kernel(child, skip, shift, data, offset, invr, origins, dirs, aux, mode, scale, kind, n_b,
                 sg, b_lo, b_hi, bg, stop, eps, cap0, rgb_out, grad3, slot, touched, n_touched,
                 need, sse):

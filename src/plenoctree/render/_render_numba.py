@@ -22,8 +22,8 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from ._march_numba import (MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, basis_values, leaf_logits,
-                           look_ahead, next_leaf, ray_octant, ray_start)
+from ._march_numba import (MARCH_MATH, MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, basis_values,
+                           leaf_logits, look_ahead, next_leaf, ray_octant, ray_start)
 from .empty_skip import SkipTables, no_skip
 from .options import KIND_SG, FormatInfo, RenderOptions
 
@@ -45,7 +45,7 @@ STAT_NAMES = ("leaves", "sigma_leaves", "negligible", "descent", "hit", "stopped
 NEGLIGIBLE_WEIGHT = 1e-4   # a σ > 0 segment with w = T (1 - e^{-σδ}) below this is "negligible"
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=MARCH_MATH, inline="always")
 def _render_one(child, skip, shift, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b, sg,
                 b_lo, b_hi, stop, eps, use_stack, max_level, max_steps, basis, st, stack, qc, qe,
                 out3):
@@ -107,7 +107,7 @@ CAM_ARRAYS, CAM_PINHOLE, CAM_NDC = 0, 1, 2
 CAM_SIZE = 20
 
 
-@njit(cache=True, fastmath=True, inline="always")
+@njit(cache=True, fastmath=MARCH_MATH, inline="always")
 def _camera_ray(cam, u, v):
     """The ray of pixel ``(u, v)`` of the camera packed in ``cam`` (see :func:`pack_camera`),
     float32-rounded as ``datasets.cameras.generate_rays`` (+ ``datasets.ndc.to_ndc_rays`` when
@@ -147,7 +147,7 @@ def _camera_ray(cam, u, v):
     return ox, oy, oz, dx, dy, dz
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=True, fastmath=MARCH_MATH)
 def _render_kernel(child, skip, shift, data, offset, invr, origins, dirs, cam, kind, n_b, sg, b_lo,
                    b_hi, bg, stop, eps, use_stack, max_level, max_steps, n, width, tile_w, tile_h,
                    rgb, depth, alpha):
@@ -187,7 +187,7 @@ def _render_kernel(child, skip, shift, data, offset, invr, origins, dirs, cam, k
                 alpha[i] = 1.0 - trans
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, cache=True, fastmath=MARCH_MATH)
 def _stats_kernel(child, skip, shift, data, offset, invr, origins, dirs, stop, eps, negligible,
                   max_level, max_steps, out):
     """Per-ray counters of the renderer's march (same segments, same early stop): ``out [N, 6]``
