@@ -35,11 +35,10 @@ from render_speed import orbit_cameras
 SPEC = 1e-4
 
 
-def _render(tree_name: str, size: int, views: int, backend: str) -> np.ndarray:
+def _images(tree, size: int, views: int, backend: str) -> np.ndarray:
     """``[views, size, size, 3]`` float32 images of ``views`` orbit cameras."""
     from plenoctree.render import RenderOptions, render_image, tree_to_device
 
-    tree, _ = load_bench_tree(tree_name, log=lambda m: print(m, file=sys.stderr))
     if backend == "numba":
         tree = tree_to_device(tree, "cpu")             # as eval / video render
     cams = orbit_cameras(views, size)
@@ -55,12 +54,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=str(ROOT / "results" / "kernel_cache_check.json"))
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)   # internal: save numba
     a = ap.parse_args(argv)
+    # (Here first: lego is extracted once, before the children load it.)
+    tree, desc = load_bench_tree(a.tree, log=lambda m: print(m, file=sys.stderr))
     if a.child:
-        np.save(a.child, _render(a.tree, a.size, a.views, "numba"))
+        np.save(a.child, _images(tree, a.size, a.views, "numba"))
         return 0
-
-    if a.tree is None:
-        load_bench_tree(None, log=lambda m: print(m, file=sys.stderr))   # extract lego once
     with tempfile.TemporaryDirectory(prefix="numba-cache-") as tmp:
         env = dict(os.environ, NUMBA_CACHE_DIR=tmp)
         imgs = {}
@@ -70,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
                    "--child", path] + (["--tree", a.tree] if a.tree else [])
             subprocess.run(cmd, env=env, check=True)
             imgs[state] = np.load(path)
-    twin = _render(a.tree, a.size, a.views, "torch")
+    twin = _images(tree, a.size, a.views, "torch")
     rows = {}
     print(f"\n| kernel | max \\|Δ rgb\\| vs twin | values > {SPEC:g} | values > 1e-5 |")
     print("|---|---|---|---|")
@@ -85,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nfresh vs cached: max |Δ| {between:.2e} ({'same image' if between == 0 else 'DIFFER'})"
           f"; {a.views} views at {a.size}²; {'OK' if ok else 'FAIL'}")
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps({"tree": a.tree or "default", "size": a.size,
+    Path(a.out).write_text(json.dumps({"tree": desc["source"], "size": a.size,
                                        "views": a.views, "states": rows,
                                        "fresh_vs_cached": between, "ok": ok,
                                        "machine": machine_info()}, indent=1))

@@ -263,8 +263,9 @@ def next_leaf(child, skip, shift, oc, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps
     (``oc``: :func:`ray_octant`), so the segment runs to the end of the empty region ahead;
     with a plain ``child`` (no negative entries) nothing changes."""
     ts = t + eps_t
-    # Truncate, then clamp in integers (= the floor of the point clamped to the box: the
-    # point is within ε of the box, so truncation toward 0 only differs below 0).
+    # Truncate, then clamp in integers: the floor of the point clamped to the box (truncation
+    # differs from the floor only below 0, where the clamp gives 0 either way; the point is
+    # within ε of the box, far inside the int64 range).
     qx = min(max(int(px + ts * vx), 0), _QMAX)
     qy = min(max(int(py + ts * vy), 0), _QMAX)
     qz = min(max(int(pz + ts * vz), 0), _QMAX)
