@@ -63,8 +63,10 @@ def main(argv: list[str] | None = None) -> int:
     # Every command may run torch and numba together: the OpenMP/malloc settings must precede
     # both runtimes, and nothing has imported them yet (the package root is lazy).
     from .. import runtime
+    from .._log import configure_cli
 
     runtime.configure()
+    configure_cli(quiet=bool(getattr(args, "quiet", False)))
     try:
         return int(args.func(args) or 0)
     except PlenOctreeError as e:
