@@ -12,11 +12,13 @@ They run
   way against its torch twin on machines without a GPU. The interpreter is slow (NumPy per
   block): for tiny inputs only.
 
-:func:`register_backends` adds backend ``"triton"`` to the ops of :mod:`plenoctree.backend`
-(``render``, ``render_grad``, ``finetune``, ``hashgrid``, ``march``) with a priority between
-numba (CPU) and the torch twin: ``backend="auto"`` then picks Triton for CUDA tensors when it
-is usable and keeps numba for CPU tensors; CPU tensors reach Triton only when asked for by name
-(in interpreter mode). This module imports torch lazily (``backend.py`` imports it).
+:mod:`plenoctree.backend` registers backend ``"triton"`` for the ops listed in
+:data:`TRITON_IMPLS` (``render``, ``render_grad``, ``finetune``, ``hashgrid``, ``march``) with
+:data:`TRITON_PRIORITY`, between numba (CPU) and the torch twin, and :func:`usable_anywhere` as
+its availability probe: ``backend="auto"`` then picks Triton for CUDA tensors when it is usable
+and keeps numba for CPU tensors; CPU tensors reach Triton only when asked for by name (in
+interpreter mode). This module imports nothing of the package but :mod:`plenoctree.errors`
+(``backend.py`` imports it, never the reverse) and imports torch lazily.
 """
 
 from __future__ import annotations
@@ -29,13 +31,14 @@ from typing import Any
 
 from .errors import BackendError
 
-__all__ = ["has_triton", "interpret_mode", "triton_usable", "require_triton",
-           "register_backends", "TRITON_PRIORITY"]
+__all__ = ["has_triton", "interpret_mode", "triton_usable", "require_triton", "usable_anywhere",
+           "TRITON_PRIORITY", "TRITON_IMPLS"]
 
 #: Between the torch twin (0) and numba (10): first on CUDA, never ``auto``'s pick on the CPU.
 TRITON_PRIORITY = 5
 
-_IMPLS = (
+#: ``(op, "module:attr")`` of each Triton kernel; registered by :mod:`plenoctree.backend`.
+TRITON_IMPLS = (
     ("render", "plenoctree.render._triton_impl:render_backend"),
     ("render_grad", "plenoctree.optim._triton_grad:render_grad_backend"),
     ("finetune", "plenoctree.optim._steppers:TritonStepper"),
@@ -60,7 +63,9 @@ def interpret_mode() -> bool:
     return _env_on("TRITON_INTERPRET") and _env_on("PLENOCTREE_TRITON_CPU")
 
 
-def _usable_anywhere() -> bool:
+def usable_anywhere() -> bool:
+    """True when a Triton kernel can run on some tensors in this process (the probe
+    :mod:`plenoctree.backend` registers the Triton backends with)."""
     # no torch import here (backend.resolve must not load it): without torch loaded there
     # are no CUDA tensors to run on, and interpreter mode needs none
     if not has_triton():
@@ -68,15 +73,6 @@ def _usable_anywhere() -> bool:
     if interpret_mode():
         return True
     return "torch" in sys.modules and triton_usable("cuda")
-
-
-def register_backends() -> None:
-    """Register the Triton kernels with :mod:`plenoctree.backend` (idempotent, lazy imports)."""
-    from . import backend
-
-    for op, impl in _IMPLS:
-        backend.register_backend(op, "triton", impl, devices=("cuda", "cpu"),
-                                 priority=TRITON_PRIORITY, available=_usable_anywhere)
 
 
 def triton_usable(device: Any) -> bool:

@@ -47,6 +47,7 @@ import importlib.util
 from dataclasses import dataclass
 from typing import Any, Callable
 
+from . import _triton
 from .errors import BackendError
 
 __all__ = ["Backend", "register_backend", "resolve", "implementation", "backends", "ops",
@@ -203,6 +204,7 @@ for _op, _numba, _torch in (
 del _op, _numba, _torch
 
 # GPU kernels (Triton; CUDA tensors, or CPU tensors in Triton's interpreter): see _triton.py.
-from ._triton import register_backends as _register_triton  # noqa: E402
-
-_register_triton()
+for _op, _impl in _triton.TRITON_IMPLS:
+    register_backend(_op, "triton", _impl, devices=("cuda", "cpu"),
+                     priority=_triton.TRITON_PRIORITY, available=_triton.usable_anywhere)
+del _op, _impl
