@@ -44,8 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
-from plenoctree.compress import CompressOptions
-from plenoctree.compress.report import compression_report
+from plenoctree.compression import CompressOptions
+from plenoctree.compression_report import compression_report
 
 
 def perturb(tree, noise: float, texture: float, seed: int = 0) -> None:
@@ -87,8 +87,8 @@ def viewer_frame_times(tree_path: Path, sizes: list[int], frames: int) -> dict:
         return {"skipped": "playwright is not installed (scripts/install_browser.sh)"}
     if chromium is None:
         return {"skipped": "no chromium executable (scripts/install_browser.sh)"}
-    from plenoctree.compress import load_any_tree
-    from plenoctree.compress.report import orbit_cameras
+    from plenoctree.compression import load_any_tree
+    from plenoctree.compression_report import tree_orbit_cameras
     from plenoctree.render import render_image
     from plenoctree.viewer import ViewerServer
 
@@ -110,7 +110,7 @@ def viewer_frame_times(tree_path: Path, sizes: list[int], frames: int) -> dict:
             " const e = gl.getExtension('WEBGL_debug_renderer_info');"
             " return e ? gl.getParameter(e.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER); })()")
         for size in sizes:
-            cams = orbit_cameras(tree, n=1, size=size)
+            cams = tree_orbit_cameras(tree, n=1, size=size)
             view = dict(c2w=cams.c2w[0].reshape(-1).tolist(), fx=cams.fx, fy=cams.fy,
                         cx=cams.cx, cy=cams.cy, width=size, height=size)
             page.evaluate("v => window.viewer.setView(v)", view)

@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
 
     from plenoctree._util import atomic_save_json
-    from plenoctree.convert.extract import ExtractConfig, _load_run, extract
+    from plenoctree.convert.extraction import ExtractConfig, _load_run, extract
     from plenoctree.convert.refine import refine_tree
     from plenoctree.octree import load_tree
 

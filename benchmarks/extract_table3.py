@@ -40,7 +40,7 @@ import numpy as np
 
 from plenoctree._util import atomic_save_json
 from plenoctree.convert import AnalyticField, ExtractConfig, extract
-from plenoctree.convert.extract import clamp_sigma_for_fp16
+from plenoctree.convert.extraction import clamp_sigma_for_fp16
 from plenoctree.convert.visibility import rescale_cameras
 from plenoctree.datasets import load_dataset
 from plenoctree.datasets.procedural import write_procedural_dataset

@@ -43,7 +43,7 @@ def _rss_mb() -> int:
 def child(tree: str, data: str, downscale: int, epochs: int, dense: bool, out: str) -> None:
     """One fine-tuning run; prints a JSON line with its peak RSS and the phase it fell in."""
     from plenoctree.optim import _loop, _render_grad, _steppers
-    from plenoctree.optim.finetune import FinetuneConfig, finetune
+    from plenoctree.optim.finetuning import FinetuneConfig, finetune
 
     sizes: dict[str, int] = {}
     make = _steppers.NumbaStepper.__init__

@@ -83,7 +83,7 @@ def _tree(args, scratch: Path):
 
     path = Path(args.tree) if args.tree else Path("/work/cache/lego_256.npz")
     if not path.is_file():
-        from plenoctree.convert.extract import ExtractConfig, extract
+        from plenoctree.convert.extraction import ExtractConfig, extract
 
         path = scratch / "lego_tree.npz"
         if not path.is_file():
@@ -169,7 +169,7 @@ def bench_train(data_root: str, dev: torch.device, steps: int, scratch: Path) ->
 
 
 def bench_extract(run: str, data: str, dev: torch.device, grid: int, scratch: Path) -> dict:
-    from plenoctree.convert.extract import ExtractConfig, extract
+    from plenoctree.convert.extraction import ExtractConfig, extract
 
     out = scratch / f"extract_{dev.type}.npz"
     t0 = time.perf_counter()

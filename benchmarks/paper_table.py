@@ -506,8 +506,8 @@ def main(argv: list[str] | None = None) -> int:
                                  known.get("ft")),
                   "stage_s": read.get("finetune_s"), "stage_src": "read: fine-tuning"}
 
-    from plenoctree.compress import CompressOptions, compress, load_any_tree, save_compressed
-    from plenoctree.compress.lod import truncate_sh, write_tree_file
+    from plenoctree.compression import CompressOptions, compress, load_any_tree, save_compressed
+    from plenoctree.compression.lod import truncate_sh, write_tree_file
 
     ft_tree = load_any_tree(tree_ft)
     if plnz is None or not plnz.is_file():

@@ -12,9 +12,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from plenoctree.compress import (CompressOptions, compress, decompress, is_compressed_file,
+from plenoctree.compression import (CompressOptions, compress, decompress, is_compressed_file,
                                  load_any_tree, load_compressed, median_cut, save_compressed)
-from plenoctree.compress.median_cut import _median_cut_torch, median_cut_many
+from plenoctree.compression.quantize import _median_cut_torch, median_cut_many
 from plenoctree.errors import ConfigError, TreeFormatError
 from plenoctree.octree import Octree
 from plenoctree.octree.io import load_tree, save_tree
@@ -146,14 +146,14 @@ def test_sigma_thresh_drops_leaves_and_input_is_untouched():
 
 
 def test_decompressed_tree_renders_like_the_original():
-    from plenoctree.compress.report import orbit_cameras
+    from plenoctree.compression_report import tree_orbit_cameras
     from plenoctree.metrics import psnr
     from plenoctree.render import render_image
 
     from plenoctree.datasets.procedural import procedural_tree
     t = procedural_tree(32)
     out = decompress(compress(t, CompressOptions(bits=10)))
-    cams = orbit_cameras(t, n=2, size=48)
+    cams = tree_orbit_cameras(t, n=2, size=48)
     for i in range(2):
         a = render_image(t, cams, i).rgb.numpy()
         b = render_image(out, cams, i).rgb.numpy()
@@ -263,7 +263,7 @@ def test_bad_files_raise_clear_errors(tmp_path):
 
 
 def test_import_compiles_nothing():
-    code = ("import sys, plenoctree, plenoctree.compress, plenoctree.viewer; "
-            "print('plenoctree.compress._median_cut_numba' in sys.modules)")
+    code = ("import sys, plenoctree, plenoctree.compression, plenoctree.viewer; "
+            "print('plenoctree.compression._median_cut_numba' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"

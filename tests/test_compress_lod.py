@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from plenoctree.cli import main
-from plenoctree.compress import (LodOptions, fit_to_size, load_any_tree, make_lod,
+from plenoctree.compression import (LodOptions, fit_to_size, load_any_tree, make_lod,
                                  merge_to_depth, prune, truncate_sh)
 from plenoctree.errors import ConfigError
 from plenoctree.octree import Octree

@@ -14,7 +14,7 @@ import plenoctree.metrics as metrics
 import plenoctree.video as video
 from plenoctree._util import save_png
 from plenoctree.cli import main
-from plenoctree.compress import compress, save_compressed
+from plenoctree.compression import compress, save_compressed
 from plenoctree.datasets import load_dataset
 from plenoctree.datasets.procedural import procedural_tree, write_procedural_dataset
 from plenoctree.errors import BackendError, ConfigError, TreeFormatError

@@ -25,7 +25,7 @@ pytestmark = [
 
 @pytest.fixture(scope="module")
 def lego(tmp_path_factory):
-    from plenoctree.convert.extract import ExtractConfig, extract
+    from plenoctree.convert.extraction import ExtractConfig, extract
     from plenoctree.datasets import load_dataset
 
     d = tmp_path_factory.mktemp("lego_export")

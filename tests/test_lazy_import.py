@@ -17,7 +17,7 @@ def _run(code: str, env: dict | None = None) -> str:
 
 def test_import_plenoctree_and_backend_policy_load_neither_torch_nor_numba():
     code = ("import sys, plenoctree, plenoctree.backend as b; b.resolve('render', 'auto'); "
-            "import plenoctree.nerf, plenoctree.optim, plenoctree.convert, plenoctree.compress; "
+            "import plenoctree.nerf, plenoctree.optim, plenoctree.convert, plenoctree.compression; "
             f"print([m for m in {HEAVY!r} if m in sys.modules])")
     assert _run(code) == "[]"
 
@@ -40,10 +40,10 @@ def test_help_builds_every_parser_without_torch_and_sets_the_runtime_in_process(
     assert out[-1] == "OMP PASSIVE"          # set by runtime.configure(), before torch loaded
 
 
-def test_lazy_names_resolve_and_function_names_win_over_submodules():
+def test_lazy_names_resolve_after_their_submodules_are_imported():
     import plenoctree
-    import plenoctree.compress.codec  # noqa: F401  (imports the subpackage `compress`)
-    import plenoctree.optim.finetune  # noqa: F401
+    import plenoctree.compression.codec  # noqa: F401  (the subpackage behind `compress`)
+    import plenoctree.optim.finetuning  # noqa: F401
 
     for name in plenoctree.__all__:
         assert getattr(plenoctree, name) is not None, name

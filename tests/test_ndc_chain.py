@@ -82,10 +82,10 @@ def test_trainer_and_finetuner_rays_equal_camera_rays(scene, kind):
 
 
 def test_ndc_scene_trains_extracts_and_finetunes(scene, tmp_path):
-    from plenoctree.convert.extract import ExtractConfig, extract
+    from plenoctree.convert.extraction import ExtractConfig, extract
     from plenoctree.metrics import psnr
     from plenoctree.nerf import train
-    from plenoctree.optim.finetune import FinetuneConfig, finetune
+    from plenoctree.optim.finetuning import FinetuneConfig, finetune
 
     data = load_dataset(scene, "train")
     test = load_dataset(scene, "test")

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from plenoctree.cli import main
-from plenoctree.compress import compress, load_any_tree, save_compressed
-from plenoctree.compress.lod import truncate_sh
+from plenoctree.compression import compress, load_any_tree, save_compressed
+from plenoctree.compression.lod import truncate_sh
 from plenoctree.datasets import Cameras, load_dataset
 from plenoctree.datasets import ndc as dndc
 from plenoctree.errors import TreeFormatError

@@ -463,7 +463,7 @@ def test_stored_members_read_directly_and_crc_checked(tmp_path):
 
 def test_big_endian_and_fortran_members_load(tmp_path):
     """Fortran-ordered members load C-contiguous; a big-endian array comes back native."""
-    from plenoctree.octree._npz import NpzReader
+    from plenoctree._npz import NpzReader
 
     tree = Octree.dense(1, "SH1", seed=0)
     path = tmp_path / "f.npz"

@@ -13,7 +13,7 @@ import pytest
 from plenoctree.datasets.procedural import CAMERA_ANGLE_X, procedural_cameras, procedural_tree
 from plenoctree.errors import ConfigError, TreeFormatError
 from plenoctree.octree import load_tree, save_tree
-from plenoctree.optim.finetune import FinetuneConfig, finetune
+from plenoctree.optim.finetuning import FinetuneConfig, finetune
 from plenoctree.render import RenderOptions, render_rays
 
 SIZE = 24

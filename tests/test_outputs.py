@@ -104,7 +104,7 @@ def test_finetune_writes_its_curve(tmp_path):
     from test_optim_finetune import known_tree, perturbed, write_dataset
 
     from plenoctree.octree import save_tree
-    from plenoctree.optim.finetune import FinetuneConfig, finetune
+    from plenoctree.optim.finetuning import FinetuneConfig, finetune
 
     tree = known_tree()
     write_dataset(tree, tmp_path / "data", n_train=8, n_val=2, n_test=2)

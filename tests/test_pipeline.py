@@ -105,11 +105,7 @@ def test_bad_stage_options_fail_before_training(scene, tmp_path):
 
 
 def test_failing_stage_names_itself_keeps_artefacts_and_resumes(scene, tmp_path, monkeypatch):
-    import sys
-
-    import plenoctree.convert.extract  # noqa: F401  (the attribute is the function)
-
-    ex = sys.modules["plenoctree.convert.extract"]
+    import plenoctree.convert.extraction as ex
 
     def broken(cfg, field=None):
         raise ConfigError("extraction broke")

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from plenoctree import Octree, TreeFormatError, export_svox, import_svox, load_tree, save_tree
-from plenoctree.compress import compress, load_compressed, save_compressed
-from plenoctree.compress.codec import CompressOptions
+from plenoctree.compression import compress, load_compressed, save_compressed
+from plenoctree.compression.codec import CompressOptions
 from plenoctree.octree import MAX_DEPTH, max_steps
 
 

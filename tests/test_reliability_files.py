@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from plenoctree import Octree, TreeFormatError
-from plenoctree.compress import compress, load_any_tree, load_compressed, save_compressed
-from plenoctree.compress.codec import CompressOptions
+from plenoctree.compression import compress, load_any_tree, load_compressed, save_compressed
+from plenoctree.compression.codec import CompressOptions
 
 
 def _good(tmp_path, fmt="SH4"):

@@ -73,7 +73,7 @@ def test_two_trainings_into_one_out(tmp_path):
 
 
 def test_finetune_lock_and_output_checks_before_work(tmp_path):
-    from plenoctree.optim.finetune import FinetuneConfig, finetune
+    from plenoctree.optim.finetuning import FinetuneConfig, finetune
 
     cfg = FinetuneConfig(tree=str(tmp_path / "missing.npz"), data=str(tmp_path), out="")
     outdir = tmp_path / "outdir"

@@ -130,7 +130,7 @@ def test_cli_export_and_view_errors(tree_file, tmp_path, capsys):
 
 
 def test_texture_budget(tree_file, tmp_path, capsys):
-    from plenoctree.compress import CompressOptions, compress, save_compressed
+    from plenoctree.compression import CompressOptions, compress, save_compressed
     from plenoctree.octree.io import load_tree
     from plenoctree.viewer.budget import check_budget, texels_per_leaf, viewer_texture_bytes
 

@@ -28,7 +28,7 @@ playwright_api = pytest.importorskip(
 if CHROMIUM is None:
     pytest.skip("no chromium executable (run scripts/install_browser.sh)", allow_module_level=True)
 
-from plenoctree.compress import CompressOptions, compress, load_any_tree, save_compressed  # noqa: E402
+from plenoctree.compression import CompressOptions, compress, load_any_tree, save_compressed  # noqa: E402
 from plenoctree.datasets.cameras import generate_rays  # noqa: E402
 from plenoctree.datasets.procedural import look_at, procedural_tree  # noqa: E402
 from plenoctree.octree import Octree  # noqa: E402

@@ -338,7 +338,7 @@ def test_ndc_forward_facing_tree_matches_cpu(browser, ff, source):
     """An LLFF (NDC) tree: the page maps world rays to NDC like Cameras(ndc=True).rays(), with
     the NDC space from the bundle's cameras or, without them, from the tree file itself
     (native header, svox ndc_config, .plnz header)."""
-    from plenoctree.compress import compress, decompress, save_compressed
+    from plenoctree.compression import compress, decompress, save_compressed
     from plenoctree.octree.io import export_svox
 
     tree, path = ff["tree"], ff["path"]

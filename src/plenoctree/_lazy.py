@@ -2,9 +2,9 @@
 that needs it is first used.
 
 ``lazy_package(__name__, {"name": ".submodule", ...})`` in a package ``__init__`` makes each
-name resolve on first access (then cached). A name that is also a submodule's name
-(``optim.finetune`` the function vs ``optim/finetune.py``) keeps meaning the listed object,
-as an eager ``from .finetune import finetune`` did: importing the submodule does not replace it.
+name resolve on first access (then cached). No listed name may be a submodule's name
+(``tests/test_public_api.py`` checks it): importing that submodule would rebind the attribute,
+so ``pkg.name`` would mean the function or the module depending on import order.
 """
 
 from __future__ import annotations
@@ -23,12 +23,6 @@ class _LazyPackage(types.ModuleType):
         value = getattr(importlib.import_module(lazy[name], self.__name__), name)
         types.ModuleType.__setattr__(self, name, value)
         return value
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        if isinstance(value, types.ModuleType) and name in self.__dict__.get("_LAZY", {}) \
-                and value.__name__ == f"{self.__name__}.{name}":
-            return          # a submodule named like an exported function: the function wins
-        types.ModuleType.__setattr__(self, name, value)
 
     def __dir__(self) -> list[str]:
         return sorted(set(self.__dict__) | set(self.__dict__.get("_LAZY", {})))

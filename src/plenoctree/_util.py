@@ -173,7 +173,7 @@ def run_lock(target: str | os.PathLike, command: str = "", folder: bool = True) 
 def _is_plenoctree_file(path: Path) -> bool:
     """A tree (native, svox, ``.plnz``) or another zip of arrays this package writes."""
     from .errors import TreeFormatError
-    from .octree._npz import NpzReader
+    from ._npz import NpzReader
 
     try:
         with NpzReader(path) as r:

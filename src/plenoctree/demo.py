@@ -15,7 +15,7 @@ from pathlib import Path
 
 from ._util import atomic_save_json, check_output_dir, run_lock
 from .errors import ConfigError
-from .optim.finetune import DEFAULT_EPOCHS
+from .optim.finetuning import DEFAULT_EPOCHS
 
 __all__ = ["DemoConfig", "run_demo"]
 

@@ -334,7 +334,7 @@ def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
         TreeFormatError / DatasetError naming the file; ConfigError for bad option values;
         BackendError for an unavailable renderer backend.
     """
-    from .compress import is_compressed_file, load_any_tree
+    from .compression import is_compressed_file, load_any_tree
     from .datasets import FORMATS, load_dataset
     from .errors import ConfigError, TreeFormatError
     from .metrics import _lpips_problem

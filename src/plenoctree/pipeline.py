@@ -19,7 +19,7 @@ from typing import Any, Callable
 from ._config import apply
 from ._util import atomic_save_json, atomic_write, check_output_dir, run_lock
 from .errors import ConfigError, PlenOctreeError
-from .optim.finetune import DEFAULT_EPOCHS
+from .optim.finetuning import DEFAULT_EPOCHS
 
 __all__ = ["PipelineConfig", "PipelineError", "run_pipeline", "STAGES", "PRESETS",
            "pipeline_preset", "check_extras"]
@@ -318,14 +318,14 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
     validate(tcfg)
 
     # Every stage's options are checked now, not after the training (which takes minutes).
-    from .convert.extract import ExtractConfig, extract
+    from .convert.extraction import ExtractConfig, extract
 
     ecfg = ExtractConfig(run_dir=str(run_dir), out=str(tree_raw), data=str(data), grid=cfg.grid,
                          samples=cfg.samples, weight_thresh=cfg.weight_thresh, eval=False,
                          precision="fp32", backend=cfg.backend, device=cfg.device,
                          seed=cfg.seed)
     apply(ecfg, cfg.extra.get("extract", {}), where="--extract")
-    from .optim.finetune import FinetuneConfig, finetune
+    from .optim.finetuning import FinetuneConfig, finetune
 
     tree_in, rcfg = tree_raw, None
     if cfg.refine_passes > 0:
@@ -344,11 +344,11 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
                           device=cfg.device,
                           seed=cfg.seed, resume=True, test_views=-1, verbose=False)
     apply(fcfg, cfg.extra.get("finetune", {}), where="--finetune")
-    from .convert.extract import _validate as validate_extract
+    from .convert.extraction import _validate as validate_extract
 
     validate_extract(ecfg)
     fcfg.validated()
-    from .compress import CompressOptions
+    from .compression import CompressOptions
 
     CompressOptions(bits=cfg.compress_bits).validated()
     if pcfg is not None:
@@ -402,7 +402,7 @@ def _run_pipeline(cfg: PipelineConfig, out: Path, log: Callable[[str], None]) ->
 
     # 6. Compression (median cut + DEFLATE).
     def do_compress():
-        from .compress import CompressOptions, compress, save_compressed
+        from .compression import CompressOptions, compress, save_compressed
         from .octree import load_tree
 
         save_compressed(compress(load_tree(tree_ft), CompressOptions(bits=cfg.compress_bits)),

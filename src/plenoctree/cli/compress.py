@@ -2,7 +2,7 @@
 
 Every option is a field of :class:`CompressConfig`, :class:`DecompressConfig` or
 :class:`LodConfig` (the codec's and the level of detail's own settings nested:
-:class:`~plenoctree.compress.CompressOptions`, :class:`~plenoctree.compress.LodOptions`).
+:class:`~plenoctree.compression.CompressOptions`, :class:`~plenoctree.compression.LodOptions`).
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..compress.codec import CompressOptions
-from ..compress.lod import LodOptions
+from ..compression.codec import CompressOptions
+from ..compression.lod import LodOptions
 from ..errors import ConfigError
 
 
@@ -81,7 +81,7 @@ def _check_out(src: Path, out: Path, suffixes: tuple[str, ...], what: str) -> No
 
 
 def _run_compress(cfg: CompressConfig, args: argparse.Namespace) -> int:
-    from ..compress.report import compression_report, format_report
+    from ..compression_report import compression_report, format_report
     from ._output import write_json
 
     src = Path(cfg.tree)
@@ -100,7 +100,7 @@ def _run_compress(cfg: CompressConfig, args: argparse.Namespace) -> int:
 
 
 def _run_decompress(cfg: DecompressConfig, args: argparse.Namespace) -> int:
-    from ..compress import decompress, load_compressed
+    from ..compression import decompress, load_compressed
     from ..octree.io import save_tree
 
     src = Path(cfg.tree)
@@ -115,8 +115,8 @@ def _run_decompress(cfg: DecompressConfig, args: argparse.Namespace) -> int:
 
 
 def _run_lod(cfg: LodConfig, args: argparse.Namespace) -> int:
-    from ..compress import fit_to_size, load_any_tree, make_lod
-    from ..compress.lod import write_tree_file
+    from ..compression import fit_to_size, load_any_tree, make_lod
+    from ..compression.lod import write_tree_file
     from ._output import write_json
 
     src, out = Path(cfg.tree), Path(cfg.out)

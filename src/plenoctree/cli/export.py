@@ -57,7 +57,7 @@ class ExportConfig:
 
 
 def _run(cfg: ExportConfig, args: argparse.Namespace) -> int:
-    from ..compress import load_any_tree
+    from ..compression import load_any_tree
 
     src, out = Path(cfg.tree), Path(cfg.out)
     fmt = cfg.format or _infer_format(out)

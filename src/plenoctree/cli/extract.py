@@ -61,7 +61,7 @@ def _run(cfg, args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``extract`` command (one flag per ExtractConfig field)."""
-    from ..convert.extract import ExtractConfig
+    from ..convert.extraction import ExtractConfig
     from ._options import add_command
 
     add_command(sub, "extract", ExtractConfig, _run,

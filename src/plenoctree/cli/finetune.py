@@ -1,6 +1,6 @@
 """``plenoctree finetune``: optimise a tree's leaf values on the training photos (paper §4.3).
 
-Every option is a field of :class:`plenoctree.optim.finetune.FinetuneConfig` (help = the
+Every option is a field of :class:`plenoctree.optim.finetuning.FinetuneConfig` (help = the
 field's ``help``); ``--data`` defaults to the dataset recorded next to the tree.
 """
 
@@ -10,7 +10,7 @@ import argparse
 
 
 def _run(cfg, args: argparse.Namespace) -> int:
-    from ..optim.finetune import finetune
+    from ..optim.finetuning import finetune
     from ._output import write_json
     from ._provenance import data_from_provenance
 
@@ -32,7 +32,7 @@ def _run(cfg, args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``finetune`` command."""
-    from ..optim.finetune import FinetuneConfig
+    from ..optim.finetuning import FinetuneConfig
     from ._options import add_command
     from ._output import add_json, add_quiet
 

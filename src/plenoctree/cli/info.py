@@ -38,7 +38,7 @@ def tree_info(path: str) -> dict:
     """What the tree file ``path`` holds (any format :func:`load_any_tree` reads)."""
     from pathlib import Path
 
-    from ..compress import is_compressed_file, load_any_tree
+    from ..compression import is_compressed_file, load_any_tree
     from ._provenance import dataset_of
 
     tree = load_any_tree(path)

@@ -91,7 +91,7 @@ def _check_size(cfg: RenderConfig) -> None:
 def _run(cfg: RenderConfig, args: argparse.Namespace) -> int:
     from ..datasets import load_dataset
     from ..evaluation import evaluate_tree
-    from ..compress import load_any_tree
+    from ..compression import load_any_tree
 
     if cfg.camera_path:
         return _run_camera_path(cfg)
@@ -122,7 +122,7 @@ def _run(cfg: RenderConfig, args: argparse.Namespace) -> int:
 def _run_camera_path(cfg: RenderConfig) -> int:
     """``render TREE --camera-path JSON``: frames along a nerfstudio camera path, no scores."""
     from ..camera_path import load_camera_path
-    from ..compress import load_any_tree
+    from ..compression import load_any_tree
     from ..video import render_path_images
 
     _check_size(cfg)

@@ -60,9 +60,9 @@ def _run(args: argparse.Namespace) -> int:
 
 def add_stage_flags(p: argparse.ArgumentParser) -> list[str]:
     """``--<stage>.<field>`` for every field of the stage configs; returns the dests."""
-    from ..convert.extract import ExtractConfig
+    from ..convert.extraction import ExtractConfig
     from ..nerf.config import ModelConfig, TrainConfig, preset
-    from ..optim.finetune import FinetuneConfig
+    from ..optim.finetuning import FinetuneConfig
     from ._options import add_config
 
     dests = add_config(p, TrainConfig, prefix="train.", shown=preset("cpu"),

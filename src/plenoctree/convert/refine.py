@@ -512,7 +512,7 @@ def refine(cfg: RefineConfig, log=print) -> RefineResult:
     """Refine ``cfg.tree`` against the NeRF-SH of ``cfg.run_dir`` and save ``cfg.out``
     (atomically, with ``<out stem>.refine.json`` holding the figures)."""
     from ..octree import load_tree, save_tree
-    from .extract import ExtractConfig, _load_run, clamp_sigma_for_fp16
+    from .extraction import ExtractConfig, _load_run, clamp_sigma_for_fp16
 
     t0 = time.perf_counter()
     cfg = cfg.validated()

@@ -34,6 +34,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..sh import SH_C0, eval_sh_bases
+from .trajectories import look_at
 
 __all__ = [
     "SCENE_CENTER",
@@ -286,30 +287,6 @@ def render_field(origins: np.ndarray, dirs: np.ndarray, near: float = NEAR, far:
 
 
 # --- cameras and dataset -------------------------------------------------------------------
-def look_at(eye: np.ndarray, target: np.ndarray = (0.0, 0.0, 0.0),
-            up: np.ndarray = (0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenGL camera-to-world ``[4, 4]`` (float64) of a camera at ``eye`` looking at ``target``.
-
-    Camera -z points at the target, +y is as close to ``up`` as possible (another axis is used
-    when the view direction is parallel to ``up``).
-    """
-    eye = np.asarray(eye, dtype=np.float64)
-    back = eye - np.asarray(target, dtype=np.float64)
-    norm = np.linalg.norm(back)
-    if not norm > 0:
-        raise ConfigError("look_at: eye and target coincide")
-    back /= norm
-    up = np.asarray(up, dtype=np.float64)
-    right = np.cross(up, back)
-    if np.linalg.norm(right) < 1e-6:
-        right = np.cross(np.array([0.0, 1.0, 0.0]), back)
-    right /= np.linalg.norm(right)
-    true_up = np.cross(back, right)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, true_up, back, eye
-    return m
-
-
 def procedural_cameras(n: int, kind: str, seed: int = 0, distance: float = CAMERA_DISTANCE
                        ) -> np.ndarray:
     """``[n, 4, 4]`` camera-to-world matrices on a sphere around the origin, looking at it.

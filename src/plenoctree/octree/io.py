@@ -39,7 +39,7 @@ import numpy as np
 
 from .._util import atomic_save_npz
 from ..errors import TreeFormatError
-from ._npz import NpzReader
+from .._npz import NpzReader
 from .check import expected_data_dim
 from .limits import MAX_DEPTH
 from .ndc import NDCSpace
@@ -216,7 +216,7 @@ def load_tree(path: str | os.PathLike, keep_dtype: bool = False) -> Octree:
             return _load_native(r, keep_dtype)
         if "quant_colors" in r or "quant_map" in r:
             r.fail("this is a compressed svox tree (quant_colors/quant_map); decompress it with "
-                   "plenoctree.compress first")
+                   "plenoctree.compression first")
         if all(k in r for k in _SVOX_KEYS):
             return _load_svox(r, keep_dtype)
         r.fail(f"not a tree file: needs 'format_version' (native) or {list(_SVOX_KEYS)} (svox); "

@@ -17,9 +17,9 @@ _LAZY = {
     'OctreeRenderFunction': '.autograd',
     'differentiable_backends': '.autograd',
     'render_rays_differentiable': '.autograd',
-    'FinetuneConfig': '.finetune',
-    'FinetuneResult': '.finetune',
-    'finetune': '.finetune',
+    'FinetuneConfig': '.finetuning',
+    'FinetuneResult': '.finetuning',
+    'finetune': '.finetuning',
 }
 lazy_package(__name__, _LAZY)
 

@@ -1,6 +1,6 @@
 """The epoch loop of fine-tuning: random ray batches, validation, early stop, divergence, resume.
 
-Used by :func:`plenoctree.optim.finetune.finetune`; works with either stepper of
+Used by :func:`plenoctree.optim.finetuning.finetune`; works with either stepper of
 :mod:`._steppers`.
 """
 

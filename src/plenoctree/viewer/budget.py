@@ -13,7 +13,7 @@ import os
 import numpy as np
 
 from ..errors import ConfigError, TreeFormatError
-from ..octree._npz import NpzReader
+from .._npz import NpzReader
 
 __all__ = ["DEFAULT_MAX_MB", "texels_per_leaf", "viewer_texture_bytes", "check_budget"]
 

@@ -44,7 +44,7 @@ def cameras_config(cameras: Any, names: list[str] | None = None,
     "height", "near"}`` (the NDC reference camera, :attr:`Cameras.ndc_focal`): the page then
     maps each world ray into NDC (as ``to_ndc_rays``) and starts at the reference camera.
     """
-    from ..video import detect_up_axis
+    from ..datasets.trajectories import detect_up_axis
 
     n = len(cameras)
     if n == 0:

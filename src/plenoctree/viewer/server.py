@@ -81,7 +81,7 @@ def check_servable(path: str | os.PathLike) -> None:
     """Raise :class:`~plenoctree.errors.TreeFormatError` (naming the file) unless the page can
     show the tree: the full loader checks (topology, ``MAX_DEPTH`` = the page's 22 levels,
     finite values, codebook indices). Loads (and drops) the tree once."""
-    from ..compress.fileio import load_any_tree
+    from ..compression.fileio import load_any_tree
 
     load_any_tree(path)
 

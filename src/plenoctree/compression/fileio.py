@@ -45,7 +45,7 @@ import numpy as np
 from .._util import atomic_write
 from ..errors import TreeFormatError
 from ..octree import Octree
-from ..octree._npz import NpzReader
+from .._npz import NpzReader
 from ..octree.limits import MAX_DEPTH
 from ..octree.ndc import NDCSpace
 from .codec import CompressedTree, CompressOptions, decompress

@@ -1,7 +1,7 @@
 """The PlenOctree codec of paper B.2: per-basis median-cut codebooks, float16 σ, DEFLATE.
 
 :func:`compress` turns an :class:`~plenoctree.octree.Octree` into a :class:`CompressedTree`
-(in memory; :mod:`plenoctree.compress.fileio` writes it as a ``.plnz`` zip) and
+(in memory; :mod:`plenoctree.compression.fileio` writes it as a ``.plnz`` zip) and
 :func:`decompress` turns it back into a normal tree. The input is never modified.
 
 What is kept, per cell ``(node, i, j, k)`` (svox-compatible arrays):
@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import ConfigError, TreeFormatError
 from ..octree import Octree
-from .median_cut import MAX_BITS, median_cut_many
+from .quantize import MAX_BITS, median_cut_many
 
 __all__ = ["CompressOptions", "CompressedTree", "compress", "decompress"]
 
@@ -224,7 +224,7 @@ def compress(tree: Octree, options: CompressOptions | None = None) -> Compressed
 
     Returns:
         A :class:`CompressedTree`; write it with
-        :func:`~plenoctree.compress.fileio.save_compressed`.
+        :func:`~plenoctree.compression.fileio.save_compressed`.
 
     Raises:
         ConfigError: bad options. TreeFormatError: the tree fails ``check_integrity`` or

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import TreeFormatError
+from .errors import TreeFormatError
 
 __all__ = ["NpzReader"]
 

@@ -1,4 +1,4 @@
-"""numba kernel of :func:`plenoctree.compress.median_cut.median_cut` (imported on first use).
+"""numba kernel of :func:`plenoctree.compression.quantize.median_cut` (imported on first use).
 
 Each set is copied once into a work array of rows ``(x, y, z)`` plus their original row ids;
 at each level every bucket is a contiguous range of it, split in place by quickselect on the

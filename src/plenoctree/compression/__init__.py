@@ -15,7 +15,7 @@ from __future__ import annotations
 from .codec import CompressedTree, CompressOptions, compress, decompress
 from .fileio import is_compressed_file, load_any_tree, load_compressed, save_compressed
 from .lod import LodOptions, fit_to_size, make_lod, merge_to_depth, prune, truncate_sh
-from .median_cut import median_cut
+from .quantize import median_cut
 
 __all__ = [
     "CompressOptions", "CompressedTree", "compress", "decompress",

@@ -5,6 +5,9 @@
 cameras and scored against its images (the PSNR change is the paper's figure); without one,
 the compressed tree's renders are scored against the uncompressed tree's from an orbit of
 cameras around the tree (a fidelity PSNR: how close the two trees render).
+
+It sits above :mod:`plenoctree.compression` and :mod:`plenoctree.evaluation` (it scores
+renders), so that the codec package itself imports neither.
 """
 
 from __future__ import annotations
@@ -17,27 +20,26 @@ from typing import Any
 
 import numpy as np
 
-from ..datasets import Cameras
-from ..evaluation import score_views
-from ..octree import Octree
-from ..render import RenderOptions, render_image
-from .codec import CompressOptions, compress, decompress
-from .fileio import load_any_tree, load_compressed, save_compressed
+from .compression.codec import CompressOptions, compress, decompress
+from .compression.fileio import load_any_tree, load_compressed, save_compressed
+from .datasets import Cameras
+from .datasets.trajectories import DEFAULT_FOV_X, orbit_cameras
+from .evaluation import score_views
+from .octree import Octree
+from .render import RenderOptions, render_image
 
-__all__ = ["orbit_cameras", "compression_report", "format_report"]
+__all__ = ["tree_orbit_cameras", "compression_report", "format_report"]
 
 
-def orbit_cameras(tree: Octree, n: int = 4, size: int = 128, elevation_deg: float = 30.0,
-                  distance: float = 2.6, fov_x: float = 0.6911112070083618) -> Cameras:
+def tree_orbit_cameras(tree: Octree, n: int = 4, size: int = 128, elevation_deg: float = 30.0,
+                       distance: float = 2.6, fov_x: float = DEFAULT_FOV_X) -> Cameras:
     """``n`` cameras on a 30° turntable around the tree's box, z up (Blender convention):
-    :func:`plenoctree.video.orbit_cameras` (the one orbit) at ``distance`` times the box's
-    largest radius (lego: radius 1.5, cameras at ~4), horizontal field of view ``fov_x``
-    radians (NeRF-synthetic's camera_angle_x), ``size`` x ``size`` pixels."""
-    from ..video import orbit_cameras as orbit
-
+    :func:`~plenoctree.datasets.trajectories.orbit_cameras` (the one orbit) at ``distance``
+    times the box's largest radius (lego: radius 1.5, cameras at ~4), horizontal field of
+    view ``fov_x`` radians (NeRF-synthetic's camera_angle_x), ``size`` x ``size`` pixels."""
     r = float(np.max(tree.radius)) * float(distance)
-    return orbit(np.asarray(tree.center, dtype=np.float64), r, n, size, size, fov_x=fov_x,
-                 elevation_deg=elevation_deg, up="+z")
+    return orbit_cameras(np.asarray(tree.center, dtype=np.float64), r, n, size, size,
+                         fov_x=fov_x, elevation_deg=elevation_deg, up="+z")
 
 
 def _psnrs(tree: Octree, cams: Cameras, options: RenderOptions, backend: str,
@@ -95,7 +97,7 @@ def compression_report(src: str | os.PathLike, dst: str | os.PathLike,
                    psnr_change=float(np.mean(b) - np.mean(a)), views=len(gt),
                    eval_size=[data.cameras.width, data.cameras.height], eval="dataset")
     else:
-        cams = orbit_cameras(tree, n_views, size)
+        cams = tree_orbit_cameras(tree, n_views, size)
         ropts = RenderOptions()
         ref = [render_image(tree, cams, i, ropts, backend).rgb.detach().cpu().numpy()
                for i in range(len(cams))]
