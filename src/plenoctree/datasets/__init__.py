@@ -1,5 +1,7 @@
 """Posed-image datasets: cameras and ray generation (incl. NDC), the Blender, LLFF, NSVF,
-nerfstudio and COLMAP loaders, format detection, the procedural scene.
+nerfstudio and COLMAP loaders, format detection through one registry of formats
+(:data:`~plenoctree.datasets.dataset.REGISTRY`), camera trajectories
+(:mod:`plenoctree.datasets.trajectories`), the procedural scene.
 
 ``from plenoctree.datasets import Cameras, generate_rays, Dataset, load_dataset, ...``.
 The procedural scene lives in :mod:`plenoctree.datasets.procedural`, its forward-facing (LLFF)
@@ -8,6 +10,7 @@ variant in :mod:`plenoctree.datasets.forward_facing`.
 
 from __future__ import annotations
 
+from ._files import take_views
 from .blender import load_blender
 from .cameras import Cameras, generate_rays
 from .colmap import load_colmap
@@ -21,5 +24,5 @@ from .nsvf import load_nsvf
 __all__ = ["Cameras", "generate_rays", "Dataset", "load_blender", "load_dataset", "load_cameras",
            "common_downscale", "detect_format",
            "evenly_spaced", "FORMATS", "load_colmap", "load_llff", "load_nsvf", "load_nerfstudio",
-           "llff_render_cameras",
+           "llff_render_cameras", "take_views",
            "to_ndc_rays"]

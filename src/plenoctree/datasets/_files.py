@@ -2,8 +2,8 @@
 COLMAP): number and matrix checks, frame file paths, image decoding (PNG/JPEG, alpha, the
 truncation check), area downscaling with compositing, option checks, a thread pool.
 
-They lived in ``blender.py``; the other loaders imported them from there (and ``_images``
-imported ``blender``, a small cycle). Every problem raises ``DatasetError`` naming the file, or
+The module is private to :mod:`plenoctree.datasets`; its functions have public names because
+the loader modules share them (:func:`take_views` is re-exported by the package). Every problem raises ``DatasetError`` naming the file, or
 ``ConfigError`` for bad option values.
 """
 
@@ -32,21 +32,22 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-def _finite_number(v: Any) -> bool:
+def finite_number(v: Any) -> bool:
+    """True for a finite int or float (not a bool, not a string)."""
     try:
         return _is_number(v) and math.isfinite(v)
     except OverflowError:      # int too large for a float
         return False
 
 
-def _matrix(value: Any, where: str) -> np.ndarray:
+def parse_matrix(value: Any, where: str) -> np.ndarray:
     """A finite 4x4 float64 matrix from nested JSON lists, or DatasetError."""
     if not (isinstance(value, list) and len(value) == 4
             and all(isinstance(row, list) and len(row) == 4 for row in value)):
         raise DatasetError(f"{where}: transform_matrix must be a 4x4 list of numbers")
     if not all(_is_number(v) for row in value for v in row):
         raise DatasetError(f"{where}: transform_matrix must contain only numbers")
-    if not all(_finite_number(v) for row in value for v in row):
+    if not all(finite_number(v) for row in value for v in row):
         raise DatasetError(f"{where}: transform_matrix contains non-finite values")
     m = np.array(value, dtype=np.float64)
     if np.abs(m).max() > 1e30:
@@ -57,7 +58,7 @@ def _matrix(value: Any, where: str) -> np.ndarray:
     return m
 
 
-def _frame_file_path(fr: Any, where: str) -> str:
+def frame_file_path(fr: Any, where: str) -> str:
     """Check one ``frames[i]`` entry (an object with ``file_path`` and ``transform_matrix``)
     and return its ``file_path``; DatasetError prefixed with ``where`` otherwise."""
     if not isinstance(fr, dict):
@@ -85,7 +86,9 @@ def check_inside_dataset(rel: str, where: str) -> None:
                            "be relative and inside it (move or link the files there)")
 
 
-def _image_path(root: Path, file_path: str) -> Path:
+def image_path(root: Path, file_path: str) -> Path:
+    """The image file of a frame's ``file_path`` under ``root``; ``.png`` is added when the
+    path has no image suffix (Blender's ``./train/r_0``)."""
     p = root / file_path
     return p if p.suffix.lower() in (".png", ".jpg", ".jpeg") else p.with_name(p.name + ".png")
 
@@ -124,7 +127,7 @@ def reading(path: Path, what: str = "image") -> Iterator[None]:
         raise DatasetError(f"{path}: unreadable {what} ({type(e).__name__}: {e})") from None
 
 
-def _decode(path: Path, expect: tuple[int, int] | None) -> np.ndarray:
+def decode_image(path: Path, expect: tuple[int, int] | None) -> np.ndarray:
     """Decode one PNG (or JPEG) image to uint8 ``[H, W, 4]`` (alpha 255 when the file has none).
 
     ``expect`` = (width, height) the image must have; raises DatasetError naming ``path``.
@@ -161,7 +164,7 @@ def _decode(path: Path, expect: tuple[int, int] | None) -> np.ndarray:
     return arr
 
 
-def _composite_into(arr: np.ndarray, factor: int, bg: np.ndarray,
+def composite_into(arr: np.ndarray, factor: int, bg: np.ndarray,
                     out_rgb: np.ndarray, out_alpha: np.ndarray) -> None:
     """Area-downscale ``arr`` (uint8 RGBA) by ``factor`` and composite it onto ``bg``.
 
@@ -201,7 +204,9 @@ def take_views(items: Any, limit: int | None, spread: bool = False) -> Any:
         [items[i] for i in idx]
 
 
-def _check_options(split: Any, downscale: Any, background: Any, limit: Any) -> np.ndarray:
+def check_load_options(split: Any, downscale: Any, background: Any, limit: Any) -> np.ndarray:
+    """Check the options every loader takes (``ConfigError`` naming the bad one); returns the
+    background as float32 ``[3]`` in [0, 1]."""
     if not isinstance(split, str) or not split or any(c in split for c in "/\\\x00"):
         raise ConfigError(f"split must be a plain name like 'train', got {split!r}")
     if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
@@ -218,7 +223,7 @@ def _check_options(split: Any, downscale: Any, background: Any, limit: Any) -> n
     return bg
 
 
-def _run_parallel(n: int, work, num_threads: int | None) -> None:
+def run_parallel(n: int, work, num_threads: int | None) -> None:
     """Call ``work(i)`` for ``i < n`` on up to ``num_threads`` threads (default: cores, ≤ 8);
     the first exception cancels the rest and is re-raised."""
     threads = num_threads or min(8, os.cpu_count() or 1)

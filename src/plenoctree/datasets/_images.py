@@ -1,8 +1,8 @@
 """Shared helpers of the loaders (Blender, LLFF, NSVF, nerfstudio): threaded image / mask
 loading, image listing, near/far bounds from a box.
 
-Decoding and area downscaling are :mod:`._files`' (:func:`_files._decode`,
-:func:`_files._composite_into`), so every format treats PNG/JPEG, alpha and downscaling alike.
+Decoding and area downscaling are :mod:`._files`' (:func:`_files.decode_image`,
+:func:`_files.composite_into`), so every format treats PNG/JPEG, alpha and downscaling alike.
 """
 
 from __future__ import annotations
@@ -14,8 +14,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..errors import DatasetError
-from ._files import _composite_into, _decode, reading
-from ._files import _run_parallel as _run
+from ._files import composite_into, decode_image, reading, run_parallel
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -64,7 +63,7 @@ def load_images(paths: Sequence[Path], downscale: int, background: np.ndarray,
         DatasetError naming the file: unreadable / truncated images, mixed sizes, a
         ``downscale`` not dividing the size.
     """
-    first = _decode(paths[0], None)
+    first = decode_image(paths[0], None)
     height, width = first.shape[:2]
     if check_size is not None:
         check_size(width, height)
@@ -80,9 +79,9 @@ def load_images(paths: Sequence[Path], downscale: int, background: np.ndarray,
     scale = np.float32(1.0 / 255.0)
 
     def work(i: int) -> None:
-        arr = first if i == 0 else _decode(paths[i], (width, height))
+        arr = first if i == 0 else decode_image(paths[i], (width, height))
         if composite_all:
-            _composite_into(arr, f, background, images[i], alphas[0][i])
+            composite_into(arr, f, background, images[i], alphas[0][i])
             return
         if arr[..., 3].min() == 255:     # opaque: same values as compositing, 4x less work
             rgb = arr[..., :3]
@@ -93,13 +92,13 @@ def load_images(paths: Sequence[Path], downscale: int, background: np.ndarray,
                             scale, out=images[i])
             return
         a = np.empty((h, w), dtype=np.float32)
-        _composite_into(arr, f, background, images[i], a)
+        composite_into(arr, f, background, images[i], a)
         with lock:
             if alphas[0] is None:
                 alphas[0] = np.ones((n, h, w), dtype=np.float32)
             alphas[0][i] = a
 
-    _run(n, work, num_threads)
+    run_parallel(n, work, num_threads)
     return images, alphas[0], (width, height)
 
 
@@ -132,7 +131,7 @@ def load_masks(paths: Sequence[Path | None], size: tuple[int, int], downscale: i
             mf = mf.reshape(h, f, w, f).mean(axis=(1, 3), dtype=np.float32)
         out[i] = mf
 
-    _run(len(paths), work, num_threads)
+    run_parallel(len(paths), work, num_threads)
     return out
 
 

@@ -23,11 +23,11 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
-from ._files import (_check_options, _finite_number, _frame_file_path, _image_path, _matrix,
-                     read_json_object, take_views)
+from ._files import (check_load_options, finite_number, frame_file_path, image_path,
+                     parse_matrix, read_json_object, take_views)
 from ._images import load_images
+from .base import Dataset, DatasetFormat
 from .cameras import Cameras
-from .dataset import Dataset
 
 __all__ = ["load_blender", "read_transforms", "BLENDER_NEAR", "BLENDER_FAR", "BLENDER_BBOX"]
 
@@ -49,7 +49,7 @@ def read_transforms(path: str | os.PathLike) -> tuple[dict, list[tuple[str, np.n
     meta: dict[str, float] = {}
     for key in ("camera_angle_x", "fl_x", "fl_y", "cx", "cy", "w", "h"):
         if key in obj:
-            if not _finite_number(obj[key]):
+            if not finite_number(obj[key]):
                 raise DatasetError(f"{path}: {key} must be a finite number, got {obj[key]!r}")
             meta[key] = float(obj[key])
     if "camera_angle_x" not in meta and "fl_x" not in meta:
@@ -69,7 +69,7 @@ def read_transforms(path: str | os.PathLike) -> tuple[dict, list[tuple[str, np.n
     frames = []
     for i, fr in enumerate(obj["frames"]):
         where = f"{path}: frames[{i}]"
-        frames.append((_frame_file_path(fr, where), _matrix(fr["transform_matrix"], where)))
+        frames.append((frame_file_path(fr, where), parse_matrix(fr["transform_matrix"], where)))
     return meta, frames
 
 
@@ -99,7 +99,7 @@ def load_blender(root: str | os.PathLike, split: str = "train", downscale: int =
             images of the wrong or mixed sizes, ``downscale`` not dividing the size.
         ConfigError: bad option values.
     """
-    bg = _check_options(split, downscale, background, limit)
+    bg = check_load_options(split, downscale, background, limit)
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset folder does not exist")
@@ -109,7 +109,7 @@ def load_blender(root: str | os.PathLike, split: str = "train", downscale: int =
     paths = []
     for i, (fp, _) in enumerate(frames):
         try:
-            p = _image_path(root, fp)
+            p = image_path(root, fp)
             ok = p.is_file()
         except (OSError, ValueError) as e:
             raise DatasetError(f"{json_path}: frames[{i}]: bad file_path {fp!r} ({e})") from None
@@ -142,3 +142,14 @@ def load_blender(root: str | os.PathLike, split: str = "train", downscale: int =
                    scene_bbox=BLENDER_BBOX.copy(), split=split, root=root,
                    background=tuple(float(v) for v in bg),
                    names=[Path(fp).stem for fp, _ in frames], alphas=alphas)
+
+
+def _has_split(root: Path, split: str) -> bool:
+    return (root / f"transforms_{split}.json").is_file()
+
+
+FORMAT = DatasetFormat(
+    "blender", "transforms_<split>.json",
+    detect=lambda root: any(_has_split(root, s) for s in ("train", "val", "test")),
+    load=load_blender, has_split=_has_split)
+"""Blender / NeRF-synthetic in the registry of :mod:`plenoctree.datasets.dataset`."""

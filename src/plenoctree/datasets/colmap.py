@@ -41,10 +41,10 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, near_far_from_box
-from ._files import _check_options, take_views
+from ._files import check_load_options, take_views
+from .base import Dataset, DatasetFormat
 from .cameras import Cameras
 from .colmap_model import colmap_c2w, find_colmap_model, read_colmap_model
-from .dataset import Dataset
 
 __all__ = ["load_colmap", "normalize_scene", "SceneFrame", "depth_bounds", "CAMERA_RADIUS",
            "FORWARD_THRESHOLD", "KINDS"]
@@ -180,7 +180,7 @@ def load_colmap(root: str | os.PathLike, split: str = "train", downscale: int = 
     Returns:
         A :class:`Dataset` in the normalised world of :func:`normalize_scene`.
     """
-    bg = _check_options(split, downscale, background, limit)
+    bg = check_load_options(split, downscale, background, limit)
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset folder does not exist")
@@ -253,3 +253,10 @@ def load_colmap(root: str | os.PathLike, split: str = "train", downscale: int = 
     return Dataset(images=imgs, cameras=cameras, near=near, far=far, scene_bbox=bbox,
                    split=split, root=root, background=tuple(float(v) for v in bg),
                    names=[Path(names[i]).stem for i in sel], alphas=alphas)
+
+
+FORMAT = DatasetFormat("colmap", "sparse/0/cameras.bin|txt",
+                       detect=lambda root: find_colmap_model(root) is not None,
+                       load=load_colmap)
+"""COLMAP in the registry of :mod:`plenoctree.datasets.dataset` (a split exists when loading
+one of its views does not find it empty)."""

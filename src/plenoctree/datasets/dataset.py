@@ -1,101 +1,39 @@
-"""The :class:`Dataset` container and format auto-detection (:func:`load_dataset`)."""
+"""Format detection and loading through the registry of dataset formats (:func:`load_dataset`).
+
+The registry is one table, :data:`REGISTRY`: each loader module's ``FORMAT`` record
+(:class:`~plenoctree.datasets.base.DatasetFormat`), in detection order. ``Dataset`` lives in
+:mod:`.base` and is re-exported here.
+"""
 
 from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
-from ..errors import DatasetError
+from ..errors import ConfigError, DatasetError
+from . import blender, colmap, llff, nerfstudio, nsvf
 from ._files import evenly_spaced
-from .cameras import Cameras
+from .base import Dataset, DatasetFormat
 
-__all__ = ["Dataset", "load_dataset", "load_cameras", "common_downscale", "detect_format",
-           "has_split", "evenly_spaced", "FORMATS"]
+__all__ = ["Dataset", "DatasetFormat", "REGISTRY", "FORMATS", "load_dataset", "load_cameras",
+           "common_downscale", "detect_format", "has_split", "evenly_spaced"]
 
+REGISTRY: dict[str, DatasetFormat] = {
+    f.name: f for f in (blender.FORMAT, nerfstudio.FORMAT, llff.FORMAT, nsvf.FORMAT,
+                        colmap.FORMAT)}
+"""Every dataset format by name, in detection order (:func:`detect_format`)."""
 
-@dataclass
-class Dataset:
-    """Posed images of one split of a scene.
-
-    Attributes:
-        images: float32 ``[N, H, W, 3]`` in [0, 1], alpha already composited on ``background``.
-        cameras: the ``N`` cameras (``cameras.width == W``, ``cameras.height == H``).
-        near, far: ray-sampling bounds along unit directions, world units.
-        scene_bbox: float32 ``[2, 3]`` min / max world corner of the box holding the content.
-        split: "train", "val" or "test".
-        root: dataset folder.
-        background: RGB in [0, 1] that transparent pixels were composited onto.
-        names: file stems of the ``N`` images (e.g. ``"r_0"``).
-        alphas: float32 ``[N, H, W]`` opacity in [0, 1] (1 where the source had no alpha), or
-            ``None`` when the loader did not keep it (or every image was opaque).
-        masks: float32 ``[N, H, W]`` pixel validity in [0, 1] (the fraction of valid source
-            pixels after downscaling; 0 = exclude from training losses), or ``None`` when the
-            dataset has no masks (nerfstudio ``mask_path``).
-    """
-
-    images: np.ndarray
-    cameras: Cameras
-    near: float
-    far: float
-    scene_bbox: np.ndarray
-    split: str
-    root: Path
-    background: tuple[float, float, float]
-    names: list[str] = field(default_factory=list)
-    alphas: np.ndarray | None = None
-    masks: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        n, h, w = len(self.cameras), self.cameras.height, self.cameras.width
-        if self.images.shape != (n, h, w, 3):
-            raise DatasetError(f"{self.root}: images have shape {list(self.images.shape)}, "
-                               f"cameras expect {[n, h, w, 3]}")
-        if self.alphas is not None and self.alphas.shape != (n, h, w):
-            raise DatasetError(f"{self.root}: alphas have shape {list(self.alphas.shape)}, "
-                               f"expected {[n, h, w]}")
-        if self.masks is not None and self.masks.shape != (n, h, w):
-            raise DatasetError(f"{self.root}: masks have shape {list(self.masks.shape)}, "
-                               f"expected {[n, h, w]}")
-        if len(self.names) != n:
-            raise DatasetError(f"{self.root}: {len(self.names)} names for {n} images")
-        self.scene_bbox = np.asarray(self.scene_bbox, dtype=np.float32).reshape(2, 3)
-        self.root = Path(self.root)
-
-    def __len__(self) -> int:
-        return len(self.cameras)
-
-
-FORMATS = ("blender", "llff", "nsvf", "nerfstudio", "colmap")
+FORMATS = tuple(REGISTRY)
 """Dataset formats :func:`load_dataset` reads (values of its ``format`` argument)."""
 
-_SIGNATURES = {
-    "blender": "transforms_<split>.json",
-    "nerfstudio": "transforms.json",
-    "llff": "poses_bounds.npy",
-    "nsvf": "intrinsics.txt + pose/",
-    "colmap": "sparse/0/cameras.bin|txt",
-}
 
-
-def _matches(root: Path) -> list[str]:
-    found = []
-    if any((root / f"transforms_{s}.json").is_file() for s in ("train", "val", "test")):
-        found.append("blender")
-    if (root / "transforms.json").is_file():
-        found.append("nerfstudio")
-    if (root / "poses_bounds.npy").is_file():
-        found.append("llff")
-    if (root / "intrinsics.txt").is_file() and (root / "pose").is_dir():
-        found.append("nsvf")
-    from .colmap_model import find_colmap_model
-
-    if find_colmap_model(root) is not None:
-        found.append("colmap")
-    return found
+def _format(name: str) -> DatasetFormat:
+    """The registered format ``name``; ``ConfigError`` listing the known ones otherwise."""
+    if not isinstance(name, str) or name not in REGISTRY:
+        raise ConfigError(f"unknown dataset format {name!r}; expected one of "
+                          f"{', '.join(FORMATS)}")
+    return REGISTRY[name]
 
 
 def detect_format(root: str | os.PathLike) -> str:
@@ -109,10 +47,10 @@ def detect_format(root: str | os.PathLike) -> str:
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset folder does not exist")
-    found = _matches(root)
+    found = [f.name for f in REGISTRY.values() if f.detect(root)]
     if len(found) == 1:
         return found[0]
-    expected = "; ".join(f"{k}: {v}" for k, v in _SIGNATURES.items())
+    expected = "; ".join(f"{f.name}: {f.signature}" for f in REGISTRY.values())
     if not found:
         raise DatasetError(f"{root}: unknown dataset format (expected one of {expected})")
     raise DatasetError(f"{root}: ambiguous dataset format, the folder looks like "
@@ -135,25 +73,8 @@ def load_dataset(root: str | os.PathLike, split: str = "train", format: str | No
             :func:`~plenoctree.datasets.nerfstudio.load_nerfstudio`,
             :func:`~plenoctree.datasets.colmap.load_colmap` (``scene``)).
     """
-    from ..errors import ConfigError
-
-    if format is None:
-        fmt = detect_format(root)
-    elif format in FORMATS:
-        fmt = format
-    else:
-        raise ConfigError(f"unknown dataset format {format!r}; expected one of "
-                          f"{', '.join(FORMATS)}")
-    if fmt == "blender":
-        from .blender import load_blender as loader
-    elif fmt == "llff":
-        from .llff import load_llff as loader
-    elif fmt == "nsvf":
-        from .nsvf import load_nsvf as loader
-    elif fmt == "colmap":
-        from .colmap import load_colmap as loader
-    else:
-        from .nerfstudio import load_nerfstudio as loader
+    fmt = detect_format(root) if format is None else _format(format).name
+    loader = REGISTRY[fmt].load
     try:
         return loader(root, split, **kw)
     except TypeError as e:
@@ -190,21 +111,11 @@ def has_split(root: str | os.PathLike, split: str, format: str | None = None) ->
     ``1_`` / ``2_`` (test falls back to ``1_``); nerfstudio ``<split>_filenames`` or the 90 %
     rule; COLMAP the held-out views. A broken dataset still raises its ``DatasetError``."""
     root = Path(root)
-    fmt = format or detect_format(root)
-    if fmt == "blender":
-        return (root / f"transforms_{split}.json").is_file()
-    if fmt == "llff":
-        return split in ("train", "test")
-    if fmt == "nsvf":
-        from .nsvf import NSVF_SPLIT_PREFIX
-
-        names = [p.name for p in (root / "rgb").iterdir()] if (root / "rgb").is_dir() else []
-        prefixes = [NSVF_SPLIT_PREFIX[split]] if split in NSVF_SPLIT_PREFIX else []
-        if split == "test":
-            prefixes.append(NSVF_SPLIT_PREFIX["val"])
-        return any(n.startswith(p) for n in names for p in prefixes)
+    fmt = _format(format) if format else REGISTRY[detect_format(root)]
+    if fmt.has_split is not None:
+        return fmt.has_split(root, split)
     try:
-        load_dataset(root, split, format=fmt, limit=1)
+        load_dataset(root, split, format=fmt.name, limit=1)
     except DatasetError as e:
         if f"split {split!r} is empty" in str(e):
             return False

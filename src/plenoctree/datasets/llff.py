@@ -39,9 +39,9 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import image_files, load_images, probe_size
-from ._files import _check_options, take_views
+from ._files import check_load_options, take_views
+from .base import Dataset, DatasetFormat
 from .cameras import Cameras
-from .dataset import Dataset
 from .ndc import ndc_bounds
 
 __all__ = ["load_llff", "read_llff", "LLFFScene", "llff_render_cameras", "spiral_path",
@@ -312,7 +312,7 @@ def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
             unreadable or mixed-size images, size inconsistent with the poses' ``hwf``.
         ConfigError: bad option values.
     """
-    bg = _check_options(split, downscale, background, limit)
+    bg = check_load_options(split, downscale, background, limit)
     if ndc is None:
         ndc = not spherify
     if ndc and spherify:
@@ -425,3 +425,10 @@ def write_llff(out_dir: str | os.PathLike, c2w: np.ndarray, images: np.ndarray, 
     with atomic_write(out / POSES_FILE) as fh:
         np.save(fh, np.concatenate([m.reshape(n, 15), bounds], 1))
     return out
+
+
+FORMAT = DatasetFormat("llff", "poses_bounds.npy",
+                       detect=lambda root: (root / "poses_bounds.npy").is_file(),
+                       load=load_llff, has_split=lambda root, split: split in ("train", "test"))
+"""LLFF in the registry of :mod:`plenoctree.datasets.dataset`: ``train`` and ``test`` (every
+``llffhold``-th image; its ``val`` is the test set, so not a separate split)."""

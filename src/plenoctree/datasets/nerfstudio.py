@@ -43,10 +43,10 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, load_masks, near_far_from_box
-from ._files import (_check_options, _finite_number, _frame_file_path, _image_path, _matrix,
-                     check_inside_dataset, read_json_object, take_views)
+from ._files import (check_inside_dataset, check_load_options, finite_number, frame_file_path,
+                     image_path, parse_matrix, read_json_object, take_views)
+from .base import Dataset, DatasetFormat
 from .cameras import Cameras
-from .dataset import Dataset
 
 __all__ = ["load_nerfstudio", "read_nerfstudio", "write_nerfstudio", "PINHOLE_MODELS",
            "TRAIN_FRACTION"]
@@ -73,7 +73,7 @@ def _frame_camera(where: str, glob: dict, fr: dict) -> tuple[float | None, ...]:
     coef = {}
     for key in _DISTORTION:
         v = fr.get(key, glob.get(key, 0.0))
-        if not _finite_number(v):
+        if not finite_number(v):
             raise DatasetError(f"{where}: {key} must be a finite number, got {v!r}")
         coef[key] = float(v)
     used = {"PINHOLE": (), "SIMPLE_PINHOLE": (), "SIMPLE_RADIAL": ("k1",),
@@ -86,7 +86,7 @@ def _frame_camera(where: str, glob: dict, fr: dict) -> tuple[float | None, ...]:
     vals = []
     for key in _INTR_KEYS:
         v = fr.get(key, glob.get(key))
-        if v is not None and not _finite_number(v):
+        if v is not None and not finite_number(v):
             raise DatasetError(f"{where}: {key} must be a finite number, got {v!r}")
         vals.append(None if v is None else float(v))
     dist = None
@@ -134,7 +134,7 @@ def read_nerfstudio(path: str | os.PathLike) -> tuple[dict, list[dict]]:
     frames = []
     for i, fr in enumerate(frames_in):
         where = f"{path}: frames[{i}]"
-        fp = _frame_file_path(fr, where)
+        fp = frame_file_path(fr, where)
         mp = fr.get("mask_path")
         if mp is not None and (not isinstance(mp, str) or not mp.strip() or "\x00" in mp):
             raise DatasetError(f"{where}: mask_path must be a non-empty string")
@@ -143,7 +143,7 @@ def read_nerfstudio(path: str | os.PathLike) -> tuple[dict, list[dict]]:
         m = fr["transform_matrix"]
         if isinstance(m, list) and len(m) == 3:       # 3x4 accepted
             m = m + [[0, 0, 0, 1]]
-        frames.append({"file_path": fp, "c2w": _matrix(m, where), "mask_path": mp,
+        frames.append({"file_path": fp, "c2w": parse_matrix(m, where), "mask_path": mp,
                        "raw": _frame_camera(where, obj, fr), "where": where})
     frames.sort(key=lambda f: f["file_path"])
     return obj, frames
@@ -179,12 +179,12 @@ def _scene_box(obj: dict, c2w: np.ndarray, path: Path) -> np.ndarray:
         s = obj["aabb_scale"]
         scale = obj.get("scale", 0.33)
         offset = obj.get("offset", [0.5, 0.5, 0.5])
-        if not (_finite_number(s) and s > 0 and _finite_number(scale) and scale > 0):
+        if not (finite_number(s) and s > 0 and finite_number(scale) and scale > 0):
             raise DatasetError(f"{path}: aabb_scale and scale must be positive numbers")
-        if _finite_number(offset):
+        if finite_number(offset):
             offset = [offset] * 3
         if not (isinstance(offset, list) and len(offset) == 3
-                and all(_finite_number(v) for v in offset)):
+                and all(finite_number(v) for v in offset)):
             raise DatasetError(f"{path}: offset must be 3 numbers, got {offset!r}")
         ngp = np.array([[0.5 - 0.5 * s] * 3, [0.5 + 0.5 * s] * 3])
         box = (ngp - np.array(offset, dtype=np.float64)) / scale    # in ngp axis order
@@ -222,7 +222,7 @@ def load_nerfstudio(root: str | os.PathLike, split: str = "train", downscale: in
             distortion, missing / unreadable images, mixed image sizes, non-finite poses.
         ConfigError: bad option values.
     """
-    bg = _check_options(split, downscale, background, limit)
+    bg = check_load_options(split, downscale, background, limit)
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset folder does not exist")
@@ -238,7 +238,7 @@ def load_nerfstudio(root: str | os.PathLike, split: str = "train", downscale: in
     factor = 1 if prescaled else f        # on-the-fly downscale factor
     paths = []
     for j, i in enumerate(idx):
-        p = pre[j] if prescaled else _image_path(root, frames[i]["file_path"])
+        p = pre[j] if prescaled else image_path(root, frames[i]["file_path"])
         if not p.is_file():
             raise DatasetError(f"{p}: image file not found (listed in {frames[i]['where']})")
         paths.append(p)
@@ -307,7 +307,7 @@ def _prescaled(root: Path, rel: str, factor: int, image: bool) -> Path | None:
     """``<dir>_<factor>/<name>`` for ``<dir>/<name>`` when it exists (nerfstudio layout)."""
     if factor <= 1:
         return None
-    p = _image_path(root, rel) if image else root / rel
+    p = image_path(root, rel) if image else root / rel
     q = p.parent.with_name(f"{p.parent.name}_{factor}") / p.name
     return q if q.is_file() else None
 
@@ -362,3 +362,10 @@ def write_nerfstudio(out_dir: str | os.PathLike, c2w: np.ndarray, images: np.nda
     top["frames"] = frames
     atomic_save_json(out / "transforms.json", top)
     return out
+
+
+FORMAT = DatasetFormat("nerfstudio", "transforms.json",
+                       detect=lambda root: (root / "transforms.json").is_file(),
+                       load=load_nerfstudio)
+"""nerfstudio / instant-ngp in the registry of :mod:`plenoctree.datasets.dataset` (a split
+exists when loading one of its views does not find it empty)."""

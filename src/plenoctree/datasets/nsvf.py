@@ -29,9 +29,9 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import image_files, load_images, near_far_from_box
-from ._files import _check_options, take_views
+from ._files import check_load_options, take_views
+from .base import Dataset, DatasetFormat
 from .cameras import Cameras
-from .dataset import Dataset
 
 __all__ = ["load_nsvf", "read_intrinsics", "read_pose", "read_bbox", "write_nsvf",
            "NSVF_SPLIT_PREFIX"]
@@ -149,7 +149,7 @@ def load_nsvf(root: str | os.PathLike, split: str = "train", downscale: int = 1,
             image or an image without a pose, unreadable or mixed-size images.
         ConfigError: bad option values.
     """
-    bg = _check_options(split, downscale, background, limit)
+    bg = check_load_options(split, downscale, background, limit)
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset folder does not exist")
@@ -231,3 +231,19 @@ def write_nsvf(out_dir: str | os.PathLike, splits: dict[str, tuple[np.ndarray, n
         with atomic_write(out / "bbox.txt", "w") as fh:
             fh.write(" ".join(f"{v:.17g}" for v in b) + " 0.1\n")
     return out
+
+
+def _has_split(root: Path, split: str) -> bool:
+    names = [p.name for p in (root / "rgb").iterdir()] if (root / "rgb").is_dir() else []
+    prefixes = [NSVF_SPLIT_PREFIX[split]] if split in NSVF_SPLIT_PREFIX else []
+    if split == "test":
+        prefixes.append(NSVF_SPLIT_PREFIX["val"])
+    return any(n.startswith(p) for n in names for p in prefixes)
+
+
+FORMAT = DatasetFormat(
+    "nsvf", "intrinsics.txt + pose/",
+    detect=lambda root: (root / "intrinsics.txt").is_file() and (root / "pose").is_dir(),
+    load=load_nsvf, has_split=_has_split)
+"""NSVF in the registry of :mod:`plenoctree.datasets.dataset`: images named ``0_`` / ``1_`` /
+``2_`` (test falls back to ``1_``)."""

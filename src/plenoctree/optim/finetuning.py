@@ -256,7 +256,7 @@ def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = Non
     from ..render import RenderOptions
     from ._loop import ViewSet, remove_best_files, render_views_psnr, run_loop
     from ._steppers import DEFAULT_LR, gradient_scale, make_stepper
-    from ..datasets._files import take_views
+    from ..datasets import take_views
 
     cfg = config.validated()
     t_start = time.perf_counter()
