@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from plenoctree.datasets import detect_format, load_blender, load_dataset
-from plenoctree.datasets.colmap import CAMERA_RADIUS, capture_kind, load_colmap, normalize_scene
+from plenoctree.datasets.colmap import (CAMERA_RADIUS, ColmapOptions, capture_kind, load_colmap,
+                                       normalize_scene)
 from plenoctree.datasets.colmap_model import colmap_c2w, read_colmap_model
 from plenoctree.datasets.forward_facing import write_forward_facing_dataset
 from plenoctree.datasets.llff import read_poses_bounds
@@ -215,7 +216,7 @@ def test_forward_facing_model_gets_ndc(tmp_path):
     got = load_colmap(root, "all")
     assert got.cameras.ndc and got.near == 0.0
     assert got.scene_bbox[0, 2] == pytest.approx(-1.0) and got.scene_bbox[1, 2] == pytest.approx(1.0)
-    assert load_colmap(root, "all", scene="360").cameras.ndc is False
+    assert load_colmap(root, "all", options=ColmapOptions(scene="360")).cameras.ndc is False
 
 
 def test_distorted_model_is_undistorted_on_load(blender_scene, tmp_path):

@@ -11,10 +11,12 @@ from PIL import Image
 
 from plenoctree.datasets import detect_format, llff_render_cameras, load_blender, load_dataset
 from plenoctree.datasets.forward_facing import write_forward_facing_dataset
-from plenoctree.datasets.llff import average_pose, load_llff, read_llff, write_llff
+from plenoctree.datasets.llff import LLFFOptions, average_pose, load_llff, read_llff, write_llff
 from plenoctree.datasets.procedural import write_procedural_dataset
 from plenoctree.errors import ConfigError, DatasetError
 from nerf_fixtures import copy_dataset as _copy
+
+NO_NDC = LLFFOptions(ndc=False)
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +42,8 @@ def ff_root(tmp_path_factory):
 
 def test_round_trip_gives_blender_rays(blender, llff_root):
     assert detect_format(llff_root) == "llff"
-    data = load_dataset(llff_root, "all", recenter=False, bd_factor=None, ndc=False)
+    data = load_dataset(llff_root, "all", options=LLFFOptions(recenter=False, bd_factor=None,
+                                                                 ndc=False))
     o_ref, d_ref = blender.cameras.all_rays()
     o, d = data.cameras.all_rays()
     np.testing.assert_allclose(o, o_ref, atol=2e-6)
@@ -51,7 +54,7 @@ def test_round_trip_gives_blender_rays(blender, llff_root):
 
 
 def test_normalisation_is_a_similarity_of_the_file_world(blender, llff_root):
-    data = load_llff(llff_root, "all", ndc=False)
+    data = load_llff(llff_root, "all", options=NO_NDC)
     scene = read_llff(llff_root)
     np.testing.assert_allclose(average_pose(scene.c2w), np.eye(4), atol=1e-6)
     assert scene.bounds.min() == pytest.approx(1.0 / 0.75)
@@ -72,7 +75,8 @@ def test_golden_llff_axes(tmp_path):
     np.save(tmp_path / "poses_bounds.npy", np.concatenate([m.reshape(-1), [1.0, 5.0]])[None])
     (tmp_path / "images").mkdir()
     Image.fromarray(np.zeros((16, 20, 3), np.uint8)).save(tmp_path / "images" / "a.png")
-    data = load_llff(tmp_path, "all", recenter=False, bd_factor=None, ndc=False)
+    data = load_llff(tmp_path, "all", options=LLFFOptions(recenter=False, bd_factor=None,
+                                                            ndc=False))
     np.testing.assert_allclose(data.cameras.c2w[0, :3, :3],
                                np.stack([right, [0, 1, 0], back], 1), atol=1e-7)
     o, d = data.cameras.rays(0)
@@ -84,17 +88,17 @@ def test_golden_llff_axes(tmp_path):
 
 
 def test_llffhold_splits(llff_root):
-    names = {s: load_llff(llff_root, s, ndc=False).names for s in ("train", "test", "val", "all")}
+    names = {s: load_llff(llff_root, s, options=NO_NDC).names for s in ("train", "test", "val", "all")}
     assert names["test"] == ["000", "008"] == names["val"]
     assert names["train"] == [f"{i:03d}" for i in range(10) if i % 8]
     assert len(names["all"]) == 10
-    assert load_llff(llff_root, "test", ndc=False, llffhold=3).names == ["000", "003", "006",
+    assert load_llff(llff_root, "test", options=LLFFOptions(ndc=False, llffhold=3)).names == ["000", "003", "006",
                                                                           "009"]
-    assert load_llff(llff_root, "train", ndc=False, limit=2).names == ["001", "002"]
+    assert load_llff(llff_root, "train", limit=2, options=NO_NDC).names == ["001", "002"]
     with pytest.raises(DatasetError, match="empty"):
-        load_llff(llff_root, "test", ndc=False, llffhold=0)
+        load_llff(llff_root, "test", options=LLFFOptions(ndc=False, llffhold=0))
     with pytest.raises(ConfigError, match="split"):
-        load_llff(llff_root, "holdout", ndc=False)
+        load_llff(llff_root, "holdout", options=NO_NDC)
 
 
 def test_forward_facing_defaults_to_ndc_and_spherify_does_not(ff_root):
@@ -103,13 +107,13 @@ def test_forward_facing_defaults_to_ndc_and_spherify_does_not(ff_root):
     np.testing.assert_allclose(data.scene_bbox[:, 2], [-1, 1])
     o, d = data.cameras.rays(0)
     np.testing.assert_allclose(o[..., 2], -1.0, atol=1e-5)
-    sph = load_dataset(ff_root, "train", spherify=True)
+    sph = load_dataset(ff_root, "train", options=LLFFOptions(spherify=True))
     assert not sph.cameras.ndc
     r = np.linalg.norm(read_llff(ff_root, spherify=True).c2w[:, :3, 3], axis=1)
     assert np.sqrt(np.mean(r ** 2)) == pytest.approx(1.0)
     np.testing.assert_allclose(sph.scene_bbox, [[-1] * 3, [1] * 3])
     with pytest.raises(ConfigError, match="spherify"):
-        load_llff(ff_root, ndc=True, spherify=True)
+        load_llff(ff_root, options=LLFFOptions(ndc=True, spherify=True))
 
 
 def test_inward_facing_scene_refuses_ndc(llff_root):
@@ -131,7 +135,8 @@ def test_render_path(ff_root):
         assert np.isfinite(o).all() and np.isfinite(d).all()
     # the spiral turns twice: frames k and k + 6 share x, y
     np.testing.assert_allclose(path.centers[0, :2], path.centers[6, :2], atol=1e-6)
-    circ = llff_render_cameras(ff_root, n_frames=8, spherify=True, downscale=2)
+    circ = llff_render_cameras(ff_root, n_frames=8, downscale=2,
+                               options=LLFFOptions(spherify=True))
     assert not circ.ndc and circ.width == 8
     np.testing.assert_allclose(np.linalg.norm(circ.centers[:, :2], axis=1),
                                np.linalg.norm(circ.centers[0, :2]), rtol=1e-6)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from plenoctree.datasets import Cameras, load_dataset, to_ndc_rays
+from plenoctree.datasets import Cameras, LLFFOptions, load_dataset, to_ndc_rays
 from plenoctree.datasets.forward_facing import (forward_facing_tree,
                                                 write_forward_facing_dataset)
 from plenoctree.datasets.ndc import ndc_bounds, ndc_to_world, world_to_ndc
@@ -174,7 +174,7 @@ def test_octree_built_in_ndc_renders_forward_facing_scene(ff_root):
     assert min(scores[128]) > 23.5, scores
     assert min(scores[128]) > max(scores[64]) + 3.0, scores
     # the same tree seen through world-space rays (no NDC conversion) is wrong
-    world = load_dataset(ff_root, "test", ndc=False)
+    world = load_dataset(ff_root, "test", options=LLFFOptions(ndc=False))
     o, d = world.cameras.rays(0)
     bad = psnr(render_rays(tree, o, d).rgb.numpy(), data.images[0])
     assert bad < min(scores[128]) - 8.0, (bad, scores)

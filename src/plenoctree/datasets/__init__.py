@@ -13,10 +13,10 @@ from __future__ import annotations
 from ._files import take_views
 from .blender import load_blender
 from .cameras import Cameras, generate_rays
-from .colmap import load_colmap
+from .colmap import ColmapOptions, load_colmap
 from .dataset import (FORMATS, Dataset, common_downscale, detect_format, evenly_spaced,
                       load_cameras, load_dataset)
-from .llff import llff_render_cameras, load_llff
+from .llff import LLFFOptions, llff_render_cameras, load_llff
 from .ndc import to_ndc_rays
 from .nerfstudio import load_nerfstudio
 from .nsvf import load_nsvf
@@ -24,5 +24,5 @@ from .nsvf import load_nsvf
 __all__ = ["Cameras", "generate_rays", "Dataset", "load_blender", "load_dataset", "load_cameras",
            "common_downscale", "detect_format",
            "evenly_spaced", "FORMATS", "load_colmap", "load_llff", "load_nsvf", "load_nerfstudio",
-           "llff_render_cameras", "take_views",
+           "llff_render_cameras", "LLFFOptions", "ColmapOptions", "take_views",
            "to_ndc_rays"]

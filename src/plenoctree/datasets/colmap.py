@@ -46,8 +46,8 @@ from .base import Dataset, DatasetFormat
 from .cameras import Cameras
 from .colmap_model import colmap_c2w, find_colmap_model, read_colmap_model
 
-__all__ = ["load_colmap", "normalize_scene", "SceneFrame", "depth_bounds", "CAMERA_RADIUS",
-           "FORWARD_THRESHOLD", "KINDS"]
+__all__ = ["load_colmap", "ColmapOptions", "normalize_scene", "SceneFrame", "depth_bounds",
+           "CAMERA_RADIUS", "FORWARD_THRESHOLD", "KINDS"]
 
 CAMERA_RADIUS = 4.0
 """Median camera distance to the scene centre after normalising a 360° capture."""
@@ -162,11 +162,21 @@ def _split(n: int, split: str, where: Path) -> list[int]:
     return out.tolist()
 
 
+@dataclass(frozen=True)
+class ColmapOptions:
+    """What a COLMAP folder holds beyond the model (:func:`load_colmap`;
+    ``load_dataset(root, options=ColmapOptions(...))``)."""
+
+    scene: str = "auto"
+    """"auto" (decided from the cameras), "360" or "forward" (NDC rays)."""
+    images: str = "images"
+    """Name of the image folder under the dataset folder."""
+
+
 def load_colmap(root: str | os.PathLike, split: str = "train", downscale: int = 1,
                 background: Sequence[float] | float = (1.0, 1.0, 1.0),
                 limit: int | None = None, spread: bool = False,
-                num_threads: int | None = None,
-                scene: str = "auto", images: str = "images") -> Dataset:
+                num_threads: int | None = None, options: ColmapOptions | None = None) -> Dataset:
     """Load one split of a COLMAP model folder (module docstring).
 
     Args:
@@ -174,13 +184,14 @@ def load_colmap(root: str | os.PathLike, split: str = "train", downscale: int = 
         split: "train", "val", "test" or "all". downscale: integer area-downscale factor
             (``images_<f>/`` used when present). background, limit, spread, num_threads: as the
             other loaders.
-        scene: "auto" (decided from the cameras), "360" or "forward" (NDC rays).
-        images: name of the image folder under ``root``.
+        options: the scene kind and the image folder's name (:class:`ColmapOptions`,
+            defaults when None).
 
     Returns:
         A :class:`Dataset` in the normalised world of :func:`normalize_scene`.
     """
     bg = check_load_options(split, downscale, background, limit)
+    opt = options or ColmapOptions()
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset folder does not exist")
@@ -191,12 +202,12 @@ def load_colmap(root: str | os.PathLike, split: str = "train", downscale: int = 
     order = sorted(model.images, key=lambda i: model.images[i][0])
     names = [model.images[i][0] for i in order]
     raw_c2w = np.stack([colmap_c2w(model.images[i][2], model.images[i][3]) for i in order])
-    frame = normalize_scene(raw_c2w, model.points, scene)
+    frame = normalize_scene(raw_c2w, model.points, opt.scene)
     sel = _split(len(order), split, folder)
     sel = take_views(sel, limit, spread)
     f = int(downscale)
-    img_dir = root / images
-    pre = root / f"{images}_{f}"
+    img_dir = root / opt.images
+    pre = root / f"{opt.images}_{f}"
     use_pre = f > 1 and all((pre / names[i]).is_file() for i in sel)
     paths = [(pre if use_pre else img_dir) / names[i] for i in sel]
     for p in paths:

@@ -44,8 +44,8 @@ from .base import Dataset, DatasetFormat
 from .cameras import Cameras
 from .ndc import ndc_bounds
 
-__all__ = ["load_llff", "read_llff", "LLFFScene", "llff_render_cameras", "spiral_path",
-           "average_pose", "write_llff", "LLFF_HOLD", "BD_FACTOR"]
+__all__ = ["load_llff", "LLFFOptions", "read_llff", "LLFFScene", "llff_render_cameras",
+           "spiral_path", "average_pose", "write_llff", "LLFF_HOLD", "BD_FACTOR"]
 
 LLFF_HOLD = 8
 """Every ``LLFF_HOLD``-th image (0, 8, 16, ...) is held out for testing."""
@@ -281,12 +281,29 @@ def _frustum_box(c2w: np.ndarray, k: np.ndarray, w: int, h: int, near: float,
     return np.stack([pts.min(0), pts.max(0)])
 
 
+@dataclass(frozen=True)
+class LLFFOptions:
+    """How an LLFF capture is split and normalised (:func:`load_llff`,
+    :func:`llff_render_cameras`; ``load_dataset(root, options=LLFFOptions(...))``)."""
+
+    llffhold: int = LLFF_HOLD
+    """Every ``llffhold``-th image is a test image (0: none; :func:`llff_render_cameras`
+    ignores it)."""
+    ndc: bool | None = None
+    """NDC rays (None: yes unless ``spherify``)."""
+    spherify: bool = False
+    """Spherical normalisation for inward-facing 360° captures (no NDC)."""
+    recenter: bool = True
+    """Recentre on the average pose (:func:`read_llff`); False keeps the file's world frame."""
+    bd_factor: float | None = BD_FACTOR
+    """Rescale so the nearest depth bound is ``1 / bd_factor`` (:func:`read_llff`); None keeps
+    the file's scale."""
+
+
 def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
               background: Sequence[float] | float = (1.0, 1.0, 1.0),
               limit: int | None = None, spread: bool = False,
-              num_threads: int | None = None,
-              llffhold: int = LLFF_HOLD, ndc: bool | None = None, spherify: bool = False,
-              recenter: bool = True, bd_factor: float | None = BD_FACTOR) -> Dataset:
+              num_threads: int | None = None, options: LLFFOptions | None = None) -> Dataset:
     """Load one split of an LLFF capture.
 
     Args:
@@ -296,10 +313,8 @@ def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
             ``images/`` is area-downscaled on the fly (the factor must divide the size).
         background: RGB for transparent pixels (PNGs with alpha). limit: first ``limit``
             images of the split (``spread``: evenly spaced). num_threads: decoding threads.
-        llffhold: every ``llffhold``-th image is a test image (0: none).
-        ndc: NDC rays (default: yes unless ``spherify``).
-        spherify: spherical normalisation for inward-facing 360° captures (no NDC).
-        recenter, bd_factor: see :func:`read_llff`.
+        options: the split (``llffhold``) and the normalisation (``ndc``, ``spherify``,
+            ``recenter``, ``bd_factor``): :class:`LLFFOptions`, defaults when None.
 
     Returns:
         A :class:`Dataset`. NDC: cameras with ``ndc=True``, near 0, far = longest NDC ray,
@@ -313,18 +328,19 @@ def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
         ConfigError: bad option values.
     """
     bg = check_load_options(split, downscale, background, limit)
-    if ndc is None:
-        ndc = not spherify
+    opt = options or LLFFOptions()
+    spherify = opt.spherify
+    ndc = (not spherify) if opt.ndc is None else opt.ndc
     if ndc and spherify:
         raise ConfigError("LLFF: ndc and spherify exclude each other (NDC is for forward-facing "
                           "captures, spherify for 360° ones)")
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset folder does not exist")
-    scene = read_llff(root, recenter=recenter, bd_factor=bd_factor, spherify=spherify)
+    scene = read_llff(root, recenter=opt.recenter, bd_factor=opt.bd_factor, spherify=spherify)
     n = len(scene.c2w)
     folder, files, factor = _images_for(root, n, int(downscale))
-    sel = _split_indices(n, split, llffhold, root / POSES_FILE)
+    sel = _split_indices(n, split, opt.llffhold, root / POSES_FILE)
     sel = take_views(sel, limit, spread)
     size = probe_size(files[sel[0]])
     fx, fy, cx, cy = _intrinsics(scene.hwf, size, folder)
@@ -360,24 +376,26 @@ def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
 
 
 def llff_render_cameras(root: str | os.PathLike, n_frames: int = 120, downscale: int = 1,
-                        n_rots: int = 2, zrate: float = 0.5, ndc: bool | None = None,
-                        spherify: bool = False, recenter: bool = True,
-                        bd_factor: float | None = BD_FACTOR) -> Cameras:
+                        n_rots: int = 2, zrate: float = 0.5,
+                        options: LLFFOptions | None = None) -> Cameras:
     """The video path of an LLFF capture as :class:`Cameras` matching :func:`load_llff`'s
-    (same normalisation, intrinsics of the first image at ``downscale``, NDC flag): the
-    spiral of :func:`spiral_path`, or a circle when ``spherify``."""
+    with the same ``options`` (same normalisation, intrinsics of the first image at
+    ``downscale``, NDC flag): the spiral of :func:`spiral_path` (``n_rots`` turns, ``zrate``),
+    or a circle when ``options.spherify``."""
     if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
         raise ConfigError(f"n_frames must be a positive integer, got {n_frames!r}")
     if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
         raise ConfigError(f"downscale must be a positive integer, got {downscale!r}")
     root = Path(root)
-    scene = read_llff(root, recenter=recenter, bd_factor=bd_factor, spherify=spherify)
+    opt = options or LLFFOptions()
+    spherify = opt.spherify
+    scene = read_llff(root, recenter=opt.recenter, bd_factor=opt.bd_factor, spherify=spherify)
     folder, files, factor = _images_for(root, len(scene.c2w), int(downscale))
     size = probe_size(files[0])
     fx, fy, cx, cy = _intrinsics(scene.hwf, size, folder)
     path = (_circle_path(scene.c2w, n_frames) if spherify
             else spiral_path(scene.c2w, scene.bounds, n_frames, n_rots, zrate))
-    ndc = (not spherify) if ndc is None else ndc
+    ndc = (not spherify) if opt.ndc is None else opt.ndc
     try:
         cams = Cameras(path.astype(np.float32), float(np.mean(fx)), float(np.mean(fy)), cx, cy,
                        size[0], size[1], ndc=ndc)

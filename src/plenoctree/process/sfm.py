@@ -220,16 +220,11 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     use_seq = opts.matcher == "sequential" or (
         opts.matcher == "auto" and len(names) > (EXHAUSTIVE_MAX_FRAMES if sequential
                                                  else EXHAUSTIVE_MAX_PHOTOS))
-    mopt = pycolmap.FeatureMatchingOptions()
-    mopt.num_threads = int(opts.num_threads)
-    mopt.guided_matching = bool(opts.guided_matching)
-    ver = pycolmap.TwoViewGeometryOptions()
-    ver.ransac.random_seed = int(opts.seed)
     if use_seq:
         pairs = sequential_pairs(len(names), opts.sequential_overlap)
     else:
         pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
-    _match_pairs(pycolmap, db, work, names, pairs, mopt, ver, show_progress,
+    _match_pairs(pycolmap, db, work, names, pairs, opts, show_progress,
                  "colmap matching (sequential)" if use_seq else "colmap matching")
     times["matching"] = time.perf_counter() - t0
 
@@ -347,9 +342,16 @@ def drop_weak_images(rec: Any, fraction: float) -> list[str]:
 
 
 def _match_pairs(pycolmap: Any, db: Path, work: Path, names: list[str], pairs: list,
-                 mopt: Any, ver: Any, show_progress: bool | None, desc: str) -> None:
-    """Match image pairs in chunks through a pairs file (one progress tick per pair)."""
+                 opts: SfmOptions, show_progress: bool | None, desc: str) -> None:
+    """Match image pairs ``(i, j)`` of ``names`` in chunks through a pairs file in ``work``
+    (one progress tick per pair), with ``opts``' threads, guided matching and RANSAC seed."""
     from .._util import progress
+
+    mopt = pycolmap.FeatureMatchingOptions()
+    mopt.num_threads = int(opts.num_threads)
+    mopt.guided_matching = bool(opts.guided_matching)
+    ver = pycolmap.TwoViewGeometryOptions()
+    ver.ransac.random_seed = int(opts.seed)
 
     pair_file = work / "pairs.txt"
     chunk = max(200, len(pairs) // 25)
