@@ -88,12 +88,13 @@ def test_golden_llff_axes(tmp_path):
 
 
 def test_llffhold_splits(llff_root):
-    names = {s: load_llff(llff_root, s, options=NO_NDC).names for s in ("train", "test", "val", "all")}
+    names = {s: load_llff(llff_root, s, options=NO_NDC).names
+             for s in ("train", "test", "val", "all")}
     assert names["test"] == ["000", "008"] == names["val"]
     assert names["train"] == [f"{i:03d}" for i in range(10) if i % 8]
     assert len(names["all"]) == 10
-    assert load_llff(llff_root, "test", options=LLFFOptions(ndc=False, llffhold=3)).names == ["000", "003", "006",
-                                                                          "009"]
+    hold3 = LLFFOptions(ndc=False, llffhold=3)
+    assert load_llff(llff_root, "test", options=hold3).names == ["000", "003", "006", "009"]
     assert load_llff(llff_root, "train", limit=2, options=NO_NDC).names == ["001", "002"]
     with pytest.raises(DatasetError, match="empty"):
         load_llff(llff_root, "test", options=LLFFOptions(ndc=False, llffhold=0))

@@ -30,10 +30,9 @@ from .datasets.trajectories import (DEFAULT_FOV_X, DEFAULT_FRAMES, UP_AXES, axis
 from .errors import BackendError, ConfigError, TreeFormatError
 
 __all__ = ["PATHS", "MODES", "UP_AXES", "VideoConfig", "VideoResult", "axis_vector",
-           "ndc_spiral_cameras",
-           "detect_up_axis", "fit_radius", "orbit_poses", "orbit_cameras", "resize_cameras", "depth_bounds",
-           "compose_frame", "pad_even", "write_video", "video_cameras", "make_video",
-           "render_path_images"]
+           "ndc_spiral_cameras", "detect_up_axis", "fit_radius", "orbit_poses", "orbit_cameras",
+           "resize_cameras", "depth_bounds", "compose_frame", "pad_even", "write_video",
+           "video_cameras", "make_video", "render_path_images"]
 
 PATHS = ("orbit", "dataset", "spiral")
 MODES = ("color", "depth", "both")
@@ -251,6 +250,8 @@ class VideoConfig:
     """H.264 quality on imageio's 0-10 scale."""
     show_progress: bool | None = None
     """Progress bar: None = only on a terminal."""
+    overwrite: bool = False
+    """replace an existing --out file even if it does not look like a video"""
 
 
 @dataclass
@@ -417,6 +418,9 @@ def make_video(cfg: VideoConfig, log=print) -> VideoResult:
         out = tree_path.parent / f"{tree_path.stem}_{kind}{tail}.mp4"
     if out.suffix.lower() not in VIDEO_SUFFIXES:
         raise ConfigError(f"{out}: video file must end in {', '.join(VIDEO_SUFFIXES)}")
+    from ._util import check_output_file, run_lock
+
+    check_output_file(out, "--out", cfg.overwrite, kind=None)
     near, far = (tuple(float(v) for v in cfg.depth_range) if cfg.depth_range is not None
                  else depth_bounds(tree, cams))
     bg = tuple(float(b) for b in cfg.background) if cfg.background is not None else (1.0,) * 3
@@ -436,7 +440,8 @@ def make_video(cfg: VideoConfig, log=print) -> VideoResult:
     fps = float(cfg.fps or info.get("fps") or 30.0)
     if not fps > 0:
         raise ConfigError(f"--fps must be positive, got {cfg.fps}")
-    n, w, h = write_video(out, frames(), fps, cfg.quality)
+    with run_lock(out, "video", folder=False):
+        n, w, h = write_video(out, frames(), fps, cfg.quality)
     timed = ms[1:] if len(ms) > 1 else ms
     res = VideoResult(out=out, path=kind, mode=cfg.mode, n_frames=n, width=w, height=h,
                       render_width=cams.width, render_height=cams.height, fps=fps,

@@ -14,6 +14,13 @@ def _run(cfg, args: argparse.Namespace) -> int:
     from ._output import write_json
     from ._provenance import data_from_provenance
 
+    from ._output import check_json
+
+    check_json(args)
+    if cfg.out is not None:
+        from .._util import check_output_dir
+
+        check_output_dir(cfg.out)
     if not cfg.data:
         cfg.data = data_from_provenance(cfg.tree, "eval")
     if args.json not in (None, "-"):
@@ -31,7 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     from ..datasets import FORMATS
     from ..evaluation import EvalConfig
     from ._options import add_command
-    from ._output import add_json
+    from ._output import add_json, add_overwrite
 
     p = add_command(
         sub, "eval", EvalConfig, _run,
@@ -44,3 +51,4 @@ def register(sub: argparse._SubParsersAction) -> None:
         rename={"limit": "views", "show_progress": "progress"}, aliases={"limit": "--limit"},
         choices={"format": FORMATS, "lpips_net": ("vgg", "alex", "squeeze")})
     add_json(p, "the report")
+    add_overwrite(p)

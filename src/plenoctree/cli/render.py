@@ -84,17 +84,36 @@ def _render_options(cfg: RenderConfig, data_background):
 
 
 def _check_size(cfg: RenderConfig) -> None:
+    """--width/--height: both or neither, positive, at most ``MAX_IMAGE_PIXELS`` together."""
+    from ..datasets.cameras import check_image_size
+
     if (cfg.width is None) != (cfg.height is None):
         raise ConfigError("--width and --height must be given together")
+    if cfg.width is not None:
+        check_image_size(cfg.width, cfg.height, "--width/--height")
 
 
 def _run(cfg: RenderConfig, args: argparse.Namespace) -> int:
+    from ._output import output_dir
+
+    _check_size(cfg)
+    if cfg.camera_path:
+        out = Path(cfg.out) if cfg.out else Path(cfg.tree).parent / (
+            Path(cfg.tree).stem + f"_render_{Path(cfg.camera_path).stem}")
+        with output_dir(out, "render"):
+            return _run_camera_path(cfg, out)
+    out = Path(cfg.out) if cfg.out else Path(cfg.tree).with_suffix("").parent / (
+        Path(cfg.tree).stem + f"_render_{cfg.split}")
+    with output_dir(out, "render"):
+        return _run_dataset(cfg, out)
+
+
+def _run_dataset(cfg: RenderConfig, out: Path) -> int:
+    """``render TREE``: the views of a dataset split, with scores."""
     from ..datasets import load_dataset
     from ..evaluation import evaluate_tree
     from ..compression import load_any_tree
 
-    if cfg.camera_path:
-        return _run_camera_path(cfg)
     if not cfg.data:
         from ._provenance import data_from_provenance
 
@@ -103,14 +122,9 @@ def _run(cfg: RenderConfig, args: argparse.Namespace) -> int:
     bg = tuple(cfg.background) if cfg.background else (1.0, 1.0, 1.0)
     data = load_dataset(cfg.data, split=cfg.split, format=cfg.format,
                         downscale=cfg.downscale, background=bg, limit=cfg.limit)
-    _check_size(cfg)
     if cfg.width is not None:
-        if cfg.width <= 0 or cfg.height <= 0:
-            raise ConfigError("--width/--height must be positive")
         data = resize_dataset(data, cfg.width, cfg.height)
     options = _render_options(cfg, data.background)
-    out = Path(cfg.out) if cfg.out else Path(cfg.tree).with_suffix("").parent / (
-        Path(cfg.tree).stem + f"_render_{cfg.split}")
     res = evaluate_tree(tree, data, out, options, cfg.backend, device=cfg.device)
     print(f"{len(res.names)} views at {res.width}x{res.height} -> {out}")
     print(f"PSNR {res.mean_psnr:.2f} dB  SSIM {res.mean_ssim:.4f}  "
@@ -119,20 +133,17 @@ def _run(cfg: RenderConfig, args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_camera_path(cfg: RenderConfig) -> int:
+def _run_camera_path(cfg: RenderConfig, out: Path) -> int:
     """``render TREE --camera-path JSON``: frames along a nerfstudio camera path, no scores."""
     from ..camera_path import load_camera_path
     from ..compression import load_any_tree
     from ..video import render_path_images
 
-    _check_size(cfg)
     if cfg.data is not None:
         raise ConfigError("--camera-path renders its own cameras: leave out --data")
     cp = load_camera_path(cfg.camera_path, cfg.width, cfg.height, cfg.dataparser_transforms)
     tree = load_any_tree(cfg.tree)
     options = _render_options(cfg, (1.0, 1.0, 1.0))
-    out = Path(cfg.out) if cfg.out else Path(cfg.tree).parent / (
-        Path(cfg.tree).stem + f"_render_{Path(cfg.camera_path).stem}")
     cams = cp.cameras if tree.ndc is None else tree.ndc.apply(cp.cameras)   # NDC tree: NDC rays
     if cfg.limit is not None:
         cams = cams.select(np.arange(min(cfg.limit, len(cams))))

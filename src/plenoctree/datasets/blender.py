@@ -23,8 +23,8 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
-from ._files import (check_load_options, finite_number, frame_file_path, image_path,
-                     parse_matrix, read_json_object, take_views)
+from ._files import (check_frame_count, check_load_options, finite_number, frame_file_path,
+                     image_path, parse_matrix, read_json_object, take_views)
 from ._images import load_images
 from .base import Dataset, DatasetFormat
 from .cameras import Cameras
@@ -66,6 +66,7 @@ def read_transforms(path: str | os.PathLike) -> tuple[dict, list[tuple[str, np.n
         raise DatasetError(f"{path}: 'frames' must be a list")
     if not obj["frames"]:
         raise DatasetError(f"{path}: 'frames' is empty")
+    check_frame_count(len(obj["frames"]), str(path))
     frames = []
     for i, fr in enumerate(obj["frames"]):
         where = f"{path}: frames[{i}]"

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, near_far_from_box
-from ._files import check_load_options, take_views
+from ._files import check_inside_dataset, check_load_options, confined, take_views
 from .base import Dataset, DatasetFormat
 from .cameras import Cameras
 from .colmap_model import colmap_c2w, find_colmap_model, read_colmap_model
@@ -208,8 +208,10 @@ def load_colmap(root: str | os.PathLike, split: str = "train", downscale: int = 
     f = int(downscale)
     img_dir = root / opt.images
     pre = root / f"{opt.images}_{f}"
+    for i in sel:
+        check_inside_dataset(names[i], f"{folder / 'images'}: image name")
     use_pre = f > 1 and all((pre / names[i]).is_file() for i in sel)
-    paths = [(pre if use_pre else img_dir) / names[i] for i in sel]
+    paths = [confined(root, (pre if use_pre else img_dir) / names[i]) for i in sel]
     for p in paths:
         if not p.is_file():
             raise DatasetError(f"{p}: image file not found (listed in {folder / 'images'})")

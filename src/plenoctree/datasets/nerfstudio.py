@@ -43,8 +43,8 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, load_masks, near_far_from_box
-from ._files import (check_inside_dataset, check_load_options, finite_number, frame_file_path,
-                     image_path, parse_matrix, read_json_object, take_views)
+from ._files import (check_frame_count, check_inside_dataset, check_load_options, finite_number,
+                     frame_file_path, image_path, parse_matrix, read_json_object, take_views)
 from .base import Dataset, DatasetFormat
 from .cameras import Cameras
 
@@ -131,6 +131,7 @@ def read_nerfstudio(path: str | os.PathLike) -> tuple[dict, list[dict]]:
     frames_in = obj.get("frames")
     if not isinstance(frames_in, list) or not frames_in:
         raise DatasetError(f"{path}: missing or empty 'frames' list")
+    check_frame_count(len(frames_in), str(path))
     frames = []
     for i, fr in enumerate(frames_in):
         where = f"{path}: frames[{i}]"

@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from ..errors import ConfigError
-from .cameras import Cameras
+from .cameras import Cameras, check_image_size
 
 __all__ = ["UP_AXES", "DEFAULT_FOV_X", "DEFAULT_FRAMES", "look_at", "axis_vector",
            "detect_up_axis", "orbit_poses", "fit_radius", "orbit_cameras", "ndc_spiral_cameras",
@@ -149,7 +149,9 @@ def check_frames(n: object) -> None:
 
 
 def check_size(width: object, height: object) -> None:
-    """``ConfigError`` unless ``width`` and ``height`` (pixels) are positive integers."""
+    """``ConfigError`` unless ``width`` and ``height`` (pixels) are positive integers within
+    the image-size bounds of :func:`~plenoctree.datasets.cameras.check_image_size`."""
     for name, v in (("--width", width), ("--height", height)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             raise ConfigError(f"{name} must be a positive integer, got {v!r}")
+    check_image_size(width, height, "--width/--height")
