@@ -132,7 +132,8 @@ def test_cli_export_and_view_errors(tree_file, tmp_path, capsys):
 def test_texture_budget(tree_file, tmp_path, capsys):
     from plenoctree.compression import CompressOptions, compress, save_compressed
     from plenoctree.octree.io import load_tree
-    from plenoctree.viewer.budget import check_budget, texels_per_leaf, viewer_texture_bytes
+    from plenoctree.viewer.budget import (check_texture_budget, texels_per_leaf,
+                                          viewer_texture_bytes)
 
     assert [texels_per_leaf(b) for b in (1, 4, 9, 16, 25)] == [1, 4, 7, 13, 19]
     t = load_tree(tree_file)
@@ -142,9 +143,9 @@ def test_texture_budget(tree_file, tmp_path, capsys):
     cells = t.n_nodes * 8
     assert viewer_texture_bytes(plnz) == cells * 4 + kept * 4 * 8
     assert viewer_texture_bytes(tree_file) == cells * 4 + cells * 4 * 8     # upper bound
-    assert check_budget(plnz) > 0
+    assert check_texture_budget(plnz) > 0
     with pytest.raises(ConfigError, match="plenoctree lod"):
-        check_budget(plnz, max_mb=1e-4)
+        check_texture_budget(plnz, max_mb=1e-4)
     assert main(["view", str(plnz), "--port", "0", "--max-mb", "0.0001"]) == 1
     err = capsys.readouterr().err
     assert "budget" in err and "plenoctree lod" in err

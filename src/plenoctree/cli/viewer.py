@@ -82,11 +82,11 @@ def _cameras_extra(cfg: PageConfig) -> dict:
 
 def _run_view(cfg: ViewConfig, args: argparse.Namespace) -> int:
     from ..viewer import ViewerServer
-    from ..viewer.budget import check_budget
+    from ..viewer.budget import check_texture_budget
 
     path = Path(cfg.tree)
     _check_tree(path)
-    need = check_budget(path, cfg.max_mb)
+    need = check_texture_budget(path, cfg.max_mb)
     extra = _cameras_extra(cfg)
     server = ViewerServer(path, port=cfg.port, max_mb=cfg.max_mb, verbose=cfg.verbose)
     if extra:
@@ -110,11 +110,11 @@ def _run_export(cfg: ExportWebConfig, args: argparse.Namespace) -> int:
     from ..viewer import export_web
     from ._output import output_dir
 
-    from ..viewer.budget import check_budget
+    from ..viewer.budget import check_texture_budget
 
     path = Path(cfg.tree)
     _check_tree(path)
-    check_budget(path, cfg.max_mb)
+    check_texture_budget(path, cfg.max_mb)
     extra = _cameras_extra(cfg)
     with output_dir(cfg.out, "export-web"):
         out = export_web(path, cfg.out, title=cfg.title, overwrite=cfg.overwrite,

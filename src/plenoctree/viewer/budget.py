@@ -15,7 +15,8 @@ import numpy as np
 from ..errors import ConfigError, TreeFormatError
 from .._npz import NpzReader
 
-__all__ = ["DEFAULT_MAX_MB", "texels_per_leaf", "viewer_texture_bytes", "check_budget"]
+__all__ = ["DEFAULT_MAX_MB", "texels_per_leaf", "viewer_texture_bytes",
+           "check_texture_budget"]
 
 #: The page's default texture budget in MB (main.js uses the same default).
 DEFAULT_MAX_MB = 2048
@@ -54,7 +55,7 @@ def viewer_texture_bytes(path: str | os.PathLike) -> int:
     return int(n_cells * 4 + n_leaves * texels_per_leaf(max(b, 1)) * 8)
 
 
-def check_budget(path: str | os.PathLike, max_mb: float = DEFAULT_MAX_MB) -> int:
+def check_texture_budget(path: str | os.PathLike, max_mb: float = DEFAULT_MAX_MB) -> int:
     """Raise :class:`ConfigError` with a level-of-detail hint when the tree needs more than
     ``max_mb`` MB of textures; returns the bytes needed."""
     need = viewer_texture_bytes(path)
