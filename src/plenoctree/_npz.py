@@ -194,13 +194,6 @@ class NpzReader:
             self.fail(f"{key!r} must be an integer scalar, got {dt} {list(shape)}")
         return int(self.read(key).reshape(()))
 
-    def scalar_float(self, key: str) -> float:
-        """A float (or integer) scalar."""
-        dt, shape = self.dtype(key), self.shape(key)
-        if dt.kind not in "iuf" or shape not in ((), (1,)):
-            self.fail(f"{key!r} must be a numeric scalar, got {dt} {list(shape)}")
-        return float(self.read(key).reshape(()))
-
     def scalar_str(self, key: str) -> str:
         """A string scalar (numpy unicode, or ASCII bytes)."""
         dt, shape = self.dtype(key), self.shape(key)

@@ -30,7 +30,6 @@ __all__ = [
     "save_png",
     "progress",
     "LogProgress",
-    "check_shape",
     "to_numpy",
     "vec3",
 ]
@@ -493,20 +492,3 @@ def progress(iterable: Iterable | None = None, total: float | None = None, desc:
     from tqdm.auto import tqdm
 
     return tqdm(iterable, total=total, desc=desc, dynamic_ncols=True, **kw)
-
-
-def check_shape(name: str, x: Any, shape: tuple) -> None:
-    """Raise ``ValueError`` unless ``x.shape`` matches ``shape`` (``None`` or ``...`` = any).
-
-    ``...`` may appear once, first, standing for any number of leading dimensions.
-    """
-    actual = tuple(x.shape)
-    if shape and shape[0] is Ellipsis:
-        tail = shape[1:]
-        ok = len(actual) >= len(tail) and all(
-            s is None or s == a for s, a in zip(tail, actual[len(actual) - len(tail):]))
-    else:
-        ok = len(actual) == len(shape) and all(s is None or s == a for s, a in zip(shape, actual))
-    if not ok:
-        want = tuple("..." if s is Ellipsis else ("*" if s is None else s) for s in shape)
-        raise ValueError(f"{name}: expected shape {want}, got {actual}")

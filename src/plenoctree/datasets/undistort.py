@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import DatasetError
 
-__all__ = ["undistort_images", "pinhole_camera", "NERFSTUDIO_MODELS"]
+__all__ = ["undistort_images", "NERFSTUDIO_MODELS"]
 
 NERFSTUDIO_MODELS = {"OPENCV": ("k1", "k2", "p1", "p2"),
                      "OPENCV_FISHEYE": ("k1", "k2", "k3", "k4"),
@@ -55,17 +55,6 @@ def check_kept_size(where: Any, model: str, params: np.ndarray, size: tuple[int,
                            f"the {w}x{h} image after undistortion (less than "
                            f"{MIN_KEPT_SIDE:.0%} of a side): the coefficients are implausible; "
                            "check the camera model and its distortion values")
-
-
-def pinhole_camera(model: str, params: np.ndarray, width: int, height: int,
-                   where: Any = "camera") -> tuple[int, int, np.ndarray]:
-    """COLMAP's undistorted pinhole camera for a distorting one: ``(width, height,
-    [fx, fy, cx, cy])`` (pixels). DatasetError if it keeps too little of the image."""
-    pycolmap = _pycolmap(where)
-    cam = _camera(pycolmap, model, params, width, height)
-    out = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), cam)
-    check_kept_size(where, model, params, (width, height), (int(out.width), int(out.height)))
-    return int(out.width), int(out.height), np.array(out.params[:4], dtype=np.float64)
 
 
 #: Leading focal / principal-point parameters of each COLMAP model (the rest: distortion).
