@@ -111,7 +111,8 @@ def run_lock(target: str | os.PathLike, command: str = "", folder: bool = True) 
     ``.<name>.lock`` beside an output file), which names its holder as JSON: pid, host, start time, command. The kernel drops
     the lock when its process dies, so the lock of a killed run is simply taken over. A second
     process gets a :class:`~plenoctree.errors.ConfigError` naming the holder; the same process
-    may nest locks on one target (``run`` → ``train``). Yields the lock file's path.
+    may nest locks on one target (``run`` → ``train``). Folders the lock created are removed
+    again if the block fails and leaves them empty. Yields the lock file's path.
     """
     from .errors import ConfigError
 
@@ -125,11 +126,13 @@ def run_lock(target: str | os.PathLike, command: str = "", folder: bool = True) 
         finally:
             _held_locks[key][1] -= 1
         return
+    created = _missing_folders(path.parent)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         import fcntl
     except ImportError:            # no flock (Windows): run without a lock
-        yield path
+        with _removed_on_failure(created):
+            yield path
         return
     while True:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -159,15 +162,41 @@ def run_lock(target: str | os.PathLike, command: str = "", folder: bool = True) 
     os.ftruncate(fd, 0)
     os.write(fd, (json.dumps(info) + "\n").encode())
     _held_locks[key] = [fd, 1]
-    try:
-        yield path
-    finally:
-        del _held_locks[key]
+    with _removed_on_failure(created):
         try:
-            os.unlink(path)
-        except OSError:
-            pass
-        os.close(fd)
+            yield path
+        finally:
+            del _held_locks[key]
+            try:
+                os.unlink(path)
+            except OSError:
+                pass
+            os.close(fd)
+
+
+def _missing_folders(folder: Path) -> list[Path]:
+    """The folders from ``folder`` up that do not exist yet, deepest first."""
+    missing = []
+    f = Path(folder).absolute()
+    while not f.exists() and f != f.parent:
+        missing.append(f)
+        f = f.parent
+    return missing
+
+
+@contextlib.contextmanager
+def _removed_on_failure(created: list[Path]) -> Iterator[None]:
+    """On an exception in the block, remove the folders of ``created`` (deepest first) that
+    are empty: a refused or failed command leaves no empty ``--out`` folder behind."""
+    try:
+        yield
+    except BaseException:
+        for d in created:
+            try:
+                d.rmdir()
+            except OSError:
+                break
+        raise
 
 
 def _is_plenoctree_file(path: Path) -> bool:
@@ -245,7 +274,7 @@ def check_output_file(path: str | os.PathLike, what: str = "--out", overwrite: b
     p = Path(path)
     _check_name_lengths(p, what)
     if p.is_dir():
-        raise ConfigError(f"{p}: {what} is a folder; give a file name such as "
+        raise ConfigError(f"{p}: {what} is a directory; give a file name such as "
                           f"{p / ('tree' + (p.suffix or '.npz'))}")
     _check_creatable(p, p.parent if str(p.parent) else Path("."), what)
     if p.exists() or p.is_symlink():

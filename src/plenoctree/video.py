@@ -417,7 +417,7 @@ def make_video(cfg: VideoConfig, log=print) -> VideoResult:
         tail = "" if cfg.mode == "color" else f"_{cfg.mode}"
         out = tree_path.parent / f"{tree_path.stem}_{kind}{tail}.mp4"
     if out.suffix.lower() not in VIDEO_SUFFIXES:
-        raise ConfigError(f"{out}: video file must end in {', '.join(VIDEO_SUFFIXES)}")
+        raise ConfigError(f"--out {out}: a video file must end in {', '.join(VIDEO_SUFFIXES)}")
     from ._util import check_output_file, run_lock
 
     check_output_file(out, "--out", cfg.overwrite, kind=None)

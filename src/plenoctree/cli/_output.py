@@ -87,7 +87,7 @@ def output_file(path: str | Path, command: str, flag: str = "--out",
     from .._util import check_output_file, run_lock
 
     p = check_output_file(path, flag, overwrite, kind=kind)
-    with _cleanup_on_failure(p.parent), run_lock(p, command, folder=False):
+    with run_lock(p, command, folder=False):
         yield p
 
 
@@ -98,25 +98,6 @@ def output_dir(path: str | Path, command: str, flag: str = "--out") -> Iterator[
     from .._util import check_output_dir, run_lock
 
     p = check_output_dir(path, flag)
-    with _cleanup_on_failure(p), run_lock(p, command):
+    with run_lock(p, command):
         yield p
 
-
-@contextlib.contextmanager
-def _cleanup_on_failure(folder: Path) -> Iterator[None]:
-    """On an exception, remove the folders from ``folder`` up that the block created and left
-    empty (a refused or failed command leaves no empty ``--out`` folder behind)."""
-    created = []
-    f = folder.absolute()
-    while not f.exists() and f != f.parent:
-        created.append(f)
-        f = f.parent
-    try:
-        yield
-    except BaseException:
-        for d in created:                      # deepest first
-            try:
-                d.rmdir()
-            except OSError:
-                break
-        raise

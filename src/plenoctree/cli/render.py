@@ -127,7 +127,9 @@ def _run_dataset(cfg: RenderConfig, out: Path) -> int:
     options = _render_options(cfg, data.background)
     res = evaluate_tree(tree, data, out, options, cfg.backend, device=cfg.device)
     print(f"{len(res.names)} views at {res.width}x{res.height} -> {out}")
-    print(f"PSNR {res.mean_psnr:.2f} dB  SSIM {res.mean_ssim:.4f}  "
+    ssim = (f"{res.mean_ssim:.4f}" if res.mean_ssim == res.mean_ssim
+            else "n/a (images under the 11x11 SSIM window)")
+    print(f"PSNR {res.mean_psnr:.2f} dB  SSIM {ssim}  "
           f"{res.ms_per_frame:.1f} ms/frame ({res.fps:.1f} FPS, backend {res.backend} on "
           f"{res.extra.get('device', 'cpu')})")
     return 0

@@ -62,19 +62,25 @@ def parse_matrix(value: Any, where: str) -> np.ndarray:
     if degenerate_rotations(m[None]).size:
         raise DatasetError(f"{where}: transform_matrix rotation (the upper-left 3x3) is singular "
                            "(e.g. all zeros); a camera needs three independent axes")
-    check_rotation(m[:3, :3], f"{where}: transform_matrix")
+    m[:3, :3] = rigid_rotation(m[:3, :3], f"{where}: transform_matrix")
     return m
 
 
-def check_rotation(r: np.ndarray, where: str) -> None:
-    """A camera rotation ``[3, 3]`` must be orthonormal within :data:`ROTATION_TOL`
-    (a scaled or sheared matrix is refused; a mirror is allowed): DatasetError otherwise."""
-    err = float(np.abs(r.T @ r - np.eye(3)).max())
+def rigid_rotation(r: np.ndarray, where: str) -> np.ndarray:
+    """A camera rotation ``[3, 3]`` without its uniform scale: ``r / s`` must be orthonormal
+    within :data:`ROTATION_TOL` (``s``: the mean column length). A uniformly scaled rotation
+    is valid input (ray directions do not depend on it) and is returned unscaled; a mirror is
+    allowed; a non-uniform scale or a shear distorts the rays and is refused (DatasetError)."""
+    s = float(np.linalg.norm(r, axis=0).mean())
+    u = r / s
+    err = float(np.abs(u.T @ u - np.eye(3)).max())
     if not err <= ROTATION_TOL:
         lengths = ", ".join(f"{v:.3g}" for v in np.linalg.norm(r, axis=0))
-        raise DatasetError(f"{where}: rotation (the upper-left 3x3) is not orthonormal (column "
-                           f"lengths {lengths}, |RᵀR - I| = {err:.3g} > {ROTATION_TOL:g}); "
-                           "scale belongs in the translation, not the rotation")
+        raise DatasetError(f"{where}: rotation (the upper-left 3x3) is not a scaled orthonormal "
+                           f"matrix (column lengths {lengths}, |UᵀU - I| = {err:.3g} > "
+                           f"{ROTATION_TOL:g} for U = R / {s:.3g}): a non-uniform scale or a "
+                           "shear would distort the camera's rays")
+    return u
 
 
 def check_frame_count(n: int, where: str) -> None:
@@ -102,8 +108,9 @@ def frame_file_path(fr: Any, where: str) -> str:
 def check_inside_dataset(rel: str, where: str) -> None:
     """A path listed in a dataset file must stay inside the dataset folder (DatasetError).
 
-    Lexical: absolute paths and paths whose normal form starts with ``..`` are refused
-    (symlinks inside the folder are the user's choice and are followed).
+    Lexical: absolute paths and paths whose normal form starts with ``..`` are refused; a
+    symbolic link that leads out of the folder is refused where the file is opened
+    (:func:`confined`).
     """
     norm = os.path.normpath(rel.replace("\\", "/"))
     if os.path.isabs(norm) or norm == ".." or norm.startswith(".." + os.sep) \

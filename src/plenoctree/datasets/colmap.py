@@ -12,7 +12,7 @@ undistorted on load by COLMAP's own undistortion (:mod:`plenoctree.datasets.undi
 needs pycolmap); every undistorted camera must come out at one image size.
 
 :func:`normalize_scene` decides the capture kind and fixes the world frame (the contract
-the rest of the chain relies on; ``docs/architecture.md``, "Scene normalisation"):
+the rest of the chain relies on; ``docs/capture.md``, "What process does"):
 
 * **kind**: ``forward`` when every optical axis lies within ~25° of their mean
   (``|mean forward axis| >= FORWARD_THRESHOLD``), else ``360`` (an object seen from around it).
