@@ -37,7 +37,7 @@ class EventLog:
     """Append events to ``path`` (None: keep no file) and log their readable lines.
 
     ``t_start``: ``time.perf_counter()`` when the run started; ``level``: the logging level of
-    the readable lines (and of :meth:`say`).
+    the readable lines (and of :meth:`note`).
     """
 
     def __init__(self, path: Path | None, t_start: float | None = None,
@@ -54,8 +54,8 @@ class EventLog:
                 f.write(json.dumps(rec) + "\n")
         line = _line(rec)
         if line is not None:
-            self.say(line)
+            self.note(line)
 
-    def say(self, message: str) -> None:
+    def note(self, message: str) -> None:
         """Log a readable line at this log's level."""
         logger.log(self.level, message)

@@ -367,7 +367,7 @@ def _report_gradient_scale(cfg: FinetuneConfig, stepper: Any, events: Any) -> di
     scale = gradient_scale(stepper)
     if scale is not None and scale["values"]:
         events({"event": "gradient_scale", **scale})
-        events.say(f"  {cfg.optimizer}: {100 * scale['share_below_eps']:.3f} % of the touched "
+        events.note(f"  {cfg.optimizer}: {100 * scale['share_below_eps']:.3f} % of the touched "
                    f"values had an RMS gradient below its eps {scale['eps']:g} (median "
                    f"{scale['rms_p50']:.2g}): there it stepped as SGD"
                    f"{' with momentum' if cfg.optimizer == 'adam' else ''} at lr/eps")
@@ -398,11 +398,11 @@ def _finetune(cfg: FinetuneConfig) -> FinetuneResult:
     tree, precision = _load_tree(cfg)
     train_set, val_set, bg = _view_sets(cfg, tree)
     stepper, rates = _make_stepper(cfg, tree, bg)
-    events.say(_describe(cfg, tree, (train_set, val_set), stepper, rates))
+    events.note(_describe(cfg, tree, (train_set, val_set), stepper, rates))
     test_set = _test_views(cfg)
     test_before = render_views_psnr(stepper, test_set) if test_set is not None else None
     if test_before is not None:
-        events.say(f"test PSNR before: {test_before:.3f} dB ({len(test_set)} views)")
+        events.note(f"test PSNR before: {test_before:.3f} dB ({len(test_set)} views)")
 
     files.log.parent.mkdir(parents=True, exist_ok=True)
     if not cfg.resume and files.log.exists():
@@ -425,7 +425,7 @@ def _finetune(cfg: FinetuneConfig) -> FinetuneResult:
     test_after = None
     if test_set is not None:
         test_after = render_views_psnr(stepper, test_set)
-        events.say(f"test PSNR after:  {test_after:.3f} dB (best epoch {state.best_epoch}; "
+        events.note(f"test PSNR after:  {test_after:.3f} dB (best epoch {state.best_epoch}; "
                    f"{state.stop_reason})")
     result = FinetuneResult(
         out=files.out, test_psnr_before=test_before, test_psnr_after=test_after,
