@@ -110,7 +110,9 @@ def cfg(scene, out, **kw):
 
 @pytest.mark.parametrize("optimizer,lr", [("sgd", 2e4), ("adam", 0.1)])
 def test_finetune_recovers_the_known_tree(scene, tmp_path, optimizer, lr):
-    res = finetune(cfg(scene, tmp_path / "ft.npz", optimizer=optimizer, lr=lr))
+    with log_lines() as lines:
+        res = finetune(cfg(scene, tmp_path / "ft.npz", optimizer=optimizer, lr=lr))
+    assert not any("PSNR" in line for line in lines)     # verbose=False: logged at DEBUG
     assert res.test_psnr_before < 26
     assert res.test_psnr_after > res.test_psnr_before + 8, res
     assert res.val_psnr_best > res.val_psnr_before + 8
