@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import subprocess
 import sys
 import threading
@@ -58,15 +59,22 @@ def child(tree: str, data: str, downscale: int, epochs: int, dense: bool, out: s
                      slabs=self.buf.nbytes)
 
     _steppers.NumbaStepper.__init__ = init
-    loop = _loop.run_loop
+    make_loop = _loop.FineTuneLoop.__init__
 
-    def run_loop(stepper, train, val, **kw):
+    def init_loop(self, stepper, train, val, *a, **kw):
         sizes.update(train_images=train.images.nbytes,
                      val_images=0 if val is None else val.images.nbytes)
-        return loop(stepper, train, val, **kw)
+        make_loop(self, stepper, train, val, *a, **kw)
 
-    _loop.run_loop = run_loop
+    _loop.FineTuneLoop.__init__ = init_loop
     peak, phase = [0, "start"], ["start"]
+
+    class Phase(logging.Handler):          # the fine-tuner's last progress line
+        def emit(self, record: logging.LogRecord) -> None:
+            phase[0] = record.getMessage().strip()[:60]
+
+    logging.getLogger("plenoctree").addHandler(Phase())
+    logging.getLogger("plenoctree").setLevel(logging.INFO)
 
     def sample() -> None:
         while True:
@@ -79,8 +87,7 @@ def child(tree: str, data: str, downscale: int, epochs: int, dense: bool, out: s
     t0 = time.perf_counter()
     finetune(FinetuneConfig(tree=tree, data=data, out=out, downscale=downscale, epochs=epochs,
                             val_every=1, checkpoint_minutes=0, test_views=-1,
-                            show_progress=False, verbose=True),
-             log_fn=lambda s: phase.__setitem__(0, s.strip()[:60]))
+                            show_progress=False, verbose=True))
     time.sleep(0.1)
     print(json.dumps({"peak_rss_mb": peak[0], "peak_after": peak[1],
                       "seconds": time.perf_counter() - t0,

@@ -456,7 +456,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=str(ROOT / "results" / "march_anatomy.json"))
     a = ap.parse_args(argv)
 
-    from plenoctree.render._render_numba import _flat, _vec
+    from plenoctree._util import vec3 as _vec
+    from plenoctree.render._spec import flat_tree as _flat
 
     tree, desc = load_bench_tree(a.tree, log=lambda m: print(m, file=sys.stderr))
     child, data = _flat(tree.child, tree.data)

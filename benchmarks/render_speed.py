@@ -112,8 +112,8 @@ def ray_counters(tree: Any, views: list, opts: Any, skip: Any = None) -> dict[st
     skip tables, as the renderer marches a prepared tree)."""
     from plenoctree.render._render_numba import STAT_NAMES, ray_stats_numba
 
-    s = np.concatenate([ray_stats_numba(tree.child, tree.data, tree.offset, tree.invradius,
-                                        o.reshape(-1, 3), d.reshape(-1, 3), opts, skip=skip)
+    s = np.concatenate([ray_stats_numba(tree, o.reshape(-1, 3), d.reshape(-1, 3), opts,
+                                        skip=skip)
                         for o, d in views])
     col = {n: s[:, k] for k, n in enumerate(STAT_NAMES)}
     hit = col["hit"] > 0

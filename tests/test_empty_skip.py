@@ -12,7 +12,7 @@ from test_render_kernels import _compare, _ff_tree, _grid_tree, _image_rays, _su
 
 from plenoctree.octree import Octree
 from plenoctree.render import CpuTree, RenderOptions, render_image, render_rays, tree_to_device
-from plenoctree.render._render_numba import _flat
+from plenoctree.render._spec import flat_tree as _flat
 from plenoctree.render.empty_skip import skip_tables
 
 
@@ -130,7 +130,7 @@ def test_skipping_visits_fewer_leaves():
     tree = _sparse_tree(11)
     o, d = _image_rays(tree, 24, 24, seed=4)
     o, d = o.reshape(-1, 3), d.reshape(-1, 3)
-    args = (tree.child, tree.data, tree.offset, tree.invradius, o, d, RenderOptions())
+    args = (tree, o, d, RenderOptions())
     plain = dict(zip(STAT_NAMES, ray_stats_numba(*args).T))
     fast = dict(zip(STAT_NAMES, ray_stats_numba(*args, skip=tree_to_device(tree, "cpu")
                                                 .empty_skip).T))

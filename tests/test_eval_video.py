@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import shutil
 
@@ -56,8 +57,10 @@ def _no_lpips(monkeypatch):
 
 
 # --- eval -----------------------------------------------------------------------------------
-def test_eval_json_fields_and_self_psnr(scene, tmp_path, monkeypatch, capsys):
+def test_eval_json_fields_and_self_psnr(scene, tmp_path, monkeypatch, caplog):
     _no_lpips(monkeypatch)
+    monkeypatch.setattr(logging.getLogger("plenoctree"), "propagate", True)  # CLI or not
+    caplog.set_level("INFO", logger="plenoctree")
     rep = eval_tree_file(EvalConfig(scene / "tree.npz", scene / "self", out=tmp_path / "e",
                                     json_path=tmp_path / "copy.json"))
     tree = load_tree(scene / "tree.npz")
@@ -81,7 +84,7 @@ def test_eval_json_fields_and_self_psnr(scene, tmp_path, monkeypatch, capsys):
     assert on_disk == rep == json.loads((tmp_path / "copy.json").read_text())
     md = (tmp_path / "e" / "eval.md").read_text()
     assert "| PSNR (dB) |" in md and "r_0" in md and "skipped" in md
-    assert "LPIPS skipped: no weights in this test" in capsys.readouterr().out
+    assert "LPIPS skipped: no weights in this test" in caplog.messages
 
 
 def test_eval_perturbed_tree_scores_lower(scene, tmp_path, monkeypatch):

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import math
 import shutil
 from pathlib import Path
@@ -71,6 +73,34 @@ def scene(tmp_path_factory):
     return root
 
 
+class _Lines(logging.Handler):
+    """Collects the ``plenoctree`` loggers' lines; ``hook(line)`` is called on each first."""
+
+    def __init__(self, hook=None):
+        super().__init__(logging.DEBUG)
+        self.lines, self.hook = [], hook
+
+    def emit(self, record):
+        line = record.getMessage()
+        if self.hook is not None:
+            self.hook(line)
+        self.lines.append(line)
+
+
+@contextlib.contextmanager
+def log_lines(hook=None):
+    """The INFO lines the library logs inside the block (whatever the CLI configured)."""
+    logger = logging.getLogger("plenoctree")
+    handler, level = _Lines(hook), logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        yield handler.lines
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
 def cfg(scene, out, **kw):
     base = dict(tree=scene / "noisy.npz", data=scene / "data", out=out, epochs=6,
                 batch_rays=2048, val_every=2, verbose=False, show_progress=False)
@@ -80,7 +110,9 @@ def cfg(scene, out, **kw):
 
 @pytest.mark.parametrize("optimizer,lr", [("sgd", 2e4), ("adam", 0.1)])
 def test_finetune_recovers_the_known_tree(scene, tmp_path, optimizer, lr):
-    res = finetune(cfg(scene, tmp_path / "ft.npz", optimizer=optimizer, lr=lr))
+    with log_lines() as lines:
+        res = finetune(cfg(scene, tmp_path / "ft.npz", optimizer=optimizer, lr=lr))
+    assert not any("PSNR" in line for line in lines)     # verbose=False: logged at DEBUG
     assert res.test_psnr_before < 26
     assert res.test_psnr_after > res.test_psnr_before + 8, res
     assert res.val_psnr_best > res.val_psnr_before + 8
@@ -114,9 +146,9 @@ def test_val_and_test_views_are_the_evenly_spaced_ones_read_alone(scene, tmp_pat
         return real(paths, *a, **k)
 
     monkeypatch.setattr(blender, "load_images", spy)
-    lines = []
-    finetune(cfg(scene, tmp_path / "ft.npz", epochs=1, val_every=1, val_views=2, test_views=3,
-                 verbose=True), log_fn=lines.append)
+    with log_lines() as lines:
+        finetune(cfg(scene, tmp_path / "ft.npz", epochs=1, val_every=1, val_views=2,
+                     test_views=3, verbose=True))
     got = read[1:]                               # read[0]: the training split
     full = {s: load_dataset(scene / "data", s) for s in ("val", "test")}
     want = {s: [full[s].names[i] for i in evenly_spaced(len(full[s]), k)]
@@ -223,8 +255,8 @@ def test_resume_continues_exactly(scene, tmp_path):
         if line.strip().startswith("epoch   3: train"):
             raise KeyboardInterrupt
 
-    with pytest.raises(KeyboardInterrupt):
-        finetune(cfg(scene, tmp_path / "b.npz", verbose=True, **kw), log_fn=interrupt)
+    with pytest.raises(KeyboardInterrupt), log_lines(interrupt):
+        finetune(cfg(scene, tmp_path / "b.npz", verbose=True, **kw))
     assert (tmp_path / "b.ckpt.npz").exists() and not (tmp_path / "b.npz").exists()
     assert list(tmp_path.glob("b.ckpt.best-*.f32"))     # the checkpoint's best values
     res = finetune(cfg(scene, tmp_path / "b.npz", resume=True, **kw))
@@ -238,8 +270,8 @@ def test_resume_continues_exactly(scene, tmp_path):
     with pytest.raises(ConfigError, match="checkpoint"):
         finetune(cfg(scene, tmp_path / "c.npz", resume=True, **kw))
     # a checkpoint whose best values' file is gone is refused, naming the file
-    with pytest.raises(KeyboardInterrupt):
-        finetune(cfg(scene, tmp_path / "d.npz", verbose=True, **kw), log_fn=interrupt)
+    with pytest.raises(KeyboardInterrupt), log_lines(interrupt):
+        finetune(cfg(scene, tmp_path / "d.npz", verbose=True, **kw))
     (best_file,) = tmp_path.glob("d.ckpt.best-*.f32")
     best_values = best_file.read_bytes()
     best_file.unlink()

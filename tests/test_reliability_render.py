@@ -117,12 +117,13 @@ from plenoctree.render._torch_impl import render_rays_torch
 t = Octree.dense(3, "RGBA", seed=0)
 t.data[..., -1] = 1e-3
 d = np.random.default_rng(0).normal(size=(32, 3))
+t.offset = np.full(3, 0.5)
 for inv in ([1e300] * 3, [1.0, 1.0, 1e-160]):
-    out = render_rays_torch(t.child, t.data, np.full(3, 0.5), np.array(inv), "RGBA", None,
-                            torch.zeros(32, 3, dtype=torch.float64), torch.tensor(d))
+    t.invradius = np.array(inv)
+    out = render_rays_torch(t, torch.zeros(32, 3, dtype=torch.float64), torch.tensor(d))
     assert torch.isfinite(out.rgb).all()
-out = render_rays_torch(t.child, t.data, np.full(3, 0.5), np.ones(3), "RGBA", None,
-                        torch.tensor([[0.0, 0.0, -1e300]], dtype=torch.float64),
+t.invradius = np.ones(3)
+out = render_rays_torch(t, torch.tensor([[0.0, 0.0, -1e300]], dtype=torch.float64),
                         torch.tensor([[1e-3, 1e-3, 1.0]], dtype=torch.float64))
 print("done")
 """

@@ -239,10 +239,9 @@ def test_stack_traversal_equals_root_descent():
     tree = _random_tree("SH4", seed=11, res=32, occupancy=0.05)
     o, d = _random_rays(tree, 500, seed=2)
     info = parse_data_format(tree.data_format, tree.data_dim)
-    args = (tree.child, tree.data, tree.offset, tree.invradius, info, None, o, d,
-            RenderOptions(stop_thresh=0.0))
-    a = _render_numba.render_rays_numba(*args, use_stack=True)
-    b = _render_numba.render_rays_numba(*args, use_stack=False)
+    p = _render_numba.prepare(tree, info, RenderOptions(stop_thresh=0.0))
+    a = _render_numba.render_rays_numba(p, o, d, use_stack=True)
+    b = _render_numba.render_rays_numba(p, o, d, use_stack=False)
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x, y)
 
@@ -286,8 +285,7 @@ def test_twin_gradcheck_float64():
     data.requires_grad_(True)
 
     def f(x):
-        out = render_rays_torch(tree.child, x, tree.offset, tree.invradius, tree.data_format,
-                                None, o, d, RenderOptions(stop_thresh=0.0))
+        out = render_rays_torch(tree, o, d, RenderOptions(stop_thresh=0.0), data=x)
         return out.rgb, out.depth, out.alpha
 
     assert torch.autograd.gradcheck(f, (data,), eps=1e-6, atol=1e-6, fast_mode=True)

@@ -178,8 +178,7 @@ def test_ray_counters():
 
     tree = _subdivide(_grid_tree("SH1", seed=4, occ=0.2), 0.3, 3)
     o, d = _image_rays(tree, 12, 12, seed=5)
-    s = ray_stats_numba(tree.child, tree.data, tree.offset, tree.invradius, o.reshape(-1, 3),
-                        d.reshape(-1, 3), RenderOptions(stop_thresh=0.0))
+    s = ray_stats_numba(tree, o.reshape(-1, 3), d.reshape(-1, 3), RenderOptions(stop_thresh=0.0))
     col = dict(zip(STAT_NAMES, s.T))
     hit = col["hit"] > 0
     assert hit.mean() > 0.5 and (col["stopped"] == 0).all()
@@ -188,8 +187,8 @@ def test_ray_counters():
     assert (col["sigma_leaves"] >= col["negligible"]).all()
     assert (col["descent"] >= col["leaves"]).all() and col["sigma_leaves"].sum() > 0
     # A ray missing the box visits nothing.
-    miss = ray_stats_numba(tree.child, tree.data, tree.offset, tree.invradius,
-                           np.float32([[50, 50, 50]]), np.float32([[1, 0, 0]]), RenderOptions())
+    miss = ray_stats_numba(tree, np.float32([[50, 50, 50]]), np.float32([[1, 0, 0]]),
+                           RenderOptions())
     assert miss.sum() == 0
 
 
@@ -208,17 +207,12 @@ def test_kernels_bound_the_descent_on_too_deep_trees():
     """A tree deeper than the path stack must not corrupt memory in any numba kernel: the
     descent stops at MAX_DEPTH (the loaders reject such trees anyway)."""
     from plenoctree.optim._render_grad import SparseGrad, fused_mse_numba, kernel_args
-    from plenoctree.render._render_numba import render_rays_numba
+    from plenoctree.render._render_numba import prepare, render_rays_numba
 
     child, data = _chain_tree(MAX_DEPTH + 12)
     off, inv = np.zeros(3), np.ones(3)
     o = np.float32([[1e-9, 1e-9, -1.0]] * 64 + [[0.3, 0.7, -1.0]] * 64)
     d = np.float32([[0.0, 0.0, 1.0]] * 128)
-    info = parse_data_format("RGBA", 4)
-    rgb, depth, alpha = render_rays_numba(child, data, off, inv, info, None, o, d,
-                                          RenderOptions())
-    assert np.isfinite(rgb).all() and np.isfinite(alpha).all()
-    assert (alpha[64:] > 0).all()                              # the shallow leaves render
 
     class _T:
         pass
@@ -226,6 +220,10 @@ def test_kernels_bound_the_descent_on_too_deep_trees():
     t = _T()
     t.child, t.data, t.offset, t.invradius, t.data_format = child, data, off, inv, "RGBA"
     t.extra_data, t.depth_limit = None, MAX_DEPTH + 11
+    info = parse_data_format("RGBA", 4)
+    rgb, depth, alpha = render_rays_numba(prepare(t, info, RenderOptions()), o, d)
+    assert np.isfinite(rgb).all() and np.isfinite(alpha).all()
+    assert (alpha[64:] > 0).all()                              # the shallow leaves render
     data2 = np.ascontiguousarray(data.reshape(-1, 4))
     args = kernel_args(t, RenderOptions())
     buf = SparseGrad(data2.shape[0], 4, np.float32)

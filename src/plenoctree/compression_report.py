@@ -46,7 +46,7 @@ def _psnrs(tree: Octree, cams: Cameras, options: RenderOptions, backend: str,
            targets: Any) -> list[float]:
     """PSNR (dB) per view of ``tree`` rendered from ``cams`` against ``targets[i]``."""
     return score_views(lambda i: render_image(tree, cams, i, options, backend), targets,
-                       with_ssim=False, backend=backend).psnr
+                       with_ssim=False).psnr
 
 
 def compression_report(src: str | os.PathLike, dst: str | os.PathLike,

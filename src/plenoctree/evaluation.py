@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from typing import Any, Callable, Sequence
 
+import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +25,8 @@ from .metrics import psnr, ssim
 from .octree import Octree
 
 # The renderer (torch) is imported inside the functions: EvalConfig is read by `--help`.
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["EvalConfig", "EvalResult", "depth_to_image", "eval_markdown", "eval_tree_file",
            "evaluate_tree", "metrics_markdown", "score_views"]
@@ -116,12 +119,12 @@ def depth_to_image(depth: np.ndarray, alpha: np.ndarray, near: float, far: float
 
 
 def save_view_images(out: Path, name: str, rgb: np.ndarray, gt: np.ndarray, depth: np.ndarray,
-                     alpha: np.ndarray, near: float, far: float,
+                     alpha: np.ndarray, depth_range: tuple[float, float],
                      background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> None:
     """Write one view's pictures under ``out`` (atomically):
 
     ``<name>.png`` render; ``<name>_depth.png`` depth as a Turbo colour map over
-    ``[near, far]`` (near red, far blue, nothing hit = background); ``<name>_depth.npy`` raw
+    ``depth_range = (near, far)`` (near red, far blue, nothing hit = background); ``<name>_depth.npy`` raw
     float32 depth ``[H, W]`` (world units along the unit ray, NDC units for NDC cameras; 0 where
     nothing was hit) and ``<name>_alpha.npy`` (float32 opacity); ``<name>_compare.png`` ground
     truth | render | error map (mean |Δ| per pixel, Turbo, ``plots.ERROR_VMAX`` = dark red).
@@ -129,7 +132,7 @@ def save_view_images(out: Path, name: str, rgb: np.ndarray, gt: np.ndarray, dept
     from .plots import comparison_image, depth_colormap
 
     save_png(out / f"{name}.png", rgb)
-    save_png(out / f"{name}_depth.png", depth_colormap(depth, alpha, near, far, background))
+    save_png(out / f"{name}_depth.png", depth_colormap(depth, alpha, *depth_range, background))
     for suffix, arr in (("depth", depth), ("alpha", alpha)):
         with atomic_write(out / f"{name}_{suffix}.npy", "wb") as f:
             np.save(f, np.asarray(arr, dtype=np.float32), allow_pickle=False)
@@ -138,8 +141,8 @@ def save_view_images(out: Path, name: str, rgb: np.ndarray, gt: np.ndarray, dept
 
 def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None,
                   options: RenderOptions | None = None, backend: str = "auto",
-                  warmup: bool = True, show_progress: bool | None = None,
-                  lpips_net: str | None = None, device: Any = "cpu") -> EvalResult:
+                  show_progress: bool | None = None, lpips_net: str | None = None,
+                  device: Any = "cpu") -> EvalResult:
     """Render every view of ``data`` with ``tree`` and score it against the images.
 
     Args:
@@ -152,8 +155,8 @@ def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None
         options: renderer options; default: stop at T < 0.01, the dataset's background.
         backend: ``"auto"``, ``"numba"``, ``"triton"`` or ``"torch"``.
         device: where to render: ``"cpu"`` (numpy rays), ``"cuda"`` (the tree is copied to
-            the GPU once; per-view times include waiting for the GPU), or ``"auto"``.
-        warmup: render the first view once untimed first (JIT compilation).
+            the GPU once; per-view times include waiting for the GPU), or ``"auto"``. The
+            first view is rendered once untimed first (JIT compilation, cache load).
         lpips_net: also score LPIPS with this backbone (``"vgg"``, ``"alex"``, ``"squeeze"``);
             raises :class:`~plenoctree.errors.BackendError` when it cannot run offline (check
             :func:`~plenoctree.metrics.lpips_available` first).
@@ -177,14 +180,18 @@ def evaluate_tree(tree: Octree, data: Dataset, out_dir: str | Path | None = None
     def keep(i, name, o, rgb, gt):
         if out is not None:
             save_view_images(out, name, rgb, gt, o.depth.detach().cpu().numpy(),
-                             o.alpha.detach().cpu().numpy(), data.near, data.far,
+                             o.alpha.detach().cpu().numpy(), (data.near, data.far),
                              options.background)
 
-    res = score_views(lambda i: render_image(tree, cams, i, options, backend, device=dev),
-                      data.images[:len(cams)], names=names, warmup=warmup,
-                      lpips_net=lpips_net, show_progress=show_progress, on_view=keep,
-                      backend=backend)
+    def render(i: int) -> Any:
+        return render_image(tree, cams, i, options, backend, device=dev)
+
+    if len(cams):
+        render(0)                # untimed warm-up: JIT compilation or cache load
+    res = score_views(render, data.images[:len(cams)], names=names, lpips_net=lpips_net,
+                      show_progress=show_progress, on_view=keep)
     res.width, res.height, res.extra = cams.width, cams.height, {"device": str(dev)}
+    res.backend = backend
     if out is not None:
         atomic_save_json(out / "metrics.json", res.to_json())
         with atomic_write(out / "metrics.md", "w") as f:
@@ -204,9 +211,9 @@ def _rgb_of(o: Any) -> np.ndarray:
 
 def score_views(render: Callable[[int], Any], images: Sequence[np.ndarray], *,
                 names: Sequence[str] = (), with_ssim: bool = True, lpips_net: str | None = None,
-                warmup: bool = False, show_progress: bool | None = False,
+                show_progress: bool | None = False,
                 rgb_of: Callable[[Any], np.ndarray] = _rgb_of,
-                on_view: Callable[..., None] | None = None, backend: str = "") -> EvalResult:
+                on_view: Callable[..., None] | None = None) -> EvalResult:
     """The one render-and-score loop (trees, the fine-tuner's views, the network, codecs).
 
     For each ``k`` in ``range(len(images))``: ``o = render(k)`` (timed, milliseconds),
@@ -219,17 +226,17 @@ def score_views(render: Callable[[int], Any], images: Sequence[np.ndarray], *,
         render: view index -> the renderer's output.
         images: ground truth (or reference renders) per view, ``[H, W, 3]`` each.
         names: view names (default ``view_<k:03d>``).
-        warmup: render view 0 once, untimed, first (JIT compilation, cache load).
         show_progress: progress bar (``None``: shown, as :func:`~plenoctree._util.progress`).
 
+    Every render is timed: warm a JIT-compiled renderer up before (``render(0)``).
+
     Returns:
-        An :class:`EvalResult` (``width``/``height`` of the first image, ``backend`` as given).
+        An :class:`EvalResult` (``width``/``height`` of the first image, ``backend`` empty:
+        the caller names it).
     """
     n = len(images)
-    if warmup and n:
-        render(0)
     h, w = (int(images[0].shape[0]), int(images[0].shape[1])) if n else (0, 0)
-    res = EvalResult([], [], [], [], w, h, backend)
+    res = EvalResult([], [], [], [], w, h, "")
     disable = None if show_progress is None else not show_progress
     for k in progress(range(n), desc="render", disable=disable):
         t0 = time.perf_counter()
@@ -314,7 +321,7 @@ def _resolved_backend(backend: str, device: Any = "cpu") -> str:
     return resolve("render", backend, device)
 
 
-def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
+def eval_tree_file(cfg: EvalConfig) -> dict:
     """Score a tree file on a dataset split: PSNR, SSIM, LPIPS (or why it was skipped), render
     speed at the dataset resolution, tree size. Writes ``eval.json`` and ``eval.md`` (atomic).
 
@@ -363,7 +370,7 @@ def eval_tree_file(cfg: EvalConfig, log=print) -> dict:
 
     problem = _lpips_problem(cfg.lpips_net)
     if problem is not None:
-        log(f"LPIPS skipped: {problem}")
+        logger.info(f"LPIPS skipped: {problem}")
     from .render import RenderOptions
 
     options = RenderOptions(stop_thresh=float(cfg.stop_thresh), background=bg)

@@ -11,16 +11,17 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from .._util import atomic_save_npz, progress
 from ..errors import ConfigError
 from ._best import BestValues, remove_best_files
+from ._events import EventLog
 
-__all__ = ["ViewSet", "LoopState", "Diverged", "render_views_psnr", "run_loop",
-           "remove_best_files"]
+__all__ = ["ViewSet", "LoopState", "LoopOptions", "FineTuneLoop", "Diverged",
+           "render_views_psnr", "remove_best_files"]
 
 _EMA = 0.2            # smoothing of the batch MSE for the divergence test
 _DIVERGE_FACTOR = 4.0  # smoothed batch MSE above factor * first-batch MSE + _DIVERGE_ABS ...
@@ -164,7 +165,8 @@ class _Images:
 
 
 class Diverged(Exception):
-    """Raised inside the loop when the learning rate diverged (caught by ``run_loop``)."""
+    """Raised inside the loop when the learning rate diverged (caught by
+    :meth:`FineTuneLoop.run`)."""
 
 
 @dataclass
@@ -244,30 +246,59 @@ def lr_factor(epoch: int, epochs: int, decay: float) -> float:
     return float(decay) ** ((epoch - 1) / (epochs - 1))
 
 
-def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, batch_rays: int,
-             ray_tile: int, val_every: int, stop_on_decrease: bool, seed: int, checkpoint: Path | None,
-             resume: bool, fingerprint: dict, log: Callable[[dict], None],
-             show_progress: bool | None = None, backoffs: int = 0, backoff_factor: float = 0.5,
-             lr_decay: float = 1.0, checkpoint_every_s: float = 0.0
-             ) -> tuple[np.ndarray, LoopState]:
-    """Optimise ``stepper``'s values on ``train``; return ``(best values, final state)`` (the
-    stepper holds the best values then; the returned array is ``stepper.values()``).
+@dataclass(frozen=True)
+class LoopOptions:
+    """How :class:`FineTuneLoop` trains (:class:`~.finetune.FinetuneConfig` has the long help).
 
-    One epoch is one pass over every training pixel in a random order: the images are cut into
-    ``ray_tile × ray_tile`` pixel tiles, the tiles of all images are shuffled, and each batch
-    takes ``batch_rays / ray_tile²`` of them (``ray_tile = 1``: independent random pixels;
-    neighbouring rays of a tile cross the same cells, which makes the kernels 2-3x faster).
+    ``epochs`` passes over every training pixel, ``batch_rays`` rays a step drawn as
+    ``ray_tile × ray_tile`` pixel tiles; validation every ``val_every`` epochs (0: never);
+    ``stop_on_decrease``: a validation drop backs off (at most ``backoffs`` times, learning
+    rates × ``backoff_factor``), then stops; ``lr_decay``: :func:`lr_factor`; ``seed``: the
+    ray order. ``checkpoint`` (None: none) is written at a validation when
+    ``checkpoint_every_s`` seconds passed since the last one, and on Ctrl-C; ``resume``
+    continues from it. ``show_progress``: the progress bar (None: on a terminal).
+    """
+
+    epochs: int
+    batch_rays: int = 1 << 16
+    ray_tile: int = 4
+    val_every: int = 2
+    stop_on_decrease: bool = True
+    seed: int = 0
+    backoffs: int = 0
+    backoff_factor: float = 0.5
+    lr_decay: float = 1.0
+    checkpoint: Path | None = None
+    resume: bool = False
+    checkpoint_every_s: float = 0.0
+    show_progress: bool | None = None
+
+
+class FineTuneLoop:
+    """The fine-tuning loop: optimise ``stepper``'s values on ``train``, validating on ``val``.
+
+    It holds the run's state: the stepper (values and optimiser moments), :class:`LoopState`
+    (epoch, step, validation history, best epoch and PSNR, back-offs, ray order), the best
+    values (:class:`~._best.BestValues`) and the divergence watch. :meth:`run` returns
+    ``(best values, final state)``; the stepper holds the best values then (the returned array
+    is ``stepper.values()``). Events go to ``events`` (:class:`~._events.EventLog`).
+
+    One epoch (:meth:`epoch`) is one pass over every training pixel in a random order: the
+    images are cut into ``ray_tile × ray_tile`` pixel tiles, the tiles of all images are
+    shuffled, and each :meth:`step` takes ``batch_rays / ray_tile²`` of them (``ray_tile = 1``:
+    independent random pixels; neighbouring rays of a tile cross the same cells, which makes
+    the kernels 2-3x faster).
 
     The learning rates (``stepper.lr`` and ``stepper.sigma_lr``) follow :func:`lr_factor` with
     ``lr_decay`` over the epochs, times the back-off scale.
 
-    With ``val`` the PSNR is measured before training and every ``val_every`` epochs; the best
-    values are kept. On a drop, with ``stop_on_decrease``: while fewer than ``backoffs``
-    back-offs were taken, the best values are restored and the learning rates multiplied by
-    ``backoff_factor`` (event ``backoff`` in the log); after that the loop stops. Without
-    ``val`` the values after the last epoch are returned. A divergence (non-finite values or a
-    blown-up training error) restores the best values and backs off the same way (by
-    ``backoff_factor²``) while back-offs remain, else ends the loop with
+    With ``val`` the PSNR is measured before training and every ``val_every`` epochs
+    (:meth:`validate`); the best values are kept. On a drop, with ``stop_on_decrease``: while
+    fewer than ``backoffs`` back-offs were taken, the best values are restored and the learning
+    rates multiplied by ``backoff_factor`` (:meth:`back_off`, event ``backoff``); after that the
+    loop stops. Without ``val`` the values after the last epoch are returned. A divergence
+    (non-finite values or a blown-up training error) restores the best values and backs off
+    the same way (by ``backoff_factor²``) while back-offs remain, else ends the loop with
     ``state.stop_reason = "diverged: ..."`` and the best (last good) values restored.
 
     The best values are kept in files beside ``checkpoint`` (:class:`~._best.BestValues`; in
@@ -276,167 +307,210 @@ def run_loop(stepper: Any, train: ViewSet, val: ViewSet | None, *, epochs: int, 
     The checkpoint is written after a validation (each ``val_every`` epochs without ``val``)
     when ``checkpoint_every_s`` seconds passed since the loop started or last wrote one (0:
     after every validation; a large tree's checkpoint, values + best + optimiser moments, is
-    gigabytes), and on ``KeyboardInterrupt``; resuming from an interrupt inside an epoch replays that epoch
-    (same ray order) from the values reached when it was interrupted.
+    gigabytes), and on ``KeyboardInterrupt``; resuming from an interrupt inside an epoch replays
+    that epoch (same ray order) from the values reached when it was interrupted.
     """
-    scale = 1.0 / (3.0 * train.width * train.height)
-    values = stepper.values()          # one read (a copy from the device for torch steppers)
-    best = BestValues(values.shape, values.dtype,
-                      None if checkpoint is None else checkpoint.with_suffix(""))
-    state = LoopState()
-    values_are_best = not (resume and checkpoint is not None and checkpoint.exists())
-    if values_are_best:
-        best.store(values)
-    del values                         # freed before a checkpoint's values are loaded
-    if not values_are_best:
-        state = load_checkpoint(checkpoint, stepper, best, fingerprint)
-        log({"event": "resume", "checkpoint": str(checkpoint), "epochs_done": state.epochs_done})
-    rng = np.random.default_rng(seed)
-    last_ckpt = time.perf_counter()
 
-    def save_if_due() -> None:
-        nonlocal last_ckpt
-        if checkpoint is None or time.perf_counter() - last_ckpt < checkpoint_every_s:
+    def __init__(self, stepper: Any, train: ViewSet, val: ViewSet | None, options: LoopOptions,
+                 fingerprint: dict, events: EventLog | None = None) -> None:
+        self.stepper, self.train, self.val, self.opts = stepper, train, val, options
+        self.fingerprint = fingerprint
+        self.events = events if events is not None else EventLog(None)
+        self.scale = 1.0 / (3.0 * train.width * train.height)   # per-pixel mean of one image
+        self.state = LoopState()
+        self.best: BestValues | None = None
+        self.values_are_best = True
+        self.tile = max(1, int(options.ray_tile))
+        self.n_tiles = train.n_tiles(self.tile)
+        self.tiles_per_batch = max(1, options.batch_rays // (self.tile * self.tile))
+        self.rng = np.random.default_rng(options.seed)
+        self._first_mse: float | None = None     # the divergence watch: first batch MSE,
+        self._ema: float | None = None           # its smoothed value, batches since a reset
+        self._batches = 0
+        self._last_ckpt = time.perf_counter()
+        self._bar: Any = None
+        self._base_lr = float(stepper.lr)
+        self._base_sigma = getattr(stepper, "sigma_lr", None)
+
+    @property
+    def finished(self) -> bool:
+        """All epochs run, or the loop stopped (``state.stop_reason``)."""
+        return self.state.epochs_done >= self.opts.epochs or bool(self.state.stop_reason)
+
+    def run(self) -> tuple[np.ndarray, LoopState]:
+        """Train until :attr:`finished`; returns ``(best values, final state)``."""
+        self._start()
+        steps_per_epoch = max(1, math.ceil(self.n_tiles / self.tiles_per_batch))
+        show = self.opts.show_progress
+        self._bar = progress(total=(self.opts.epochs - self.state.epochs_done) * steps_per_epoch,
+                             desc="finetune", disable=None if show is None else not show)
+        try:
+            while not self.finished:
+                self._next_epoch()
+        except Diverged as e:
+            self.state.stop_reason = f"diverged: {e}"
+        except KeyboardInterrupt:
+            if self.opts.checkpoint is not None:
+                save_checkpoint(self.opts.checkpoint, self.stepper, self.best, self.state,
+                                self.fingerprint)
+                self.events({"event": "interrupted", "checkpoint": str(self.opts.checkpoint)})
+            raise
+        finally:
+            self._bar.close()
+        if not self.state.stop_reason:
+            self.state.stop_reason = f"finished {self.state.epochs_done} epochs"
+        if not self.values_are_best:
+            self.stepper.set_values(self.best.load())
+        return self.stepper.values(), self.state
+
+    def _start(self) -> None:
+        """Keep the initial values as the best, or resume from the checkpoint; validate the
+        initial values (epoch 0) unless resumed past that."""
+        ckpt = self.opts.checkpoint
+        values = self.stepper.values()   # one read (a copy from the device for torch steppers)
+        self.best = BestValues(values.shape, values.dtype,
+                               None if ckpt is None else ckpt.with_suffix(""))
+        self.values_are_best = not (self.opts.resume and ckpt is not None and ckpt.exists())
+        if self.values_are_best:
+            self.best.store(values)
+        del values                       # freed before a checkpoint's values are loaded
+        if not self.values_are_best:
+            self.state = load_checkpoint(ckpt, self.stepper, self.best, self.fingerprint)
+            self.events({"event": "resume", "checkpoint": str(ckpt),
+                         "epochs_done": self.state.epochs_done})
+        self._last_ckpt = time.perf_counter()
+        if self.state.rng_state is not None:
+            self.rng.bit_generator.state = self.state.rng_state
+        if self.val is not None and self.state.epochs_done == 0 and not self.state.history:
+            p0 = self.validate(0)
+            self.state.best_psnr, self.state.best_epoch = p0, 0
+            self.events({"event": "val", "epoch": 0, "val_psnr": p0})
+
+    def _next_epoch(self) -> None:
+        """Run epoch ``epochs_done + 1``, then keep its values or back off; a divergence backs
+        off (and the epoch counts as run) while back-offs remain, else propagates."""
+        epoch = self.state.epochs_done + 1
+        try:
+            sse, seconds, step_seconds = self.epoch(epoch)
+        except Diverged as e:
+            self.state.epochs_done = epoch
+            if not self.back_off(self.opts.backoff_factor ** 2, f"diverged: {e}"):
+                raise
+            self._first_mse = self._ema = None
             return
-        save_checkpoint(checkpoint, stepper, best, state, fingerprint)
-        last_ckpt = time.perf_counter()
+        self.state.epochs_done = epoch
+        self.state.rng_state = self.rng.bit_generator.state
+        n_rays = self.train.n_rays
+        train_mse = sse / (3.0 * n_rays)
+        self.events({"event": "epoch", "epoch": epoch,
+                     "train_psnr": -10 * math.log10(max(train_mse, 1e-20)), "seconds": seconds,
+                     "rays_per_s": n_rays / max(step_seconds, 1e-9), "lr": self.stepper.lr})
+        self.keep_best(epoch)
 
-    if state.rng_state is not None:
-        rng.bit_generator.state = state.rng_state
+    def epoch(self, epoch: int) -> tuple[float, float, float]:
+        """One pass over the training tiles in a fresh random order at epoch ``epoch``'s
+        learning rates; returns ``(sum of squared errors, seconds, seconds in the steps)``."""
+        st = self.state
+        f = st.lr_scale * lr_factor(epoch, self.opts.epochs, self.opts.lr_decay)
+        self.stepper.lr = self._base_lr * f
+        if self._base_sigma is not None:
+            self.stepper.sigma_lr = float(self._base_sigma) * f
+        st.rng_state = self.rng.bit_generator.state
+        perm = self.rng.permutation(self.n_tiles)
+        t_epoch, s_epoch = time.perf_counter(), st.train_seconds
+        self.values_are_best = False
+        sse = 0.0
+        for b0 in range(0, self.n_tiles, self.tiles_per_batch):
+            sse += self.step(perm[b0:b0 + self.tiles_per_batch], epoch)
+        return sse, time.perf_counter() - t_epoch, st.train_seconds - s_epoch
 
-    def validate(epoch: int) -> float | None:
-        if val is None:
+    def step(self, tiles: np.ndarray, epoch: int) -> float:
+        """One optimisation step on the pixels of ``tiles``; returns the batch's sum of squared
+        errors. Raises :class:`Diverged` on non-finite values or a blown-up training error."""
+        st = self.state
+        idx = self.train.tile_pixels(tiles, self.tile)
+        o, d, tgt = self.train.rays(idx)
+        t0 = time.perf_counter()
+        sse, bad = self.stepper.step(o, d, tgt, self.scale)
+        st.train_seconds += time.perf_counter() - t0
+        st.train_rays += idx.shape[0]
+        st.steps += 1
+        self._batches += 1
+        mse = sse / (3.0 * idx.shape[0])
+        if bad or not math.isfinite(mse):
+            raise Diverged(f"non-finite values after step {st.steps} (epoch {epoch})")
+        if self._first_mse is None:
+            self._first_mse = self._ema = mse
+            self._batches = 1
+        self._ema = (1 - _EMA) * self._ema + _EMA * mse
+        blown = self._ema > _DIVERGE_FACTOR * self._first_mse + _DIVERGE_ABS
+        if self._batches >= _MIN_BATCHES and blown:
+            raise Diverged(f"training MSE rose from {self._first_mse:.3g} to {self._ema:.3g} "
+                           f"(epoch {epoch}, step {st.steps})")
+        self._bar.update(1)
+        self._bar.set_postfix(epoch=epoch, mse=f"{self._ema:.2e}")
+        return sse
+
+    def validate(self, epoch: int) -> float | None:
+        """Mean validation PSNR (dB) of the current values, noted in the history (None
+        without validation views)."""
+        if self.val is None:
             return None
         t0 = time.perf_counter()
-        p = render_views_psnr(stepper, val)
-        state.history.append({"epoch": epoch, "val_psnr": p,
-                              "val_seconds": time.perf_counter() - t0})
+        p = render_views_psnr(self.stepper, self.val)
+        self.state.history.append({"epoch": epoch, "val_psnr": p,
+                                   "val_seconds": time.perf_counter() - t0})
         return p
 
-    if val is not None and state.epochs_done == 0 and not state.history:
-        p0 = validate(0)
-        state.best_psnr, state.best_epoch = p0, 0
-        log({"event": "val", "epoch": 0, "val_psnr": p0})
+    def keep_best(self, epoch: int) -> None:
+        """After epoch ``epoch``: without validation its values are the best; with it, validate
+        when due, keep better values, and on a drop back off or stop; then the checkpoint."""
+        st, opts = self.state, self.opts
+        due = opts.val_every <= 0 or epoch % opts.val_every == 0 or epoch == opts.epochs
+        if self.val is None:
+            self._store_best(epoch)
+            if due:
+                self._save_if_due()
+            return
+        if opts.val_every <= 0 or not due:
+            return
+        p = self.validate(epoch)
+        self.events({"event": "val", "epoch": epoch, "val_psnr": p})
+        if p > st.best_psnr:
+            st.best_psnr = p
+            self._store_best(epoch)
+        elif opts.stop_on_decrease:
+            why = (f"validation PSNR fell from {st.best_psnr:.3f} dB "
+                   f"(epoch {st.best_epoch}) to {p:.3f} dB (epoch {epoch})")
+            if not self.back_off(opts.backoff_factor, why):
+                st.stop_reason = why + (f" after {st.backoffs} learning-rate back-offs"
+                                        if opts.backoffs else "")
+        if not st.stop_reason:
+            self._save_if_due()
 
-    n_rays = train.n_rays
-    k = max(1, int(ray_tile))
-    n_tiles = train.n_tiles(k)
-    tiles_per_batch = max(1, batch_rays // (k * k))
-    steps_per_epoch = max(1, math.ceil(n_tiles / tiles_per_batch))
-    bar = progress(total=(epochs - state.epochs_done) * steps_per_epoch, desc="finetune",
-                   disable=None if show_progress is None else not show_progress)
-    first_mse = None
-    ema = None
-    batches_run = 0
-    base_lr = float(stepper.lr)
-    base_sigma = getattr(stepper, "sigma_lr", None)
-
-    def set_lr(epoch: int) -> None:
-        f = state.lr_scale * lr_factor(epoch, epochs, lr_decay)
-        stepper.lr = base_lr * f
-        if base_sigma is not None:
-            stepper.sigma_lr = float(base_sigma) * f
-
-    def back_off(factor: float, why: str) -> bool:
-        """Restore the best values and lower the learning rates; False when none are left."""
-        if state.backoffs >= backoffs:
+    def back_off(self, factor: float, why: str) -> bool:
+        """Restore the best values and lower the learning rates by ``factor``; False when no
+        back-offs are left."""
+        st = self.state
+        if st.backoffs >= self.opts.backoffs:
             return False
-        nonlocal values_are_best
-        state.backoffs += 1
-        state.lr_scale *= factor
-        stepper.set_values(best.load())
-        values_are_best = True
-        log({"event": "backoff", "epoch": state.epochs_done, "reason": why,
-             "lr_scale": state.lr_scale, "backoffs": state.backoffs})
+        st.backoffs += 1
+        st.lr_scale *= factor
+        self.stepper.set_values(self.best.load())
+        self.values_are_best = True
+        self.events({"event": "backoff", "epoch": st.epochs_done, "reason": why,
+                     "lr_scale": st.lr_scale, "backoffs": st.backoffs})
         return True
 
-    def run_epoch(epoch: int, perm: np.ndarray) -> float:
-        """One pass over the tiles in order ``perm``; returns the epoch's sum of squared errors."""
-        nonlocal first_mse, ema, batches_run
-        sse_epoch = 0.0
-        for b0 in range(0, n_tiles, tiles_per_batch):
-            idx = train.tile_pixels(perm[b0:b0 + tiles_per_batch], k)
-            o, d, tgt = train.rays(idx)
-            t0 = time.perf_counter()
-            sse, bad = stepper.step(o, d, tgt, scale)
-            state.train_seconds += time.perf_counter() - t0
-            state.train_rays += idx.shape[0]
-            state.steps += 1
-            batches_run += 1
-            mse = sse / (3.0 * idx.shape[0])
-            sse_epoch += sse
-            if bad or not math.isfinite(mse):
-                raise Diverged(f"non-finite values after step {state.steps} (epoch {epoch})")
-            if first_mse is None:
-                first_mse = ema = mse
-                batches_run = 1
-            ema = (1 - _EMA) * ema + _EMA * mse
-            if batches_run >= _MIN_BATCHES and ema > _DIVERGE_FACTOR * first_mse + _DIVERGE_ABS:
-                raise Diverged(f"training MSE rose from {first_mse:.3g} to {ema:.3g} "
-                               f"(epoch {epoch}, step {state.steps})")
-            bar.update(1)
-            bar.set_postfix(epoch=epoch, mse=f"{ema:.2e}")
-        return sse_epoch
+    def _store_best(self, epoch: int) -> None:
+        self.best.store(self.stepper.values())
+        self.values_are_best = True
+        self.state.best_epoch = epoch
 
-    try:
-        while state.epochs_done < epochs and not state.stop_reason:
-            epoch = state.epochs_done + 1
-            set_lr(epoch)
-            state.rng_state = rng.bit_generator.state
-            perm = rng.permutation(n_tiles)
-            sse_epoch, t_epoch, s_epoch = 0.0, time.perf_counter(), state.train_seconds
-            values_are_best = False
-            try:
-                sse_epoch = run_epoch(epoch, perm)
-            except Diverged as e:
-                state.epochs_done = epoch
-                if not back_off(backoff_factor ** 2, f"diverged: {e}"):
-                    raise
-                first_mse = ema = None
-                continue
-            state.epochs_done = epoch
-            state.rng_state = rng.bit_generator.state
-            train_mse = sse_epoch / (3.0 * n_rays)
-            rec = {"event": "epoch", "epoch": epoch,
-                   "train_psnr": -10 * math.log10(max(train_mse, 1e-20)),
-                   "seconds": time.perf_counter() - t_epoch,
-                   "rays_per_s": n_rays / max(state.train_seconds - s_epoch, 1e-9),
-                   "lr": stepper.lr}
-            log(rec)
-            due = val_every <= 0 or epoch % val_every == 0 or epoch == epochs
-            if val is None:
-                best.store(stepper.values())
-                values_are_best = True
-                state.best_epoch = epoch
-                if due:
-                    save_if_due()
-            elif val_every > 0 and due:
-                p = validate(epoch)
-                log({"event": "val", "epoch": epoch, "val_psnr": p})
-                if p > state.best_psnr:
-                    state.best_psnr, state.best_epoch = p, epoch
-                    best.store(stepper.values())
-                    values_are_best = True
-                elif stop_on_decrease:
-                    why = (f"validation PSNR fell from {state.best_psnr:.3f} dB "
-                           f"(epoch {state.best_epoch}) to {p:.3f} dB (epoch {epoch})")
-                    if not back_off(backoff_factor, why):
-                        state.stop_reason = why + (f" after {state.backoffs} learning-rate "
-                                                   "back-offs" if backoffs else "")
-                if not state.stop_reason:
-                    save_if_due()
-    except Diverged as e:
-        state.stop_reason = f"diverged: {e}"
-    except KeyboardInterrupt:
-        if checkpoint is not None:
-            save_checkpoint(checkpoint, stepper, best, state, fingerprint)
-            log({"event": "interrupted", "checkpoint": str(checkpoint)})
-        raise
-    finally:
-        bar.close()
-    if not state.stop_reason:
-        state.stop_reason = f"finished {state.epochs_done} epochs"
-    if not values_are_best:
-        stepper.set_values(best.load())
-    return stepper.values(), state
-
+    def _save_if_due(self) -> None:
+        """Write the checkpoint when ``checkpoint_every_s`` passed since the last one."""
+        ckpt = self.opts.checkpoint
+        if ckpt is None or time.perf_counter() - self._last_ckpt < self.opts.checkpoint_every_s:
+            return
+        save_checkpoint(ckpt, self.stepper, self.best, self.state, self.fingerprint)
+        self._last_ckpt = time.perf_counter()

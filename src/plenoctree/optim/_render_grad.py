@@ -5,18 +5,18 @@ Nothing here compiles at import; :mod:`._render_grad_numba` is imported on first
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from .._util import to_numpy, vec3
+from .._util import to_numpy
 from ..errors import ConfigError
-from ..render.options import KIND_SG, FormatInfo, RenderOptions, parse_data_format
+from ..render._spec import TreeSpec, tree_spec
+from ..render.options import RenderOptions
 
 _CHUNK_TILES = 2     # dynamic-scheduling chunk of grad_kernel, in tiles of TILE rays
 
-__all__ = ["KernelArgs", "SparseGrad", "kernel_args", "default_chunks", "forward_numba",
+__all__ = ["SparseGrad", "kernel_args", "default_chunks", "forward_numba",
            "backward_numba", "fused_mse_numba"]
 
 
@@ -33,59 +33,22 @@ def default_chunks() -> int:
     return max(1, int(numba.get_num_threads()))
 
 
-@dataclass
-class KernelArgs:
-    """Tree geometry and renderer options, packed as the kernels want them."""
-
-    child: np.ndarray          # int32 [n_cells] (empty-skip rows: render.empty_skip)
-    offset: np.ndarray         # float64 [3]
-    invr: np.ndarray           # float64 [3]
-    info: FormatInfo
-    sg: np.ndarray             # float64 [B, 4] (SG) or [1, 4]
-    b_lo: int
-    b_hi: int
-    bg: np.ndarray             # float64 [3]
-    stop: float
-    eps: float
-    cap0: int                  # initial per-ray segment record capacity
-    skip: np.ndarray           # uint8 [rows, 8] empty-space skips (render.empty_skip)
-    shift: int                 # skip units -> integer coordinates
-
-    @property
-    def n_cells(self) -> int:
-        return int(self.child.shape[0])
-
-
 def kernel_args(tree: Any, options: RenderOptions | None = None,
-                skip_from: np.ndarray | None = None) -> KernelArgs:
-    """Pack ``tree`` (an :class:`~plenoctree.octree.Octree`, geometry only) and ``options``.
+                skip_from: np.ndarray | None = None) -> TreeSpec:
+    """Pack ``tree`` (an :class:`~plenoctree.octree.Octree`, geometry only) and ``options`` into
+    the renderer's :class:`~plenoctree.render._spec.TreeSpec` (values passed to each launch).
 
     ``skip_from``: values ``[n_cells, D]`` whose empty leaves (σ ≤ 0) the kernels may skip
     (:mod:`plenoctree.render.empty_skip`). Only for values that never turn an empty leaf
     non-empty — fine-tuning from them: a σ ≤ 0 leaf gets no gradient and stays empty — not
     for arbitrary values (gradcheck, autograd)."""
-    from ..render.empty_skip import no_skip, skip_tables
-    from ._render_grad_numba import initial_capacity
+    from ..render.empty_skip import skip_tables
 
-    opts = (options if options is not None else RenderOptions()).validated()
-    child = to_numpy(tree.child)
-    data_dim = int(tree.data.shape[-1])
-    extra = getattr(tree, "extra_data", None)
-    extra = None if extra is None else to_numpy(extra)
-    info = parse_data_format(tree.data_format, data_dim, extra)
-    if info.kind == KIND_SG:
-        sg = np.ascontiguousarray(extra, dtype=np.float64).reshape(info.basis_dim, 4)
-    else:
-        sg = np.zeros((1, 4), dtype=np.float64)
-    b_lo, b_hi = opts.basis_range(info.basis_dim)
-    off, inv = vec3(tree.offset), vec3(tree.invradius)
-    depth = int(getattr(tree, "depth_limit", 10))
-    flat = np.ascontiguousarray(child, dtype=np.int32).reshape(-1)
-    t = (no_skip(flat) if skip_from is None
-         else skip_tables(flat, np.asarray(skip_from).reshape(flat.shape[0], -1)))
-    return KernelArgs(t.child, off, inv, info, sg, b_lo, b_hi,
-                      np.asarray(opts.background, np.float64), float(opts.stop_thresh),
-                      float(opts.step_eps), initial_capacity(depth), t.skip, int(t.shift))
+    skip = None
+    if skip_from is not None:
+        flat = np.ascontiguousarray(to_numpy(tree.child), dtype=np.int32).reshape(-1)
+        skip = skip_tables(flat, np.asarray(skip_from).reshape(flat.shape[0], -1))
+    return tree_spec(tree, options, skip=skip)
 
 
 class SparseGrad:
@@ -158,17 +121,18 @@ def _rays(origins: Any, dirs: Any) -> tuple[np.ndarray, np.ndarray]:
     return o, d
 
 
-def _call(args: KernelArgs, data2: np.ndarray, o: np.ndarray, d: np.ndarray, aux: np.ndarray,
-          mode: int, scale: float, rgb: np.ndarray, sg_buf: SparseGrad | None) -> None:
+def _call(spec: TreeSpec, data2: np.ndarray, rays: tuple, rgb: np.ndarray,
+          sg_buf: SparseGrad | None) -> None:
+    """Run :func:`._render_grad_numba.grad_kernel` with values ``data2`` on ``rays = (origins,
+    dirs, aux, mode, scale)`` (see the kernel), into ``rgb`` and the slabs of ``sg_buf`` (None:
+    forward only), growing the slabs and running the batch again when they overflow."""
     k = _kernels()
     if sg_buf is None:  # forward only: zero-row slabs, one per thread
         nch = default_chunks()
-        grad3 = np.zeros((nch, 0, data2.shape[1]), dtype=data2.dtype)
-        slot = np.zeros((nch, 0), dtype=np.int32)
-        touched = np.zeros((nch, 0), dtype=np.int64)
-        n_t = np.zeros(nch, dtype=np.int64)
-        need = np.zeros(nch, dtype=np.int64)
-        sse = np.zeros(nch, dtype=np.float64)
+        slabs = (np.zeros((nch, 0, data2.shape[1]), dtype=data2.dtype),
+                 np.zeros((nch, 0), dtype=np.int32), np.zeros((nch, 0), dtype=np.int64),
+                 np.zeros(nch, dtype=np.int64), np.zeros(nch, dtype=np.int64),
+                 np.zeros(nch, dtype=np.float64))
     elif sg_buf.n_touched.any():        # a regrowth drops the slabs: they must hold nothing
         raise ConfigError("gradient slabs still hold a batch: merge or step before the next")
     import numba
@@ -179,16 +143,13 @@ def _call(args: KernelArgs, data2: np.ndarray, o: np.ndarray, d: np.ndarray, aux
     try:
         while True:
             if sg_buf is not None:
-                grad3, slot, touched, n_t, need, sse = (sg_buf.grad3, sg_buf.slot,
-                                                        sg_buf.touched, sg_buf.n_touched,
-                                                        sg_buf.need, sg_buf.sse)
+                slabs = (sg_buf.grad3, sg_buf.slot, sg_buf.touched, sg_buf.n_touched,
+                         sg_buf.need, sg_buf.sse)
+            grad3, need, sse = slabs[0], slabs[4], slabs[5]
             sse[:] = 0.0
             if threads > grad3.shape[0]:    # one slab per running thread (see grad_kernel)
                 numba.set_num_threads(grad3.shape[0])
-            k.grad_kernel(args.child, args.skip, args.shift, data2, args.offset, args.invr, o, d,
-                          aux, mode, float(scale), args.info.kind, args.info.basis_dim, args.sg,
-                          args.b_lo, args.b_hi, args.bg, args.stop, args.eps, args.cap0, rgb,
-                          grad3, slot, touched, n_t, need, sse)
+            spec.launch(k.grad_kernel, data2, rays, (spec.cap0, rgb) + slabs)
             if sg_buf is None or not need.any():
                 break
             sg_buf.grow()                   # rare: larger slabs, the batch again
@@ -197,16 +158,16 @@ def _call(args: KernelArgs, data2: np.ndarray, o: np.ndarray, d: np.ndarray, aux
         numba.set_parallel_chunksize(old_chunk)
 
 
-def forward_numba(args: KernelArgs, data2: np.ndarray, origins: Any, dirs: Any) -> np.ndarray:
+def forward_numba(args: TreeSpec, data2: np.ndarray, origins: Any, dirs: Any) -> np.ndarray:
     """Rendered rgb ``[N, 3]`` (dtype of ``data2 [n_cells, D]``), same values as the renderer."""
     o, d = _rays(origins, dirs)
     rgb = np.empty((o.shape[0], 3), dtype=np.float64)
     if o.shape[0]:
-        _call(args, data2, o, d, np.zeros((1, 3), np.float64), 2, 0.0, rgb, None)
+        _call(args, data2, (o, d, np.zeros((1, 3), np.float64), 2, 0.0), rgb, None)
     return rgb.astype(data2.dtype, copy=False)
 
 
-def backward_numba(args: KernelArgs, data2: np.ndarray, origins: Any, dirs: Any,
+def backward_numba(args: TreeSpec, data2: np.ndarray, origins: Any, dirs: Any,
                    grad_rgb: np.ndarray, buffers: SparseGrad | None = None) -> SparseGrad:
     """``∂L/∂data`` given ``∂L/∂rgb [N, 3]``; returns the merged :class:`SparseGrad`."""
     o, d = _rays(origins, dirs)
@@ -215,23 +176,22 @@ def backward_numba(args: KernelArgs, data2: np.ndarray, origins: Any, dirs: Any,
                                                          data2.dtype)
     if o.shape[0]:
         rgb = np.empty((o.shape[0], 3), dtype=np.float64)
-        _call(args, data2, o, d, g, 0, 0.0, rgb, buf)
+        _call(args, data2, (o, d, g, 0, 0.0), rgb, buf)
     buf.merge()
     return buf
 
 
-def fused_mse_numba(args: KernelArgs, data2: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
+def fused_mse_numba(args: TreeSpec, data2: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
                     targets: np.ndarray, scale: float, buffers: SparseGrad,
-                    rgb: np.ndarray | None = None, merge: bool = True) -> float:
+                    merge: bool = True) -> float:
     """One fused forward + backward of ``L = scale · Σ (C - target)²`` into ``buffers``
     (merged on return unless ``merge=False``: :func:`._render_grad_numba.step_touched` reads the
     slabs directly); returns the un-scaled sum of squared errors of the batch."""
     o, d = _rays(origins, dirs)
     t = np.ascontiguousarray(targets, dtype=np.float64).reshape(-1, 3)
-    if rgb is None:
-        rgb = np.empty((o.shape[0], 3), dtype=np.float64)
+    rgb = np.empty((o.shape[0], 3), dtype=np.float64)
     if o.shape[0]:
-        _call(args, data2, o, d, t, 1, scale, rgb, buffers)
+        _call(args, data2, (o, d, t, 1, float(scale)), rgb, buffers)
     if merge:
         buffers.merge()
     return float(buffers.sse.sum()) if o.shape[0] else 0.0

@@ -63,17 +63,11 @@ from ..render._render_numba import _camera_ray
 from ..render.options import KIND_RGBA
 
 __all__ = ["TILE", "grad_kernel", "merge_chunks", "step_touched", "OPT_SGD", "OPT_ADAM",
-           "OPT_RMSPROP", "pixel_rays", "initial_capacity"]
+           "OPT_RMSPROP", "pixel_rays"]
 
 TILE = 64          # rays per interleaved tile of a chunk
 _REC = 5           # record columns: delta, att, c_r, c_g, c_b
 _QMASK = QUEUE - 1
-
-
-def initial_capacity(depth_limit: int) -> int:
-    """Segments a ray's record holds before it grows: a ray crosses at most about
-    ``3 · 2^(depth+1)`` finest cells of the box."""
-    return int(3 * (2 << max(0, min(int(depth_limit), 20))) + 64)
 
 
 @njit(cache=True, fastmath=MARCH_MATH, inline="always")

@@ -55,7 +55,8 @@ class NumbaStepper:
 
     Args:
         data2: float32 ``[n_cells, D]`` cell values, updated in place.
-        args: :class:`~plenoctree.optim._render_grad.KernelArgs` of the tree and render options.
+        args: :class:`~plenoctree.render._spec.TreeSpec` of the tree and render options
+            (:func:`~plenoctree.optim._render_grad.kernel_args`).
         optimizer: ``"sgd" | "adam" | "rmsprop"``; ``lr`` its learning rate.
     """
 
@@ -229,10 +230,8 @@ class TorchStepper:
         from ..render._torch_impl import render_rays_torch
 
         with self.torch.no_grad():
-            out = render_rays_torch(self.tree.child, self.data.detach(), self.tree.offset,
-                                    self.tree.invradius, self.tree.data_format,
-                                    self.tree.extra_data, self._t(origins), self._t(dirs),
-                                    self.options)
+            out = render_rays_torch(self.tree, self._t(origins), self._t(dirs), self.options,
+                                    data=self.data.detach())
         return out.rgb.float().cpu().numpy()
 
     def values(self) -> np.ndarray:
@@ -275,11 +274,9 @@ class TritonStepper(TorchStepper):
     def render(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         from ..render._triton_impl import render_rays_triton
 
-        t = self.tree
         with self.torch.no_grad():
-            out = render_rays_triton(t.child, self.data.detach(), t.offset, t.invradius,
-                                     t.data_format, t.extra_data, self._t(origins),
-                                     self._t(dirs), self.options)
+            out = render_rays_triton(self.tree, self._t(origins), self._t(dirs), self.options,
+                                     data=self.data.detach())
         return out.rgb.float().cpu().numpy()
 
 

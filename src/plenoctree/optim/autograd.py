@@ -29,7 +29,6 @@ import torch
 from .. import backend as _backend
 from ..errors import ConfigError
 from ..render import RenderOptions
-from ..render.options import parse_data_format
 
 __all__ = ["OctreeRenderFunction", "render_rays_differentiable", "differentiable_backends"]
 
@@ -43,7 +42,7 @@ class OctreeRenderFunction(torch.autograd.Function):
     """``rgb [N, 3] = render(data)`` with numba forward and analytic numba backward.
 
     ``forward(ctx, data, args, origins, dirs)``: ``data`` float32/float64 CPU tensor
-    ``[n_nodes, 2, 2, 2, D]``; ``args`` a :class:`~plenoctree.optim._render_grad.KernelArgs` (tree
+    ``[n_nodes, 2, 2, 2, D]``; ``args`` a :class:`~plenoctree.render._spec.TreeSpec` (tree
     geometry and options); ``origins, dirs`` float32 numpy ``[N, 3]``. The gradient has the
     shape of ``data``; cells no ray reaches with σ > 0 (and every internal cell) get 0.
     """
@@ -145,7 +144,4 @@ def _grad_torch(data: torch.Tensor, tree: Any, o: torch.Tensor, d: torch.Tensor,
     """The renderer's torch twin with plain autograd (any device)."""
     from ..render._torch_impl import render_rays_torch
 
-    extra = getattr(tree, "extra_data", None)
-    parse_data_format(tree.data_format, data.shape[-1], extra)
-    return render_rays_torch(tree.child, data, tree.offset, tree.invradius, tree.data_format,
-                             extra, o, d, opts).rgb
+    return render_rays_torch(tree, o, d, opts, data=data).rgb

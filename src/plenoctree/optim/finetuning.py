@@ -31,14 +31,13 @@ decay over 20 epochs loses (epoch 16: 33.68 vs 33.91 dB); see docs/tuning.md, "F
 from __future__ import annotations
 
 import dataclasses
-import json
+import logging
 import math
 import os
-import sys
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -110,7 +109,7 @@ class FinetuneConfig:
     log: str | os.PathLike | None = _f(None, "JSON-lines log (default: <out stem>.log.jsonl); "
                                              "its curve goes to <out stem>.curve.png")
     show_progress: bool | None = _f(None, "progress bar (default: when stderr is a terminal)")
-    verbose: bool = _f(True, "print one line per epoch / validation to stderr")
+    verbose: bool = _f(True, "log one line per epoch / validation at INFO (off: at DEBUG)")
 
     def validated(self) -> FinetuneConfig:
         """Check value ranges; raises :class:`ConfigError`."""
@@ -216,193 +215,237 @@ def _load_split(root: Any, split: str, cfg: FinetuneConfig, views: int = 0) -> A
     return load_dataset(root, split, **kw)
 
 
-def _has_split(root: Path, split: str) -> bool:
-    """Whether ``root`` has split ``split``, by the dataset loader's own rules (Blender, LLFF,
-    NSVF, nerfstudio, COLMAP): :func:`plenoctree.datasets.dataset.has_split`."""
-    from ..datasets.dataset import has_split
-
-    return has_split(root, split)
-
-
-def finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None) -> FinetuneResult:
+def finetune(config: FinetuneConfig) -> FinetuneResult:
     """Fine-tune ``config.tree`` on ``config.data`` and write ``config.out`` (see :func:`_finetune`).
 
     Before any work: ``out`` must be a writable file name that is not a directory nor an
     unrelated file (:func:`plenoctree._util.check_output_file`); the run holds a lock on
     ``out`` (``.<name>.lock`` beside it) so two fine-tunings into one file cannot race.
+    Progress lines go to the ``plenoctree.optim`` loggers (INFO, DEBUG unless ``verbose``).
     """
     from .._util import check_output_file, run_lock
 
     cfg = config.validated()
     out = check_output_file(cfg.out)
     with run_lock(out, "finetune", folder=False):
-        return _finetune(cfg, log_fn)
+        return _finetune(cfg)
 
 
-def _finetune(config: FinetuneConfig, log_fn: Callable[[str], None] | None = None) -> FinetuneResult:
-    """Fine-tune ``config.tree`` on ``config.data`` and write ``config.out``.
+@dataclass
+class _Files:
+    """Where a run writes: ``out``, the checkpoint, the JSON-lines log and the curve."""
 
-    Steps: load and check the tree (leaves, finite values, some σ > 0) and the dataset (its box
-    must overlap the tree's); hold out validation views; measure test PSNR; run the loop of
-    :mod:`._loop` (validation every ``val_every`` epochs, stop at the first drop, keep the
-    best); save the best values in the requested precision; measure test PSNR again.
+    out: Path
+    checkpoint: Path
+    log: Path
+    curve: Path
 
-    A diverging learning rate (non-finite values, or the training error blowing up) stops the
-    loop: the last good values (best validated, or the initial ones) are saved to ``out`` and a
-    :class:`ConfigError` explains what happened. The JSON-lines log and the checkpoint are
-    written next to ``out`` unless configured otherwise; the checkpoint is removed on success.
-    """
-    from ..octree import load_tree, save_tree
-    from ..render import RenderOptions
-    from ._loop import ViewSet, remove_best_files, render_views_psnr, run_loop
-    from ._steppers import DEFAULT_LR, gradient_scale, make_stepper
-    from ..datasets import take_views
+    @classmethod
+    def of(cls, cfg: FinetuneConfig) -> _Files:
+        out = Path(cfg.out)
+        stem = out.with_suffix("") if out.suffix == ".npz" else out
+        at = lambda suffix: stem.with_name(stem.name + suffix)  # noqa: E731
+        return cls(out, Path(cfg.checkpoint) if cfg.checkpoint else at(".ckpt.npz"),
+                   Path(cfg.log) if cfg.log else at(".log.jsonl"), at(".curve.png"))
 
-    cfg = config.validated()
-    t_start = time.perf_counter()
-    say = log_fn if log_fn is not None else (
-        (lambda s: print(s, file=sys.stderr, flush=True)) if cfg.verbose else (lambda s: None))
-    tree_path, out = Path(cfg.tree), Path(cfg.out)
-    stem = out.with_suffix("") if out.suffix == ".npz" else out
-    ckpt = Path(cfg.checkpoint) if cfg.checkpoint else stem.with_name(stem.name + ".ckpt.npz")
-    log_path = Path(cfg.log) if cfg.log else stem.with_name(stem.name + ".log.jsonl")
 
-    stored = load_tree(tree_path, keep_dtype=True)
+def _load_tree(cfg: FinetuneConfig) -> tuple[Any, str]:
+    """The checked tree in float32 and the precision to save it in."""
+    from ..octree import load_tree
+
+    stored = load_tree(Path(cfg.tree), keep_dtype=True)
     precision = cfg.precision if cfg.precision != "auto" else (
         "fp16" if stored.data.dtype == np.float16 else "fp32")
     tree = stored.astype(np.float32) if stored.data.dtype != np.float32 else stored
-    _check_tree(tree, tree_path)
+    _check_tree(tree, Path(cfg.tree))
+    return tree, precision
+
+
+def _view_sets(cfg: FinetuneConfig, tree: Any
+               ) -> tuple[Any, Any, tuple[float, float, float]]:
+    """``(train, val or None, background)``: the training views, and the validation views
+    (the val split, else ``val_fraction`` of the training views held out; none when
+    ``val_every`` is 0)."""
+    from ..datasets import take_views
+    from ..datasets.dataset import has_split
+    from ._loop import ViewSet
 
     train = _load_split(cfg.data, "train", cfg)
-    _check_overlap(tree, train, tree_path)
-    bg = tuple(float(v) for v in (cfg.background if cfg.background is not None else train.background))
-    opts = RenderOptions(stop_thresh=float(cfg.stop_thresh), background=bg)
+    _check_overlap(tree, train, Path(cfg.tree))
+    bg = tuple(float(v) for v in (cfg.background if cfg.background is not None
+                                  else train.background))
+    if cfg.val_every <= 0:
+        return ViewSet.from_dataset(train), None, bg
+    if has_split(Path(cfg.data), "val"):
+        val_data = _load_split(cfg.data, "val", cfg, cfg.val_views)
+        val_set = ViewSet.from_dataset(val_data)
+        del val_data                   # the view set holds its own copy of the images
+        return ViewSet.from_dataset(train), val_set, bg
+    if len(train) < 2:
+        raise DatasetError(f"{cfg.data}: no val split and a single training image: cannot "
+                           "hold out a validation view (use --val-every 0)")
     rng = np.random.default_rng(cfg.seed)
-    val_set = None
-    if cfg.val_every > 0:
-        if _has_split(Path(cfg.data), "val"):
-            val_data = _load_split(cfg.data, "val", cfg, cfg.val_views)
-            val_set = ViewSet.from_dataset(val_data)
-            del val_data                   # the view set holds its own copy of the images
-            train_set = ViewSet.from_dataset(train)
-        elif len(train) >= 2:
-            n_hold = min(len(train) - 1, max(1, round(cfg.val_fraction * len(train))))
-            perm = rng.permutation(len(train))
-            hold, keep = np.sort(perm[:n_hold]), np.sort(perm[n_hold:])
-            val_set = ViewSet.from_dataset(train, take_views(hold, cfg.val_views or None,
-                                                             spread=True))
-            train_set = ViewSet.from_dataset(train, keep)
-        else:
-            raise DatasetError(f"{cfg.data}: no val split and a single training image: cannot "
-                               "hold out a validation view (use --val-every 0)")
-    else:
-        train_set = ViewSet.from_dataset(train)
-    del train
+    n_hold = min(len(train) - 1, max(1, round(cfg.val_fraction * len(train))))
+    perm = rng.permutation(len(train))
+    hold, keep = np.sort(perm[:n_hold]), np.sort(perm[n_hold:])
+    val_set = ViewSet.from_dataset(train, take_views(hold, cfg.val_views or None, spread=True))
+    return ViewSet.from_dataset(train, keep), val_set, bg
+
+
+def _make_stepper(cfg: FinetuneConfig, tree: Any, bg: tuple[float, float, float]
+                  ) -> tuple[Any, dict]:
+    """The stepper training ``tree``'s values in place, and the learning rates
+    ``{"lr", "sigma_lr", "h"}`` (``h`` the finest leaf side)."""
+    from ..render import RenderOptions
+    from ._steppers import DEFAULT_LR, make_stepper
 
     # The values trained in place: a view of the loaded tree's float32 data when it can be one
     # (no second copy of a gigabyte-sized array; ``tree`` serves only its geometry from here on).
     data2 = np.ascontiguousarray(tree.data, dtype=np.float32).reshape(-1, tree.data_dim)
     if not data2.flags.writeable:
         data2 = data2.copy()
-    del stored
     lr = DEFAULT_LR[cfg.optimizer] if cfg.lr is None else float(cfg.lr)
     h = float(tree.leaf_sizes().min())
     sigma_lr = None if cfg.optimizer == "sgd" else (
         lr if cfg.lr_sigma is None else float(cfg.lr_sigma)) / h
+    opts = RenderOptions(stop_thresh=float(cfg.stop_thresh), background=bg)
     stepper = make_stepper(cfg.backend, data2, tree, opts, cfg.optimizer, lr, sigma_lr,
                            device=cfg.device)
-    run_device = str(getattr(stepper, "device", "cpu"))
-    say(f"finetune: {tree_path} ({tree.n_leaves} leaves, {tree.data_format}) on {cfg.data} "
-        f"[{len(train_set)} train / {len(val_set) if val_set else 0} val views, "
-        f"{train_set.width}x{train_set.height}], {cfg.optimizer} lr={lr:g}"
-        f"{'' if sigma_lr is None else f' (σ {sigma_lr:g} = {sigma_lr * h:g}/h)'}"
-        f"{'' if cfg.lr_decay == 1 else f' decaying x{cfg.lr_decay:g}'}, "
-        f"batch {cfg.batch_rays} rays in {cfg.ray_tile}x{cfg.ray_tile} tiles, "
-        f"backend {stepper.backend} on {run_device}")
+    return stepper, {"lr": lr, "sigma_lr": sigma_lr, "h": h}
 
-    test_set = None
-    if cfg.test_views >= 0 and _has_split(Path(cfg.data), "test"):
-        test = _load_split(cfg.data, "test", cfg, cfg.test_views)
-        test_set = ViewSet.from_dataset(test)
-        del test
-    test_before = render_views_psnr(stepper, test_set) if test_set is not None else None
-    if test_before is not None:
-        say(f"test PSNR before: {test_before:.3f} dB ({len(test_set)} views)")
 
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    if not cfg.resume and log_path.exists():
-        log_path.unlink()
+def _describe(cfg: FinetuneConfig, tree: Any, views: tuple, stepper: Any, rates: dict) -> str:
+    """The run's first line: tree, data, views, optimiser, batches, backend and device."""
+    train, val = views
+    lr, sigma_lr, h = rates["lr"], rates["sigma_lr"], rates["h"]
+    return (f"finetune: {Path(cfg.tree)} ({tree.n_leaves} leaves, {tree.data_format}) on {cfg.data} "
+            f"[{len(train)} train / {len(val) if val else 0} val views, "
+            f"{train.width}x{train.height}], {cfg.optimizer} lr={lr:g}"
+            f"{'' if sigma_lr is None else f' (σ {sigma_lr:g} = {sigma_lr * h:g}/h)'}"
+            f"{'' if cfg.lr_decay == 1 else f' decaying x{cfg.lr_decay:g}'}, "
+            f"batch {cfg.batch_rays} rays in {cfg.ray_tile}x{cfg.ray_tile} tiles, "
+            f"backend {stepper.backend} on {getattr(stepper, 'device', 'cpu')}")
 
-    def log(rec: dict) -> None:
-        rec = {"time": round(time.perf_counter() - t_start, 3), **rec}
-        with open(log_path, "a") as f:
-            f.write(json.dumps(rec) + "\n")
-        if rec["event"] == "val":
-            say(f"  epoch {rec['epoch']:3d}: val PSNR {rec['val_psnr']:.3f} dB")
-        elif rec["event"] == "backoff":
-            say(f"  back-off {rec['backoffs']}: {rec['reason']}; best values restored, "
-                f"learning rate x{rec['lr_scale']:g}")
-        elif rec["event"] == "epoch":
-            say(f"  epoch {rec['epoch']:3d}: train PSNR {rec['train_psnr']:.3f} dB, "
-                f"{rec['seconds']:.1f} s, {rec['rays_per_s'] / 1e6:.2f} M rays/s in the steps")
 
-    fingerprint = {"tree": str(tree_path.resolve()), "n_cells": int(data2.shape[0]),
-                   "data_dim": int(data2.shape[1]), "optimizer": cfg.optimizer, "lr": lr,
-                   "sigma_lr": sigma_lr, "lr_decay": float(cfg.lr_decay),
-                   "backoffs": int(cfg.backoffs),
-                   "batch_rays": int(cfg.batch_rays), "ray_tile": int(cfg.ray_tile),
-                   "downscale": int(cfg.downscale),
-                   "seed": int(cfg.seed), "backend": stepper.backend}
-    log({"event": "start", "config": {k: (str(v) if isinstance(v, os.PathLike) else v)
-                                      for k, v in asdict(cfg).items()}})
-    if not cfg.resume:
-        remove_best_files(ckpt)           # those of an earlier run: its checkpoint is replaced
-    best, state = run_loop(stepper, train_set, val_set, epochs=int(cfg.epochs),
-                           batch_rays=int(cfg.batch_rays), ray_tile=int(cfg.ray_tile),
-                           val_every=int(cfg.val_every),
-                           stop_on_decrease=not cfg.continue_on_decrease, seed=int(cfg.seed),
-                           checkpoint=ckpt, resume=bool(cfg.resume), fingerprint=fingerprint,
-                           log=log, show_progress=cfg.show_progress,
-                           backoffs=int(cfg.backoffs), lr_decay=float(cfg.lr_decay),
-                           checkpoint_every_s=60.0 * float(cfg.checkpoint_minutes))
+def _test_views(cfg: FinetuneConfig) -> Any:
+    """The test split's view set (``test_views`` evenly spaced ones), None when skipped or
+    missing."""
+    from ..datasets.dataset import has_split
+    from ._loop import ViewSet
+
+    if cfg.test_views < 0 or not has_split(Path(cfg.data), "test"):
+        return None
+    return ViewSet.from_dataset(_load_split(cfg.data, "test", cfg, cfg.test_views))
+
+
+def _loop_options(cfg: FinetuneConfig, checkpoint: Path) -> Any:
+    from ._loop import LoopOptions
+
+    return LoopOptions(epochs=int(cfg.epochs), batch_rays=int(cfg.batch_rays),
+                       ray_tile=int(cfg.ray_tile), val_every=int(cfg.val_every),
+                       stop_on_decrease=not cfg.continue_on_decrease, seed=int(cfg.seed),
+                       backoffs=int(cfg.backoffs), lr_decay=float(cfg.lr_decay),
+                       checkpoint=checkpoint, resume=bool(cfg.resume),
+                       checkpoint_every_s=60.0 * float(cfg.checkpoint_minutes),
+                       show_progress=cfg.show_progress)
+
+
+def _fingerprint(cfg: FinetuneConfig, tree: Any, rates: dict, backend: str) -> dict:
+    """What a checkpoint must match to be resumed by this run."""
+    return {"tree": str(Path(cfg.tree).resolve()),
+            "n_cells": int(np.prod(tree.data.shape[:-1])), "data_dim": int(tree.data_dim), "optimizer": cfg.optimizer, "lr": rates["lr"],
+            "sigma_lr": rates["sigma_lr"], "lr_decay": float(cfg.lr_decay),
+            "backoffs": int(cfg.backoffs), "batch_rays": int(cfg.batch_rays),
+            "ray_tile": int(cfg.ray_tile), "downscale": int(cfg.downscale),
+            "seed": int(cfg.seed), "backend": backend}
+
+
+def _report_gradient_scale(cfg: FinetuneConfig, stepper: Any, events: Any) -> dict | None:
+    """Adam / RMSprop: log how the steps related to the optimiser's eps."""
+    from ._steppers import gradient_scale
+
     scale = gradient_scale(stepper)
     if scale is not None and scale["values"]:
-        log({"event": "gradient_scale", **scale})
-        say(f"  {cfg.optimizer}: {100 * scale['share_below_eps']:.3f} % of the touched values had "
-            f"an RMS gradient below its eps {scale['eps']:g} (median {scale['rms_p50']:.2g}): "
-            f"there it stepped as SGD{' with momentum' if cfg.optimizer == 'adam' else ''} at "
-            "lr/eps")
+        events({"event": "gradient_scale", **scale})
+        events.note(f"  {cfg.optimizer}: {100 * scale['share_below_eps']:.3f} % of the touched "
+                   f"values had an RMS gradient below its eps {scale['eps']:g} (median "
+                   f"{scale['rms_p50']:.2g}): there it stepped as SGD"
+                   f"{' with momentum' if cfg.optimizer == 'adam' else ''} at lr/eps")
+    return scale
+
+
+def _finetune(cfg: FinetuneConfig) -> FinetuneResult:
+    """Fine-tune ``cfg.tree`` on ``cfg.data`` and write ``cfg.out``.
+
+    Steps: load and check the tree (leaves, finite values, some σ > 0) and the dataset (its box
+    must overlap the tree's); hold out validation views; measure test PSNR; run the
+    :class:`~._loop.FineTuneLoop` (validation every ``val_every`` epochs, stop at the first
+    drop, keep the best); save the best values in the requested precision; measure test PSNR
+    again.
+
+    A diverging learning rate (non-finite values, or the training error blowing up) stops the
+    loop: the last good values (best validated, or the initial ones) are saved to ``out`` and a
+    :class:`ConfigError` explains what happened. The JSON-lines log and the checkpoint are
+    written next to ``out`` unless configured otherwise; the checkpoint is removed on success.
+    """
+    from ..octree import save_tree
+    from ._events import EventLog
+    from ._loop import FineTuneLoop, remove_best_files, render_views_psnr
+
+    t_start = time.perf_counter()
+    files = _Files.of(cfg)
+    events = EventLog(files.log, t_start, logging.INFO if cfg.verbose else logging.DEBUG)
+    tree, precision = _load_tree(cfg)
+    train_set, val_set, bg = _view_sets(cfg, tree)
+    stepper, rates = _make_stepper(cfg, tree, bg)
+    events.note(_describe(cfg, tree, (train_set, val_set), stepper, rates))
+    test_set = _test_views(cfg)
+    test_before = render_views_psnr(stepper, test_set) if test_set is not None else None
+    if test_before is not None:
+        events.note(f"test PSNR before: {test_before:.3f} dB ({len(test_set)} views)")
+
+    files.log.parent.mkdir(parents=True, exist_ok=True)
+    if not cfg.resume and files.log.exists():
+        files.log.unlink()
+    events({"event": "start", "config": {k: (str(v) if isinstance(v, os.PathLike) else v)
+                                         for k, v in asdict(cfg).items()}})
+    if not cfg.resume:
+        remove_best_files(files.checkpoint)   # an earlier run's: its checkpoint is replaced
+    loop = FineTuneLoop(stepper, train_set, val_set, _loop_options(cfg, files.checkpoint),
+                        _fingerprint(cfg, tree, rates, stepper.backend), events)
+    best, state = loop.run()
+    scale = _report_gradient_scale(cfg, stepper, events)
     stepper.release()        # the moments and gradient slabs are not needed to save and score
 
-    out_tree = dataclasses.replace(tree, data=best.reshape(tree.data.shape))
     try:
-        save_tree(out_tree, out, precision=precision)
+        save_tree(dataclasses.replace(tree, data=best.reshape(tree.data.shape)), files.out,
+                  precision=precision)
     except ValueError as e:  # fp16 overflow
-        raise ConfigError(f"{out}: cannot save in {precision}: {e}") from None
-    diverged = state.stop_reason.startswith("diverged")
+        raise ConfigError(f"{files.out}: cannot save in {precision}: {e}") from None
     test_after = None
     if test_set is not None:
         test_after = render_views_psnr(stepper, test_set)
-        say(f"test PSNR after:  {test_after:.3f} dB (best epoch {state.best_epoch}; "
-            f"{state.stop_reason})")
+        events.note(f"test PSNR after:  {test_after:.3f} dB (best epoch {state.best_epoch}; "
+                   f"{state.stop_reason})")
     result = FinetuneResult(
-        out=out, test_psnr_before=test_before, test_psnr_after=test_after,
+        out=files.out, test_psnr_before=test_before, test_psnr_after=test_after,
         val_psnr_before=state.history[0]["val_psnr"] if state.history else None,
         val_psnr_best=state.best_psnr if math.isfinite(state.best_psnr) else None,
         best_epoch=state.best_epoch, epochs_run=state.epochs_done, steps=state.steps,
-        stop_reason=state.stop_reason, backoffs=state.backoffs, wall_seconds=time.perf_counter() - t_start,
+        stop_reason=state.stop_reason, backoffs=state.backoffs,
+        wall_seconds=time.perf_counter() - t_start,
         train_rays_per_second=state.train_rays / max(state.train_seconds, 1e-9),
-        backend=stepper.backend, history=state.history, device=run_device,
-        gradient_scale=scale)
-    log({"event": "end", **result.to_json()})
+        backend=stepper.backend, history=state.history,
+        device=str(getattr(stepper, "device", "cpu")), gradient_scale=scale)
+    events({"event": "end", **result.to_json()})
     from ..plots import plot_finetune_curve      # train/val PSNR per epoch (needs matplotlib)
 
-    plot_finetune_curve(log_path, stem.with_name(stem.name + ".curve.png"))
-    if diverged:
-        raise ConfigError(f"learning rate {lr:g} ({cfg.optimizer}) diverged: "
+    plot_finetune_curve(files.log, files.curve)
+    if state.stop_reason.startswith("diverged"):
+        raise ConfigError(f"learning rate {rates['lr']:g} ({cfg.optimizer}) diverged: "
                           f"{state.stop_reason[len('diverged: '):]}. Kept the last good values "
-                          f"(epoch {state.best_epoch}) in {out}; try a smaller --lr")
-    if ckpt.exists():
-        ckpt.unlink()
-    remove_best_files(ckpt)
+                          f"(epoch {state.best_epoch}) in {files.out}; try a smaller --lr")
+    if files.checkpoint.exists():
+        files.checkpoint.unlink()
+    remove_best_files(files.checkpoint)
     return result

@@ -168,9 +168,7 @@ def _numba_render(tree: Any, info: FormatInfo, origins: Any, dirs: Any, opts: Re
     from . import _render_numba
 
     rgb, depth, alpha = _render_numba.render_rays_numba(
-        to_numpy(tree.child), to_numpy(tree.data), vec3(tree.offset), vec3(tree.invradius), info,
-        _extra(tree), to_numpy(origins), to_numpy(dirs), opts, width=width,
-        skip=getattr(tree, "empty_skip", None))
+        _render_numba.prepare(tree, info, opts), to_numpy(origins), to_numpy(dirs), width=width)
     return RenderOutput(torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(alpha))
 
 
@@ -188,8 +186,7 @@ def _render_torch(tree: Any, info: FormatInfo, origins: Any, dirs: Any, opts: Re
         data = data.float()
     o = origins if isinstance(origins, torch.Tensor) else torch.from_numpy(origins)
     d = dirs if isinstance(dirs, torch.Tensor) else torch.from_numpy(dirs)
-    return render_rays_torch(tree.child, data, vec3(tree.offset), vec3(tree.invradius),
-                             info.name, _extra(tree), o, d, opts)
+    return render_rays_torch(tree, o, d, opts, data=data)
 
 
 def _extra(tree: Any) -> Any:
@@ -309,10 +306,8 @@ def _numba_render_camera(tree: Any, cameras: Any, index: int,
     _check_origins(o, vec3(tree.offset), vec3(tree.invradius))
     cam = _render_numba.pack_cameras(cameras, [i])[0]
 
-    p = _render_numba._prepare(to_numpy(tree.child), to_numpy(tree.data), vec3(tree.offset),
-                               vec3(tree.invradius), info, _extra(tree), opts,
-                               getattr(tree, "empty_skip", None))
     rgb, depth, alpha = _render_numba.empty_outputs(w * h)
-    _render_numba.render_camera_prepared(p, cam, w, h, (rgb, depth, alpha))
+    _render_numba.render_camera_prepared(_render_numba.prepare(tree, info, opts), cam, w, h,
+                                         (rgb, depth, alpha))
     return RenderOutput(torch.from_numpy(rgb.reshape(h, w, 3)), torch.from_numpy(depth.reshape(h, w)),
                         torch.from_numpy(alpha.reshape(h, w)))

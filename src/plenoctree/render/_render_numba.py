@@ -24,11 +24,13 @@ from numba import njit, prange
 
 from ._march_numba import (MARCH_MATH, MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, basis_values,
                            leaf_logits, look_ahead, next_leaf, ray_octant, ray_start)
-from .empty_skip import SkipTables, no_skip
-from .options import KIND_SG, FormatInfo, RenderOptions
+from ._spec import TreeSpec, tree_spec
+from .empty_skip import SkipTables
+from .options import FormatInfo, RenderOptions
 
-__all__ = ["render_rays_numba", "ray_stats_numba", "Prepared", "prepare", "render_prepared",
-           "pack_camera", "pack_cameras", "render_camera_prepared", "empty_outputs", "TILE", "TILE_2D", "CHUNK_TILES", "STAT_NAMES"]
+__all__ = ["render_rays_numba", "ray_stats_numba", "prepare", "render_prepared", "Launch",
+           "pack_camera", "pack_cameras", "render_camera_prepared", "empty_outputs", "TILE",
+           "TILE_2D", "CHUNK_TILES", "STAT_NAMES"]
 
 TILE = 64          # rays per work item when the image width is unknown (one row of rays)
 #: Pixels per work item of an image. 8×8 was 1.2× faster than 64×1 rows on lego's 256³ tree;
@@ -227,60 +229,12 @@ def _stats_kernel(child, skip, shift, data, offset, invr, origins, dirs, stop, e
             t = t_end
 
 
-def _flat(child: np.ndarray, data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    n_nodes = child.shape[0]
-    child_flat = np.ascontiguousarray(child, dtype=np.int32).reshape(n_nodes * 8)
-    data2 = np.ascontiguousarray(data, dtype=np.float32).reshape(n_nodes * 8, data.shape[-1])
-    return child_flat, data2
-
-
-def _vec(x: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(x, dtype=np.float64).reshape(3)
-
-
-@dataclass
-class Prepared:
-    """The kernel's arguments for one tree and one set of options (see :func:`prepare`)."""
-
-    child: np.ndarray          # int32 [n_cells] (with empty-skip rows: see .empty_skip)
-    skip: np.ndarray           # uint8 [rows, 8] empty-space skips per ray octant
-    shift: int                 # skip units -> integer coordinates
-    data: np.ndarray           # float32 [n_cells, D]
-    offset: np.ndarray         # float64 [3]
-    invr: np.ndarray           # float64 [3]
-    kind: int
-    n_b: int
-    sg: np.ndarray             # float64 [B, 4] (SG) or [1, 4]
-    b_lo: int
-    b_hi: int
-    bg: np.ndarray             # float64 [3]
-    stop: float
-    eps: float
-    max_steps: int             # segments per ray at most (octree.limits.max_steps)
-
-
-def prepare(tree: Any, info: FormatInfo, options: RenderOptions) -> Prepared:
+def prepare(tree: Any, info: FormatInfo, options: RenderOptions) -> TreeSpec:
     """Pack ``tree`` (child, data, box, extra_data, and its ``empty_skip`` tables when it has
     them: see :func:`plenoctree.render.tree_to_device`) and ``options`` for
-    :func:`render_prepared`."""
-    return _prepare(tree.child, tree.data, tree.offset, tree.invradius, info,
-                    getattr(tree, "extra_data", None), options, getattr(tree, "empty_skip", None))
-
-
-def _prepare(child, data, offset, invradius, info, extra_data, options,
-             skip: SkipTables | None = None) -> Prepared:
-    """``skip``: the tree's :class:`~.empty_skip.SkipTables` (None: no skipping)."""
-    child_flat, data2 = _flat(child, data)
-    tables = skip if skip is not None else no_skip(child_flat)
-    if extra_data is not None and info.kind == KIND_SG:
-        sg = np.ascontiguousarray(extra_data, dtype=np.float64).reshape(info.basis_dim, 4)
-    else:
-        sg = np.zeros((1, 4), dtype=np.float64)
-    b_lo, b_hi = options.basis_range(info.basis_dim)
-    return Prepared(tables.child, tables.skip, int(tables.shift), data2, _vec(offset),
-                    _vec(invradius), info.kind, info.basis_dim, sg, b_lo, b_hi,
-                    np.asarray(options.background, dtype=np.float64), float(options.stop_thresh),
-                    float(options.step_eps), MAX_STEPS)
+    :func:`render_prepared`: a :class:`~._spec.TreeSpec` holding the float32 values."""
+    return tree_spec(tree, options, info=info, skip=getattr(tree, "empty_skip", None),
+                     with_values=True)
 
 
 def empty_outputs(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -293,38 +247,48 @@ _NO_RAYS = np.zeros((0, 3), dtype=np.float32)
 _NO_CAM = np.zeros(CAM_SIZE, dtype=np.float64)
 
 
-def _launch(p: Prepared, origins: np.ndarray, dirs: np.ndarray, cam: np.ndarray, n: int,
-            out: tuple[np.ndarray, np.ndarray, np.ndarray], use_stack: bool, width: int,
-            tile: tuple[int, int] | None, chunk_tiles: int) -> None:
+@dataclass(frozen=True)
+class Launch:
+    """How :func:`_render_kernel` walks the rays: ``width > 0``: they are the pixels of an image
+    ``width`` wide (row-major), marched in ``tile = (w, h)`` pixel tiles (default
+    :data:`TILE_2D`); ``width = 0``: rows of :data:`TILE` rays. ``chunk_tiles`` work items form
+    one dynamic-scheduling chunk; ``use_stack=False`` re-descends from the root at every step
+    (the reference the tests compare the ancestor stack against)."""
+
+    width: int = 0
+    tile: tuple[int, int] | None = None
+    chunk_tiles: int = CHUNK_TILES
+    use_stack: bool = True
+
+
+def _launch(p: TreeSpec, origins: np.ndarray, dirs: np.ndarray, cam: np.ndarray, n: int,
+            out: tuple[np.ndarray, np.ndarray, np.ndarray], how: Launch) -> None:
     rgb, depth, alpha = out
     if n == 0:
         return
+    width = how.width
     if width <= 0 or width > n:
         width, tw, th = n, TILE, 1
     else:
-        tw, th = tile if tile is not None else TILE_2D
+        tw, th = how.tile if how.tile is not None else TILE_2D
     old = numba.get_parallel_chunksize()
-    numba.set_parallel_chunksize(max(1, int(chunk_tiles)))
+    numba.set_parallel_chunksize(max(1, int(how.chunk_tiles)))
     try:
-        _render_kernel(p.child, p.skip, p.shift, p.data, p.offset, p.invr, origins, dirs, cam,
-                       p.kind, p.n_b, p.sg, p.b_lo, p.b_hi, p.bg, p.stop, p.eps, bool(use_stack),
-                       MAX_LEVEL, p.max_steps, int(n), int(width), max(1, int(tw)), max(1, int(th)),
-                       rgb.reshape(n, 3), depth.reshape(n), alpha.reshape(n))
+        p.launch(_render_kernel, None, (origins, dirs, cam),
+                 (bool(how.use_stack), MAX_LEVEL, MAX_STEPS, int(n), int(width), max(1, int(tw)),
+                  max(1, int(th)), rgb.reshape(n, 3), depth.reshape(n), alpha.reshape(n)))
     finally:
         numba.set_parallel_chunksize(old)
 
 
-def render_prepared(p: Prepared, origins: np.ndarray, dirs: np.ndarray,
+def render_prepared(p: TreeSpec, origins: np.ndarray, dirs: np.ndarray,
                     out: tuple[np.ndarray, np.ndarray, np.ndarray], use_stack: bool = True,
                     width: int = 0, tile: tuple[int, int] | None = None,
                     chunk_tiles: int = CHUNK_TILES) -> None:
-    """Render float32 contiguous ``origins, dirs [N, 3]`` into ``out = (rgb, depth, alpha)``.
-
-    ``width > 0``: the rays are the pixels of an image ``width`` wide (row-major) and are
-    marched in ``tile = (w, h)`` pixel tiles (default :data:`TILE_2D`: neighbouring rays share
-    nodes and leaves in cache, also across rows); ``width = 0``: one row (``(TILE, 1)``)."""
-    _launch(p, origins, dirs, _NO_CAM, int(origins.shape[0]), out, use_stack, width, tile,
-            chunk_tiles)
+    """Render float32 contiguous ``origins, dirs [N, 3]`` with the values of ``p``
+    (:func:`prepare`) into ``out = (rgb, depth, alpha)``; the other arguments: :class:`Launch`."""
+    _launch(p, origins, dirs, _NO_CAM, int(origins.shape[0]), out,
+            Launch(int(width), tile, chunk_tiles, use_stack))
 
 
 def pack_camera(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float,
@@ -357,7 +321,7 @@ def pack_cameras(cameras: Any, indices: Any = None) -> np.ndarray:
     return out
 
 
-def render_camera_prepared(p: Prepared, cam: np.ndarray, width: int, height: int,
+def render_camera_prepared(p: TreeSpec, cam: np.ndarray, width: int, height: int,
                            out: tuple[np.ndarray, np.ndarray, np.ndarray],
                            tile: tuple[int, int] | None = None,
                            chunk_tiles: int = CHUNK_TILES) -> None:
@@ -366,50 +330,41 @@ def render_camera_prepared(p: Prepared, cam: np.ndarray, width: int, height: int
     contiguous): the rays are made per pixel inside the kernel, equal to those of
     ``generate_rays`` (+ ``to_ndc_rays``), so no ray arrays are allocated."""
     _launch(p, _NO_RAYS, _NO_RAYS, np.ascontiguousarray(cam, dtype=np.float64),
-            int(width) * int(height), out, True, int(width), tile, chunk_tiles)
+            int(width) * int(height), out, Launch(int(width), tile, chunk_tiles))
 
 
-def render_rays_numba(child: np.ndarray, data: np.ndarray, offset: np.ndarray,
-                      invradius: np.ndarray, info: FormatInfo, extra_data: np.ndarray | None,
-                      origins: np.ndarray, dirs: np.ndarray, options: RenderOptions,
-                      use_stack: bool = True, width: int = 0,
-                      tile: tuple[int, int] | None = None, chunk_tiles: int = CHUNK_TILES,
-                      skip: SkipTables | None = None
+def _ray_arrays(origins: Any, dirs: Any) -> tuple[np.ndarray, np.ndarray]:
+    return (np.ascontiguousarray(origins, dtype=np.float32).reshape(-1, 3),
+            np.ascontiguousarray(dirs, dtype=np.float32).reshape(-1, 3))
+
+
+def render_rays_numba(p: TreeSpec, origins: np.ndarray, dirs: np.ndarray,
+                      use_stack: bool = True, width: int = 0
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Render ``[N, 3]`` rays with the numba kernel; returns float32 ``rgb [N,3], depth [N],
-    alpha [N]`` (numpy).
-
-    ``child`` int32 ``[n_nodes, 2, 2, 2]``, ``data`` ``[n_nodes, 2, 2, 2, D]`` (converted to
-    float32 contiguous if needed; float32 trees are used in place), geometry in float64 inside
-    the kernel. ``use_stack=False`` re-descends from the root at every step (the reference the
-    tests compare the ancestor stack against); ``width``/``tile``: see :func:`render_prepared`;
-    ``chunk_tiles`` work items form one dynamic-scheduling chunk; ``skip``: the tree's
-    empty-space skip tables (:mod:`.empty_skip`; None: every leaf is visited).
+    """Render ``[N, 3]`` rays with the numba kernel and the values of ``p`` (:func:`prepare`:
+    float32 values used in place, the tree's empty-space skip tables when it has them);
+    returns float32 ``rgb [N,3], depth [N], alpha [N]`` (numpy). Geometry is float64 inside
+    the kernel; ``use_stack``/``width``: see :class:`Launch`.
     """
-    p = _prepare(child, data, offset, invradius, info, extra_data, options, skip)
-    o = np.ascontiguousarray(origins, dtype=np.float32).reshape(-1, 3)
-    d = np.ascontiguousarray(dirs, dtype=np.float32).reshape(-1, 3)
+    o, d = _ray_arrays(origins, dirs)
     out = empty_outputs(o.shape[0])
-    render_prepared(p, o, d, out, use_stack, width, tile, chunk_tiles)
+    render_prepared(p, o, d, out, use_stack, width)
     return out
 
 
-def ray_stats_numba(child: np.ndarray, data: np.ndarray, offset: np.ndarray,
-                    invradius: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
-                    options: RenderOptions, negligible: float = NEGLIGIBLE_WEIGHT,
-                    skip: SkipTables | None = None) -> np.ndarray:
+def ray_stats_numba(tree: Any, origins: np.ndarray, dirs: np.ndarray, options: RenderOptions,
+                    negligible: float = NEGLIGIBLE_WEIGHT, skip: SkipTables | None = None
+                    ) -> np.ndarray:
     """Per-ray counters of the render march, int64 ``[N, 6]``, columns :data:`STAT_NAMES`:
     leaves visited (segments), leaves with σ > 0, σ > 0 segments of weight < ``negligible``,
     ``child`` reads of the descents, hit the box (0/1), stopped early at ``T < stop_thresh``
-    (0/1). For benchmarks: where a real ray's time goes. ``skip``: count the march with these
-    empty-space skip tables (as the renderer does with them)."""
-    child_flat, data2 = _flat(child, data)
-    tables = skip if skip is not None else no_skip(child_flat)
-    o = np.ascontiguousarray(origins, dtype=np.float32).reshape(-1, 3)
-    d = np.ascontiguousarray(dirs, dtype=np.float32).reshape(-1, 3)
+    (0/1). For benchmarks: where a real ray's time goes. ``tree``: an Octree (or anything with
+    its arrays); ``skip``: count the march with these empty-space skip tables (as the renderer
+    does with them; None: every leaf)."""
+    p = tree_spec(tree, options, skip=skip, with_values=True)
+    o, d = _ray_arrays(origins, dirs)
     out = np.zeros((o.shape[0], len(STAT_NAMES)), dtype=np.int64)
     if o.shape[0]:
-        _stats_kernel(tables.child, tables.skip, int(tables.shift), data2, _vec(offset),
-                      _vec(invradius), o, d, float(options.stop_thresh), float(options.step_eps),
-                      float(negligible), MAX_LEVEL, MAX_STEPS, out)
+        _stats_kernel(*p.tree_args(p.data), o, d, p.stop, p.eps, float(negligible), MAX_LEVEL,
+                      MAX_STEPS, out)
     return out

@@ -97,43 +97,65 @@ def _as_tensor(x: Any, dtype: torch.dtype | None, device: torch.device) -> torch
     return torch.as_tensor(np.asarray(x), device=device, dtype=dtype)
 
 
-def render_rays_torch(child: Any, data: Any, offset: Any, invradius: Any, data_format: str,
-                      extra_data: Any, origins: Any, dirs: Any,
-                      options: RenderOptions | None = None) -> RenderOutput:
+def _locate_leaves(child_flat: torch.Tensor, qi: torch.Tensor, max_levels: int
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched descent from the root to the leaves holding the integer points ``qi [n, 3]``:
+    returns their flat ``cell`` indices and depths ``level`` ``[n]``."""
+    shifts = torch.tensor([4, 2, 1], device=qi.device)
+    node = torch.zeros(qi.shape[0], dtype=torch.int64, device=qi.device)
+    level = torch.zeros_like(node)
+    for _ in range(max_levels):
+        bits = (qi >> (QUANT_BITS - 1 - level)[:, None]) & 1
+        cell = node * 8 + (bits * shifts).sum(-1)
+        step = child_flat[cell]
+        if not bool((step != 0).any()):
+            return cell, level
+        node = node + step
+        level = level + (step != 0).to(torch.int64)
+    raise ValueError(f"octree deeper than MAX_DEPTH = {MAX_DEPTH} is not supported")
+
+
+def _values(data: Any) -> torch.Tensor:
+    """``data`` as a float32 or float64 tensor (float16 and integers computed in float32)."""
+    if not isinstance(data, torch.Tensor):
+        data = torch.as_tensor(np.asarray(data, dtype=np.float32))
+    if data.dtype not in (torch.float32, torch.float64):
+        data = data.float()
+    return data
+
+
+def render_rays_torch(tree: Any, origins: Any, dirs: Any, options: RenderOptions | None = None,
+                      data: Any = None) -> RenderOutput:
     """Render rays through an octree with plain torch ops (differentiable w.r.t. ``data``).
 
     Args:
-        child: int ``[n_nodes, 2, 2, 2]`` relative child offsets (0 = leaf), tensor or array.
-        data: float ``[n_nodes, 2, 2, 2, D]`` tensor (or array); its dtype (float32/float64) and
-            device set the computation's. Gradients flow into it.
-        offset, invradius: ``[3]``; tree coordinate = ``offset + invradius * world``.
-        data_format: ``"SH1".."SH25"``, ``"SG<B>"`` or ``"RGBA"``.
-        extra_data: SG only, ``[B, 4]`` (sharpness, mu_x, mu_y, mu_z); else ``None``.
+        tree: an :class:`~plenoctree.octree.Octree` or anything with its attributes: ``child``
+            int ``[n_nodes, 2, 2, 2]`` relative child offsets (0 = leaf), ``offset`` and
+            ``invradius`` (``[3]``; tree coordinate = ``offset + invradius * world``),
+            ``data_format`` (``"SH1".."SH25"``, ``"SG<B>"`` or ``"RGBA"``), ``extra_data`` (SG
+            only, ``[B, 4]``: sharpness, mu_x, mu_y, mu_z) and, unless ``data`` is given,
+            ``data``. Tensors or arrays.
         origins, dirs: ``[N, 3]`` world-space rays (dirs need not be unit length).
         options: :class:`RenderOptions` (defaults if ``None``).
+        data: float ``[n_nodes, 2, 2, 2, D]`` values rendered instead of ``tree.data`` (e.g. a
+            tensor with ``requires_grad``: gradients flow into it). Its dtype (float32/float64)
+            and device set the computation's.
 
     Returns:
         :class:`RenderOutput` with ``rgb [N, 3]``, ``depth [N]``, ``alpha [N]`` in the dtype and on
         the device of ``data``.
     """
     opts = (options or RenderOptions()).validated()
-    if isinstance(data, torch.Tensor):
-        device = data.device
-        if not data.is_floating_point():
-            data = data.float()
-    else:
-        device = torch.device("cpu")
-        data = torch.as_tensor(np.asarray(data, dtype=np.float32))
-    if data.dtype not in (torch.float32, torch.float64):
-        data = data.float()
-    dtype = data.dtype
+    data = _values(tree.data if data is None else data)
+    device, dtype = data.device, data.dtype
     n_nodes, d_dim = data.shape[0], data.shape[-1]
-    info = parse_data_format(data_format, d_dim, extra_data)
-    child_flat = _as_tensor(child, torch.int64, device).reshape(-1)
+    extra_data = getattr(tree, "extra_data", None)
+    info = parse_data_format(tree.data_format, d_dim, extra_data)
+    child_flat = _as_tensor(tree.child, torch.int64, device).reshape(-1)
     data_flat = data.reshape(n_nodes * 8, d_dim)
     geo = torch.float64          # ray geometry always in float64 (as in the numba kernel)
-    offset_t = _as_tensor(offset, geo, device).reshape(3)
-    inv_t = _as_tensor(invradius, geo, device).reshape(3)
+    offset_t = _as_tensor(tree.offset, geo, device).reshape(-1).expand(3)
+    inv_t = _as_tensor(tree.invradius, geo, device).reshape(-1).expand(3)
     o = _as_tensor(origins, geo, device).reshape(-1, 3)
     d = _as_tensor(dirs, geo, device).reshape(-1, 3)
     n_rays = o.shape[0]
@@ -158,7 +180,6 @@ def render_rays_torch(child: Any, data: Any, offset: Any, invradius: Any, data_f
     idx = torch.nonzero(t0 < t1).reshape(-1)
     t = t0[idx]
     trans = torch.ones(idx.shape[0], dtype=dtype, device=device)
-    shifts = torch.tensor([4, 2, 1], device=device)
     max_levels = MAX_DEPTH + 1          # cell depths 0..MAX_DEPTH (check_integrity enforces it)
     deepest, steps = 0, 0
     inf_t = torch.tensor(float("inf"), dtype=geo, device=device)
@@ -170,18 +191,7 @@ def render_rays_torch(child: Any, data: Any, offset: Any, invradius: Any, data_f
         # Locate the leaf holding p(t + eps_t): batched descent from the root.
         q = o_t[idx] + (t + eps_t[idx])[:, None] * d_t[idx]
         qi = torch.clamp(q * _SCALE, 0.0, _SCALE - 1.0).to(torch.int64)  # trunc = floor (>= 0)
-        node = torch.zeros_like(idx)
-        level = torch.zeros_like(idx)
-        for _ in range(max_levels):
-            bits = (qi >> (QUANT_BITS - 1 - level)[:, None]) & 1
-            cell = node * 8 + (bits * shifts).sum(-1)
-            step = child_flat[cell]
-            if not bool((step != 0).any()):
-                break
-            node = node + step
-            level = level + (step != 0).to(torch.int64)
-        else:
-            raise ValueError(f"octree deeper than MAX_DEPTH = {MAX_DEPTH} is not supported")
+        cell, level = _locate_leaves(child_flat, qi, max_levels)
         deepest = max(deepest, int(level.max()))
         # Exit distance of the leaf's box (tree units -> world t through d_t).
         cell_shift = (QUANT_BITS - 1 - level)[:, None]

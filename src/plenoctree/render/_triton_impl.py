@@ -263,20 +263,24 @@ def tree_tensors(child: Any, data: Any, device: torch.device
     return ch, dt
 
 
-def render_rays_triton(child: Any, data: Any, offset: Any, invradius: Any, data_format: str,
-                       extra_data: Any, origins: torch.Tensor, dirs: torch.Tensor,
-                       options: RenderOptions | None = None) -> RenderOutput:
-    """Render ``[N, 3]`` rays on their device; same arguments and result as the twin.
+def render_rays_triton(tree: Any, origins: torch.Tensor, dirs: torch.Tensor,
+                       options: RenderOptions | None = None, data: Any = None) -> RenderOutput:
+    """Render ``[N, 3]`` rays on their device; same arguments and result as the twin
+    (:func:`plenoctree.render._torch_impl.render_rays_torch`).
 
-    ``data`` float16 is computed in float32; float64 data is rendered in float64.
+    ``data`` (default ``tree.data``) float16 is computed in float32; float64 data is rendered in
+    float64.
     """
+    from .._util import vec3
     from ._torch_impl import ray_basis_torch
 
     opts = (options or RenderOptions()).validated()
     dev = origins.device
-    ch, d2 = tree_tensors(child, data, dev)
-    info = parse_data_format(data_format, d2.shape[1], extra_data)
-    geo, unit = prepare_rays(offset, invradius, origins, dirs, opts.step_eps)
+    extra_data = getattr(tree, "extra_data", None)
+    ch, d2 = tree_tensors(tree.child, tree.data if data is None else data, dev)
+    info = parse_data_format(tree.data_format, d2.shape[1], extra_data)
+    geo, unit = prepare_rays(vec3(tree.offset), vec3(tree.invradius), origins, dirs,
+                             opts.step_eps)
     basis = ray_basis_torch(info, unit, extra_data, opts).to(d2.dtype).contiguous()
     n_b = 1 if info.kind == KIND_RGBA else info.basis_dim
     rgb, depth, alpha = march_kernel_call(ch, d2, basis, geo, opts, n_b)
@@ -288,11 +292,8 @@ def render_backend(tree: Any, info: Any, origins: Any, dirs: Any, opts: RenderOp
     """Op ``render`` of :mod:`plenoctree.backend`: rays ``[N, 3]`` on ``device`` (CUDA, or
     the CPU in interpreter mode); numpy rays are moved to ``device``."""
     from .._triton import require_triton
-    from .._util import vec3
-    from . import _extra
 
     require_triton(device, "render")
     o = origins if isinstance(origins, torch.Tensor) else torch.from_numpy(origins)
     d = dirs if isinstance(dirs, torch.Tensor) else torch.from_numpy(dirs)
-    return render_rays_triton(tree.child, tree.data, vec3(tree.offset), vec3(tree.invradius),
-                              info.name, _extra(tree), o.to(device), d.to(device), opts)
+    return render_rays_triton(tree, o.to(device), d.to(device), opts)
