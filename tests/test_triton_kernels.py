@@ -185,11 +185,12 @@ def test_triton_stepper_matches_torch_stepper():
 
 # ------------------------------------------------------------------------------ NeRF-SH
 def test_hashgrid_kernel_matches_twin_forward_and_backward():
-    from plenoctree.nerf.encoding import HashGridEncoding
+    from plenoctree.nerf.encoding import HashGridEncoding, HashGridLayout
 
     gen = torch.Generator().manual_seed(0)
-    enc = HashGridEncoding([[-1, -1, -1], [1, 1, 1]], n_levels=4, n_features=2, base_res=2,
-                           max_res=32, log2_table=8, init_scale=1.0, generator=gen).to(DEV)
+    enc = HashGridEncoding([[-1, -1, -1], [1, 1, 1]],
+                           HashGridLayout(n_levels=4, n_features=2, base_res=2, max_res=32,
+                                          log2_table=8), init_scale=1.0, generator=gen).to(DEV)
     assert enc.hashed.any() and (~enc.hashed).any()               # dense and hashed levels
     pts = (torch.rand(300, 3, generator=gen) * 2.4 - 1.2).to(DEV)  # some outside the box
     pts[:10] = torch.tensor([1.0, -1.0, 0.5]).to(DEV)              # exactly on faces

@@ -380,6 +380,23 @@ def _filter(cfg: ExtractConfig, sigma: np.ndarray, spec: GridSpec, train: Any,
     return mask, n_cand, vis_info
 
 
+def _sample_and_build(cfg: ExtractConfig, inp: _Inputs, spec: GridSpec, mask: np.ndarray,
+                      mon: StageMonitor) -> tuple[Any, SamplingStats]:
+    """Stages ``sample`` and ``build``: the kept cells' values and the octree of them."""
+    from ..octree import Octree
+
+    with mon.stage("sample"):
+        st = SamplingStats()
+        values = sample_cells(inp.field, spec, np.flatnonzero(mask), SampleOptions(
+            samples=cfg.samples, chunk=cfg.chunk, seed=cfg.seed, averaging=cfg.averaging,
+            projection_degree=cfg.projection_degree, projection_dirs=cfg.projection_dirs,
+            show_progress=cfg.show_progress), st)
+    with mon.stage("build"):
+        tree = Octree.from_grid(values, mask, spec.center, spec.radius, inp.fmt, inp.extra_data)
+        tree.ndc = inp.ndc      # forward-facing: the NDC space the box lives in (octree.ndc)
+    return tree, st
+
+
 def _output_path(cfg: ExtractConfig, from_run: bool) -> Path | None:
     """``cfg.out`` (a folder: its ``tree.npz``), else ``RUN_DIR/tree.npz`` for a run, else
     None (a field given directly is not saved)."""
@@ -420,8 +437,6 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
         ConfigError: bad options, an unusable run directory, a box with nothing in it, a grid
             too large for the memory budget, a threshold that removes every voxel.
     """
-    from ..octree import Octree
-
     cfg, limit = _prepare(cfg)
     mon = StageMonitor()
     with mon.stage("load"):
@@ -439,16 +454,8 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
         check_budget(f"{n_kept} leaves x {inp.dim} values (sampling and octree)",
                      int(n_kept * inp.dim * 4 * 3.5), limit,
                      "use a smaller --grid or a higher --weight-thresh")
-    with mon.stage("sample"):
-        st = SamplingStats()
-        values = sample_cells(inp.field, spec, np.flatnonzero(mask), SampleOptions(
-            samples=cfg.samples, chunk=cfg.chunk, seed=cfg.seed, averaging=cfg.averaging,
-            projection_degree=cfg.projection_degree, projection_dirs=cfg.projection_dirs,
-            show_progress=cfg.show_progress), st)
-    with mon.stage("build"):
-        tree = Octree.from_grid(values, mask, spec.center, spec.radius, inp.fmt, inp.extra_data)
-        tree.ndc = inp.ndc      # forward-facing: the NDC space the box lives in (octree.ndc)
-        del values, mask
+    tree, st = _sample_and_build(cfg, inp, spec, mask, mon)
+    del mask
     out = _output_path(cfg, inp.train_cfg is not None)
     file_bytes, n_clamped = 0, 0
     if out is not None:
