@@ -100,13 +100,13 @@ def march_backend(rays, grid, max_per_ray: int):
     k_next = torch.empty(n, dtype=torch.int64, device=dev)
     done = torch.empty(n, dtype=torch.int8, device=dev)
     block = 1024 if interpret_mode() else BLOCK
-    grid = (triton.cdiv(max(n, 1), block),)
+    launch = (triton.cdiv(max(n, 1), block),)
     opts = {} if interpret_mode() else {"enable_fp_fusion": False}
     cap = int(max_per_ray) if max_per_ray > 0 else 1 << 62
     consts = (float(step), *map(float, lo), *map(float, inv), g, cap, n)
     args = (origins, rays.dirs, rays.t_min, rays.t_max, rays.jitter, rays.k_start, m) + consts
     if n:
-        _march_kernel[grid](*args, counts, k_next, done, counts, counts, counts, counts,
+        _march_kernel[launch](*args, counts, k_next, done, counts, counts, counts, counts,
                             FILL=False, BLOCK=block, **opts)
     offsets = torch.zeros(n + 1, dtype=torch.int64, device=dev)
     torch.cumsum(counts, 0, out=offsets[1:])
@@ -115,6 +115,6 @@ def march_backend(rays, grid, max_per_ray: int):
     ts = torch.empty(total, dtype=torch.float32, device=dev)
     pts = torch.empty((total, 3), dtype=torch.float32, device=dev)
     if total:
-        _march_kernel[grid](*args, counts, k_next, done, offsets, ray_idx, ts, pts,
+        _march_kernel[launch](*args, counts, k_next, done, offsets, ray_idx, ts, pts,
                             FILL=True, BLOCK=block, **opts)
     return PackedSamples(ray_idx, ts, pts, offsets, k_next, done.bool())
