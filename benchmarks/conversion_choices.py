@@ -79,8 +79,7 @@ def revalue(tree, field_, samples: int, averaging: str, seed: int = 0,
     new = np.array(vals, np.float32)
     for s, e in _blocks(kept.size, samples, chunk):
         b = kept[s:e]
-        new[b], _ = _box_stats(field_, lo[b], size[b], samples, rng, tree.data_format,
-                               tree.basis_dim, tree.data_dim, averaging)
+        new[b], _ = _box_stats(field_, lo[b], size[b], tree, samples, rng, averaging)
     data = np.array(tree.data, np.float32)
     data[idx] = new
     return dataclasses.replace(tree, data=data)
@@ -105,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from plenoctree._util import atomic_save_json
     from plenoctree.convert.extraction import ExtractConfig, _load_run, extract
-    from plenoctree.convert.refine import refine_tree
+    from plenoctree.convert.refine import RefineOptions, refine_tree
     from plenoctree.octree import load_tree
 
     out = Path(a.out)
@@ -147,8 +146,9 @@ def main(argv: list[str] | None = None) -> int:
         t, p, avg = v.split("-")
         base = tree if avg == "mean" else revalue(tree, field_, 8, avg, a.seed)
         t0, c0 = time.perf_counter(), time.process_time()
-        new, recs = refine_tree(base, field_, passes=int(p[1:]), threshold=float(t[1:]),
-                                seed=a.seed, averaging=avg)
+        new, recs = refine_tree(base, field_, RefineOptions(passes=int(p[1:]),
+                                                            threshold=float(t[1:]),
+                                                            seed=a.seed, averaging=avg))
         record(f"refine-{v}", new, t0, c0, threshold=float(t[1:]), passes=int(p[1:]),
                averaging=avg, passes_records=recs)
     print(f"wrote {out}")

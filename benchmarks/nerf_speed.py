@@ -37,8 +37,8 @@ if os.name == "posix" and "OMP_WAIT_POLICY" not in os.environ:
 import torch  # noqa: E402
 
 from plenoctree.datasets import load_dataset  # noqa: E402
-from plenoctree.nerf import load_nerf, preset, train  # noqa: E402
-from plenoctree.nerf.evaluate import evaluate_views  # noqa: E402
+from plenoctree.nerf import load_run, preset, train  # noqa: E402
+from plenoctree.nerf.evaluate import ImageOptions, evaluate_views  # noqa: E402
 from plenoctree.runtime import resolve_amp, setup_threads, tune_malloc  # noqa: E402
 
 tune_malloc()          # what the CLI's runtime.configure() does; train() no longer does it
@@ -116,12 +116,13 @@ def bench_paper(data: str, downscale: int, steps: int, amp: str, root: Path) -> 
 
 
 def bench_render(run: str, data: str, rows: int | None) -> dict:
-    model = load_nerf(run)
-    cfg = model.train_config
+    nerf_run = load_run(run)
+    model, cfg = nerf_run.model, nerf_run.config
     amp = resolve_amp(cfg.amp, torch.device("cpu"))
     test = load_dataset(data, "test", limit=1, background=cfg.background)
     sl = slice(0, rows) if rows else None
-    r = evaluate_views(model, test, cfg, [0], with_ssim=False, amp=amp, rows=sl)
+    r = evaluate_views(model, test, cfg, [0], with_ssim=False,
+                       opts=ImageOptions(amp=amp, rows=sl))
     frac = 1.0 if sl is None else rows / test.cameras.height
     return {"width": test.cameras.width, "height": test.cameras.height,
             "rows_rendered": rows or test.cameras.height,

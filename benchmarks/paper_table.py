@@ -176,7 +176,7 @@ def measure_nerf_paper(data: Path, rows: int) -> dict:
 
     from plenoctree.datasets import load_dataset
     from plenoctree.nerf.config import preset
-    from plenoctree.nerf.evaluate import evaluate_views
+    from plenoctree.nerf.evaluate import ImageOptions, evaluate_views
     from plenoctree.nerf.model import NeRFModel
 
     cfg = preset("paper")
@@ -188,7 +188,7 @@ def measure_nerf_paper(data: Path, rows: int) -> dict:
         model = NeRFModel(cfg.model, test.scene_bbox).eval()
         h = test.cameras.height
         sl = slice(h // 2 - rows // 2, h // 2 - rows // 2 + rows)
-        r = evaluate_views(model, test, cfg, [0], with_ssim=False, amp=False, rows=sl)
+        r = evaluate_views(model, test, cfg, [0], with_ssim=False, opts=ImageOptions(rows=sl))
         out[key] = r["seconds"][0] * h / rows
         out[f"samples_per_ray_{ds}"] = r["n_samples"][0] / (rows * test.cameras.width)
     out["fps_400"], out["fps_800"] = 1.0 / out["s_400"], 1.0 / out["s_800"]

@@ -66,7 +66,7 @@ def tiny_run(root: Path, val_log: list | None = None) -> tuple[Path, Path]:
     import torch
 
     from plenoctree.datasets import procedural
-    from plenoctree.nerf.checkpoint import save_checkpoint
+    from plenoctree.nerf.checkpoint import TrainProgress, save_checkpoint
     from plenoctree.nerf.config import ModelConfig
     from plenoctree.nerf.model import NeRFModel
 
@@ -77,9 +77,8 @@ def tiny_run(root: Path, val_log: list | None = None) -> tuple[Path, Path]:
     cfg.model = ModelConfig(encoding="posenc", pe_freqs=2, net_depth=1, net_width=16)
     torch.manual_seed(0)
     model = NeRFModel(cfg.model, [[-1.5] * 3, [1.5] * 3], occ_res=cfg.occ_res)
-    save_checkpoint(root / "run" / "checkpoint.pt", config=cfg, step=0, train_time_s=0.0,
-                    wall_time_s=0.0, model=model, optimizer=None, rng=None, trainer={},
-                    log={"train": [], "val": list(val_log or [])})
+    save_checkpoint(root / "run" / "checkpoint.pt", cfg, model,
+                    TrainProgress(log={"train": [], "val": list(val_log or [])}))
     return data, root / "run"
 
 

@@ -8,8 +8,9 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from plenoctree.convert import (AnalyticField, ExtractConfig, GridSpec, auto_bbox,
-                                evaluate_density_grid, extract, sample_cells)
+from plenoctree.convert import (AnalyticField, AutoBoxOptions, ExtractConfig, GridSpec,
+                                SampleOptions, auto_bbox, evaluate_density_grid, extract,
+                                sample_cells)
 from plenoctree.datasets import procedural
 from plenoctree.errors import ConfigError
 from plenoctree.octree import load_tree
@@ -96,7 +97,7 @@ def test_auto_box_contains_the_content(shift):
     field = AnalyticField(lambda x: procedural.density(x - off), lambda x: procedural.sh_coeffs(
         x - off))
     res = 48
-    box = auto_bbox(field, 0.0, 1.5, res=res, alpha_thresh=0.1)
+    box = auto_bbox(field, 0.0, 1.5, AutoBoxOptions(res=res, alpha_thresh=0.1))
     content = _content_aabb() + off
     cell = 3.0 / res
     assert box.source == "auto" and box.kept_cells > 0
@@ -111,7 +112,8 @@ def test_auto_box_contains_the_content(shift):
     assert np.all(ctr - cell / 2 >= box.bbox[0] - 1e-9) and np.all(ctr + cell / 2 <= box.bbox[1]
                                                                   + 1e-9)
     # scaling and cubing
-    big = auto_bbox(field, 0.0, 1.5, res=res, alpha_thresh=0.1, scale=1.2, cube=True)
+    big = auto_bbox(field, 0.0, 1.5, AutoBoxOptions(res=res, alpha_thresh=0.1, scale=1.2,
+                                                    cube=True))
     np.testing.assert_allclose(big.center, box.center)
     np.testing.assert_allclose(big.radius, 1.2 * box.radius.max())
 
@@ -159,7 +161,7 @@ def test_sampling_calls_stay_within_the_chunk():
     spec = GridSpec.make(0.0, 1.0, 32)
     field = _Recorder(AnalyticField())
     flat = np.arange(0, 32 ** 3, 7)
-    vals = sample_cells(field, spec, flat, samples=8, chunk=1000)
+    vals = sample_cells(field, spec, flat, SampleOptions(samples=8, chunk=1000))
     assert vals.shape == (flat.size, 49) and field.max_points <= 1000
     assert np.all(vals[:, -1] >= 0)
 

@@ -7,9 +7,9 @@ import pytest
 
 from plenoctree.convert import AnalyticField
 from plenoctree.convert.grid import GridSpec, evaluate_density_grid
-from plenoctree.convert.refine import (MAX_DEPTH, compact_tree, field_error, merge_leaves,
-                                       refine_tree, subdivide_leaves)
-from plenoctree.convert.sampling import sample_cells
+from plenoctree.convert.refine import (MAX_DEPTH, RefineOptions, compact_tree, field_error,
+                                       merge_leaves, refine_tree, subdivide_leaves)
+from plenoctree.convert.sampling import SampleOptions, sample_cells
 from plenoctree.errors import ConfigError
 from plenoctree.octree import Octree, export_svox, import_svox, load_tree, save_tree
 
@@ -22,7 +22,7 @@ def coarse():
     c, r = (b[0] + b[1]) / 2, (b[1] - b[0]) / 2
     spec = GridSpec.make(c, r, 16)
     mask = evaluate_density_grid(f, spec) > 0
-    vals = sample_cells(f, spec, np.flatnonzero(mask), 8)
+    vals = sample_cells(f, spec, np.flatnonzero(mask), SampleOptions(samples=8))
     return f, Octree.from_grid(vals, mask, c, r, f.data_format)
 
 
@@ -34,8 +34,8 @@ def test_refinement_lowers_the_error_against_the_field(coarse, tmp_path):
     f, tree = coarse
     h = _h(tree)
     e0 = field_error(tree, f, h=h)
-    t1, rec = refine_tree(tree, f, passes=1, threshold=0.02)
-    t2, rec2 = refine_tree(tree, f, passes=2, threshold=0.02)
+    t1, rec = refine_tree(tree, f, RefineOptions(passes=1, threshold=0.02))
+    t2, rec2 = refine_tree(tree, f, RefineOptions(passes=2, threshold=0.02))
     e1, e2 = field_error(t1, f, h=h), field_error(t2, f, h=h)
     assert e2 < e1 < 0.9 * e0, (e0, e1, e2)
     assert rec2[0]["subdivided"] > 0 and t2.max_depth == tree.max_depth + 2
@@ -123,13 +123,13 @@ def test_merge_undoes_subdivision_of_a_uniform_region():
 
 def test_depth_limit_and_bad_options(coarse):
     f, tree = coarse
-    t, _ = refine_tree(tree, f, passes=3, threshold=0.0, max_depth=tree.max_depth + 1,
-                       max_fraction=0.05)
+    t, _ = refine_tree(tree, f, RefineOptions(passes=3, threshold=0.0,
+                                              max_depth=tree.max_depth + 1, max_fraction=0.05))
     assert t.max_depth == tree.max_depth + 1 <= MAX_DEPTH
     with pytest.raises(ConfigError, match="max_fraction"):
-        refine_tree(tree, f, max_fraction=0)
+        refine_tree(tree, f, RefineOptions(max_fraction=0))
     with pytest.raises(ConfigError, match="passes"):
-        refine_tree(tree, f, passes=-1)
+        refine_tree(tree, f, RefineOptions(passes=-1))
     from plenoctree.convert.refine import RefineConfig
 
     with pytest.raises(ConfigError, match="--averaging"):
@@ -140,8 +140,8 @@ def test_opacity_average_of_new_leaves(coarse):
     # the same samples (same seeds) valued with the opacity-preserving average: never denser
     # than the mean, equal where the field is uniform, lower where a surface cuts the child
     f, tree = coarse
-    tm, _ = refine_tree(tree, f, passes=1, threshold=0.02, averaging="mean")
-    to, _ = refine_tree(tree, f, passes=1, threshold=0.02, averaging="opacity")
+    tm, _ = refine_tree(tree, f, RefineOptions(passes=1, threshold=0.02, averaging="mean"))
+    to, _ = refine_tree(tree, f, RefineOptions(passes=1, threshold=0.02, averaging="opacity"))
     to.check_integrity()
     assert to.n_leaves == tm.n_leaves
     sm, so = tm.leaf_data()[:, -1], to.leaf_data()[:, -1]

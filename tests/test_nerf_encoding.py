@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from plenoctree.errors import ConfigError
-from plenoctree.nerf.encoding import (HashGridEncoding, PositionalEncoding,
+from plenoctree.nerf.encoding import (HashGridEncoding, HashGridLayout, PositionalEncoding,
                                       _hashgrid_encode_torch, hashgrid_levels)
 
 
@@ -33,8 +33,9 @@ def _points(n, seed=0):
 
 @pytest.mark.parametrize("n_features", [2, 3])
 def test_numba_matches_torch_twin(n_features):
-    enc = HashGridEncoding([[-1.0] * 3, [1.0] * 3], n_levels=6, n_features=n_features,
-                           base_res=4, max_res=64, log2_table=10, init_scale=1.0)
+    enc = HashGridEncoding([[-1.0] * 3, [1.0] * 3],
+                           HashGridLayout(n_levels=6, n_features=n_features, base_res=4,
+                                          max_res=64, log2_table=10), init_scale=1.0)
     assert enc.hashed.any() and (~enc.hashed).any()
     pts = _points(3000) * 2.4 - 1.2                   # some outside the box: clamped
     enc.backend = "numba"
@@ -94,8 +95,9 @@ def test_twin_gradcheck_float64():
 
 def test_grid_interpolates_trilinearly():
     # a dense single-level grid whose table holds a linear function reproduces it exactly
-    enc = HashGridEncoding([[0.0] * 3, [1.0] * 3], n_levels=1, n_features=1, base_res=4,
-                           max_res=4, log2_table=10)
+    enc = HashGridEncoding([[0.0] * 3, [1.0] * 3],
+                           HashGridLayout(n_levels=1, n_features=1, base_res=4, max_res=4,
+                                          log2_table=10))
     r = 4
     ijk = np.stack(np.meshgrid(*[np.arange(r + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
     idx = ijk[:, 0] + ijk[:, 1] * (r + 1) + ijk[:, 2] * (r + 1) ** 2
@@ -122,8 +124,9 @@ def test_positional_encoding():
 
 
 def test_in_place_gradient_accumulation_matches_autograd():
-    enc = HashGridEncoding([[-1.0] * 3, [1.0] * 3], n_levels=4, base_res=4, max_res=32,
-                           log2_table=9, init_scale=1.0)
+    enc = HashGridEncoding([[-1.0] * 3, [1.0] * 3],
+                           HashGridLayout(n_levels=4, base_res=4, max_res=32, log2_table=9),
+                           init_scale=1.0)
     a, b = _points(700, 1) * 2 - 1, _points(500, 2) * 2 - 1
     ga, gb = torch.randn(700, 8), torch.randn(500, 8)
     (enc(a) * ga).sum().backward()

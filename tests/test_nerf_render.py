@@ -8,8 +8,9 @@ from torch import nn
 
 from plenoctree.nerf.config import ModelConfig, preset
 from plenoctree.nerf.model import NeRFModel
-from plenoctree.nerf.renderer import (_march_waves, render_rays_hierarchical,
-                                      render_rays_occupancy)
+from plenoctree.nerf.renderer import (RayBatch, RenderMode, _march_waves,
+                                      render_rays_hierarchical, render_rays_occupancy)
+from plenoctree.nerf.sampling import MarchGrid, MarchRays
 
 BBOX = np.array([[-1.5] * 3, [1.5] * 3], np.float32)
 
@@ -56,8 +57,8 @@ def test_occupancy_renderer_matches_closed_form():
     ball = Ball()
     model = _model_with(ball)
     o, d, tgt = _rays(64)
-    out = render_rays_occupancy(model, o, d, 2.0, 6.0, torch.ones(3), cfg, train=False,
-                                stop_thresh=0.0)
+    out = render_rays_occupancy(model, RayBatch(o, d, 2.0, 6.0, torch.ones(3)), cfg,
+                                RenderMode(train=False, stop_thresh=0.0))
     # chord length of each ray through the ball
     b = (o * d).sum(-1)
     disc = b * b - (o * o).sum(-1) + ball.rad ** 2
@@ -83,10 +84,11 @@ def test_waves_with_gradients_equal_the_gradient_free_pass():
     t_min = torch.full((300,), 2.5)
     t_max = 2.5 + torch.rand(300) * 2.0          # some rays end within the first wave
     jit = torch.rand(300)
-    args = (model.fine, o, d, t_min, t_max, jit, 0.02, model.occupancy)
-    ref = _march_waves(*args, 1e-3, False, train=False, budget=1 << 16)
-    small = _march_waves(*args, 1e-3, False, train=False, budget=300 * 16)
-    tr = _march_waves(*args, 1e-3, False, train=True, budget=300 * 16)
+    occ = model.occupancy
+    args = (model.fine, MarchRays(o, d, t_min, t_max, jit), MarchGrid(0.02, occ.mask, occ.bbox))
+    ref = _march_waves(*args, RenderMode(train=False, stop_thresh=1e-3), budget=1 << 16)
+    small = _march_waves(*args, RenderMode(train=False, stop_thresh=1e-3), budget=300 * 16)
+    tr = _march_waves(*args, RenderMode(train=True, stop_thresh=1e-3), budget=300 * 16)
     for k in ("rgb", "acc", "dsum"):
         torch.testing.assert_close(small[k], ref[k], atol=2e-5, rtol=1e-4)
         torch.testing.assert_close(tr[k].detach(), ref[k], atol=2e-5, rtol=1e-4)
@@ -94,7 +96,8 @@ def test_waves_with_gradients_equal_the_gradient_free_pass():
     tr["rgb"].sum().backward()
     assert model.fine.encoder.table.grad.abs().sum() > 0
     # a sample budget cuts rays off and says which
-    cut = _march_waves(*args, 1e-3, False, train=True, budget=300 * 16, max_samples=300 * 16)
+    cut = _march_waves(*args, RenderMode(train=True, stop_thresh=1e-3, max_samples=300 * 16),
+                       budget=300 * 16)
     assert not cut["complete"].all() and cut["complete"].any()
 
 
@@ -103,9 +106,9 @@ def test_early_termination_changes_little():
     cfg.render_step = 0.005
     model = _model_with(Ball(s=40.0))
     o, d, _ = _rays(100, 2)
-    full = render_rays_occupancy(model, o, d, 2.0, 6.0, torch.ones(3), cfg, False, stop_thresh=0)
-    stop = render_rays_occupancy(model, o, d, 2.0, 6.0, torch.ones(3), cfg, False,
-                                 stop_thresh=1e-3)
+    rays = RayBatch(o, d, 2.0, 6.0, torch.ones(3))
+    full = render_rays_occupancy(model, rays, cfg, RenderMode(stop_thresh=0))
+    stop = render_rays_occupancy(model, rays, cfg, RenderMode(stop_thresh=1e-3))
     assert stop["n_samples"] < 0.75 * full["n_samples"]
     assert (stop["rgb"] - full["rgb"]).abs().max() < 2e-3
 
@@ -115,8 +118,9 @@ def test_training_render_has_gradients_and_jitter():
     model = _model_with(Ball())
     o, d, _ = _rays(50, 3)
     g = torch.Generator().manual_seed(0)
-    a = render_rays_occupancy(model, o, d, 2.0, 6.0, torch.ones(3), cfg, True, g)
-    b = render_rays_occupancy(model, o, d, 2.0, 6.0, torch.ones(3), cfg, True, g)
+    rays, mode = RayBatch(o, d, 2.0, 6.0, torch.ones(3)), RenderMode(train=True, generator=g)
+    a = render_rays_occupancy(model, rays, cfg, mode)
+    b = render_rays_occupancy(model, rays, cfg, mode)
     assert a["complete"].all() and not torch.equal(a["depth"], b["depth"])
     a["rgb"].sum().backward()
     assert ball_grad(model) != 0
@@ -132,7 +136,8 @@ def test_hierarchical_renderer_matches_closed_form():
     ball = Ball(s=2.0)
     model = _model_with(ball, occ_res=0)
     o, d, _ = _rays(32, 4)
-    out = render_rays_hierarchical(model, o, d, 2.0, 6.0, torch.ones(3), cfg, train=False)
+    out = render_rays_hierarchical(model, RayBatch(o, d, 2.0, 6.0, torch.ones(3)), cfg,
+                                   RenderMode(train=False))
     b = (o * d).sum(-1)
     disc = b * b - (o * o).sum(-1) + ball.rad ** 2
     alpha = 1 - torch.exp(-ball.s * 2 * torch.sqrt(disc.clamp(min=0)))

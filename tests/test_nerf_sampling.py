@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from plenoctree.nerf.sampling import (march_rays, pdf_samples, ray_aabb, stratified_samples)
+from plenoctree.nerf.sampling import (MarchGrid, MarchRays, march_rays, pdf_samples, ray_aabb,
+                                      stratified_samples)
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
@@ -61,10 +62,15 @@ def _assert_same(a, b):
     torch.testing.assert_close(a.points, b.points, atol=0, rtol=0)
 
 
+def _march(o, d, t0, t1, jit, step, mask, bbox, k_start=None, **kw):
+    """``march_rays`` of these rays through ``mask`` over ``bbox`` at ``step``."""
+    return march_rays(MarchRays(o, d, t0, t1, jit, k_start), MarchGrid(step, mask, bbox), **kw)
+
+
 def _numba_equals_twin(*args, **kw):
-    """``march_rays(*args, **kw)`` with the numba kernels, checked equal to the torch twin's."""
-    a = march_rays(*args, **kw, backend="numba")
-    _assert_same(a, march_rays(*args, **kw, backend="torch"))
+    """``_march(*args, **kw)`` with the numba kernels, checked equal to the torch twin's."""
+    a = _march(*args, **kw, backend="numba")
+    _assert_same(a, _march(*args, **kw, backend="torch"))
     return a
 
 
@@ -143,13 +149,13 @@ def test_march_jumps_over_empty_cubes_with_the_twins_samples(cap):
 def test_march_in_waves_equals_one_march():
     o, d, t0, t1, jit, g = _rays(200, 2)
     mask = torch.rand((12, 12, 12), generator=g) < 0.5
-    full = march_rays(o, d, t0, t1, jit, 0.04, mask, BOX)
+    full = _march(o, d, t0, t1, jit, 0.04, mask, BOX)
     k = torch.zeros(200, dtype=torch.int64)
     parts = [[] for _ in range(200)]
     active = torch.arange(200)
     while active.numel():
-        s = march_rays(o[active], d[active], t0[active], t1[active], jit[active], 0.04, mask,
-                       BOX, k_start=k[active], max_per_ray=4)
+        s = _march(o[active], d[active], t0[active], t1[active], jit[active], 0.04, mask,
+                   BOX, k_start=k[active], max_per_ray=4)
         for j, r in enumerate(active.tolist()):
             parts[r].append(s.t[s.offsets[j]:s.offsets[j + 1]])
         k[active] = s.k_next
@@ -160,8 +166,8 @@ def test_march_in_waves_equals_one_march():
 
 def test_march_empty_and_full_grid():
     o, d, t0, t1, jit, _ = _rays(50, 3)
-    empty = march_rays(o, d, t0, t1, jit, 0.05, torch.zeros((8, 8, 8), dtype=torch.bool), BOX)
+    empty = _march(o, d, t0, t1, jit, 0.05, torch.zeros((8, 8, 8), dtype=torch.bool), BOX)
     assert len(empty) == 0 and empty.done.all() and empty.offsets.shape == (51,)
-    full = march_rays(o, d, t0, t1, jit, 0.05, torch.ones((8, 8, 8), dtype=torch.bool), BOX)
+    full = _march(o, d, t0, t1, jit, 0.05, torch.ones((8, 8, 8), dtype=torch.bool), BOX)
     expect = torch.clamp(torch.ceil((t1 - t0) / 0.05 - jit), min=0).long()
     assert (full.counts - expect).abs().max() <= 1      # boundary samples may fall just outside

@@ -185,11 +185,12 @@ def test_triton_stepper_matches_torch_stepper():
 
 # ------------------------------------------------------------------------------ NeRF-SH
 def test_hashgrid_kernel_matches_twin_forward_and_backward():
-    from plenoctree.nerf.encoding import HashGridEncoding
+    from plenoctree.nerf.encoding import HashGridEncoding, HashGridLayout
 
     gen = torch.Generator().manual_seed(0)
-    enc = HashGridEncoding([[-1, -1, -1], [1, 1, 1]], n_levels=4, n_features=2, base_res=2,
-                           max_res=32, log2_table=8, init_scale=1.0, generator=gen).to(DEV)
+    enc = HashGridEncoding([[-1, -1, -1], [1, 1, 1]],
+                           HashGridLayout(n_levels=4, n_features=2, base_res=2, max_res=32,
+                                          log2_table=8), init_scale=1.0, generator=gen).to(DEV)
     assert enc.hashed.any() and (~enc.hashed).any()               # dense and hashed levels
     pts = (torch.rand(300, 3, generator=gen) * 2.4 - 1.2).to(DEV)  # some outside the box
     pts[:10] = torch.tensor([1.0, -1.0, 0.5]).to(DEV)              # exactly on faces
@@ -213,7 +214,7 @@ def test_hashgrid_kernel_matches_twin_forward_and_backward():
 
 @pytest.mark.parametrize("max_per_ray", [0, 3])
 def test_march_kernel_matches_twin(max_per_ray):
-    from plenoctree.nerf.sampling import march_rays
+    from plenoctree.nerf.sampling import MarchGrid, MarchRays, march_rays
 
     gen = torch.Generator().manual_seed(1)
     n, g = 150, 8
@@ -225,11 +226,10 @@ def test_march_kernel_matches_twin(max_per_ray):
     t_max = torch.full((n,), 6.0)
     jitter = torch.rand(n, generator=gen)
     k0 = torch.randint(0, 4, (n,), generator=gen)
-    args = [x.to(DEV) for x in (o, d, t_min, t_max, jitter)]
-    fast = march_rays(*args, 0.07, mask.to(DEV), bbox.to(DEV), k_start=k0.to(DEV),
-                      max_per_ray=max_per_ray, backend="triton")
-    ref = march_rays(*args, 0.07, mask.to(DEV), bbox.to(DEV), k_start=k0.to(DEV),
-                     max_per_ray=max_per_ray, backend="torch")
+    rays = MarchRays(*[x.to(DEV) for x in (o, d, t_min, t_max, jitter, k0)])
+    grid = MarchGrid(0.07, mask.to(DEV), bbox.to(DEV))
+    fast = march_rays(rays, grid, max_per_ray=max_per_ray, backend="triton")
+    ref = march_rays(rays, grid, max_per_ray=max_per_ray, backend="torch")
     assert len(ref) > 100                                          # a real test
     assert bool(ref.done.all()) == (max_per_ray == 0)              # the cap stops some rays
     for name in ("ray_idx", "offsets", "k_next", "done"):

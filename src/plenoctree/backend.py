@@ -23,8 +23,8 @@ Ops and the signature of their implementations (each call site documents the sha
                  :func:`plenoctree.convert.visibility.max_ray_weights`
 ``hashgrid``     ``fn(encoding, x [N,3] unit cube) -> features [N, L*F]`` —
                  :class:`plenoctree.nerf.encoding.HashGridEncoding`
-``march``        ``fn(origins, dirs, t_min, t_max, jitter, k_start, step, mask, bbox,
-                 max_per_ray) -> PackedSamples`` — :func:`plenoctree.nerf.sampling.march_rays`
+``march``        ``fn(rays: MarchRays, grid: MarchGrid, max_per_ray) -> PackedSamples`` —
+                 :func:`plenoctree.nerf.sampling.march_rays`
 ``sh_colors``    ``fn(coeffs [N,3B], dirs [N,3], degree) -> rgb [N,3]`` —
                  :func:`plenoctree.nerf.model.sh_colors`
 ===============  ==========================================================================

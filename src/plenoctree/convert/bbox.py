@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import ConfigError
 from .grid import GridSpec, evaluate_density_grid
 
-__all__ = ["BoxResult", "auto_bbox", "fixed_bbox", "scale_box"]
+__all__ = ["BoxResult", "AutoBoxOptions", "auto_bbox", "fixed_bbox", "scale_box"]
 
 
 @dataclass
@@ -66,18 +66,33 @@ def fixed_bbox(center: Any, radius: Any, source: str = "user", scale: float = 1.
     return BoxResult(c, r, source)
 
 
-def auto_bbox(field: Any, center: Any, radius: Any, res: int = 128, alpha_thresh: float = 0.1,
-              scale: float = 1.0, cube: bool = False, chunk: int = 1 << 16,
-              show_progress: bool | None = None) -> BoxResult:
-    """Fit the box to the cells of a coarse grid whose alpha reaches ``alpha_thresh``.
+@dataclass(frozen=True)
+class AutoBoxOptions:
+    """How :func:`auto_bbox` fits the box.
+
+    Attributes:
+        res: coarse grid cells per axis (the original code: 256).
+        alpha_thresh: τ_a in (0, 1); alpha uses δ = the largest coarse cell side.
+        scale: multiply the fitted radius by this. cube: make the box a cube.
+        chunk: points per field call. show_progress: progress bar (None: on a terminal).
+    """
+
+    res: int = 128
+    alpha_thresh: float = 0.1
+    scale: float = 1.0
+    cube: bool = False
+    chunk: int = 1 << 16
+    show_progress: bool | None = None
+
+
+def auto_bbox(field: Any, center: Any, radius: Any,
+              opts: AutoBoxOptions = AutoBoxOptions()) -> BoxResult:
+    """Fit the box to the cells of a coarse grid whose alpha reaches ``opts.alpha_thresh``.
 
     Args:
         field: a radiance field (``density(points)``).
         center, radius: the initial box searched (world; scalars or ``[3]``).
-        res: coarse grid cells per axis (the original code: 256).
-        alpha_thresh: τ_a in (0, 1); alpha uses δ = the largest coarse cell side.
-        scale: multiply the fitted radius by this. cube: make the box a cube.
-        chunk: points per field call.
+        opts: grid resolution, threshold, scaling (see :class:`AutoBoxOptions`).
 
     Returns:
         A :class:`BoxResult` with ``source="auto"``.
@@ -85,10 +100,12 @@ def auto_bbox(field: Any, center: Any, radius: Any, res: int = 128, alpha_thresh
     Raises:
         ConfigError: no cell reaches ``alpha_thresh`` (an empty box or a too high threshold).
     """
+    res, alpha_thresh = opts.res, opts.alpha_thresh
     if not 0.0 < alpha_thresh < 1.0:
         raise ConfigError(f"alpha threshold must be in (0, 1), got {alpha_thresh}")
     spec = GridSpec.make(center, radius, res)
-    sigma = evaluate_density_grid(field, spec, chunk, desc="auto bbox", show_progress=show_progress)
+    sigma = evaluate_density_grid(field, spec, opts.chunk, desc="auto bbox",
+                                  show_progress=opts.show_progress)
     delta = float(spec.cell.max())
     # alpha >= t  <=>  sigma >= -log(1 - t) / delta   (avoids an R^3 float temporary)
     sig_min = -np.log1p(-alpha_thresh) / delta
@@ -111,5 +128,5 @@ def auto_bbox(field: Any, center: Any, radius: Any, res: int = 128, alpha_thresh
         idx_hi.append(occupied[-1])
     lo = spec.lo + np.asarray(idx_lo) * spec.cell                # kept centres - half a cell
     hi = spec.lo + (np.asarray(idx_hi) + 1.0) * spec.cell        # kept centres + half a cell
-    c, r = scale_box(0.5 * (lo + hi), 0.5 * (hi - lo), scale, cube)
+    c, r = scale_box(0.5 * (lo + hi), 0.5 * (hi - lo), opts.scale, opts.cube)
     return BoxResult(c, r, "auto", kept_cells=n_keep, max_alpha=max_alpha)

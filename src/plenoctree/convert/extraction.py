@@ -31,11 +31,11 @@ import numpy as np
 
 from .._util import atomic_save_json
 from ..errors import ConfigError, PlenOctreeError
-from .bbox import BoxResult, auto_bbox, fixed_bbox
+from .bbox import AutoBoxOptions, BoxResult, auto_bbox, fixed_bbox
 from .field import as_field
 from .grid import GridSpec, check_resolution, evaluate_density_grid
 from .memory import StageMonitor, check_budget, memory_limit
-from .sampling import SamplingStats, output_format, sample_cells
+from .sampling import SampleOptions, SamplingStats, output_format, sample_cells
 from .visibility import (auto_ray_scale, rescale_cameras, sigma_mask, visibility_weights,
                          weight_mask)
 
@@ -273,6 +273,152 @@ def _ndc_space(train: Any, root: str, downscale: int, background: Any) -> Any:
     return NDCSpace.from_cameras(train.cameras) if train is not None else None
 
 
+@dataclass
+class _Inputs:
+    """What the ``load`` stage found: the field, the run's figures and the training views."""
+
+    field: Any
+    train_cfg: Any                 # the run's TrainConfig (None for a field given directly)
+    nerf_psnr: float | None
+    data_root: str
+    downscale: int
+    background: tuple
+    train: Any                     # training views (None unless --masking weight needs them)
+    ndc: Any
+    fmt: str
+    extra_data: Any
+    dim: int
+
+
+def _prepare(cfg: ExtractConfig) -> tuple[ExtractConfig, int]:
+    """Check the options, the output file, threads and the memory budget before any work;
+    returns ``(cfg with the device resolved, memory limit in bytes)``."""
+    _validate(cfg)
+    from ..device import resolve_device
+
+    cfg = dataclasses.replace(cfg, device=str(resolve_device(cfg.device)))
+    if cfg.out:                     # before any work: never overwrite an unrelated file
+        from .._util import check_output_file
+
+        check_output_file(Path(cfg.out) / "tree.npz" if Path(cfg.out).is_dir() else cfg.out)
+    if cfg.threads > 0:             # only when asked: a library call keeps the process's threads
+        from ..runtime import setup_threads
+
+        setup_threads(cfg.threads)
+    limit = memory_limit(cfg.memory_gb)
+    check_budget(f"a {cfg.grid}^3 extraction grid", estimate_grid_memory(cfg.grid), limit,
+                 f"use a smaller --grid (e.g. {max(2, cfg.grid // 2)}) or raise --memory-gb")
+    check_budget(f"the {cfg.bbox_grid}^3 auto-bbox grid", cfg.bbox_grid ** 3 * 5, limit,
+                 "use a smaller --bbox-grid")
+    return cfg, limit
+
+
+def _load_inputs(cfg: ExtractConfig, field: Any) -> _Inputs:
+    """Stage ``load``: the run's model (or ``field``), its dataset's training views when the
+    weight filter needs them, the NDC space, and the output format."""
+    train_cfg, nerf_psnr = None, None
+    if field is None:
+        field, train_cfg, nerf_psnr = _load_run(cfg)
+    else:
+        field = as_field(field, device=cfg.device, amp=cfg.amp)
+    data_root = cfg.data or (train_cfg.data if train_cfg is not None else "")
+    run_down = int(train_cfg.downscale) if train_cfg is not None else 1
+    background = tuple(train_cfg.background) if train_cfg is not None else (1.0, 1.0, 1.0)
+    need_train = cfg.masking == "weight"
+    if (need_train or cfg.eval) and not data_root:
+        raise ConfigError("no dataset: pass --data (the training views are needed by "
+                          "--masking weight and the test views by --eval)")
+    if data_root and not Path(data_root).is_dir():
+        raise ConfigError(f"{data_root}: dataset folder not found; pass --data")
+    train = _load_split(data_root, "train", run_down, background) if need_train else None
+    ndc = _ndc_space(train, data_root, run_down, background)
+    fmt, extra_data, dim = output_format(field, cfg.projection_degree)
+    return _Inputs(field, train_cfg, nerf_psnr, data_root, run_down, background, train, ndc,
+                   fmt, extra_data, dim)
+
+
+def _extraction_box(cfg: ExtractConfig, inp: _Inputs) -> BoxResult:
+    """Stage ``bbox``: the auto-fitted or the fixed box."""
+    data_bbox = inp.train.scene_bbox if inp.train is not None else None
+    c0, r0, src = _initial_box(cfg, inp.field, data_bbox)
+    if cfg.bbox == "auto":
+        return auto_bbox(inp.field, c0, r0, AutoBoxOptions(
+            res=cfg.bbox_grid, alpha_thresh=cfg.alpha_thresh, scale=cfg.bbox_scale,
+            cube=cfg.bbox_cube, chunk=cfg.chunk, show_progress=cfg.show_progress))
+    return fixed_bbox(c0, r0, src, cfg.bbox_scale, cfg.bbox_cube)
+
+
+def _filter(cfg: ExtractConfig, sigma: np.ndarray, spec: GridSpec, train: Any,
+            limit: int) -> tuple[np.ndarray, int, dict]:
+    """Stage ``filter``: ``(mask of kept cells, candidates, visibility figures)``.
+
+    Raises:
+        ConfigError: the filter removed every cell.
+    """
+    if cfg.masking == "weight":
+        ray_scale = cfg.vis_scale or auto_ray_scale(train.cameras, spec)
+        cams = rescale_cameras(train.cameras, ray_scale)
+        vis_info = {"vis_views": len(cams), "vis_size": [cams.width, cams.height],
+                    "vis_scale": ray_scale}
+        cand, weights = visibility_weights(sigma, spec, cams, cfg.weight_thresh,
+                                           cfg.backend, cfg.show_progress, limit)
+        n_cand = int(cand.flat.size)
+        mask = weight_mask(spec, cand, weights, cfg.weight_thresh)
+        max_w = float(weights.max()) if weights.size else 0.0
+        del cand, weights
+        what = (f"no voxel reaches the weight threshold {cfg.weight_thresh:g} in any of the "
+                f"{len(train)} training views (largest weight {max_w:.3g}); lower "
+                f"--weight-thresh or use --masking sigma")
+    else:
+        vis_info = {}
+        mask = sigma_mask(sigma, spec, cfg.mask_alpha_thresh)
+        n_cand = int(np.count_nonzero(sigma > 0))
+        what = (f"no voxel has alpha >= {cfg.mask_alpha_thresh:g} (largest σ "
+                f"{float(sigma.max()):.4g}); lower --mask-alpha-thresh")
+    if not np.any(mask):
+        raise ConfigError(f"every voxel was removed: {what}")
+    return mask, n_cand, vis_info
+
+
+def _sample_and_build(cfg: ExtractConfig, inp: _Inputs, spec: GridSpec, mask: np.ndarray,
+                      mon: StageMonitor) -> tuple[Any, SamplingStats]:
+    """Stages ``sample`` and ``build``: the kept cells' values and the octree of them."""
+    from ..octree import Octree
+
+    with mon.stage("sample"):
+        st = SamplingStats()
+        values = sample_cells(inp.field, spec, np.flatnonzero(mask), SampleOptions(
+            samples=cfg.samples, chunk=cfg.chunk, seed=cfg.seed, averaging=cfg.averaging,
+            projection_degree=cfg.projection_degree, projection_dirs=cfg.projection_dirs,
+            show_progress=cfg.show_progress), st)
+    with mon.stage("build"):
+        tree = Octree.from_grid(values, mask, spec.center, spec.radius, inp.fmt, inp.extra_data)
+        tree.ndc = inp.ndc      # forward-facing: the NDC space the box lives in (octree.ndc)
+    return tree, st
+
+
+def _output_path(cfg: ExtractConfig, from_run: bool) -> Path | None:
+    """``cfg.out`` (a folder: its ``tree.npz``), else ``RUN_DIR/tree.npz`` for a run, else
+    None (a field given directly is not saved)."""
+    out = Path(cfg.out) if cfg.out else (Path(cfg.run_dir) / "tree.npz"
+                                         if cfg.run_dir and from_run else None)
+    if out is not None and out.is_dir():
+        out = out / "tree.npz"
+    return out
+
+
+def _save(tree: Any, out: Path, precision: str) -> tuple[int, int]:
+    """Stage ``save``: ``(file bytes, σ values clamped for fp16)``."""
+    from ..octree import save_tree
+
+    n_clamped = clamp_sigma_for_fp16(tree) if precision == "fp16" else 0
+    try:
+        save_tree(tree, out, precision)
+    except ValueError as e:
+        raise ConfigError(f"{out}: {e}; save with --precision fp32") from None
+    return os.path.getsize(out), n_clamped
+
+
 def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
     """Convert a trained radiance field into a PlenOctree (see the module docstring).
 
@@ -291,131 +437,51 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
         ConfigError: bad options, an unusable run directory, a box with nothing in it, a grid
             too large for the memory budget, a threshold that removes every voxel.
     """
-    from ..octree import Octree, save_tree
-
-    _validate(cfg)
-    from ..device import resolve_device
-
-    cfg = dataclasses.replace(cfg, device=str(resolve_device(cfg.device)))
-    if cfg.out:                     # before any work: never overwrite an unrelated file
-        from .._util import check_output_file
-
-        check_output_file(Path(cfg.out) / "tree.npz" if Path(cfg.out).is_dir() else cfg.out)
-    if cfg.threads > 0:             # only when asked: a library call keeps the process's threads
-        from ..runtime import setup_threads
-
-        setup_threads(cfg.threads)
+    cfg, limit = _prepare(cfg)
     mon = StageMonitor()
-    limit = memory_limit(cfg.memory_gb)
-    check_budget(f"a {cfg.grid}^3 extraction grid", estimate_grid_memory(cfg.grid), limit,
-                 f"use a smaller --grid (e.g. {max(2, cfg.grid // 2)}) or raise --memory-gb")
-    check_budget(f"the {cfg.bbox_grid}^3 auto-bbox grid", cfg.bbox_grid ** 3 * 5, limit,
-                 "use a smaller --bbox-grid")
-    need_train = cfg.masking == "weight"
-
     with mon.stage("load"):
-        train_cfg, nerf_psnr = None, None
-        if field is None:
-            field, train_cfg, nerf_psnr = _load_run(cfg)
-        else:
-            field = as_field(field, device=cfg.device, amp=cfg.amp)
-        data_root = cfg.data or (train_cfg.data if train_cfg is not None else "")
-        run_down = int(train_cfg.downscale) if train_cfg is not None else 1
-        background = tuple(train_cfg.background) if train_cfg is not None else (1.0, 1.0, 1.0)
-        if (need_train or cfg.eval) and not data_root:
-            raise ConfigError("no dataset: pass --data (the training views are needed by "
-                              "--masking weight and the test views by --eval)")
-        if data_root and not Path(data_root).is_dir():
-            raise ConfigError(f"{data_root}: dataset folder not found; pass --data")
-        train = _load_split(data_root, "train", run_down, background) if need_train else None
-        data_bbox = train.scene_bbox if train is not None else None
-        ndc = _ndc_space(train, data_root, run_down, background)
-        fmt, extra_data, dim = output_format(field, cfg.projection_degree)
-
+        inp = _load_inputs(cfg, field)
     with mon.stage("bbox"):
-        c0, r0, src = _initial_box(cfg, field, data_bbox)
-        if cfg.bbox == "auto":
-            box = auto_bbox(field, c0, r0, cfg.bbox_grid, cfg.alpha_thresh, cfg.bbox_scale,
-                            cfg.bbox_cube, cfg.chunk, cfg.show_progress)
-        else:
-            box = fixed_bbox(c0, r0, src, cfg.bbox_scale, cfg.bbox_cube)
+        box = _extraction_box(cfg, inp)
         spec = GridSpec.make(box.center, box.radius, cfg.grid)
-
     with mon.stage("grid"):
-        sigma = evaluate_density_grid(field, spec, cfg.chunk, show_progress=cfg.show_progress)
-
+        sigma = evaluate_density_grid(inp.field, spec, cfg.chunk, show_progress=cfg.show_progress)
     with mon.stage("filter"):
-        if cfg.masking == "weight":
-            ray_scale = cfg.vis_scale or auto_ray_scale(train.cameras, spec)
-            cams = rescale_cameras(train.cameras, ray_scale)
-            vis_info = {"vis_views": len(cams), "vis_size": [cams.width, cams.height],
-                        "vis_scale": ray_scale}
-            cand, weights = visibility_weights(sigma, spec, cams, cfg.weight_thresh,
-                                               cfg.backend, cfg.show_progress, limit)
-            n_cand = int(cand.flat.size)
-            mask = weight_mask(spec, cand, weights, cfg.weight_thresh)
-            max_w = float(weights.max()) if weights.size else 0.0
-            del cand, weights
-            what = (f"no voxel reaches the weight threshold {cfg.weight_thresh:g} in any of the "
-                    f"{len(train)} training views (largest weight {max_w:.3g}); lower "
-                    f"--weight-thresh or use --masking sigma")
-        else:
-            vis_info = {}
-            mask = sigma_mask(sigma, spec, cfg.mask_alpha_thresh)
-            n_cand = int(np.count_nonzero(sigma > 0))
-            what = (f"no voxel has alpha >= {cfg.mask_alpha_thresh:g} (largest σ "
-                    f"{float(sigma.max()):.4g}); lower --mask-alpha-thresh")
-        del sigma, train
+        mask, n_cand, vis_info = _filter(cfg, sigma, spec, inp.train, limit)
+        del sigma
+        inp.train = None            # the training images are not needed any more
         n_kept = int(np.count_nonzero(mask))
-        if n_kept == 0:
-            raise ConfigError(f"every voxel was removed: {what}")
-        check_budget(f"{n_kept} leaves x {dim} values (sampling and octree)",
-                     int(n_kept * dim * 4 * 3.5), limit,
+        check_budget(f"{n_kept} leaves x {inp.dim} values (sampling and octree)",
+                     int(n_kept * inp.dim * 4 * 3.5), limit,
                      "use a smaller --grid or a higher --weight-thresh")
-
-    with mon.stage("sample"):
-        st = SamplingStats()
-        values = sample_cells(field, spec, np.flatnonzero(mask), cfg.samples, cfg.chunk, cfg.seed,
-                              cfg.projection_degree, cfg.projection_dirs, cfg.show_progress, st,
-                              cfg.averaging)
-
-    with mon.stage("build"):
-        tree = Octree.from_grid(values, mask, spec.center, spec.radius, fmt, extra_data)
-        tree.ndc = ndc          # forward-facing: the NDC space the box lives in (octree.ndc)
-        del values, mask
-
-    out = Path(cfg.out) if cfg.out else (Path(cfg.run_dir) / "tree.npz"
-                                         if cfg.run_dir and train_cfg is not None else None)
-    if out is not None and out.is_dir():
-        out = out / "tree.npz"
+    tree, st = _sample_and_build(cfg, inp, spec, mask, mon)
+    del mask
+    out = _output_path(cfg, inp.train_cfg is not None)
     file_bytes, n_clamped = 0, 0
     if out is not None:
         with mon.stage("save"):
-            n_clamped = clamp_sigma_for_fp16(tree) if cfg.precision == "fp16" else 0
-            try:
-                save_tree(tree, out, cfg.precision)
-            except ValueError as e:
-                raise ConfigError(f"{out}: {e}; save with --precision fp32") from None
-            file_bytes = os.path.getsize(out)
-
+            file_bytes, n_clamped = _save(tree, out, cfg.precision)
     res = ExtractResult(tree, out, box, cfg.grid, n_cand, n_kept, file_bytes, {},
-                        nerf_psnr=nerf_psnr,
+                        nerf_psnr=inp.nerf_psnr,
                         extra={"sampled_points": st.points, "nonfinite_values": st.nonfinite,
-                               "sigma_clamped_fp16": n_clamped,
-                               "samples": cfg.samples, "averaging": cfg.averaging,
-                               "masking": cfg.masking,
-                               "device": cfg.device,
-                               "weight_thresh": cfg.weight_thresh, "precision": cfg.precision,
-                               **vis_info,
+                               "sigma_clamped_fp16": n_clamped, **_settings(cfg), **vis_info,
                                "config": {k: (list(v) if isinstance(v, tuple) else v)
                                           for k, v in dataclasses.asdict(cfg).items()}})
     if cfg.eval:
         with mon.stage("eval"):
-            _evaluate(res, cfg, data_root, cfg.eval_downscale or run_down, background)
+            _evaluate(res, cfg, inp.data_root, cfg.eval_downscale or inp.downscale,
+                      inp.background)
     res.stages = mon.to_json()
     if out is not None:
         atomic_save_json(out.with_name(out.stem + ".extract.json"), res.to_json())
     return res
+
+
+def _settings(cfg: ExtractConfig) -> dict:
+    """The options repeated at the top level of ``extract.json``."""
+    return {"samples": cfg.samples, "averaging": cfg.averaging, "masking": cfg.masking,
+            "device": cfg.device, "weight_thresh": cfg.weight_thresh,
+            "precision": cfg.precision}
 
 
 def _evaluate(res: ExtractResult, cfg: ExtractConfig, root: str, downscale: int,

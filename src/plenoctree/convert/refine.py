@@ -26,6 +26,7 @@ svox-layout tree of mixed depths, nodes renumbered breadth-first (``check_integr
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import time
 from dataclasses import dataclass, field
@@ -37,12 +38,14 @@ import numpy as np
 from .._util import atomic_save_json, progress
 from ..errors import ConfigError
 from ..sh import SH_C0
-from .sampling import AVERAGING, average_samples
-
 from ..octree.limits import MAX_DEPTH
+from .sampling import AVERAGING, SampleOptions, average_samples
 
-__all__ = ["RefineConfig", "RefineResult", "refine", "refine_tree", "leaf_spread",
-           "subdivide_leaves", "merge_leaves", "compact_tree", "field_error", "MAX_DEPTH"]
+__all__ = ["RefineConfig", "RefineOptions", "RefineResult", "refine", "refine_tree",
+           "leaf_spread", "subdivide_leaves", "merge_leaves", "compact_tree", "field_error",
+           "MAX_DEPTH"]
+
+logger = logging.getLogger(__name__)
 
 _COPY_NODES = 1 << 13
 """Old nodes copied per block when a subdivided tree is assembled (13 MB of SH16 float32)."""
@@ -58,12 +61,14 @@ def _base_colour(coeffs: np.ndarray, data_format: str, basis_dim: int) -> np.nda
     return 1.0 / (1.0 + np.exp(-raw))
 
 
-def _box_stats(field_: Any, lo: np.ndarray, size: np.ndarray, samples: int,
-               rng: np.random.Generator, fmt: str, basis_dim: int, dim: int,
-               averaging: str = "mean") -> tuple[np.ndarray, np.ndarray]:
+def _box_stats(field_: Any, lo: np.ndarray, size: np.ndarray, tree: Any, samples: int,
+               rng: np.random.Generator, averaging: str = "mean"
+               ) -> tuple[np.ndarray, np.ndarray]:
     """Average field value ``[M, D]`` (σ ≥ 0 last; ``averaging`` as in
     :func:`~plenoctree.convert.sampling.average_samples`) and spread ``[M]`` of ``samples``
-    uniform random points in each world box ``lo [M, 3] + [0, size [M, 3]]``."""
+    uniform random points in each world box ``lo [M, 3] + [0, size [M, 3]]``; ``tree`` gives
+    the value layout (``data_format``, ``basis_dim``, ``data_dim``)."""
+    fmt, basis_dim, dim = tree.data_format, tree.basis_dim, tree.data_dim
     m = lo.shape[0]
     pts = (lo[:, None, :] + rng.random((m, samples, 3)) * size[:, None, :]).astype(np.float32)
     sigma, coeffs = field_.query(pts.reshape(-1, 3))
@@ -119,8 +124,7 @@ def leaf_spread(tree: Any, field_: Any, samples: int = 8, seed: int = 0, chunk: 
                   disable=None if show_progress is None else not show_progress) as bar:
         for s, e in _blocks(sel.size, samples, chunk):
             b = sel[s:e]
-            _, out[s:e] = _box_stats(field_, lo[b], size[b], samples, rng, tree.data_format,
-                                     tree.basis_dim, tree.data_dim)
+            _, out[s:e] = _box_stats(field_, lo[b], size[b], tree, samples, rng)
             bar.update(e - s)
     return out
 
@@ -206,8 +210,9 @@ def subdivide_leaves(tree: Any, leaves: np.ndarray, field_: Any, samples: int = 
     if new_depth > MAX_DEPTH:
         raise ConfigError(f"subdividing would create cells of depth {new_depth} > the depth "
                           f"limit {MAX_DEPTH}")
-    vals, spread = _child_values(tree, lo[leaves], size[leaves], field_, samples, seed, chunk,
-                                 show_progress, averaging)
+    vals, spread = _child_values(tree, lo[leaves], size[leaves], field_, SampleOptions(
+        samples=samples, chunk=chunk, seed=seed, averaging=averaging,
+        show_progress=show_progress))
     out = _with_children(tree, (node[leaves], i[leaves], j[leaves], k[leaves]), vals,
                          max(int(tree.depth_limit), new_depth))
     del vals
@@ -215,24 +220,25 @@ def subdivide_leaves(tree: Any, leaves: np.ndarray, field_: Any, samples: int = 
     return out, _children_spread_order(tree, out, leaves, spread)
 
 
-def _child_values(tree: Any, lo: np.ndarray, size: np.ndarray, field_: Any, samples: int,
-                  seed: int, chunk: int, show_progress: bool | None, averaging: str
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def _child_values(tree: Any, lo: np.ndarray, size: np.ndarray, field_: Any,
+                  opts: SampleOptions) -> tuple[np.ndarray, np.ndarray]:
     """Values ``[8 M, data_dim]`` float32 and spread ``[8 M]`` of the children of the M leaves
-    whose boxes are ``lo, size [M, 3]`` (world units; order: leaf, then cell ``i, j, k``)."""
+    whose boxes are ``lo, size [M, 3]`` (world units; order: leaf, then cell ``i, j, k``),
+    each from ``opts.samples`` field samples (``opts.seed``, ``opts.chunk``, ``opts.averaging``;
+    the projection options are unused)."""
     m, dim = lo.shape[0], tree.data_dim
+    samples, show_progress = opts.samples, opts.show_progress
     half = size / 2.0
     clo = (lo[:, None, :] + _CELL[None] * half[:, None, :]).reshape(-1, 3)
     chalf = np.repeat(half, 8, axis=0)
     vals = np.empty((8 * m, dim), np.float32)
     spread = np.empty(8 * m, np.float32)
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(opts.seed)
     with progress(total=8 * m, desc="subdividing", unit="cell", unit_scale=True,
                   disable=None if show_progress is None else not show_progress) as bar:
-        for s, e in _blocks(8 * m, samples, chunk):
-            vals[s:e], spread[s:e] = _box_stats(field_, clo[s:e], chalf[s:e], samples, rng,
-                                                tree.data_format, tree.basis_dim, dim,
-                                                averaging)
+        for s, e in _blocks(8 * m, samples, opts.chunk):
+            vals[s:e], spread[s:e] = _box_stats(field_, clo[s:e], chalf[s:e], tree, samples,
+                                                rng, opts.averaging)
             bar.update(e - s)
     return vals, spread
 
@@ -326,30 +332,52 @@ def merge_leaves(tree: Any, tol: float) -> tuple[Any, int]:
     return dataclasses.replace(out, depth_limit=int(tree.depth_limit)), int(ok.size)
 
 
-def refine_tree(tree: Any, field_: Any, *, passes: int = 1, threshold: float = 0.02,
-                max_fraction: float = 0.5, max_depth: int | None = None, samples: int = 8,
-                merge_tol: float = 0.0, seed: int = 0, chunk: int = 1 << 17,
-                show_progress: bool | None = False, log=lambda s: None,
-                averaging: str = "mean") -> tuple[Any, list]:
-    """Subdivide where one value per leaf cannot represent ``field_`` and (``merge_tol > 0``)
-    merge where eight siblings agree; see the module docstring.
+@dataclass(frozen=True)
+class RefineOptions:
+    """How :func:`refine_tree` refines.
 
-    Args:
-        tree: the tree (not modified). field_: a radiance field of the tree's data format.
+    Attributes:
         passes: subdivision rounds; each round scores the leaves the previous one created
             (the first scores every leaf with σ > 0).
         threshold: subdivide leaves whose spread is at least this (pixel units).
         max_fraction: at most this share of the scored leaves per pass (the worst first).
-        max_depth: deepest cell depth allowed (default: the tree's depth + ``passes``, at most
+        max_depth: deepest cell depth allowed (None: the tree's depth + ``passes``, at most
             ``MAX_DEPTH``).
         samples: field samples per scored / new leaf.
         merge_tol: merge siblings that agree within this (0 = no merging).
+        seed: random seed of the samples. chunk: points per field call.
+        show_progress: progress bars (None: on a terminal).
         averaging: value of a new leaf from its samples: "mean" or "opacity" (use the one the
             tree was extracted with).
+    """
+
+    passes: int = 1
+    threshold: float = 0.02
+    max_fraction: float = 0.5
+    max_depth: int | None = None
+    samples: int = 8
+    merge_tol: float = 0.0
+    seed: int = 0
+    chunk: int = 1 << 17
+    show_progress: bool | None = False
+    averaging: str = "mean"
+
+
+def refine_tree(tree: Any, field_: Any, opts: RefineOptions = RefineOptions()
+                ) -> tuple[Any, list]:
+    """Subdivide where one value per leaf cannot represent ``field_`` and (``merge_tol > 0``)
+    merge where eight siblings agree; see the module docstring. Each pass is logged (INFO).
+
+    Args:
+        tree: the tree (not modified). field_: a radiance field of the tree's data format.
+        opts: passes, threshold, sampling, merging (:class:`RefineOptions`).
 
     Returns:
         ``(new tree, per-pass records)`` with leaves, nodes, subdivided / merged counts.
     """
+    passes, threshold, max_fraction, samples, merge_tol = (
+        opts.passes, opts.threshold, opts.max_fraction, opts.samples, opts.merge_tol)
+    max_depth, seed, chunk = opts.max_depth, opts.seed, opts.chunk
     if tree.data_format == "RGBA" or getattr(field_, "basis", "sh") == "plain":
         raise ConfigError("refine needs a NeRF-SH / NeRF-SG field and a tree of its format")
     for name, v, lo in (("passes", passes, 0), ("samples", samples, 1)):
@@ -369,7 +397,7 @@ def refine_tree(tree: Any, field_: Any, *, passes: int = 1, threshold: float = 0
         sig = _leaf_sigma(tree)
         if cand is None:
             cand = np.flatnonzero(sig > 0)
-            scores = leaf_spread(tree, field_, samples, seed + p, chunk, cand, show_progress)
+            scores = leaf_spread(tree, field_, samples, seed + p, chunk, cand, opts.show_progress)
         keep = depth[cand] < limit
         cand, scores = cand[keep], scores[keep]
         bad = scores >= threshold
@@ -381,14 +409,15 @@ def refine_tree(tree: Any, field_: Any, *, passes: int = 1, threshold: float = 0
             break
         worst = cand[np.argsort(-scores, kind="stable")[:k]]
         tree, child_spread = subdivide_leaves(tree, worst, field_, samples, seed + 100 + p,
-                                              chunk, show_progress, averaging)
+                                              chunk, opts.show_progress, opts.averaging)
         rec = {"pass": p + 1, "scored": int(cand.size), "subdivided": k,
                "leaves": int(tree.n_leaves), "nodes": int(tree.n_nodes),
                "max_depth": int(tree.max_depth),
                "seconds": round(time.perf_counter() - t0, 2)}
         records.append(rec)
-        log(f"refine pass {p + 1}: subdivided {k} of {rec['scored']} scored leaves -> "
-            f"{rec['leaves']} leaves, depth {rec['max_depth']} ({rec['seconds']} s)")
+        logger.info("refine pass %d: subdivided %d of %d scored leaves -> %d leaves, depth %d "
+                    "(%s s)", p + 1, k, rec["scored"], rec["leaves"], rec["max_depth"],
+                    rec["seconds"])
         new_sig = _leaf_sigma(tree)
         cand = np.flatnonzero((child_spread >= 0) & (new_sig > 0))
         scores = child_spread[cand]
@@ -401,7 +430,7 @@ def refine_tree(tree: Any, field_: Any, *, passes: int = 1, threshold: float = 0
                 break
         records.append({"merge_tol": merge_tol, "merged": total, "leaves": int(tree.n_leaves),
                         "nodes": int(tree.n_nodes)})
-        log(f"refine merge: {total} nodes merged -> {tree.n_leaves} leaves")
+        logger.info("refine merge: %d nodes merged -> %d leaves", total, tree.n_leaves)
     return tree, records
 
 
@@ -447,6 +476,15 @@ class RefineConfig:
     """Random seed of the samples."""
     show_progress: bool | None = None
     """Progress bars (None: when stderr is a terminal)."""
+
+    def options(self) -> RefineOptions:
+        """The :func:`refine_tree` options of this command."""
+        return RefineOptions(passes=int(self.passes), threshold=float(self.threshold),
+                             max_fraction=float(self.max_fraction),
+                             max_depth=int(self.max_depth) or None, samples=int(self.samples),
+                             merge_tol=float(self.merge_tol), seed=int(self.seed),
+                             chunk=int(self.chunk), show_progress=self.show_progress,
+                             averaging=self.averaging)
 
     def validated(self) -> "RefineConfig":
         """Check the option values; raises :class:`ConfigError` naming the option."""
@@ -508,9 +546,10 @@ def _eval_psnr(tree: Any, root: str, downscale: int, background: Any, n: int) ->
     return float(ev.mean_psnr)
 
 
-def refine(cfg: RefineConfig, log=print) -> RefineResult:
+def refine(cfg: RefineConfig) -> RefineResult:
     """Refine ``cfg.tree`` against the NeRF-SH of ``cfg.run_dir`` and save ``cfg.out``
-    (atomically, with ``<out stem>.refine.json`` holding the figures)."""
+    (atomically, with ``<out stem>.refine.json`` holding the figures). Logs the test PSNR
+    before and after (with ``eval_views``) and each pass (INFO)."""
     from ..octree import load_tree, save_tree
     from .extraction import ExtractConfig, _load_run, clamp_sigma_for_fp16
 
@@ -534,18 +573,13 @@ def refine(cfg: RefineConfig, log=print) -> RefineResult:
         raise ConfigError(f"{root}: dataset folder not found; pass --data")
     before = _eval_psnr(tree, root, down, bg, cfg.eval_views) if cfg.eval_views else None
     if before is not None:
-        log(f"refine: test PSNR before {before:.3f} dB ({cfg.eval_views} views)")
+        logger.info("refine: test PSNR before %.3f dB (%d views)", before, cfg.eval_views)
     n0 = tree.n_leaves
-    new, recs = refine_tree(tree, field_, passes=int(cfg.passes), threshold=float(cfg.threshold),
-                            max_fraction=float(cfg.max_fraction),
-                            max_depth=int(cfg.max_depth) or None, samples=int(cfg.samples),
-                            merge_tol=float(cfg.merge_tol), seed=int(cfg.seed),
-                            chunk=int(cfg.chunk), show_progress=cfg.show_progress, log=log,
-                            averaging=cfg.averaging)
+    new, recs = refine_tree(tree, field_, cfg.options())
     new.check_integrity("refined tree")
     after = _eval_psnr(new, root, down, bg, cfg.eval_views) if cfg.eval_views else None
     if after is not None:
-        log(f"refine: test PSNR after  {after:.3f} dB")
+        logger.info("refine: test PSNR after  %.3f dB", after)
     src = Path(cfg.tree)
     out = Path(cfg.out) if cfg.out else src.with_name(src.stem + "_refined.npz")
     if precision == "fp16":

@@ -35,7 +35,8 @@ from ..sh import num_sh_bases
 from .grid import GridSpec, cell_points
 from .projection import project_sh
 
-__all__ = ["SamplingStats", "sample_cells", "output_format", "average_samples", "AVERAGING"]
+__all__ = ["SamplingStats", "SampleOptions", "sample_cells", "output_format", "average_samples",
+           "AVERAGING"]
 
 AVERAGING = ("mean", "opacity")
 """The per-voxel averages of :func:`average_samples`."""
@@ -47,6 +48,30 @@ class SamplingStats:
 
     points: int = 0
     nonfinite: int = 0
+
+
+@dataclass(frozen=True)
+class SampleOptions:
+    """How :func:`sample_cells` samples each cell.
+
+    Attributes:
+        samples: S ≥ 1 uniform random points per cell.
+        chunk: points per field call (for projection: point-direction pairs per call).
+        seed: random seed (points and projection directions).
+        averaging: ``"mean"`` or ``"opacity"`` (:func:`average_samples`; the voxel side is the
+            mean of the cell's three sides).
+        projection_degree, projection_dirs: a plain NeRF's colour is projected onto SH of this
+            degree with this many directions per point.
+        show_progress: progress bar (None: on a terminal).
+    """
+
+    samples: int = 8
+    chunk: int = 1 << 16
+    seed: int = 0
+    averaging: str = "mean"
+    projection_degree: int = 3
+    projection_dirs: int = 10000
+    show_progress: bool | None = None
 
 
 def output_format(field: Any, projection_degree: int) -> tuple[str, np.ndarray | None, int]:
@@ -94,26 +119,23 @@ def average_samples(vals: np.ndarray, h: np.ndarray | float, averaging: str = "m
     return out.astype(np.float32, copy=False)
 
 
-def sample_cells(field: Any, spec: GridSpec, flat: np.ndarray, samples: int = 8,
-                 chunk: int = 1 << 16, seed: int = 0, projection_degree: int = 3,
-                 projection_dirs: int = 10000, show_progress: bool | None = None,
-                 stats: SamplingStats | None = None, averaging: str = "mean") -> np.ndarray:
-    """Mean of ``samples`` random samples of the field in each cell ``flat [M]``.
+def sample_cells(field: Any, spec: GridSpec, flat: np.ndarray,
+                 opts: SampleOptions = SampleOptions(), stats: SamplingStats | None = None
+                 ) -> np.ndarray:
+    """Average of ``opts.samples`` random samples of the field in each cell ``flat [M]``.
 
     Args:
         field: a radiance field; ``basis`` "sh"/"sg" are averaged directly, "plain" is projected
-            onto SH of ``projection_degree`` with ``projection_dirs`` directions per point.
+            onto SH of ``opts.projection_degree`` first.
         spec: the grid the flat (C-order) indices refer to.
-        samples: S ≥ 1 uniform random points per cell.
-        chunk: points per field call (for projection: point-direction pairs per call).
-        seed: random seed (points and projection directions).
+        opts: samples per cell, chunk, seed, averaging, projection (:class:`SampleOptions`).
         stats: optional counters to fill.
-        averaging: ``"mean"`` or ``"opacity"`` (:func:`average_samples`; the voxel side is the
-            mean of the cell's three sides).
 
     Returns:
         float32 ``[M, D]``: the coefficients then σ ≥ 0 (the octree leaf layout).
     """
+    samples, chunk, averaging = opts.samples, opts.chunk, opts.averaging
+    projection_degree, projection_dirs = opts.projection_degree, opts.projection_dirs
     if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 1:
         raise ConfigError(f"samples per cell must be a positive integer, got {samples!r}")
     if chunk < 1:
@@ -128,10 +150,11 @@ def sample_cells(field: Any, spec: GridSpec, flat: np.ndarray, samples: int = 8,
     out = np.empty((m, dim), dtype=np.float32)
     pts_per_call = max(1, chunk // projection_dirs) if plain else chunk
     cells_per_block = max(1, pts_per_call // samples)
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(opts.seed)
     st = stats if stats is not None else SamplingStats()
+    show = opts.show_progress
     with progress(total=m, desc="sampling", unit="voxel", unit_scale=True,
-                  disable=None if show_progress is None else not show_progress) as bar:
+                  disable=None if show is None else not show) as bar:
         for s in range(0, m, cells_per_block):
             block = flat[s:s + cells_per_block]
             pts = cell_points(spec, block, samples, rng).reshape(-1, 3)

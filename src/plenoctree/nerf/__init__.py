@@ -6,6 +6,7 @@ Public entry points::
     cfg = preset("cpu"); cfg.data, cfg.out = "lego", "runs/lego"
     train(cfg)                                   # writes runs/lego/checkpoint.pt, logs, plot
     model = load_nerf("runs/lego")               # for the conversion step
+    run = load_run("runs/lego")                  # the model with its TrainConfig and step
     sigma, coeffs = model.query(points)          # [N], [N, 3 * basis_dim] pre-sigmoid
 
 Importing this package compiles nothing: the numba kernels (hash-grid encoding, occupancy
@@ -19,6 +20,8 @@ from .._lazy import lazy_package
 _LAZY = {
     'CheckpointError': '.checkpoint',
     'load_nerf': '.checkpoint',
+    'load_run': '.checkpoint',
+    'NeRFRun': '.checkpoint',
     'read_checkpoint': '.checkpoint',
     'ModelConfig': '.config',
     'TrainConfig': '.config',
@@ -53,6 +56,8 @@ __all__ = [
     "TrainResult",
     "TrainingError",
     "load_nerf",
+    "load_run",
+    "NeRFRun",
     "read_checkpoint",
     "CheckpointError",
 ]

@@ -81,29 +81,32 @@ def _march_kernel(o_ptr, d_ptr, tmin_ptr, tmax_ptr, jit_ptr, k0_ptr, mask_ptr, s
         tl.store(done_ptr + r, (~(tn < t1)).to(tl.int8), mask=valid)
 
 
-def march_backend(origins, dirs, t_min, t_max, jitter, k_start, step, mask, bbox, max_per_ray):
+def march_backend(rays, grid, max_per_ray: int):
     """Op ``march`` of :mod:`plenoctree.backend` (tensors on CUDA, or the CPU in the
-    interpreter); returns :class:`~plenoctree.nerf.sampling.PackedSamples`."""
+    interpreter): :class:`~plenoctree.nerf.sampling.MarchRays` through a
+    :class:`~plenoctree.nerf.sampling.MarchGrid`; returns
+    :class:`~plenoctree.nerf.sampling.PackedSamples`."""
     from .._triton import interpret_mode, require_triton
     from .sampling import PackedSamples, _grid_consts
 
+    origins, mask, step = rays.origins, grid.mask, grid.step
     dev = origins.device
     require_triton(dev, "march_rays")
     n = origins.shape[0]
     g = int(mask.shape[0])
-    lo, inv = _grid_consts(mask, bbox)
+    lo, inv = _grid_consts(mask, grid.bbox)
     m = mask.to(device=dev, dtype=torch.int8).contiguous().reshape(-1)
     counts = torch.empty(n, dtype=torch.int64, device=dev)
     k_next = torch.empty(n, dtype=torch.int64, device=dev)
     done = torch.empty(n, dtype=torch.int8, device=dev)
     block = 1024 if interpret_mode() else BLOCK
-    grid = (triton.cdiv(max(n, 1), block),)
+    launch = (triton.cdiv(max(n, 1), block),)
     opts = {} if interpret_mode() else {"enable_fp_fusion": False}
     cap = int(max_per_ray) if max_per_ray > 0 else 1 << 62
     consts = (float(step), *map(float, lo), *map(float, inv), g, cap, n)
-    args = (origins, dirs, t_min, t_max, jitter, k_start, m) + consts
+    args = (origins, rays.dirs, rays.t_min, rays.t_max, rays.jitter, rays.k_start, m) + consts
     if n:
-        _march_kernel[grid](*args, counts, k_next, done, counts, counts, counts, counts,
+        _march_kernel[launch](*args, counts, k_next, done, counts, counts, counts, counts,
                             FILL=False, BLOCK=block, **opts)
     offsets = torch.zeros(n + 1, dtype=torch.int64, device=dev)
     torch.cumsum(counts, 0, out=offsets[1:])
@@ -112,6 +115,6 @@ def march_backend(origins, dirs, t_min, t_max, jitter, k_start, step, mask, bbox
     ts = torch.empty(total, dtype=torch.float32, device=dev)
     pts = torch.empty((total, 3), dtype=torch.float32, device=dev)
     if total:
-        _march_kernel[grid](*args, counts, k_next, done, offsets, ray_idx, ts, pts,
+        _march_kernel[launch](*args, counts, k_next, done, offsets, ray_idx, ts, pts,
                             FILL=True, BLOCK=block, **opts)
     return PackedSamples(ray_idx, ts, pts, offsets, k_next, done.bool())

@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,8 +40,9 @@ from ..errors import ConfigError, PlenOctreeError
 from .config import TrainConfig, config_from_dict, config_to_dict
 from .model import NeRFModel
 
-__all__ = ["CheckpointError", "CHECKPOINT_NAME", "save_checkpoint", "read_checkpoint",
-           "model_from_checkpoint", "load_nerf", "model_signature", "FORMAT", "FORMAT_VERSION"]
+__all__ = ["CheckpointError", "CHECKPOINT_NAME", "TrainProgress", "save_checkpoint",
+           "read_checkpoint", "model_from_checkpoint", "NeRFRun", "load_run", "load_nerf",
+           "model_signature", "FORMAT", "FORMAT_VERSION"]
 
 FORMAT = "plenoctree.nerf.checkpoint"
 FORMAT_VERSION = 1
@@ -56,28 +58,47 @@ def model_signature(state: dict[str, torch.Tensor]) -> dict[str, list[int]]:
     return {k: list(v.shape) for k, v in state.items()}
 
 
-def save_checkpoint(path: str | os.PathLike, *, config: TrainConfig, step: int,
-                    train_time_s: float, wall_time_s: float, model: NeRFModel,
-                    optimizer: torch.optim.Optimizer | None, rng: torch.Tensor | None,
-                    trainer: dict[str, Any], log: dict[str, list]) -> None:
+@dataclass(frozen=True)
+class TrainProgress:
+    """Where a run stands: what a checkpoint holds besides the configuration and the weights.
+
+    Attributes:
+        step: completed training steps. train_time_s / wall_time_s: seconds so far.
+        optimizer: the Adam optimiser (None: an empty state is saved).
+        rng: the training generator's state (None: an empty tensor is saved).
+        trainer: the trainer's scalar state (JSON-able). log: ``{"train": [rows], "val": [rows]}``.
+    """
+
+    step: int = 0
+    train_time_s: float = 0.0
+    wall_time_s: float = 0.0
+    optimizer: torch.optim.Optimizer | None = None
+    rng: torch.Tensor | None = None
+    trainer: dict[str, Any] = field(default_factory=dict)
+    log: dict[str, list] = field(default_factory=lambda: {"train": [], "val": []})
+
+
+def save_checkpoint(path: str | os.PathLike, config: TrainConfig, model: NeRFModel,
+                    progress: TrainProgress = TrainProgress()) -> None:
     """Write a checkpoint atomically (temp file + rename: a kill never leaves half a file)."""
     from .. import __version__
 
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    opt, rng = progress.optimizer, progress.rng
     payload = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
         "package": __version__,
         "config": json.dumps(config_to_dict(config)),
-        "step": int(step),
-        "train_time_s": float(train_time_s),
-        "wall_time_s": float(wall_time_s),
+        "step": int(progress.step),
+        "train_time_s": float(progress.train_time_s),
+        "wall_time_s": float(progress.wall_time_s),
         "model": state,
         "signature": json.dumps(model_signature(state)),
-        "optimizer": optimizer.state_dict() if optimizer is not None else {},
+        "optimizer": opt.state_dict() if opt is not None else {},
         "rng": rng.cpu() if rng is not None else torch.zeros(0, dtype=torch.uint8),
-        "trainer": json.dumps(trainer),
-        "log": json.dumps(log),
+        "trainer": json.dumps(progress.trainer),
+        "log": json.dumps(progress.log),
     }
     with atomic_write(path, "wb") as f:
         torch.save(payload, f)
@@ -168,15 +189,29 @@ def model_from_checkpoint(ck: dict[str, Any], expect: TrainConfig | None = None,
     return model.to(device)
 
 
+@dataclass
+class NeRFRun:
+    """A trained run as :func:`load_run` reads it: the network, its training configuration and
+    the steps it was trained for."""
+
+    model: NeRFModel
+    config: TrainConfig
+    step: int
+
+
+def load_run(run_dir: str | os.PathLike, device: str | torch.device = "cpu") -> NeRFRun:
+    """The network of a run directory (or a ``checkpoint.pt`` path) in eval mode, with the
+    configuration it was trained with and its step count."""
+    ck = read_checkpoint(run_dir)
+    model = model_from_checkpoint(ck, device=device)
+    return NeRFRun(model.eval(), ck["config"], int(ck["step"]))
+
+
 def load_nerf(run_dir: str | os.PathLike, device: str | torch.device = "cpu") -> NeRFModel:
     """Load the trained NeRF-SH of a run directory (or a ``checkpoint.pt`` path) for inference.
 
     Returns a :class:`~plenoctree.nerf.model.NeRFModel` in eval mode with ``query``,
-    ``basis``, ``sh_degree``, ``basis_dim``, ``data_format``, ``sg_lobes()`` and ``scene_bbox``;
-    the training config is attached as ``model.train_config``.
+    ``basis``, ``sh_degree``, ``basis_dim``, ``data_format``, ``sg_lobes()`` and ``scene_bbox``.
+    Its training configuration and step count: :func:`load_run`.
     """
-    ck = read_checkpoint(run_dir)
-    model = model_from_checkpoint(ck, device=device)
-    model.train_config = ck["config"]
-    model.step = ck["step"]
-    return model.eval()
+    return load_run(run_dir, device).model

@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -25,6 +26,7 @@ from ..errors import ConfigError
 __all__ = [
     "PositionalEncoding",
     "HashGridEncoding",
+    "HashGridLayout",
     "hashgrid_levels",
     "hashgrid_backends",
 ]
@@ -182,6 +184,23 @@ def _hashgrid_torch_run(enc: "HashGridEncoding", x: torch.Tensor) -> torch.Tenso
     return _hashgrid_encode_torch(x, enc.table, enc.res, enc.offsets, enc.hashed)
 
 
+@dataclass(frozen=True)
+class HashGridLayout:
+    """The levels of a :class:`HashGridEncoding` (see :func:`hashgrid_levels`).
+
+    Attributes:
+        n_levels, n_features: levels and features per level (16 × 2 by default).
+        base_res, max_res: resolution of the coarsest and finest level (cells per axis).
+        log2_table: rows per hashed level, as a power of two.
+    """
+
+    n_levels: int = 16
+    n_features: int = 2
+    base_res: int = 16
+    max_res: int = 1024
+    log2_table: int = 18
+
+
 class HashGridEncoding(nn.Module):
     """Multiresolution grid encoding over an axis-aligned box.
 
@@ -190,20 +209,19 @@ class HashGridEncoding(nn.Module):
 
     Args:
         bbox: ``[2, 3]`` world box covered by the grid.
-        n_levels, n_features: levels and features per level (16 × 2 by default).
-        base_res, max_res: resolution of the coarsest and finest level (cells per axis).
-        log2_table: rows per hashed level, as a power of two.
+        layout: levels, features, resolutions, table size (:class:`HashGridLayout`).
         backend: ``"auto"`` (numba for CPU tensors, torch otherwise), ``"numba"`` or ``"torch"``.
         init_scale: table entries start uniform in ``[-init_scale, init_scale]``.
+        generator: the noise of the initial table.
     """
 
-    def __init__(self, bbox, n_levels: int = 16, n_features: int = 2, base_res: int = 16,
-                 max_res: int = 1024, log2_table: int = 18, backend: str = "auto",
+    def __init__(self, bbox, layout: HashGridLayout = HashGridLayout(), backend: str = "auto",
                  init_scale: float = 1e-4, generator: torch.Generator | None = None):
         super().__init__()
         backend = _backend.check_name("hashgrid", backend)
-        self.res, self.offsets, self.hashed = hashgrid_levels(n_levels, base_res, max_res,
-                                                              log2_table)
+        n_levels, n_features = layout.n_levels, layout.n_features
+        self.res, self.offsets, self.hashed = hashgrid_levels(n_levels, layout.base_res,
+                                                              layout.max_res, layout.log2_table)
         self.n_levels, self.n_features = n_levels, n_features
         self.backend = backend
         self.grad_in_place = False   # see _HashGridNumba; the trainer turns it on

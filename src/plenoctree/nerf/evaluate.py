@@ -16,22 +16,22 @@ from ..errors import ConfigError
 from ..evaluation import score_views
 from .config import TrainConfig
 from .model import NeRFModel
-from .renderer import render_image
+from .renderer import ImageOptions, render_image
 
-__all__ = ["evenly_spaced", "evaluate_views", "render_nerf_views"]
+__all__ = ["evenly_spaced", "evaluate_views", "render_nerf_views", "ImageOptions"]
 
 
 def evaluate_views(model: NeRFModel, data: Dataset, cfg: TrainConfig,
                    indices: list[int] | None = None, out_dir: str | Path | None = None,
-                   with_ssim: bool = True, amp: bool = False, device="cpu",
-                   chunk: int | None = None, rows: slice | None = None) -> dict:
+                   with_ssim: bool = True, opts: ImageOptions = ImageOptions()) -> dict:
     """Render views of ``data`` and score them against its images.
 
     Args:
         indices: views to render (default: all). out_dir: if given, PNGs of the renders
             (``<name>.png``) and ``metrics.json`` are written there.
         with_ssim: compute SSIM too (slower than PSNR).
-        rows: render only these image rows of each view (timing a part of a large frame).
+        opts: bf16, chunk, device, and ``rows``: render only these image rows of each view
+            (timing a part of a large frame).
 
     Returns:
         ``{"names", "psnr", "ssim", "seconds", "n_samples", "mean_psnr", "mean_ssim",
@@ -45,6 +45,7 @@ def evaluate_views(model: NeRFModel, data: Dataset, cfg: TrainConfig,
             raise ConfigError(f"view index {i} out of range for {len(data)} views of "
                               f"{data.root} ({data.split})")
     out = Path(out_dir) if out_dir is not None else None
+    rows = opts.rows
     n_samples: list[int] = []
 
     def keep(k, name, r, pred, gt):
@@ -53,9 +54,7 @@ def evaluate_views(model: NeRFModel, data: Dataset, cfg: TrainConfig,
             save_png(out / f"{name}.png", pred)
 
     ev = score_views(
-        lambda k: render_image(model, data.cameras, indices[k], data.near, data.far,
-                               data.background, cfg, amp=amp, chunk=chunk, device=device,
-                               rows=rows),
+        lambda k: render_image(model, data, indices[k], cfg, opts),
         [data.images[i] if rows is None else data.images[i][rows] for i in indices],
         names=[data.names[i] for i in indices], with_ssim=with_ssim,
         rgb_of=lambda r: np.clip(r["rgb"], 0.0, 1.0), on_view=keep)
@@ -68,7 +67,6 @@ def evaluate_views(model: NeRFModel, data: Dataset, cfg: TrainConfig,
     if out is not None:
         atomic_save_json(out / "metrics.json", res)
     return res
-
 
 
 def render_nerf_views(run_dir: str | Path, split: str = "test", views: int = 0,
@@ -95,14 +93,14 @@ def render_nerf_views(run_dir: str | Path, split: str = "test", views: int = 0,
         ``n_views``, ``model_mb``.
     """
     from ..datasets import load_dataset
-    from .checkpoint import load_nerf
+    from .checkpoint import load_run
     from ..runtime import resolve_amp, resolve_device, setup_threads
 
     setup_threads(threads)
-    model = load_nerf(run_dir)
-    cfg = model.train_config
+    run = load_run(run_dir)
+    cfg = run.config
     device = resolve_device(cfg.device)
-    model = model.to(device)
+    model = run.model.to(device)
     use_amp = resolve_amp(amp or cfg.amp, device)
     dataset = load_dataset(data or cfg.data, split, format=None if data else cfg.format,
                            downscale=downscale or cfg.downscale,
@@ -124,7 +122,7 @@ def render_nerf_views(run_dir: str | Path, split: str = "test", views: int = 0,
     run_dir = run_dir.parent if run_dir.is_file() else run_dir
     out = Path(out) if out else run_dir / f"render_{split}"
     res = evaluate_views(model, dataset, cfg, idx, out_dir=out, with_ssim=with_ssim,
-                         amp=use_amp, device=device, chunk=chunk, rows=rows)
+                         opts=ImageOptions(amp=use_amp, chunk=chunk, device=device, rows=rows))
     frac = 1.0 if rows is None else (rows.stop - rows.start) / height
     spf = res["seconds_per_frame"] / frac
     n_params = sum(p.numel() * p.element_size() for p in model.parameters())

@@ -29,7 +29,7 @@ from torch import nn
 from ..errors import ConfigError
 from ..sh import eval_sg_bases, eval_sh_bases, num_sh_bases
 from .config import ModelConfig
-from .encoding import HashGridEncoding, PositionalEncoding
+from .encoding import HashGridEncoding, HashGridLayout, PositionalEncoding
 from .occupancy import OccupancyGrid
 
 __all__ = ["RadianceField", "NeRFModel", "trunc_exp", "fibonacci_sphere", "sh_colors"]
@@ -158,9 +158,9 @@ class RadianceField(nn.Module):
             raise ConfigError(f"basis must be sh, sg or plain, got {cfg.basis!r}")
         self.sh_degree = cfg.sh_degree if cfg.basis == "sh" else -1
         if cfg.encoding == "hashgrid":
-            self.encoder = HashGridEncoding(bbox, cfg.grid_levels, cfg.grid_features,
-                                            cfg.grid_base_res, cfg.grid_max_res,
-                                            cfg.grid_log2_table)
+            self.encoder = HashGridEncoding(bbox, HashGridLayout(
+                cfg.grid_levels, cfg.grid_features, cfg.grid_base_res, cfg.grid_max_res,
+                cfg.grid_log2_table))
         elif cfg.encoding == "posenc":
             self.encoder = PositionalEncoding(3, cfg.pe_freqs)
         else:

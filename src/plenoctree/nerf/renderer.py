@@ -12,23 +12,94 @@ Two samplers share one output format, a dict with ``rgb [R, 3]``, ``acc [R]`` (o
   evaluated, in training as in rendering.
 
 :func:`render_image` renders a whole camera in chunks of rays without gradients.
+
+The rays travel as a :class:`RayBatch` (origins, directions, bounds, background), how they are
+rendered as a :class:`RenderMode` (training or evaluation, noise, bf16, early stop), and a whole
+image's knobs as :class:`ImageOptions`.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from ..datasets import Dataset
 from .config import TrainConfig
 from .model import NeRFModel, RadianceField
-from .sampling import march_rays, pdf_samples, ray_aabb, stratified_samples
+from .occupancy import OccupancyGrid
+from .sampling import MarchGrid, MarchRays, march_rays, pdf_samples, ray_aabb, \
+    stratified_samples
 from .volrend import composite, composite_packed, deltas_from_t, render_weights, \
     render_weights_packed
 
-__all__ = ["autocast", "render_rays", "render_rays_hierarchical", "render_rays_occupancy",
-           "render_image", "ray_bounds"]
+__all__ = ["RayBatch", "RenderMode", "ImageOptions", "autocast", "render_rays",
+           "render_rays_hierarchical", "render_rays_occupancy", "render_image", "ray_bounds"]
+
+
+@dataclass(frozen=True)
+class RayBatch:
+    """``R`` rays to render.
+
+    Attributes:
+        origins, dirs: float32 ``[R, 3]`` (unit dirs), world units.
+        near, far: distance bounds along every ray.
+        background: ``[3]`` or ``[R, 3]`` colour behind the scene.
+    """
+
+    origins: torch.Tensor
+    dirs: torch.Tensor
+    near: float
+    far: float
+    background: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.origins.shape[0])
+
+    def bg(self) -> torch.Tensor:
+        """The background as ``[R, 3]``."""
+        b = self.background
+        return b.expand(len(self), 3) if b.dim() == 1 else b
+
+
+@dataclass(frozen=True)
+class RenderMode:
+    """How rays are rendered.
+
+    Attributes:
+        train: jitter the samples with ``generator`` and keep gradients (training); otherwise
+            samples sit at fixed places and everything runs without gradients.
+        generator: the noise of training samples.
+        amp: evaluate the network in bf16 autocast.
+        stop_thresh: occupancy sampler: early termination at ``T < stop_thresh`` (None: the
+            config's ``train_stop_thresh`` / ``eval_stop_thresh``; 0 = march to the box's end).
+        max_samples: occupancy sampler, training only: stop marching once this many samples
+            were evaluated; rays not finished by then are marked incomplete (0 = no limit).
+    """
+
+    train: bool = False
+    generator: torch.Generator | None = None
+    amp: bool = False
+    stop_thresh: float | None = None
+    max_samples: int = 0
+
+
+@dataclass(frozen=True)
+class ImageOptions:
+    """Knobs of :func:`render_image` (no effect on the result but ``rows``).
+
+    Attributes:
+        amp: bf16 autocast for the network. chunk: rays per call (None: the config's ``chunk``).
+        device: where to render. rows: render only these image rows (timing part of a frame).
+    """
+
+    amp: bool = False
+    chunk: int | None = None
+    device: torch.device | str = "cpu"
+    rows: slice | None = None
 
 
 def autocast(device: torch.device, enabled: bool):
@@ -45,24 +116,19 @@ def ray_bounds(origins: torch.Tensor, dirs: torch.Tensor, bbox: torch.Tensor, ne
     return t0.clamp(min=near), t1.clamp(max=far)
 
 
-def _bg(background: torch.Tensor, n: int) -> torch.Tensor:
-    return background.expand(n, 3) if background.dim() == 1 else background
-
-
-def render_rays_hierarchical(model: NeRFModel, origins: torch.Tensor, dirs: torch.Tensor,
-                             near: float, far: float, background: torch.Tensor, cfg: TrainConfig,
-                             train: bool, generator: torch.Generator | None = None,
-                             amp: bool = False) -> dict:
-    """The paper's coarse-to-fine rendering of ``R`` rays (``origins, dirs [R, 3]``, unit dirs).
-
-    ``background`` is ``[3]`` or ``[R, 3]``. In training (``train=True``) the samples are
-    jittered with ``generator``. Returns ``rgb, acc, depth, rgb_coarse, n_samples``.
+def render_rays_hierarchical(model: NeRFModel, rays: RayBatch, cfg: TrainConfig,
+                             mode: RenderMode = RenderMode()) -> dict:
+    """The paper's coarse-to-fine rendering of ``R`` rays (``n_coarse`` and ``n_fine`` from
+    ``cfg``). In training (``mode.train``) the samples are jittered with ``mode.generator``.
+    Returns ``rgb [R, 3], acc [R], depth [R], rgb_coarse [R, 3], n_samples``.
     """
-    n = origins.shape[0]
+    origins, dirs = rays.origins, rays.dirs
+    n = len(rays)
     dev = origins.device
-    bg = _bg(background, n)
-    near_t = torch.full((n,), float(near), device=dev)
-    far_t = torch.full((n,), float(far), device=dev)
+    bg = rays.bg()
+    train, generator, amp = mode.train, mode.generator, mode.amp
+    near_t = torch.full((n,), float(rays.near), device=dev)
+    far_t = torch.full((n,), float(rays.far), device=dev)
     t_c = stratified_samples(near_t, far_t, cfg.n_coarse, train, generator)        # [R, Sc]
     coarse = model.coarse if model.coarse is not None else model.fine
 
@@ -122,22 +188,26 @@ def _wave_bookkeeping(tau: torch.Tensor, ridx: torch.Tensor, offsets: torch.Tens
     return before, keep, first_term
 
 
-def _march_waves(field: RadianceField, origins, dirs, t_min, t_max, jitter, step, grid,
-                 stop_thresh: float, amp: bool, train: bool = False, budget: int = 1 << 16,
-                 max_samples: int = 0) -> dict:
-    """March rays in waves of a few samples each, stopping rays whose ``T < stop_thresh``.
+def _march_waves(field: RadianceField, rays: MarchRays, grid: MarchGrid, mode: RenderMode,
+                 budget: int = 1 << 16) -> dict:
+    """March ``rays`` through ``grid`` in waves of a few samples each, stopping rays whose
+    ``T < mode.stop_thresh`` (a float here: 0 = never stop).
 
     Each wave marches every unfinished ray for up to ``budget / rays`` more samples (at most
     32, 64, 128, … in the successive waves), evaluates
     them, and retires the rays that terminated or left the box. Samples past a ray's
     termination (the rest of its last wave) are dropped.
 
-    Without ``train`` everything runs without gradients and is composited on the fly: returns
-    ``rgb [R, 3], acc [R], dsum [R] (Σ w t), n_samples``. With ``train`` the network runs with
-    gradients and the kept samples are composited at the end (eq. 1–2 over each ray's whole
-    sequence): returns ``rgb, acc, dsum, n_samples, complete [R] bool`` where ``complete`` is
-    False for rays cut off because more than ``max_samples`` (> 0) samples were evaluated.
+    Without ``mode.train`` everything runs without gradients and is composited on the fly:
+    returns ``rgb [R, 3], acc [R], dsum [R] (Σ w t), n_samples``. With ``mode.train`` the
+    network runs with gradients and the kept samples are composited at the end (eq. 1–2 over
+    each ray's whole sequence): returns ``rgb, acc, dsum, n_samples, complete [R] bool`` where
+    ``complete`` is False for rays cut off because more than ``mode.max_samples`` (> 0)
+    samples were evaluated.
     """
+    origins, dirs, step = rays.origins, rays.dirs, grid.step
+    train, amp, max_samples, stop_thresh = mode.train, mode.amp, mode.max_samples, \
+        mode.stop_thresh
     n = origins.shape[0]
     dev = origins.device
     opt = torch.zeros(n, dtype=torch.float64, device=dev)             # optical depth so far
@@ -159,9 +229,7 @@ def _march_waves(field: RadianceField, origins, dirs, t_min, t_max, jitter, step
         wave = int(min(512, 32 << n_waves, max(16, budget // active.numel())))
         n_waves += 1
         with torch.no_grad():
-            s = march_rays(origins[active], dirs[active], t_min[active], t_max[active],
-                           jitter[active], step, grid.mask, grid.bbox, k_start=k[active],
-                           max_per_ray=wave)
+            s = march_rays(rays.select(active, k[active]), grid, max_per_ray=wave)
         finished = s.done.clone()
         if len(s):
             d = dirs[active][s.ray_idx]
@@ -203,86 +271,74 @@ def _march_waves(field: RadianceField, origins, dirs, t_min, t_max, jitter, step
             "complete": complete}
 
 
-def render_rays_occupancy(model: NeRFModel, origins: torch.Tensor, dirs: torch.Tensor,
-                          near: float, far: float, background: torch.Tensor, cfg: TrainConfig,
-                          train: bool, generator: torch.Generator | None = None,
-                          amp: bool = False, stop_thresh: float | None = None,
-                          max_samples: int = 0) -> dict:
-    """Fixed-step rendering through the occupancy grid of ``model``, in waves (see
-    :func:`_march_waves`) so that rays stop at ``T < stop_thresh``.
+def render_rays_occupancy(model: NeRFModel, rays: RayBatch, cfg: TrainConfig,
+                          mode: RenderMode = RenderMode()) -> dict:
+    """Fixed-step rendering (``cfg.render_step``) through the occupancy grid of ``model``, in
+    waves (see :func:`_march_waves`) so that rays stop at ``T < mode.stop_thresh``.
 
-    Args:
-        origins, dirs: ``[R, 3]`` rays (unit dirs). near, far: distance bounds.
-        background: ``[3]`` or ``[R, 3]``. cfg: supplies ``render_step``.
-        train: jitter the samples with ``generator`` and keep gradients; otherwise samples sit
-            at the middle of each step and everything runs without gradients.
-        stop_thresh: early termination (default: ``cfg.train_stop_thresh`` /
-            ``cfg.eval_stop_thresh``; 0 = march every ray to the end of the box).
-        max_samples: training only: stop marching once this many samples were evaluated;
-            rays not finished by then are marked in ``complete`` (0 = no limit).
+    In training (``mode.train``) the samples are jittered with ``mode.generator`` and keep
+    gradients; otherwise they sit at the middle of each step.
 
     Returns:
         ``rgb [R, 3], acc [R], depth [R]``, ``n_samples`` (network evaluations) and, in
         training, ``complete [R]`` (rays whose colour is final; use only those in a loss).
     """
-    n = origins.shape[0]
-    dev = origins.device
-    step = float(cfg.render_step)
-    bg = _bg(background, n)
-    t_min, t_max = ray_bounds(origins, dirs, model.scene_bbox, near, far)
-    if train:
-        jitter = torch.rand(n, generator=generator, device=dev)
+    n = len(rays)
+    dev = rays.origins.device
+    t_min, t_max = ray_bounds(rays.origins, rays.dirs, model.scene_bbox, rays.near, rays.far)
+    if mode.train:
+        jitter = torch.rand(n, generator=mode.generator, device=dev)
     else:
         jitter = torch.full((n,), 0.5, device=dev)
-    if stop_thresh is None:
-        stop_thresh = cfg.train_stop_thresh if train else cfg.eval_stop_thresh
-    r = _march_waves(model.fine, origins, dirs, t_min, t_max, jitter, step, model.occupancy,
-                     stop_thresh, amp, train=train, max_samples=max_samples)
+    if mode.stop_thresh is None:
+        mode = dataclasses.replace(mode, stop_thresh=cfg.train_stop_thresh if mode.train
+                                   else cfg.eval_stop_thresh)
+    occ: OccupancyGrid = model.occupancy
+    r = _march_waves(model.fine, MarchRays(rays.origins, rays.dirs, t_min, t_max, jitter),
+                     MarchGrid(float(cfg.render_step), occ.mask, occ.bbox), mode)
     acc = r["acc"]
-    out = {"rgb": r["rgb"] + (1.0 - acc)[:, None] * bg, "acc": acc,
+    out = {"rgb": r["rgb"] + (1.0 - acc)[:, None] * rays.bg(), "acc": acc,
            "depth": r["dsum"] / acc.clamp(min=1e-10), "n_samples": r["n_samples"]}
-    if train:
+    if mode.train:
         out["complete"] = r["complete"]
     return out
 
 
-def render_rays(model: NeRFModel, origins, dirs, near, far, background, cfg: TrainConfig,
-                train: bool, generator=None, amp: bool = False) -> dict:
+def render_rays(model: NeRFModel, rays: RayBatch, cfg: TrainConfig,
+                mode: RenderMode = RenderMode()) -> dict:
     """Dispatch on ``cfg.sampler`` ("occupancy" or "hierarchical")."""
     if cfg.sampler == "occupancy":
-        return render_rays_occupancy(model, origins, dirs, near, far, background, cfg, train,
-                                     generator, amp)
-    return render_rays_hierarchical(model, origins, dirs, near, far, background, cfg, train,
-                                    generator, amp)
+        return render_rays_occupancy(model, rays, cfg, mode)
+    return render_rays_hierarchical(model, rays, cfg, mode)
 
 
 @torch.no_grad()
-def render_image(model: NeRFModel, cameras, index: int, near: float, far: float,
-                 background, cfg: TrainConfig, amp: bool = False, chunk: int | None = None,
-                 device: torch.device | str = "cpu", rows: slice | None = None) -> dict:
-    """Render camera ``index`` of ``cameras`` without gradients, ``chunk`` rays at a time.
+def render_image(model: NeRFModel, views: Dataset, index: int, cfg: TrainConfig,
+                 opts: ImageOptions = ImageOptions()) -> dict:
+    """Render camera ``index`` of ``views`` (its cameras, near/far and background) without
+    gradients, ``opts.chunk`` rays at a time.
 
-    ``rows`` renders only those image rows (for timing a part of a large frame).
     Returns ``rgb [H, W, 3]``, ``acc [H, W]``, ``depth [H, W]`` (numpy float32) and
     ``n_samples`` (network evaluations).
     """
-    dev = torch.device(device)
-    o, d = cameras.rays(index)
-    if rows is not None:
-        o, d = o[rows], d[rows]
+    dev = torch.device(opts.device)
+    o, d = views.cameras.rays(index)
+    if opts.rows is not None:
+        o, d = o[opts.rows], d[opts.rows]
     h, w = o.shape[:2]
     o = torch.from_numpy(np.ascontiguousarray(o.reshape(-1, 3))).to(dev)
     d = torch.from_numpy(np.ascontiguousarray(d.reshape(-1, 3))).to(dev)
-    bg = torch.as_tensor(np.asarray(background, np.float32), device=dev)
-    chunk = int(chunk or cfg.chunk)
+    bg = torch.as_tensor(np.asarray(views.background, np.float32), device=dev)
+    chunk = int(opts.chunk or cfg.chunk)
+    mode = RenderMode(amp=opts.amp)
     outs = {"rgb": [], "acc": [], "depth": []}
     n_samples = 0
     was_training = model.training
     model.eval()
     try:
         for i in range(0, o.shape[0], chunk):
-            r = render_rays(model, o[i:i + chunk], d[i:i + chunk], near, far, bg, cfg, False,
-                            amp=amp)
+            r = render_rays(model, RayBatch(o[i:i + chunk], d[i:i + chunk], views.near,
+                                            views.far, bg), cfg, mode)
             n_samples += int(r["n_samples"])
             for k in outs:
                 outs[k].append(r[k].float().cpu())

@@ -7,7 +7,7 @@
 * :func:`march_rays` — the CPU preset's sampler: a fixed step through an occupancy grid,
   emitting only samples in occupied cells, packed ray after ray (numba kernels in
   :mod:`._march_numba`; the torch twin :func:`_march_torch` is the specification and the
-  CUDA path).
+  CUDA path). Its rays travel as a :class:`MarchRays`, the lattice as a :class:`MarchGrid`.
 
 All distances ``t`` are along unit directions, world units.
 """
@@ -20,8 +20,8 @@ import numpy as np
 import torch
 
 
-__all__ = ["ray_aabb", "stratified_samples", "pdf_samples", "PackedSamples", "march_rays",
-           "march_backends"]
+__all__ = ["ray_aabb", "stratified_samples", "pdf_samples", "PackedSamples", "MarchRays",
+           "MarchGrid", "march_rays", "march_backends"]
 
 
 def ray_aabb(origins: torch.Tensor, dirs: torch.Tensor, bbox: torch.Tensor
@@ -126,6 +126,48 @@ class PackedSamples:
         return int(self.t.shape[0])
 
 
+@dataclass(frozen=True)
+class MarchRays:
+    """``R`` rays to march and where each one's lattice starts.
+
+    Attributes:
+        origins, dirs: float32 ``[R, 3]`` (dirs unit). t_min, t_max: float32 ``[R]`` bounds.
+        jitter: float32 ``[R]`` in ``[0, 1)`` (0.5 for deterministic rendering).
+        k_start: int64 ``[R]`` first lattice index (None: 0).
+    """
+
+    origins: torch.Tensor
+    dirs: torch.Tensor
+    t_min: torch.Tensor
+    t_max: torch.Tensor
+    jitter: torch.Tensor
+    k_start: torch.Tensor | None = None
+
+    def select(self, idx: torch.Tensor, k_start: torch.Tensor) -> "MarchRays":
+        """Rays ``idx`` of these, their lattices starting at ``k_start [len(idx)]``."""
+        return MarchRays(self.origins[idx], self.dirs[idx], self.t_min[idx], self.t_max[idx],
+                         self.jitter[idx], k_start)
+
+    def contiguous(self) -> "MarchRays":
+        """Contiguous float32 tensors, ``k_start`` int64 (zeros when None): the kernels' input."""
+        k = self.k_start
+        if k is None:
+            k = torch.zeros(self.origins.shape[0], dtype=torch.int64, device=self.origins.device)
+        f = (lambda x: x.float().contiguous())
+        return MarchRays(f(self.origins), f(self.dirs), f(self.t_min), f(self.t_max),
+                         f(self.jitter), k.long().contiguous())
+
+
+@dataclass(frozen=True)
+class MarchGrid:
+    """The sample lattice: spacing ``step`` (world units) and the occupancy it keeps samples in,
+    a bool ``mask [G, G, G]`` (x, y, z) over the box ``bbox [2, 3]``."""
+
+    step: float
+    mask: torch.Tensor
+    bbox: torch.Tensor
+
+
 def march_backends() -> list[str]:
     """Marching backends usable here, fastest first (``["numba", "torch"]``)."""
     from .. import backend as _backend
@@ -139,15 +181,17 @@ def _grid_consts(mask: torch.Tensor, bbox: torch.Tensor) -> tuple[np.ndarray, np
     return b[0].copy(), (g / (b[1] - b[0])).astype(np.float32)
 
 
-def _march_torch(origins, dirs, t_min, t_max, jitter, k_start, step, mask, bbox, max_per_ray
-                 ) -> PackedSamples:
+def _march_torch(rays: MarchRays, grid: MarchGrid, max_per_ray: int) -> PackedSamples:
     """Pure-torch twin of the marching kernels (vectorised over a ``[R, K]`` lattice)."""
+    origins, dirs, t_min, t_max, jitter, k_start = (
+        rays.origins, rays.dirs, rays.t_min, rays.t_max, rays.jitter, rays.k_start)
+    mask = grid.mask
     dev = origins.device
     n_rays = origins.shape[0]
     g = mask.shape[0]
-    lo_np, inv_np = _grid_consts(mask, bbox)
+    lo_np, inv_np = _grid_consts(mask, grid.bbox)
     lo, inv = torch.as_tensor(lo_np, device=dev), torch.as_tensor(inv_np, device=dev)
-    step32 = torch.tensor(step, dtype=torch.float32, device=dev)
+    step32 = torch.tensor(grid.step, dtype=torch.float32, device=dev)
     span = ((t_max - t_min) / step32 - jitter).clamp(min=0) + 2 - k_start.float()
     kmax = int(span.max().item()) + 1 if n_rays else 1
     k = k_start[:, None] + torch.arange(max(kmax, 1), device=dev)[None, :]       # [R, K]
@@ -181,39 +225,27 @@ def _march_torch(origins, dirs, t_min, t_max, jitter, k_start, step, mask, bbox,
     return PackedSamples(rows, t[rows, cols], p[rows, cols], offsets, k_next, done)
 
 
-def march_rays(origins: torch.Tensor, dirs: torch.Tensor, t_min: torch.Tensor,
-               t_max: torch.Tensor, jitter: torch.Tensor, step: float, mask: torch.Tensor,
-               bbox: torch.Tensor, k_start: torch.Tensor | None = None, max_per_ray: int = 0,
+def march_rays(rays: MarchRays, grid: MarchGrid, max_per_ray: int = 0,
                backend: str = "auto") -> PackedSamples:
     """March rays at a fixed step, keeping samples in occupied cells.
 
     Candidate samples of ray ``r`` are ``t_k = t_min[r] + (jitter[r] + k)·step`` for
     ``k = k_start[r], …`` while ``t_k < t_max[r]``; a sample is kept when the cell of
-    ``origins[r] + t_k dirs[r]`` in the ``[G, G, G]`` grid ``mask`` over ``bbox`` is occupied.
+    ``origins[r] + t_k dirs[r]`` in the grid ``grid.mask`` over ``grid.bbox`` is occupied.
 
     Args:
-        origins, dirs: float32 ``[R, 3]`` (dirs unit). t_min, t_max: float32 ``[R]``.
-        jitter: float32 ``[R]`` in ``[0, 1)`` (0.5 for deterministic rendering).
-        step: sample spacing, world units. mask: bool ``[G, G, G]`` occupancy (x, y, z).
-        bbox: ``[2, 3]`` box the grid covers. k_start: int64 ``[R]`` first lattice index
-            (default 0). max_per_ray: emit at most this many samples per ray (0 = all).
+        rays: the rays and where their lattices start. grid: spacing and occupancy.
+        max_per_ray: emit at most this many samples per ray (0 = all).
         backend: "auto" (numba on CPU), "numba" or "torch".
 
     Returns:
         :class:`PackedSamples`.
     """
-    n_rays = origins.shape[0]
-    dev = origins.device
-    if k_start is None:
-        k_start = torch.zeros(n_rays, dtype=torch.int64, device=dev)
-    origins, dirs = origins.float().contiguous(), dirs.float().contiguous()
-    t_min, t_max = t_min.float().contiguous(), t_max.float().contiguous()
-    jitter, k_start = jitter.float().contiguous(), k_start.long().contiguous()
+    rays = rays.contiguous()
     from .. import backend as _backend
 
-    name = _backend.resolve("march", backend, dev)
-    return _backend.implementation("march", name)(origins, dirs, t_min, t_max, jitter, k_start,
-                                                  step, mask, bbox, max_per_ray)
+    name = _backend.resolve("march", backend, rays.origins.device)
+    return _backend.implementation("march", name)(rays, grid, max_per_ray)
 
 
 _LEVELS_CACHE: dict = {}
@@ -239,20 +271,20 @@ def _empty_levels(mask: torch.Tensor) -> tuple[np.ndarray, np.ndarray, int]:
     return levels, coarse, cs
 
 
-def _march_numba(origins, dirs, t_min, t_max, jitter, k_start, step, mask, bbox, max_per_ray
-                 ) -> PackedSamples:
+def _march_numba(rays: MarchRays, grid: MarchGrid, max_per_ray: int) -> PackedSamples:
     """The numba marching kernels (CPU tensors); the same samples as :func:`_march_torch`,
     crossing empty cubes of the grid in jumps (see :mod:`._march_numba`)."""
     from . import _march_numba as K
 
-    n_rays = origins.shape[0]
-    lo, inv = _grid_consts(mask, bbox)
-    levels, coarse, cs = _empty_levels(mask)
+    n_rays = rays.origins.shape[0]
+    lo, inv = _grid_consts(grid.mask, grid.bbox)
+    levels, coarse, cs = _empty_levels(grid.mask)
     counts = np.empty(n_rays, np.int64)
     k_next = np.empty(n_rays, np.int64)
     done = np.empty(n_rays, np.bool_)
-    args = (origins.numpy(), dirs.numpy(), t_min.numpy(), t_max.numpy(), jitter.numpy(),
-            k_start.numpy(), np.float32(step), levels, coarse, np.int64(cs), lo, inv)
+    args = (rays.origins.numpy(), rays.dirs.numpy(), rays.t_min.numpy(), rays.t_max.numpy(),
+            rays.jitter.numpy(), rays.k_start.numpy(), np.float32(grid.step), levels, coarse,
+            np.int64(cs), lo, inv)
     K.march_count(*args, int(max_per_ray), counts, k_next, done)
     offsets = np.zeros(n_rays + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])

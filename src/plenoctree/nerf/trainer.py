@@ -20,7 +20,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -31,18 +31,19 @@ from .._util import atomic_save_json, atomic_write, progress
 from ..datasets import Dataset, load_dataset
 from ..errors import ConfigError, PlenOctreeError
 from ..runtime import ThreadTuner, resolve_amp, resolve_device, setup_threads
-from .checkpoint import CHECKPOINT_NAME, CheckpointError, model_from_checkpoint, \
-    read_checkpoint, save_checkpoint
+from .checkpoint import CHECKPOINT_NAME, CheckpointError, TrainProgress, \
+    model_from_checkpoint, read_checkpoint, save_checkpoint
 from .config import TrainConfig, config_json, validate
 from .encoding import HashGridEncoding
 from .evaluate import evaluate_views
 from .model import NeRFModel
-from .renderer import autocast, render_rays_hierarchical, render_rays_occupancy
+from .renderer import ImageOptions, RayBatch, RenderMode, autocast, render_rays_hierarchical, \
+    render_rays_occupancy
 from .runlog import RunLog
 
 # Runtime set-up (threads, malloc, device, AMP) is plenoctree.runtime's, not re-exported here.
-__all__ = ["TrainingError", "TrainResult", "train", "learning_rate", "flush_tiny_moments",
-           "sparsity_loss", "RaySource", "load_val_views"]
+__all__ = ["TrainingError", "TrainResult", "Trainer", "TrainerState", "train", "learning_rate",
+           "flush_tiny_moments", "sparsity_loss", "RaySource", "load_val_views"]
 
 class TrainingError(PlenOctreeError, RuntimeError):
     """Training cannot continue (non-finite loss); the last good checkpoint is kept."""
@@ -152,6 +153,61 @@ class TrainResult:
     log: dict = field(default_factory=dict)
 
 
+@dataclass
+class LogWindow:
+    """Running sums of the steps since the last log row (seconds, rays, samples, loss, MSE,
+    steps); checkpointed, so a resumed run's log equals the uninterrupted one's."""
+
+    t: float = 0.0
+    rays: int = 0
+    samples: int = 0
+    loss: float = 0.0
+    mse: float = 0.0
+    n: int = 0
+
+
+@dataclass
+class TrainerState:
+    """The trainer's scalar state, saved as the checkpoint's ``trainer`` entry (JSON).
+
+    Attributes:
+        n_rays: rays per step, adapted to ``target_samples`` (occupancy sampler).
+        spr: running mean of the samples per ray (0 before the first step).
+        next_val_s: training seconds at which the next timed validation is due.
+        last_ckpt_step: step of the last checkpoint written.
+        win: the sums of the log row being accumulated.
+    """
+
+    n_rays: float
+    spr: float = 0.0
+    next_val_s: float = 0.0
+    last_ckpt_step: int = 0
+    win: LogWindow = field(default_factory=LogWindow)
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    def update(self, saved: dict) -> None:
+        """Take the entries of a checkpoint's ``trainer`` dict (missing ones keep theirs)."""
+        for k, v in saved.items():
+            if k == "win":
+                self.win = LogWindow(**v) if v else LogWindow()
+            elif k in ("n_rays", "spr", "next_val_s", "last_ckpt_step"):
+                setattr(self, k, v)
+
+
+@dataclass
+class StepFigures:
+    """What one training step measured (global figures under torchrun)."""
+
+    lr: float
+    loss: float
+    mse: float
+    rays: int          # rays whose colour entered the loss
+    samples: int       # network evaluations of the rendering
+    occupancy_s: float  # seconds spent updating the occupancy grid
+
+
 def _prepare_run_dir(cfg: TrainConfig, resume: bool):
     out = Path(cfg.out)
     ck_path = out / CHECKPOINT_NAME
@@ -168,10 +224,21 @@ def _prepare_run_dir(cfg: TrainConfig, resume: bool):
 def train(cfg: TrainConfig, resume: bool = False,
           on_step: Callable[[int], None] | None = None, quiet: bool | None = None
           ) -> TrainResult:
-    """Train a NeRF-SH as configured; see :func:`_train` and the module docstring.
+    """Train a NeRF-SH as configured; see :class:`Trainer` and the module docstring.
+
+    Args:
+        cfg: the configuration (``cfg.data`` and ``cfg.out`` required). On ``resume`` its
+            model options must match the checkpoint's (else :class:`CheckpointError`).
+        resume: continue the run in ``cfg.out`` from its checkpoint.
+        on_step: called with the step count after every completed step (tests use it to
+            interrupt a run).
+        quiet: hide the progress bar (default: shown on a terminal).
 
     Holds the run-folder lock (:func:`plenoctree._util.run_lock`) while training: a second
     ``train``/``--resume`` into the same ``--out`` fails at once naming the holder.
+
+    Raises:
+        TrainingError: the loss became NaN/inf. DatasetError, ConfigError, CheckpointError.
     """
     from .._util import check_output_dir, run_lock
 
@@ -184,265 +251,364 @@ def train(cfg: TrainConfig, resume: bool = False,
     from .distributed import rank_from_env
 
     if rank_from_env() != 0:
-        return _train(cfg, resume, on_step, quiet)
+        return Trainer(cfg, resume, on_step, quiet).run()
     with run_lock(cfg.out, "train --resume" if resume else "train"):
-        return _train(cfg, resume, on_step, quiet)
+        return Trainer(cfg, resume, on_step, quiet).run()
 
 
-def _train(cfg: TrainConfig, resume: bool = False,
-           on_step: Callable[[int], None] | None = None, quiet: bool | None = None
-           ) -> TrainResult:
-    """Train a NeRF-SH as configured; see the module docstring for the outputs.
+class Trainer:
+    """One NeRF-SH training run: its state on ``self``, one method per part of a step.
 
-    Args:
-        cfg: the configuration (``cfg.data`` and ``cfg.out`` required). On ``resume`` its
-            model options must match the checkpoint's (else :class:`CheckpointError`).
-        resume: continue the run in ``cfg.out`` from its checkpoint.
-        on_step: called with the step count after every completed step (tests use it to
-            interrupt a run).
-        quiet: hide the progress bar (default: shown on a terminal).
+    :meth:`setup` builds everything (devices, run folder, data, model, optimiser, restored
+    state); :meth:`run` loops :meth:`iteration` — :meth:`train_step` (the optimisation step
+    itself), then the log row, :meth:`maybe_validate` and :meth:`maybe_checkpoint` — until
+    :meth:`finished`, then validates, checkpoints and writes ``summary.json``.
 
-    Raises:
-        TrainingError: the loss became NaN/inf. DatasetError, ConfigError, CheckpointError.
+    ``hooks`` are called around every step (``before_step(step)``,
+    ``after_step(step, seconds, samples)``); the adaptive thread count
+    (:class:`~plenoctree.runtime.ThreadTuner`, ``threads = -1``) is one.
     """
-    validate(cfg)
-    if not cfg.data or not cfg.out:
-        raise ConfigError("training needs a dataset folder (--data) and a run directory (--out)")
-    n_threads = setup_threads(cfg.threads)
-    tuner = ThreadTuner(n_threads) if cfg.threads == -1 else None
-    from .distributed import render_generator, setup_distributed
 
-    dctx = setup_distributed(resolve_device(cfg.device))   # torchrun: one shard per process
-    device = dctx.device
-    amp = resolve_amp(cfg.amp, device)
-    if dctx.is_main:
-        out, ck = _prepare_run_dir(cfg, resume)
-    dctx.barrier()
-    if not dctx.is_main:
-        out, ck = _prepare_run_dir(cfg, True) if resume else (Path(cfg.out), None)
+    def __init__(self, cfg: TrainConfig, resume: bool = False,
+                 on_step: Callable[[int], None] | None = None, quiet: bool | None = None):
+        validate(cfg)
+        if not cfg.data or not cfg.out:
+            raise ConfigError("training needs a dataset folder (--data) and a run directory "
+                              "(--out)")
+        self.cfg, self.resume, self.on_step, self.quiet = cfg, resume, on_step, quiet
+        self.occ = cfg.sampler == "occupancy"
+        self.budget_s = cfg.minutes * 60.0
+        self.step, self.train_s = 0, 0.0
+        self.val_psnr = float("nan")
+        self.lr = cfg.lr_init
+        self.ready = False
 
-    data = load_dataset(cfg.data, "train", format=cfg.format, downscale=cfg.downscale,
-                        background=cfg.background)
-    val = load_val_views(cfg)
-    occ = cfg.sampler == "occupancy"
-    torch.manual_seed(cfg.seed)
-    if ck is not None:
-        model = model_from_checkpoint(ck, expect=cfg, device=device)
-    else:
-        model = NeRFModel(cfg.model, data.scene_bbox, occ_res=cfg.occ_res if occ else 0).to(device)
-    dctx.broadcast_module(model)
-    model.train()
-    for mod in model.modules():
-        if isinstance(mod, HashGridEncoding):
-            mod.grad_in_place = True
-    fused = device.type == "cpu" or device.type == "cuda"
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr_init, betas=(0.9, cfg.adam_beta2),
-                           eps=cfg.adam_eps, fused=fused)
-    gen = torch.Generator(device=device)
-    gen.manual_seed(cfg.seed + 1)
-    step, train_s, wall_before = 0, 0.0, 0.0
-    tstate = {"n_rays": float(cfg.batch_rays), "spr": 0.0, "next_val_s": cfg.val_every_s,
-              "last_ckpt_step": 0}
-    log = RunLog(out)
-    if ck is not None:
-        try:
-            opt.load_state_dict(ck["optimizer"])
-            gen.set_state(ck["rng"].to(gen.get_state().device))
-        except (ValueError, RuntimeError, KeyError) as e:
-            raise CheckpointError(f"{ck['path']}: optimizer / RNG state does not fit ({e})") from None
-        step, train_s, wall_before = ck["step"], ck["train_time_s"], ck["wall_time_s"]
-        tstate.update(ck["trainer"])
-        log = RunLog(out, ck["log"])
-    else:
-        if occ:
-            spr0 = float((model.scene_bbox[1] - model.scene_bbox[0]).norm()) / cfg.render_step / 2
-            tstate["n_rays"] = float(min(cfg.batch_rays, max(256, cfg.target_samples / spr0)))
+    # ------------------------------------------------------------- set-up
+    def setup(self) -> None:
+        """Threads, devices, run folder, data, model, optimiser; restores a checkpoint."""
+        cfg = self.cfg
+        n_threads = setup_threads(cfg.threads)
+        self.hooks = [ThreadTuner(n_threads)] if cfg.threads == -1 else []
+        from .distributed import render_generator, setup_distributed
 
-    if dctx.is_main:
-        with atomic_write(out / "config.json", "w") as f:
-            f.write(config_json(cfg) + "\n")
-    else:
-        log.write = lambda *a, **k: None           # rank 0 alone writes the logs
-    # the rendering noise: the shared generator in one process, one per rank under torchrun
-    rgen = gen if not dctx.active else render_generator(cfg.seed, dctx.rank, step, device)
+        self.dctx = setup_distributed(resolve_device(cfg.device))   # torchrun: one shard each
+        self.device = self.dctx.device
+        self.amp = resolve_amp(cfg.amp, self.device)
+        ck = self._prepare_run_dir()
+        self.data = load_dataset(cfg.data, "train", format=cfg.format, downscale=cfg.downscale,
+                                 background=cfg.background)
+        self.val = load_val_views(cfg)
+        self._build_model(ck)
+        wall_before = self._restore(ck) if ck is not None else self._fresh_state()
+        if self.dctx.is_main:
+            with atomic_write(self.out / "config.json", "w") as f:
+                f.write(config_json(cfg) + "\n")
+        else:
+            self.log.write = lambda *a, **k: None           # rank 0 alone writes the logs
+        # the rendering noise: the shared generator in one process, one per rank under torchrun
+        self.rgen = self.gen if not self.dctx.active else render_generator(
+            cfg.seed, self.dctx.rank, self.step, self.device)
+        self.rays = RaySource(self.data, self.device, cfg.random_background)
+        self.occ_thresh = -math.log(1.0 - cfg.occ_threshold) / cfg.render_step
+        self.wall0 = time.perf_counter() - wall_before
+        self.last_ckpt_wall = time.perf_counter()
+        self.ckpt_file = self.out / CHECKPOINT_NAME
+        self.ready = True
 
-    rays = RaySource(data, device, cfg.random_background)
-    bbox = model.scene_bbox
-    occ_thresh = -math.log(1.0 - cfg.occ_threshold) / cfg.render_step
-    budget_s = cfg.minutes * 60.0
-    wall0 = time.perf_counter() - wall_before
-    last_ckpt_wall = time.perf_counter()
-    # running sums since the last log row (checkpointed, so a resumed log matches)
-    win = tstate.pop("win", None) or {"t": 0.0, "rays": 0, "samples": 0, "loss": 0.0,
-                                      "mse": 0.0, "n": 0}
-    val_psnr = float("nan")
-    ckpt_file = out / CHECKPOINT_NAME
-
-    def finished() -> bool:
-        return step >= cfg.max_steps or (budget_s > 0 and train_s >= budget_s)
-
-    def frac() -> float:
-        p = step / max(cfg.max_steps, 1)
-        return max(p, train_s / budget_s) if budget_s > 0 else p
-
-    def checkpoint() -> None:
-        nonlocal last_ckpt_wall
+    def _prepare_run_dir(self) -> dict | None:
+        """Rank 0 checks / creates the run folder first; returns the checkpoint to resume."""
+        dctx = self.dctx
+        if dctx.is_main:
+            self.out, ck = _prepare_run_dir(self.cfg, self.resume)
+        dctx.barrier()
         if not dctx.is_main:
-            return
-        if not all(bool(torch.isfinite(p).all()) for p in model.parameters()):
-            raise TrainingError(f"the weights became NaN/inf by step {step}; training stopped "
-                                f"without overwriting the last good checkpoint ({ckpt_file}, "
-                                f"step {tstate['last_ckpt_step']})")
-        tstate["last_ckpt_step"] = step
-        tstate["win"] = dict(win)
-        save_checkpoint(ckpt_file, config=cfg, step=step, train_time_s=train_s,
-                        wall_time_s=time.perf_counter() - wall0, model=model, optimizer=opt,
-                        rng=gen.get_state(), trainer=tstate, log=log.as_dict())
-        last_ckpt_wall = time.perf_counter()
+            self.out, ck = _prepare_run_dir(self.cfg, True) if self.resume else \
+                (Path(self.cfg.out), None)
+        return ck
 
-    def validate_now() -> None:
-        nonlocal val_psnr
-        if val is None or not dctx.is_main:
-            return
-        r = evaluate_views(model, val, cfg, out_dir=out / "val", amp=amp, device=device)
-        val_psnr = r["mean_psnr"]
-        log.val.append({"step": step, "train_s": round(train_s, 3),
-                        "wall_s": round(time.perf_counter() - wall0, 3), "psnr": val_psnr,
-                        "ssim": r["mean_ssim"], "seconds": float(np.sum(r["seconds"])),
-                        "load": round(os.getloadavg()[0], 2)})
-        log.write()
+    def _build_model(self, ck: dict | None) -> None:
+        """The model (fresh, or the checkpoint's), its Adam optimiser and the step generator."""
+        cfg, device = self.cfg, self.device
+        torch.manual_seed(cfg.seed)
+        if ck is not None:
+            model = model_from_checkpoint(ck, expect=cfg, device=device)
+        else:
+            model = NeRFModel(cfg.model, self.data.scene_bbox,
+                              occ_res=cfg.occ_res if self.occ else 0).to(device)
+        self.dctx.broadcast_module(model)
+        model.train()
+        for mod in model.modules():
+            if isinstance(mod, HashGridEncoding):
+                mod.grad_in_place = True
+        fused = device.type == "cpu" or device.type == "cuda"
+        self.opt = torch.optim.Adam(model.parameters(), lr=cfg.lr_init,
+                                    betas=(0.9, cfg.adam_beta2), eps=cfg.adam_eps, fused=fused)
+        self.gen = torch.Generator(device=device)
+        self.gen.manual_seed(cfg.seed + 1)
+        self.model = model
+        self.state = TrainerState(n_rays=float(cfg.batch_rays), next_val_s=cfg.val_every_s)
 
-    # A time budget counts training seconds (its % and ETA are the budget's), else steps.
-    timed = budget_s > 0
-    bar = progress(total=round(budget_s) if timed else cfg.max_steps, desc="train",
-                   unit="s" if timed else "step",
-                   disable=(quiet if quiet is not None else None) if dctx.is_main else True,
-                   **({"bar_format": "{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}"
-                       "{postfix}]"} if timed and sys.stderr.isatty() else {}))
-    bar.update(train_s if timed else step)
-    try:
-        while not finished():
-            if tuner is not None:
-                tuner.before_step(step)
-            t0 = time.perf_counter()
-            lr = learning_rate(cfg, step, frac())
-            for g in opt.param_groups:
-                g["lr"] = lr
-            t_occ = time.perf_counter()
-            if occ and step > 0 and step % cfg.occ_update_every == 0:
-                with autocast(device, amp):
-                    model.occupancy.update(model.fine.density, occ_thresh, cfg.occ_decay,
-                                           all_cells=step < cfg.occ_warmup_steps,
-                                           generator=gen)
-                if dctx.active:     # identical on every rank already; keep it bit-identical
-                    dctx.broadcast_module(model.occupancy)
-            t_occ = time.perf_counter() - t_occ
-            n_rays = int(tstate["n_rays"]) if occ else cfg.batch_rays
-            o, d, target, bg = (dctx.shard(x) for x in rays.sample(n_rays, gen))
-            if occ:
-                r = render_rays_occupancy(model, o, d, data.near, data.far, bg, cfg, True, rgen,
-                                          amp, max_samples=2 * cfg.target_samples // dctx.world)
-                ok = r["complete"]
-                used = int(ok.sum())
-                # (used == 0 only if the sample cap cut off every ray: skip the photometric term)
-                mse = torch.mean((r["rgb"][ok] - target[ok]) ** 2) if used else r["rgb"].sum() * 0
-                loss = mse
-            else:
-                r = render_rays_hierarchical(model, o, d, data.near, data.far, bg, cfg, True,
-                                             rgen, amp)
-                used = int(o.shape[0])
-                mse = torch.mean((r["rgb"] - target) ** 2)
-                loss = mse + torch.mean((r["rgb_coarse"] - target) ** 2)
-            if cfg.sparsity_weight > 0 and cfg.sparsity_points > 0:
-                pts = bbox[0] + (bbox[1] - bbox[0]) * torch.rand(
-                    (cfg.sparsity_points, 3), generator=gen, device=device)
-                with autocast(device, amp):
-                    sig = model.fine.density(pts)
-                loss = loss + cfg.sparsity_weight * sparsity_loss(sig, cfg.sparsity_length)
-            n_samples = int(r["n_samples"])
-            if dctx.active:       # global figures: every rank logs, adapts and stops alike
-                g_loss, g_mse, g_used, g_samples = dctx.sum(
-                    [float(loss.detach()), float(mse.detach()), used, n_samples])
-                loss_v, mse_v = g_loss / dctx.world, g_mse / dctx.world
-                used, n_samples = int(g_used), int(g_samples)
-            else:
-                loss_v, mse_v = None, None
-            if not math.isfinite(float(loss.detach()) if loss_v is None else loss_v):
-                kept = (f"the last good checkpoint ({ckpt_file}, step "
-                        f"{tstate['last_ckpt_step']}) is kept" if ckpt_file.exists()
-                        else "no checkpoint had been written yet")
-                bad = loss.item() if loss_v is None else loss_v
-                raise TrainingError(f"loss became {bad} at step {step}; training "
-                                    f"stopped, {kept}. Try a lower learning rate (--lr-init).")
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            dctx.average_gradients(model.parameters())
-            opt.step()
-            if step % 100 == 99:
-                flush_tiny_moments(opt)
-            if occ:
-                spr = max(n_samples, 1) / max(used, 1)
-                tstate["spr"] = spr if tstate["spr"] == 0 else 0.9 * tstate["spr"] + 0.1 * spr
-                tstate["n_rays"] = float(min(cfg.max_rays, max(
-                    256, round(cfg.target_samples / tstate["spr"]))))
-            step += 1
-            dt = time.perf_counter() - t0
-            if dctx.active:        # rank 0's clock for all (time budgets, validation times)
-                dt = dctx.sum([dt if dctx.is_main else 0.0])[0]
-            if tuner is not None:
-                tuner.after_step(step - 1, dt - t_occ, n_samples)
-            train_s += dt
-            win["t"] += dt
-            win["rays"] += used
-            win["samples"] += n_samples
-            win["loss"] += float(loss.detach()) if loss_v is None else loss_v
-            win["mse"] += float(mse.detach()) if mse_v is None else mse_v
-            win["n"] += 1
-            bar.update(dt if timed else 1)
-            if step % cfg.log_every == 0 or finished():
-                m = win["mse"] / win["n"]
-                row = {"step": step, "train_s": round(train_s, 3),
-                       "wall_s": round(time.perf_counter() - wall0, 3), "lr": lr,
-                       "loss": win["loss"] / win["n"], "psnr": -10 * math.log10(max(m, 1e-12)),
-                       "rays_per_s": win["rays"] / win["t"],
-                       "samples_per_s": win["samples"] / win["t"],
-                       "rays": used,
-                       "samples_per_ray": win["samples"] / max(win["rays"], 1),
-                       "occupancy": model.occupancy.occupancy() if occ else 1.0,
-                       "threads": torch.get_num_threads()}
-                log.train.append(row)
-                bar.set_postfix(loss=f"{row['loss']:.4f}", psnr=f"{row['psnr']:.2f}",
-                                rays_s=f"{row['rays_per_s']:.0f}")
-                win = dict.fromkeys(win, 0) | {"t": 0.0, "loss": 0.0, "mse": 0.0}
-                log.write(plot=False)
-            due_val = (cfg.val_every_s > 0 and train_s >= tstate["next_val_s"]) or \
-                (cfg.val_every_steps > 0 and step % cfg.val_every_steps == 0)
-            if due_val and not finished():
-                while tstate["next_val_s"] <= train_s and cfg.val_every_s > 0:
-                    tstate["next_val_s"] += cfg.val_every_s
-                validate_now()
-            if (cfg.ckpt_every_s > 0 and time.perf_counter() - last_ckpt_wall >= cfg.ckpt_every_s) \
-                    or (cfg.ckpt_every_steps > 0 and step % cfg.ckpt_every_steps == 0):
-                checkpoint()
-            if on_step is not None:
-                on_step(step)
-        validate_now()
-        checkpoint()
-        log.write()
-    finally:
-        bar.close()
-    summary = {"step": step, "train_time_s": train_s, "wall_time_s": time.perf_counter() - wall0,
-               "val_psnr": val_psnr, "val_ssim": log.val[-1]["ssim"] if log.val else None,
-               "val_views": list(val.names) if val is not None else [],
-               "mean_rays_per_s": _mean(log.train, "rays_per_s"),
-               "mean_samples_per_s": _mean(log.train, "samples_per_s"),
-               "device": str(device), "amp": amp, "threads": torch.get_num_threads(),
-               "world_size": dctx.world}
-    if dctx.is_main:
-        atomic_save_json(out / "summary.json", summary)
-    dctx.barrier()
-    dctx.close()
-    return TrainResult(out, step, train_s, val_psnr, model, log.as_dict())
+    def _fresh_state(self) -> float:
+        """A new run: first rays per step from the box diagonal; returns 0 wall seconds."""
+        cfg = self.cfg
+        if self.occ:
+            bbox = self.model.scene_bbox
+            spr0 = float((bbox[1] - bbox[0]).norm()) / cfg.render_step / 2
+            self.state.n_rays = float(min(cfg.batch_rays, max(256, cfg.target_samples / spr0)))
+        self.log = RunLog(self.out)
+        return 0.0
+
+    def _restore(self, ck: dict) -> float:
+        """Optimiser, generator, counters and log of checkpoint ``ck``; returns its wall
+        seconds."""
+        try:
+            self.opt.load_state_dict(ck["optimizer"])
+            self.gen.set_state(ck["rng"].to(self.gen.get_state().device))
+        except (ValueError, RuntimeError, KeyError) as e:
+            raise CheckpointError(f"{ck['path']}: optimizer / RNG state does not fit ({e})"
+                                  ) from None
+        self.step, self.train_s = ck["step"], ck["train_time_s"]
+        self.state.update(ck["trainer"])
+        self.log = RunLog(self.out, ck["log"])
+        return ck["wall_time_s"]
+
+    # ------------------------------------------------------------- progress
+    def finished(self) -> bool:
+        """The step count or the time budget (training seconds) is reached."""
+        return self.step >= self.cfg.max_steps or (
+            self.budget_s > 0 and self.train_s >= self.budget_s)
+
+    def progress_frac(self) -> float:
+        """Share of the run done, in steps or (with a budget) seconds, whichever is further."""
+        p = self.step / max(self.cfg.max_steps, 1)
+        return max(p, self.train_s / self.budget_s) if self.budget_s > 0 else p
+
+    def _wall(self) -> float:
+        return time.perf_counter() - self.wall0
+
+    def _progress_bar(self):
+        # A time budget counts training seconds (its % and ETA are the budget's), else steps.
+        timed = self.budget_s > 0
+        quiet = self.quiet if self.dctx.is_main else True
+        bar = progress(total=round(self.budget_s) if timed else self.cfg.max_steps,
+                       desc="train", unit="s" if timed else "step", disable=quiet,
+                       **({"bar_format": "{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<"
+                           "{remaining}{postfix}]"} if timed and sys.stderr.isatty() else {}))
+        bar.update(self.train_s if timed else self.step)
+        return bar
+
+    # ------------------------------------------------------------- the step
+    def _update_occupancy(self) -> float:
+        """Every ``occ_update_every`` steps, refresh the occupancy grid; returns its seconds."""
+        cfg, model = self.cfg, self.model
+        t = time.perf_counter()
+        if self.occ and self.step > 0 and self.step % cfg.occ_update_every == 0:
+            with autocast(self.device, self.amp):
+                model.occupancy.update(model.fine.density, self.occ_thresh, cfg.occ_decay,
+                                       all_cells=self.step < cfg.occ_warmup_steps,
+                                       generator=self.gen)
+            if self.dctx.active:     # identical on every rank already; keep it bit-identical
+                self.dctx.broadcast_module(model.occupancy)
+        return time.perf_counter() - t
+
+    def _render_loss(self):
+        """``(loss, mse, rays used, samples)`` of a random batch of rays (this rank's shard)."""
+        cfg, dctx, data = self.cfg, self.dctx, self.data
+        n_rays = int(self.state.n_rays) if self.occ else cfg.batch_rays
+        o, d, target, bg = (dctx.shard(x) for x in self.rays.sample(n_rays, self.gen))
+        batch = RayBatch(o, d, data.near, data.far, bg)
+        if self.occ:
+            mode = RenderMode(train=True, generator=self.rgen, amp=self.amp,
+                              max_samples=2 * cfg.target_samples // dctx.world)
+            r = render_rays_occupancy(self.model, batch, cfg, mode)
+            ok = r["complete"]
+            used = int(ok.sum())
+            # (used == 0 only if the sample cap cut off every ray: skip the photometric term)
+            mse = torch.mean((r["rgb"][ok] - target[ok]) ** 2) if used else r["rgb"].sum() * 0
+            loss = mse
+        else:
+            mode = RenderMode(train=True, generator=self.rgen, amp=self.amp)
+            r = render_rays_hierarchical(self.model, batch, cfg, mode)
+            used = int(o.shape[0])
+            mse = torch.mean((r["rgb"] - target) ** 2)
+            loss = mse + torch.mean((r["rgb_coarse"] - target) ** 2)
+        if cfg.sparsity_weight > 0 and cfg.sparsity_points > 0:
+            bbox = self.model.scene_bbox
+            pts = bbox[0] + (bbox[1] - bbox[0]) * torch.rand(
+                (cfg.sparsity_points, 3), generator=self.gen, device=self.device)
+            with autocast(self.device, self.amp):
+                sig = self.model.fine.density(pts)
+            loss = loss + cfg.sparsity_weight * sparsity_loss(sig, cfg.sparsity_length)
+        return loss, mse, used, int(r["n_samples"])
+
+    def _check_finite(self, loss: float) -> None:
+        if math.isfinite(loss):
+            return
+        kept = (f"the last good checkpoint ({self.ckpt_file}, step "
+                f"{self.state.last_ckpt_step}) is kept" if self.ckpt_file.exists()
+                else "no checkpoint had been written yet")
+        raise TrainingError(f"loss became {loss} at step {self.step}; training stopped, "
+                            f"{kept}. Try a lower learning rate (--lr-init).")
+
+    def train_step(self) -> StepFigures:
+        """One optimisation step: learning rate, occupancy update, render, loss, Adam step,
+        rays-per-step adaptation. Does not advance :attr:`step`."""
+        cfg, dctx = self.cfg, self.dctx
+        lr = learning_rate(cfg, self.step, self.progress_frac())
+        for g in self.opt.param_groups:
+            g["lr"] = lr
+        t_occ = self._update_occupancy()
+        loss, mse, used, n_samples = self._render_loss()
+        if dctx.active:       # global figures: every rank logs, adapts and stops alike
+            g_loss, g_mse, g_used, g_samples = dctx.sum(
+                [float(loss.detach()), float(mse.detach()), used, n_samples])
+            loss_v, mse_v = g_loss / dctx.world, g_mse / dctx.world
+            used, n_samples = int(g_used), int(g_samples)
+            self._check_finite(loss_v)
+        else:
+            self._check_finite(float(loss.detach()))
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        dctx.average_gradients(self.model.parameters())
+        self.opt.step()
+        if self.step % 100 == 99:
+            flush_tiny_moments(self.opt)
+        if not dctx.active:
+            loss_v, mse_v = float(loss.detach()), float(mse.detach())
+        if self.occ:
+            st = self.state
+            spr = max(n_samples, 1) / max(used, 1)
+            st.spr = spr if st.spr == 0 else 0.9 * st.spr + 0.1 * spr
+            st.n_rays = float(min(cfg.max_rays, max(256, round(cfg.target_samples / st.spr))))
+        return StepFigures(lr, loss_v, mse_v, used, n_samples, t_occ)
+
+    # ------------------------------------------------------------- around the step
+    def iteration(self, bar) -> None:
+        """:meth:`train_step` with its hooks, clock, log row, validation and checkpoint."""
+        for h in self.hooks:
+            h.before_step(self.step)
+        t0 = time.perf_counter()
+        fig = self.train_step()
+        self.step += 1
+        dt = time.perf_counter() - t0
+        if self.dctx.active:        # rank 0's clock for all (time budgets, validation times)
+            dt = self.dctx.sum([dt if self.dctx.is_main else 0.0])[0]
+        for h in self.hooks:
+            h.after_step(self.step - 1, dt - fig.occupancy_s, fig.samples)
+        self.train_s += dt
+        win = self.state.win
+        win.t += dt
+        win.rays += fig.rays
+        win.samples += fig.samples
+        win.loss += fig.loss
+        win.mse += fig.mse
+        win.n += 1
+        bar.update(dt if self.budget_s > 0 else 1)
+        if self.step % self.cfg.log_every == 0 or self.finished():
+            self.log_row(fig, bar)
+        self.maybe_validate()
+        self.maybe_checkpoint()
+        if self.on_step is not None:
+            self.on_step(self.step)
+
+    def log_row(self, fig: StepFigures, bar) -> None:
+        """Append the averages since the last row to ``log.csv`` and start a new window."""
+        win = self.state.win
+        m = win.mse / win.n
+        row = {"step": self.step, "train_s": round(self.train_s, 3),
+               "wall_s": round(self._wall(), 3), "lr": fig.lr,
+               "loss": win.loss / win.n, "psnr": -10 * math.log10(max(m, 1e-12)),
+               "rays_per_s": win.rays / win.t,
+               "samples_per_s": win.samples / win.t,
+               "rays": fig.rays,
+               "samples_per_ray": win.samples / max(win.rays, 1),
+               "occupancy": self.model.occupancy.occupancy() if self.occ else 1.0,
+               "threads": torch.get_num_threads()}
+        self.log.train.append(row)
+        bar.set_postfix(loss=f"{row['loss']:.4f}", psnr=f"{row['psnr']:.2f}",
+                        rays_s=f"{row['rays_per_s']:.0f}")
+        self.state.win = LogWindow()
+        self.log.write(plot=False)
+
+    def maybe_validate(self) -> None:
+        """Validate when due by training seconds (``val_every_s``) or steps, unless done."""
+        cfg, st = self.cfg, self.state
+        due = (cfg.val_every_s > 0 and self.train_s >= st.next_val_s) or \
+            (cfg.val_every_steps > 0 and self.step % cfg.val_every_steps == 0)
+        if due and not self.finished():
+            while st.next_val_s <= self.train_s and cfg.val_every_s > 0:
+                st.next_val_s += cfg.val_every_s
+            self.validate()
+
+    def maybe_checkpoint(self) -> None:
+        """Checkpoint when due by wall seconds (``ckpt_every_s``) or steps."""
+        cfg = self.cfg
+        if (cfg.ckpt_every_s > 0 and time.perf_counter() - self.last_ckpt_wall >= cfg.ckpt_every_s) \
+                or (cfg.ckpt_every_steps > 0 and self.step % cfg.ckpt_every_steps == 0):
+            self.checkpoint()
+
+    def validate(self) -> None:
+        """Render and score the validation views (rank 0); appends a ``val.csv`` row."""
+        if self.val is None or not self.dctx.is_main:
+            return
+        r = evaluate_views(self.model, self.val, self.cfg, out_dir=self.out / "val",
+                           opts=ImageOptions(amp=self.amp, device=self.device))
+        self.val_psnr = r["mean_psnr"]
+        self.log.val.append({"step": self.step, "train_s": round(self.train_s, 3),
+                             "wall_s": round(self._wall(), 3), "psnr": self.val_psnr,
+                             "ssim": r["mean_ssim"], "seconds": float(np.sum(r["seconds"])),
+                             "load": round(os.getloadavg()[0], 2)})
+        self.log.write()
+
+    def checkpoint(self) -> None:
+        """Write ``checkpoint.pt`` (rank 0); refuses non-finite weights (the last good file
+        stays)."""
+        if not self.dctx.is_main:
+            return
+        if not all(bool(torch.isfinite(p).all()) for p in self.model.parameters()):
+            raise TrainingError(f"the weights became NaN/inf by step {self.step}; training "
+                                f"stopped without overwriting the last good checkpoint "
+                                f"({self.ckpt_file}, step {self.state.last_ckpt_step})")
+        self.state.last_ckpt_step = self.step
+        save_checkpoint(self.ckpt_file, self.cfg, self.model, TrainProgress(
+            step=self.step, train_time_s=self.train_s, wall_time_s=self._wall(),
+            optimizer=self.opt, rng=self.gen.get_state(), trainer=self.state.to_json(),
+            log=self.log.as_dict()))
+        self.last_ckpt_wall = time.perf_counter()
+
+    # ------------------------------------------------------------- the run
+    def run(self) -> TrainResult:
+        """Set up (unless done), train until :meth:`finished`, validate, checkpoint, and write
+        ``summary.json``."""
+        if not self.ready:
+            self.setup()
+        bar = self._progress_bar()
+        try:
+            while not self.finished():
+                self.iteration(bar)
+            self.validate()
+            self.checkpoint()
+            self.log.write()
+        finally:
+            bar.close()
+        return self._finish()
+
+    def _finish(self) -> TrainResult:
+        dctx, log, val = self.dctx, self.log, self.val
+        summary = {"step": self.step, "train_time_s": self.train_s, "wall_time_s": self._wall(),
+                   "val_psnr": self.val_psnr,
+                   "val_ssim": log.val[-1]["ssim"] if log.val else None,
+                   "val_views": list(val.names) if val is not None else [],
+                   "mean_rays_per_s": _mean(log.train, "rays_per_s"),
+                   "mean_samples_per_s": _mean(log.train, "samples_per_s"),
+                   "device": str(self.device), "amp": self.amp,
+                   "threads": torch.get_num_threads(), "world_size": dctx.world}
+        if dctx.is_main:
+            atomic_save_json(self.out / "summary.json", summary)
+        dctx.barrier()
+        dctx.close()
+        return TrainResult(self.out, self.step, self.train_s, self.val_psnr, self.model,
+                           log.as_dict())
 
 
 def _mean(rows: list[dict], key: str) -> float | None:
