@@ -200,18 +200,18 @@ def interleaved(fns: Mapping[str, Callable[[], Any]], repeat: int,
 # --- output --------------------------------------------------------------------------------
 def jsonable(obj: Any) -> Any:
     """``obj`` with numpy scalars and arrays as Python numbers and lists, tuples as lists,
-    paths as strings and NaN / infinity as None (strict JSON)."""
+    NaN / infinity as None (strict JSON) and any other object as its ``str``."""
     if isinstance(obj, Mapping):
         return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [jsonable(v) for v in obj]
-    if isinstance(obj, Path):
-        return str(obj)
     if hasattr(obj, "tolist"):                       # numpy scalar or array
         return jsonable(obj.tolist())
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
-    return obj
+    if obj is None or isinstance(obj, (str, int, float)):
+        return obj
+    return str(obj)
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> Path:

@@ -26,7 +26,7 @@ Prints a table and writes ``benchmarks/results/scoring_speed.json`` (``--out``).
 from __future__ import annotations
 
 import argparse
-import sys
+import importlib.util
 from pathlib import Path
 from typing import Any
 
@@ -65,9 +65,7 @@ def ssim_row(data: Path, n_pairs: int, repeats: int) -> dict[str, Any]:
     from plenoctree.datasets import load_dataset
     from plenoctree.metrics import ssim
 
-    try:
-        import skimage  # noqa: F401
-    except ImportError:
+    if importlib.util.find_spec("skimage") is None:
         return {"skipped": "scikit-image is not installed (pip install scikit-image)"}
     test = load_dataset(str(data), split="test", downscale=2)
     pairs = [(test.images[k], test.images[k + 1]) for k in range(min(n_pairs, len(test) - 1))]
