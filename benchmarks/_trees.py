@@ -9,6 +9,7 @@ cache folder ``benchmarks/results/cache/``), ``procedural`` (the analytic scene'
 
 from __future__ import annotations
 
+import argparse
 import math
 import time
 from pathlib import Path
@@ -16,7 +17,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from _bench import CACHE, data_root
+from _bench import CACHE, add_data_root, data_root
 
 LEGO_RUN = ("runs", "lego_cpu_400")
 LEGO_TREE = CACHE / "lego_cpu_400_256.npz"
@@ -102,6 +103,27 @@ def load_bench_tree(name: str | None, resolution: int = 256,
                 n_leaves=int(tree.n_leaves), max_depth=int(tree.max_depth),
                 data_mb=tree.data.nbytes / 2**20, load_s=time.perf_counter() - t0)
     return tree, desc
+
+
+def add_tree_args(ap: argparse.ArgumentParser, data_help: str, name: str) -> None:
+    """The options of a speed benchmark on a tree (``name``): ``--tree``, ``--resolution``,
+    ``--data`` (``data_help``: what the benchmark does with it) and ``--data-root``, which
+    :func:`tree_from_args` reads, the renderer's ``--stop-thresh`` and ``--out`` (default
+    ``benchmarks/results/<name>_<tree kind>.json``)."""
+    ap.add_argument("--tree", default=None,
+                    help="lego | procedural | ff | PATH.npz (default: lego when found)")
+    ap.add_argument("--resolution", type=int, default=256, help="procedural/ff tree resolution")
+    ap.add_argument("--data", default=None, help=data_help)
+    add_data_root(ap)
+    ap.add_argument("--stop-thresh", type=float, default=0.01,
+                    help="the renderer's early stop (transmittance)")
+    ap.add_argument("--out", default=None,
+                    help=f"JSON (default benchmarks/results/{name}_<tree kind>.json)")
+
+
+def tree_from_args(args: argparse.Namespace) -> tuple[Any, dict]:
+    """:func:`load_bench_tree` of the options of :func:`add_tree_args`."""
+    return load_bench_tree(args.tree, args.resolution, data=args.data, root=args.data_root)
 
 
 def orbit_cameras(n_views: int, size: int) -> Any:

@@ -175,9 +175,7 @@ def table(metrics: dict[str, dict]) -> str:
 
 def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     """ab.py's own options (before ``--``) and the benchmark command (after it)."""
-    if "--" not in argv:
-        raise SystemExit("usage: ab.py --rev REV [options] -- SCRIPT.py [ARGS...]")
-    cut = argv.index("--")
+    cut = argv.index("--") if "--" in argv else len(argv)
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                  usage="%(prog)s --rev REV [options] -- SCRIPT.py [ARGS...]")
     ap.add_argument("--rev", required=True, help="side A: the revision to compare against")
@@ -197,7 +195,7 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     args = ap.parse_args(argv[:cut])
     bench = argv[cut + 1:]
     if not bench:
-        ap.error("no benchmark script after --")
+        ap.error("no benchmark command: -- SCRIPT.py [ARGS...] comes last")
     if "--out" in bench:
         ap.error("the benchmark's --out is ab.py's to set (a file per run)")
     if args.alternate < 1:

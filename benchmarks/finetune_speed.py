@@ -53,9 +53,8 @@ from typing import Any
 
 import numpy as np
 
-from _bench import (RESULTS, Timing, add_data_root, interleaved, machine_info, markdown_table,
-                    timed, write_json)
-from _trees import load_bench_tree
+from _bench import RESULTS, Timing, interleaved, machine_info, markdown_table, timed, write_json
+from _trees import add_tree_args, tree_from_args
 
 LR = 1e-3
 """SGD rate of the timed steps: tiny, so the values (and the work per ray) stay put."""
@@ -232,31 +231,23 @@ def print_report(report: dict, tree: Any) -> None:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--tree", default=None,
-                    help="lego | procedural | ff | PATH.npz (default: lego when found)")
-    ap.add_argument("--resolution", type=int, default=256, help="procedural/ff tree resolution")
+    add_tree_args(ap, "dataset of the tree: draw the batch from its training cameras (as "
+                      "finetune does) instead of orbit views; needed for an NDC tree file",
+                  "finetune_speed")
     ap.add_argument("--batch", type=int, default=1 << 16, help="rays per step (fast paths)")
     ap.add_argument("--ray-tile", type=int, default=4, help="rays drawn as k x k pixel tiles")
     ap.add_argument("--twin-batch", type=int, default=1 << 14, help="rays per step (twin)")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--twin-repeat", type=int, default=1, help="timed twin steps (slow)")
     ap.add_argument("--size", type=int, default=800, help="camera image size (pixels)")
-    ap.add_argument("--stop-thresh", type=float, default=0.01)
     ap.add_argument("--skip-twin", action="store_true")
-    ap.add_argument("--data", default=None,
-                    help="dataset of the tree: draw the batch from its training cameras (as "
-                         "finetune does) instead of orbit views; needed for an NDC tree file")
-    add_data_root(ap)
-    ap.add_argument("--out", default=None,
-                    help="JSON (default benchmarks/results/finetune_speed_<tree>.json)")
     return ap.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     load_before = os.getloadavg()
-    tree, desc = load_bench_tree(args.tree, args.resolution, data=args.data,
-                                 root=args.data_root)
+    tree, desc = tree_from_args(args)
     rng = np.random.default_rng(0)
     b = Batch(bench_views(tree, desc, args.size, rng), args, rng)
     rows = {**numba_rows(tree, b, args), **torch_rows(tree, b, args)}

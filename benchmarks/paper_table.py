@@ -34,14 +34,13 @@ Modes:
       plenoctree run --data $PLENOCTREE_DATA/nerf_synthetic/lego --train-minutes 40 --out DIR
       .venv/bin/python benchmarks/paper_table.py --run-dir DIR --size 800
 
-Scores: the first ``--views`` test views at 400² (default 200 = all). FPS: 1000 / median
-per-view render ms (numba, after one warm-up render) on ``--fps-views`` views at 400² and 800².
-MB: 10^6 bytes on disk. The data (``--data``) defaults to ``nerf_synthetic/lego`` of the data
-root (``--data-root``). Writes ``--out`` (default ``benchmarks/results/paper_table.json``) and
-beside it, with the same stem, ``.md``, ``_stages.json`` (the rows as ``plenoctree plot`` reads
-them) and ``_psnr_fps.png`` (PSNR vs FPS at 800², log x, with the τ_w / grid variants of
-``--table3``, ``extract_table3.json``, when that file exists). Run as a script it sets the
-process up as the CLI does (:func:`plenoctree.runtime.configure`).
+Scores: the first ``--views`` test views at 400² (default 200 = all) of ``--data`` (default
+the data root's ``nerf_synthetic/lego``). FPS: 1000 / median per-view render ms (numba, after
+one warm-up render) on ``--fps-views`` views at 400² and 800². MB: 10^6 bytes on disk. Writes
+``--out`` (default ``benchmarks/results/paper_table.json``) and beside it, same stem, ``.md``,
+``_stages.json`` (the rows ``plenoctree plot`` reads) and ``_psnr_fps.png`` (PSNR vs FPS at
+800², log x, with the τ_w / grid variants of ``--table3`` when that file exists). As a script
+it sets the process up as the CLI does (:func:`plenoctree.runtime.configure`).
 """
 
 from __future__ import annotations
@@ -87,8 +86,7 @@ ROWS = [
 ]
 
 _SHORT = {"nerf_sh": "NeRF-SH (ours, CPU preset)", "raw": "raw", "refined": "refined",
-          "ft": "fine-tuned",
-          "compressed": "compressed", "sh2": "ft SH9", "sh1": "ft SH4"}
+          "ft": "fine-tuned", "compressed": "compressed", "sh2": "ft SH9", "sh1": "ft SH4"}
 
 
 def _number(v):
@@ -339,33 +337,16 @@ def run_full(out: Path, data: Path, views: int, downscale: int = 2, nerf: str = 
 
     cfg = PipelineConfig(data=str(data), out=str(out), downscale=downscale, preset="cpu",
                          eval_views=views, video_frames=0, web=False, nerf=nerf)
-    if finetune_epochs:
-        cfg.finetune_epochs = finetune_epochs
-    if train_minutes:
-        cfg.train_minutes = train_minutes
+    cfg.finetune_epochs = finetune_epochs or cfg.finetune_epochs
+    cfg.train_minutes = train_minutes or cfg.train_minutes
     run_pipeline(cfg)
     return read_run_dir(out)
 
 
 def pipeline_evals(out: Path) -> dict:
     """``{row key: eval.json}`` of the pipeline's own scoring in ``out`` (eval_raw, ...)."""
-    keys = {"raw": "raw", "refined": "refined", "ft": "ft", "compressed": "compressed"}
-    res = {}
-    for key, name in keys.items():
-        p = out / f"eval_{name}" / "eval.json"
-        if p.is_file():
-            res[key] = json.loads(p.read_text())
-    return res
-
-
-def pipeline_stage_figures(summary: dict) -> dict:
-    """``{row key: (seconds, peak RSS MB, CPU seconds)}`` of the stage that made each row, from a
-    pipeline summary (``times_s`` / ``peak_rss_mb`` / ``cpu_s``)."""
-    times, peaks = summary.get("times_s", {}), summary.get("peak_rss_mb", {})
-    cpu = summary.get("cpu_s", {})
-    stage = {"nerf_sh": "train", "raw": "extract", "refined": "refine", "ft": "finetune",
-             "compressed": "compress"}
-    return {k: (times.get(v), peaks.get(v), cpu.get(v)) for k, v in stage.items()}
+    paths = {k: out / f"eval_{k}" / "eval.json" for k in ("raw", "refined", "ft", "compressed")}
+    return {k: json.loads(p.read_text()) for k, p in paths.items() if p.is_file()}
 
 
 def read_run_dir(run_dir: Path) -> tuple[Path, Path, Path | None, Path, Path | None, dict]:
@@ -390,9 +371,8 @@ def read_run_dir(run_dir: Path) -> tuple[Path, Path, Path | None, Path, Path | N
 
 
 class Inputs(NamedTuple):
-    """What a table is made of: the NeRF-SH run, the tree files (``refined`` and ``plnz``
-    optional), the image size, and the pipeline's summary and own scores (``{}`` unless a
-    chain made them)."""
+    """A table's NeRF-SH run, tree files (``refined``, ``plnz`` optional) and image size, and
+    the chain's summary and own scores (``{}`` unless a chain made them)."""
 
     nerf_run: Path
     tree: Path
@@ -431,8 +411,7 @@ def resolve_inputs(a: argparse.Namespace, data: Path) -> Inputs:
 
 def measure_rows(inp: Inputs, a: argparse.Namespace, data: Path, read: dict, work: Path
                  ) -> tuple[dict, dict]:
-    """The table's rows (:data:`ROWS`) measured in this run, and the paper-architecture
-    NeRF-SH timing."""
+    """The rows (:data:`ROWS`) measured here, and the paper-architecture NeRF-SH timing."""
     down = 800 // inp.size
     rows = {}
     print("NeRF-SH (CPU preset) ...", flush=True)
@@ -496,15 +475,17 @@ def measure_derived(inp: Inputs, a: argparse.Namespace, data: Path, work: Path) 
 
 
 def apply_stage_figures(res: dict, summary: dict) -> None:
-    """A chain's own per-stage wall time, peak RSS and CPU time onto the rows."""
-    for key, (sec, peak, cpu) in pipeline_stage_figures(summary).items():
-        if key not in res["rows"]:
-            continue
-        row = res["rows"][key]
+    """A chain's own wall time, peak RSS and CPU time of the stage that made each row, from its
+    ``summary.json`` (``times_s`` / ``peak_rss_mb`` / ``cpu_s``), onto the rows."""
+    stage = {"nerf_sh": "train", "raw": "extract", "refined": "refine", "ft": "finetune",
+             "compressed": "compress"}
+    for key, name in stage.items():
+        row, sec = res["rows"][key], summary.get("times_s", {}).get(name)
         if sec is not None:
             given = key == "nerf_sh" and res["nerf_given"]
             row["stage_s"], row["stage_src"] = sec, "read: given run" if given else "pipeline"
-        row["peak_rss_mb"], row["cpu_s"] = peak, cpu
+        row["peak_rss_mb"] = summary.get("peak_rss_mb", {}).get(name)
+        row["cpu_s"] = summary.get("cpu_s", {}).get(name)
 
 
 def write_outputs(res: dict, a: argparse.Namespace, read: dict, argv: list[str] | None) -> Path:

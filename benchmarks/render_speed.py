@@ -56,9 +56,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from _bench import (RESULTS, Timing, add_data_root, interleaved, machine_info, markdown_table,
-                    write_json)
-from _trees import data_cameras, load_bench_tree, orbit_cameras
+from _bench import RESULTS, Timing, interleaved, machine_info, markdown_table, write_json
+from _trees import add_tree_args, data_cameras, orbit_cameras, tree_from_args
 
 PATHS = ("numba", "noskip", "rays", "kernel")
 
@@ -211,23 +210,16 @@ def print_report(report: dict, tree: Any) -> None:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--tree", default=None,
-                    help="lego | procedural | ff | PATH.npz (default: lego when found)")
-    ap.add_argument("--resolution", type=int, default=256, help="procedural/ff tree resolution")
+    add_tree_args(ap, "dataset of the tree: time its test views (at their own size) instead "
+                      "of orbit views; needed for a forward-facing (NDC) tree file",
+                  "render_speed")
     ap.add_argument("--sizes", type=int, nargs="+", default=[400, 800],
                     help="image sizes (px; orbit views)")
     ap.add_argument("--views", type=int, default=4, help="views per pass")
-    ap.add_argument("--data", default=None,
-                    help="dataset of the tree: time its test views (at their own size) instead "
-                         "of orbit views; needed for a forward-facing (NDC) tree file")
     ap.add_argument("--repeats", type=int, default=5, help="timed passes per path and size")
     ap.add_argument("--twin-rays", type=int, default=8000,
                     help="rays per view rendered by the torch twin (strided subset)")
     ap.add_argument("--twin-views", type=int, default=1, help="views rendered by the twin")
-    ap.add_argument("--stop-thresh", type=float, default=0.01)
-    add_data_root(ap)
-    ap.add_argument("--out", default=None,
-                    help="JSON path (default benchmarks/results/render_speed_<tree>.json)")
     return ap.parse_args(argv)
 
 
@@ -236,8 +228,7 @@ def main(argv: list[str] | None = None) -> int:
     from plenoctree.render import RenderOptions, tree_to_device
 
     load_before = os.getloadavg()
-    tree, desc = load_bench_tree(args.tree, args.resolution, data=args.data,
-                                 root=args.data_root)
+    tree, desc = tree_from_args(args)
     opts = RenderOptions(stop_thresh=args.stop_thresh)
     if desc.get("data"):      # --data, or the ff tree's own capture (all its cameras)
         cams, idx = data_cameras(desc["data"], args.views,
