@@ -17,7 +17,8 @@ Method: every figure comes from the package's own code paths on real data (lego 
 The data (``--data``) defaults to ``nerf_synthetic/lego`` of the data root (``--data-root``).
 Prints a markdown table and writes JSON (figures, config, machine, load average) to ``--out``.
 Run as a script it sets the process up as the CLI does (:func:`plenoctree.runtime.configure`:
-``OMP_WAIT_POLICY=PASSIVE`` before torch loads, malloc thresholds, ``--threads``).
+``OMP_WAIT_POLICY=PASSIVE`` before torch loads, the malloc thresholds); ``--threads`` sets the
+torch / numba thread count (0: all cores).
 """
 
 from __future__ import annotations
