@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -25,8 +26,6 @@ LEGO_TREE = CACHE / "lego_cpu_400_256.npz"
 
 
 def _stderr(msg: str) -> None:
-    import sys
-
     print(msg, file=sys.stderr)
 
 
