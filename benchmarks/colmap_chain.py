@@ -1,7 +1,9 @@
 """The chain on ``process``'s lego poses vs the same chain on the true poses (same settings).
 
 Input: a dataset written by ``plenoctree process`` from the lego training photos (e.g. by
-``benchmarks/colmap_poses.py``, under ``/tmp/colmap_poses/process_defaults``). A twin dataset is
+``benchmarks/colmap_poses.py``, under ``benchmarks/results/cache/colmap_poses/process_defaults``);
+the true poses are those of ``nerf_synthetic/lego`` of the data root (``--data-root``). A twin
+dataset is
 made beside it with the same images (linked), the same frames and split, but the true poses,
 the true focal length (of the source photos' size; the principal point of the undistorted
 images) and the Blender scene box [-1.5, 1.5]³. Both go through
@@ -9,8 +11,12 @@ images) and the Blender scene box [-1.5, 1.5]³. Both go through
 ``--epochs`` of fine-tuning, at ``--downscale``); the table gives the test PSNR of every stage
 (the 10 held-out photos of nerfstudio's 90 % rule) and the difference.
 
-    python benchmarks/colmap_chain.py --data /tmp/colmap_poses/process_defaults \\
-        --out /tmp/colmap_chain --steps 800 --downscale 2 --grid 128 --epochs 2
+    python benchmarks/colmap_chain.py \\
+        --data benchmarks/results/cache/colmap_poses/process_defaults \\
+        --work benchmarks/results/cache/colmap_chain --steps 800 --downscale 2 --grid 128 \\
+        --epochs 2
+
+The chains run in ``--work`` (kept: a later call resumes them); the table goes to ``--out``.
 """
 
 from __future__ import annotations
@@ -22,18 +28,13 @@ import os
 import sys
 from pathlib import Path
 
-from plenoctree._util import atomic_save_json
-
-_HERE = Path(__file__).resolve().parents[1]          # the checkout (a worktree: one deeper)
-LEGO = next((d / "shared/data/nerf_synthetic/lego" for d in (_HERE.parent, _HERE.parent.parent)
-             if (d / "shared/data/nerf_synthetic/lego").is_dir()),
-            _HERE.parent / "shared/data/nerf_synthetic/lego")
+from _bench import CACHE, add_data_root, add_out, data_path, machine_info, write_json
 
 
-def make_twin(data: Path, twin: Path) -> Path:
-    """``twin``: ``data``'s frames with the true lego poses, focal and box."""
+def make_twin(data: Path, twin: Path, lego: Path) -> Path:
+    """``twin``: ``data``'s frames with the true poses, focal and box of ``lego``."""
     tj = json.loads((data / "transforms.json").read_text())
-    meta = json.loads((LEGO / "transforms_train.json").read_text())
+    meta = json.loads((lego / "transforms_train.json").read_text())
     gt = {Path(f["file_path"]).name + ".png": f["transform_matrix"] for f in meta["frames"]}
     twin.mkdir(parents=True, exist_ok=True)
     for d in data.iterdir():
@@ -66,34 +67,36 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True, help="a lego dataset written by `process`")
-    ap.add_argument("--out", default="/tmp/colmap_chain")
+    ap.add_argument("--work", default=str(CACHE / "colmap_chain"),
+                    help="folder of the two chains (kept: a later call resumes them)")
     ap.add_argument("--steps", type=int, default=800, help="NeRF-SH training steps (a step "
                     "count, not minutes: the machine may be shared)")
     ap.add_argument("--downscale", type=int, default=2)
     ap.add_argument("--grid", type=int, default=128)
     ap.add_argument("--epochs", type=int, default=2)
-    ap.add_argument("--json", default=None)
     ap.add_argument("--only", choices=["colmap", "true"], default=None,
                     help="run one of the two chains (two processes in parallel); a later run "
                          "without it skips the finished stages and prints the table")
+    add_data_root(ap)
+    add_out(ap, "colmap_chain.json")
     args = ap.parse_args(argv)
-    data, out = Path(args.data), Path(args.out)
-    twin = make_twin(data, out / "gt_data")
+    data, work = Path(args.data), Path(args.work)
+    twin = make_twin(data, work / "gt_data", data_path(args.data_root, "nerf_synthetic", "lego"))
     load_before = os.getloadavg()
     res = {}
     for name, d in (("colmap poses", data), ("true poses", twin)):
         if args.only and not name.startswith(args.only):
             continue
-        cfg = PipelineConfig(data=str(d), out=str(out / name.replace(" ", "_")),
+        cfg = PipelineConfig(data=str(d), out=str(work / name.replace(" ", "_")),
                              downscale=args.downscale, train_minutes=0, train_steps=args.steps,
                              grid=args.grid, finetune_epochs=args.epochs, nerf_eval_views=0,
                              video_frames=0, web=False, format="nerfstudio",
                              extra={"train": {"val_views": 0}})
         s = run_pipeline(cfg, log=lambda m: print("  " + m, flush=True))
         res[name] = {row["stage"]: row["psnr"] for row in s["rows"] if row["psnr"] is not None}
-    load_after = os.getloadavg()
     if args.only:
         return 0
+    machine = machine_info(load_before)
     stages = list(res["true poses"])
     print(f"{'stage':<24} {'colmap poses':>13} {'true poses':>11} {'diff (dB)':>10}")
     for st in stages:
@@ -101,10 +104,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{st:<24} {a:13.2f} {b:11.2f} {a - b:10.2f}")
     print(f"budget: {args.steps} NeRF-SH training steps, grid {args.grid}, {args.epochs} "
           f"fine-tune epochs, downscale {args.downscale}; load {load_before[0]:.1f} -> "
-          f"{load_after[0]:.1f} on {os.cpu_count()} cores")
-    atomic_save_json(args.json or out / "chain.json", {
-        "psnr": res, "settings": vars(args), "load_avg_before": load_before,
-        "load_avg_after": load_after, "cpu_count": os.cpu_count()})
+          f"{machine['loadavg'][0]:.1f} on {machine['cpu_count']} cores")
+    out = write_json(args.out, {"benchmark": "colmap_chain", "psnr": res,
+                                "settings": vars(args), "machine": machine})
+    print(f"wrote {out}")
     return 0
 
 

@@ -12,14 +12,18 @@ error > 5°), the registered count and the wall time, with the machine and its l
 defaults (SIMPLE_RADIAL camera per image, exhaustive matching, no guided matching, default
 mapper) on the same photos in the same run.
 
-    python benchmarks/colmap_poses.py --size 400 --json /tmp/colmap/poses.json
+    python benchmarks/colmap_poses.py --size 400 --out benchmarks/results/colmap_poses.json
 
 ``--video N``: the video path instead: the 200 views of the lego test orbit (two turns,
 3.6° apart, elevation 7°-47°) at ``--size``² on white as an MP4 (10 fps), ``process`` keeping
 N frames (default options: the sharper of each two candidates), the same figures against
 the true poses of the frames kept.
 
-    python benchmarks/colmap_poses.py --video 100 --size 320 --json /tmp/colmap/video.json
+    python benchmarks/colmap_poses.py --video 100 --size 320 --out benchmarks/results/video.json
+
+The lego scene is ``nerf_synthetic/lego`` of the data root (``--data-root``); the photos and
+``process``'s outputs go under ``--work`` (default ``benchmarks/results/cache/colmap_poses``,
+kept: a second run reuses the photos).
 """
 
 from __future__ import annotations
@@ -27,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shutil
 import sys
 import time
@@ -35,20 +38,17 @@ from pathlib import Path
 
 import numpy as np
 
-from plenoctree._util import atomic_save_json
+from _bench import CACHE, add_data_root, add_out, data_path, machine_info, write_json
 
-_HERE = Path(__file__).resolve().parents[1]          # the checkout (a worktree: one deeper)
-LEGO = next((d / "shared/data/nerf_synthetic/lego" for d in (_HERE.parent, _HERE.parent.parent)
-             if (d / "shared/data/nerf_synthetic/lego").is_dir()),
-            _HERE.parent / "shared/data/nerf_synthetic/lego")
 OUTLIER_DEG = 5.0
 
 
-def prepare(size: int, out: Path) -> dict[str, np.ndarray]:
-    """Write the training photos at ``size``² on white; return name -> true OpenGL c2w."""
+def prepare(lego: Path, size: int, out: Path) -> dict[str, np.ndarray]:
+    """Write the training photos of ``lego`` at ``size``² on white; return name -> true
+    OpenGL c2w."""
     from PIL import Image
 
-    meta = json.loads((LEGO / "transforms_train.json").read_text())
+    meta = json.loads((lego / "transforms_train.json").read_text())
     out.mkdir(parents=True, exist_ok=True)
     gt = {}
     for fr in meta["frames"]:
@@ -56,7 +56,7 @@ def prepare(size: int, out: Path) -> dict[str, np.ndarray]:
         gt[name] = np.array(fr["transform_matrix"], dtype=np.float64)
         if (out / name).is_file():
             continue
-        im = Image.open(LEGO / (fr["file_path"] + ".png")).convert("RGBA")
+        im = Image.open(lego / (fr["file_path"] + ".png")).convert("RGBA")
         im = im.resize((size, size), Image.BOX)
         a = np.asarray(im).astype(np.float32) / 255.0
         rgb = a[..., :3] * a[..., 3:] + (1.0 - a[..., 3:])
@@ -64,12 +64,12 @@ def prepare(size: int, out: Path) -> dict[str, np.ndarray]:
     return gt
 
 
-def prepare_video(size: int, out: Path) -> tuple[Path, list[np.ndarray]]:
-    """The lego test orbit at ``size``² on white as ``out/lego_orbit_{size}.mp4``; returns it
-    and the true OpenGL c2w of each of its frames."""
+def prepare_video(lego: Path, size: int, out: Path) -> tuple[Path, list[np.ndarray]]:
+    """The test orbit of ``lego`` at ``size``² on white as ``out/lego_orbit_{size}.mp4``;
+    returns it and the true OpenGL c2w of each of its frames."""
     from PIL import Image
 
-    meta = json.loads((LEGO / "transforms_test.json").read_text())
+    meta = json.loads((lego / "transforms_test.json").read_text())
     gt = [np.array(fr["transform_matrix"], dtype=np.float64) for fr in meta["frames"]]
     video = out / f"lego_orbit_{size}.mp4"
     if not video.is_file():
@@ -77,7 +77,7 @@ def prepare_video(size: int, out: Path) -> tuple[Path, list[np.ndarray]]:
 
         frames = []
         for fr in meta["frames"]:
-            im = Image.open(LEGO / (fr["file_path"] + ".png")).convert("RGBA")
+            im = Image.open(lego / (fr["file_path"] + ".png")).convert("RGBA")
             a = np.asarray(im.resize((size, size), Image.BOX)).astype(np.float32) / 255.0
             rgb = a[..., :3] * a[..., 3:] + (1.0 - a[..., 3:])
             frames.append(np.round(rgb * 255).astype(np.uint8))
@@ -147,25 +147,28 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=400)
-    ap.add_argument("--work", default="/tmp/colmap_poses")
-    ap.add_argument("--json", default="/tmp/colmap_poses/poses.json")
+    ap.add_argument("--work", default=str(CACHE / "colmap_poses"),
+                    help="folder of the photos and process's outputs (kept)")
     ap.add_argument("--camera-model", default=None)
     ap.add_argument("--no-guided", action="store_true")
     ap.add_argument("--baseline", action="store_true",
                     help="also run pycolmap's defaults on the same photos")
     ap.add_argument("--video", type=int, default=0, metavar="N",
                     help="the video path: the lego test orbit as an MP4, N frames kept")
+    add_data_root(ap)
+    add_out(ap, "colmap_poses.json")
     args = ap.parse_args(argv)
-    if not (LEGO / "transforms_train.json").is_file():
-        print(f"lego not found at {LEGO}", file=sys.stderr)
+    lego = data_path(args.data_root, "nerf_synthetic", "lego")
+    if not (lego / "transforms_train.json").is_file():
+        print(f"lego not found at {lego}", file=sys.stderr)
         return 2
     work = Path(args.work)
     if args.video:
-        source, orbit = prepare_video(args.size, work)
+        source, orbit = prepare_video(lego, args.size, work)
         gt = {f"frame_{k:05d}.png": c for k, c in enumerate(orbit)}
     else:
         source = work / f"images_{args.size}"
-        gt = prepare(args.size, source)
+        gt = prepare(lego, args.size, source)
     runs = {}
     ours = SfmOptions()
     if args.camera_model:
@@ -189,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
                "kind": summary["kind"], **pose_errors(c2w, ref),
                "options": {k: v for k, v in vars(opts).items()}, "seconds": summary["seconds"]}
         runs[name] = row
-    load_after = os.getloadavg()
+    machine = machine_info(load_before)
     hdr = (f"{'run':<20} {'reg':>7} {'rot med':>8} {'rot max':>8} {'ctr med%':>9} "
            f"{'ctr max%':>9} {'outl':>5} {'min':>6} {'cpu min':>7}")
     print(hdr)
@@ -197,19 +200,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:<20} {r['registered']:>3}/{r['images']:<3} {r['rot_median_deg']:8.3f} "
               f"{r['rot_max_deg']:8.3f} {r['centre_median_pct']:9.3f} {r['centre_max_pct']:9.3f} "
               f"{r['outliers']:5d} {r['minutes']:6.2f} {r['cpu_minutes']:7.2f}")
-    print(f"load average before {load_before[0]:.1f}, after {load_after[0]:.1f} on "
-          f"{os.cpu_count()} cores")
+    print(f"load average before {load_before[0]:.1f}, after {machine['loadavg'][0]:.1f} on "
+          f"{machine['cpu_count']} cores")
     import pycolmap
 
-    atomic_save_json(args.json, {
-        "size": args.size, "video_frames": args.video, "runs": runs,
-        "pycolmap": pycolmap.__version__,
-        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
-                    "python": platform.python_version()},
-        "load_avg_before": load_before, "load_avg_after": load_after,
+    out = write_json(args.out, {
+        "benchmark": "colmap_poses", "size": args.size, "video_frames": args.video,
+        "runs": runs, "pycolmap": pycolmap.__version__, "machine": machine,
         "goals": {"rot_median_deg": 0.5, "centre_pct": 1.0, "outliers": 0,
                   "registered_frac": 0.95, "minutes": 10}})
-    print(f"wrote {args.json}")
+    print(f"wrote {out}")
     return 0
 
 

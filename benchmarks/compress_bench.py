@@ -32,18 +32,15 @@ from __future__ import annotations
 
 import argparse
 import io
-import json
-import math
-import os
-import platform
 import shutil
-import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from _bench import add_out, machine_info, timed, write_json
 from plenoctree.compression import CompressOptions
 from plenoctree.compression_report import compression_report
 
@@ -115,18 +112,13 @@ def viewer_frame_times(tree_path: Path, sizes: list[int], frames: int) -> dict:
                         cx=cams.cx, cy=cams.cy, width=size, height=size)
             page.evaluate("v => window.viewer.setView(v)", view)
             ms = page.evaluate(f"window.viewer.benchmark({frames})")
-            render_image(tree, cams, 0)                          # warm-up (JIT)
-            cpu = []
-            for _ in range(3):
-                t0 = time.perf_counter()
-                render_image(tree, cams, 0)
-                cpu.append((time.perf_counter() - t0) * 1e3)
-            out["rows"].append(dict(size=size, viewer_ms=ms, cpu_numba_ms=statistics.median(cpu)))
+            cpu = timed(lambda: render_image(tree, cams, 0), 3)   # after a warm-up (JIT)
+            out["rows"].append(dict(size=size, viewer_ms=ms, cpu_numba_ms=cpu.median * 1e3))
         browser.close()
     return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tree", default=None, help="tree file (default: procedural scene)")
     ap.add_argument("--resolution", type=int, default=256, help="procedural grid resolution")
@@ -144,8 +136,8 @@ def main() -> None:
     ap.add_argument("--retain", type=int, default=0)
     ap.add_argument("--sizes", type=int, nargs="*", default=[256], help="viewer sizes in px")
     ap.add_argument("--frames", type=int, default=5)
-    ap.add_argument("--out", default="benchmarks/results/compress_bench.json")
-    args = ap.parse_args()
+    add_out(ap, "compress_bench.json")
+    args = ap.parse_args(argv)
 
     tmp = Path(tempfile.mkdtemp(prefix="compress_bench_"))
     try:
@@ -207,22 +199,14 @@ def main() -> None:
                   f"numba CPU renderer {v['cpu_numba_ms']:.1f} ms")
     else:
         print(f"viewer: skipped ({viewer['skipped']})")
-    import numba
-    import torch
-
-    machine = dict(cpus=os.cpu_count(), platform=platform.platform(), numpy=np.__version__,
-                   numba=numba.__version__, torch=torch.__version__,
-                   python=platform.python_version())
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     for r in rows:
         r.pop("output", None)
-    out.write_text(json.dumps(dict(machine=machine, tree=label, deflate_baseline=base,
-                                   rows=rows, viewer=viewer), indent=2,
-                              default=lambda o: None if isinstance(o, float) and math.isnan(o)
-                              else str(o)) + "\n")
+    out = write_json(args.out, dict(benchmark="compress_bench", machine=machine_info(),
+                                    tree=label, deflate_baseline=base, rows=rows,
+                                    viewer=viewer))
     print(f"wrote {out}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -18,10 +18,13 @@ test views (PSNR / SSIM at the run's resolution), with its leaves:
                               re-valued tree) with ``--threshold t --passes p`` (``--refine``)
 ============================  ================================================================
 
-Usage (lego, the shared NeRF-SH; ``nice -n 19`` on a shared machine)::
+Usage (lego, the shared NeRF-SH of the data folder ``$PLENOCTREE_DATA``, and the tree
+``render_speed.py --tree lego`` extracts into ``benchmarks/results/cache``; ``nice -n 19`` on a
+shared machine)::
 
-    .venv/bin/python benchmarks/conversion_choices.py --run ../shared/data/runs/lego_cpu_400 \\
-        --tree /work/cache/lego_256.npz --data ../shared/data/nerf_synthetic/lego --views 20 \\
+    .venv/bin/python benchmarks/conversion_choices.py --run $PLENOCTREE_DATA/runs/lego_cpu_400 \\
+        --tree benchmarks/results/cache/lego_cpu_400_256.npz \\
+        --data $PLENOCTREE_DATA/nerf_synthetic/lego --views 20 \\
         [--samples 8 16 32] [--extract tau0.01 margin1.1] [--refine t0.1-p1-opacity]
 
 Writes ``benchmarks/results/conversion_choices.json`` (``--out``; rows are added to an existing
@@ -34,19 +37,14 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-if __name__ == "__main__" and os.name == "posix" and "OMP_WAIT_POLICY" not in os.environ:
-    os.execve(sys.executable, [sys.executable, *sys.argv],
-              {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
-
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from _bench import add_out, machine_info, write_json
 
 
 def score(tree, data: str, downscale: int, views: int) -> dict:
@@ -55,14 +53,10 @@ def score(tree, data: str, downscale: int, views: int) -> dict:
     from plenoctree.evaluation import evaluate_tree
     from plenoctree.render import RenderOptions
 
-    test = load_dataset(data, split="test", downscale=downscale)
-    idx = [int(i * len(test) // views) for i in range(min(views, len(test)))]
-    test = dataclasses.replace(test, images=test.images[idx], cameras=test.cameras.select(idx),
-                               names=[test.names[i] for i in idx],
-                               alphas=None if test.alphas is None else test.alphas[idx])
+    test = load_dataset(data, split="test", downscale=downscale, limit=views, spread=True)
     ev = evaluate_tree(tree, test, None, RenderOptions(background=tuple(test.background)),
                        show_progress=False)
-    return {"psnr": float(ev.mean_psnr), "ssim": float(ev.mean_ssim), "views": len(idx),
+    return {"psnr": float(ev.mean_psnr), "ssim": float(ev.mean_ssim), "views": len(test),
             "leaves": int(tree.n_leaves)}
 
 
@@ -99,18 +93,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--refine", nargs="*", default=[],
                     help="refine rows: t<threshold>-p<passes>-<averaging>")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default=str(ROOT / "benchmarks/results/conversion_choices.json"))
+    add_out(ap, "conversion_choices.json")
     a = ap.parse_args(argv)
 
-    from plenoctree._util import atomic_save_json
     from plenoctree.convert.extraction import ExtractConfig, _load_run, extract
     from plenoctree.convert.refine import RefineOptions, refine_tree
     from plenoctree.octree import load_tree
 
     out = Path(a.out)
     res = json.loads(out.read_text()) if out.is_file() else {"rows": {}}
-    res.update({"run": a.run, "tree": a.tree, "views": a.views, "cpu_count": os.cpu_count(),
-                "platform": platform.platform()})
+    res.update({"benchmark": "conversion_choices", "run": a.run, "tree": a.tree,
+                "views": a.views, "machine": machine_info()})
     rows = res["rows"]
     field_, train_cfg, _ = _load_run(ExtractConfig(run_dir=a.run, device="cpu"))
     down = int(getattr(train_cfg, "downscale", 1) or 1)
@@ -121,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
              "cpu_seconds": time.process_time() - c0, "loadavg": list(os.getloadavg()),
              **extra}
         rows[name] = r
-        atomic_save_json(out, res)
+        write_json(out, res)
         print(f"{name:28s} {r['psnr']:7.3f} dB  SSIM {r['ssim']:.4f}  {r['leaves']:>10,d} leaves"
               f"  {r['seconds']:6.0f} s", flush=True)
 
@@ -156,4 +149,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    from plenoctree import runtime
+
+    runtime.configure()         # as the CLI: before torch / numba load (OMP_WAIT_POLICY, malloc)
     sys.exit(main())

@@ -1,14 +1,15 @@
 """Dataset loading time and peak memory per format (Blender, LLFF, NSVF, nerfstudio).
 
 Usage: ``python benchmarks/dataset_load.py [--n 100] [--width 1008 --height 756]
-[--repeat 3] [--tmp /tmp/plenoctree-dsbench] [--out PATH.json]``
+[--repeat 3] [--tmp DIR] [--out PATH.json]``
 
 For each format a synthetic ``--n``-image scene at ``--width x --height`` is written under
-``--tmp`` in that format's layout (images: a few procedural-scene renders upsampled, cycled
+``--tmp`` (default: a new temporary folder, removed afterwards unless ``--keep``) in that
+format's layout (images: a few procedural-scene renders upsampled, cycled
 over the frames and hard-linked; Blender RGBA PNG, NSVF RGB PNG, LLFF and nerfstudio JPEG as
 those captures usually are). Each load runs in a fresh subprocess (``load_dataset(dir,
-split)`` with format auto-detection; all ``--n`` images, split "all" / Blender "train") and
-reports wall time and the process's peak RSS above its level after ``import plenoctree``.
+split)`` with format auto-detection; all ``--n`` images, split "all" / Blender "train"; a
+process each, so that its peak memory is its own) and reports wall time and the process's peak RSS above its level after ``import plenoctree``.
 Baseline measured in the same run: decoding the same files with PIL alone into uint8 arrays
 (no conversion, compositing or float copies), single- and multi-threaded as the loader.
 Median (and half-range) of ``--repeat`` runs; files are in the page cache (just written).
@@ -20,15 +21,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shutil
-import statistics
-import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from _bench import Timing, add_out, child_json, machine_info, markdown_table, write_json
 
 _WORKER = r"""
 import json, os, resource, sys, time
@@ -168,80 +169,70 @@ def write_scenes(tmp: Path, n: int, width: int, height: int) -> dict[str, tuple[
     return out
 
 
-def _run(mode: str, fmt: str, arg: str, split: str) -> dict:
-    res = subprocess.run([sys.executable, "-c", _WORKER, mode, fmt, arg, split],
-                         capture_output=True, text=True, check=False)
-    if res.returncode != 0:
-        raise RuntimeError(f"{mode} {fmt} failed:\n{res.stderr[-2000:]}")
-    return json.loads(res.stdout.strip().splitlines()[-1])
+def _stat(runs: list[dict], key: str) -> Timing:
+    """``key`` of the runs as a timing (median, spread, min)."""
+    return Timing([r[key] for r in runs])
 
 
-def _stat(runs: list[dict], key: str) -> tuple[float, float]:
-    vals = [r[key] for r in runs]
-    return statistics.median(vals), (max(vals) - min(vals)) / 2
+def measure(fmt: str, root: Path, files: list[Path], tmp: Path, args: argparse.Namespace
+            ) -> dict:
+    """The row of one format: ``--repeat`` loads and PIL decodes, a fresh process each."""
+    split = "train" if fmt == "blender" else "all"
+    listing = tmp / f"{fmt}-files.txt"
+    listing.write_text("\n".join(str(p) for p in files))
+    loads = [child_json(["-c", _WORKER, "load", fmt, root, split]) for _ in range(args.repeat)]
+    bases = [child_json(["-c", _WORKER, "decode", fmt, listing, split])
+             for _ in range(args.repeat)]
+    assert all(r["n"] == args.n for r in loads + bases)
+    t, mem = _stat(loads, "seconds"), _stat(loads, "peak_mb")
+    bt, bmem = _stat(bases, "seconds"), _stat(bases, "peak_mb")
+    return {"format": fmt, "n_images": args.n, "width": args.width, "height": args.height,
+            "file_type": files[0].suffix, "load_s": t.median, "load_s_halfrange": t.spread,
+            "load_s_min": min(t.wall), "peak_mb": mem.median, "peak_mb_halfrange": mem.spread,
+            "arrays_mb": loads[0]["array_mb"], "baseline_decode_s": bt.median,
+            "baseline_decode_s_halfrange": bt.spread, "baseline_decode_s_min": min(bt.wall),
+            "baseline_decode_peak_mb": bmem.median}
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=100)
     ap.add_argument("--width", type=int, default=1008)
     ap.add_argument("--height", type=int, default=756)
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--tmp", default="/tmp/plenoctree-dsbench")
+    ap.add_argument("--tmp", default=None,
+                    help="folder for the scenes (emptied first; default: a new temporary one)")
     ap.add_argument("--keep", action="store_true", help="keep the written scenes")
-    ap.add_argument("--out", default="benchmarks/results/dataset_load.json")
-    args = ap.parse_args()
-    tmp = Path(args.tmp)
-    if tmp.exists():
+    add_out(ap, "dataset_load.json")
+    args = ap.parse_args(argv)
+    tmp = Path(args.tmp) if args.tmp else Path(tempfile.mkdtemp(prefix="plenoctree-dsbench-"))
+    if args.tmp and tmp.exists():
         shutil.rmtree(tmp)
     t0 = time.perf_counter()
-    scenes = write_scenes(tmp, args.n, args.width, args.height)
-    print(f"wrote 4 scenes of {args.n} images {args.width}x{args.height} in "
-          f"{time.perf_counter() - t0:.1f} s under {tmp}")
-    rows = []
     try:
-        for fmt, (root, files) in scenes.items():
-            split = "train" if fmt == "blender" else "all"
-            listing = tmp / f"{fmt}-files.txt"
-            listing.write_text("\n".join(str(p) for p in files))
-            loads = [_run("load", fmt, str(root), split) for _ in range(args.repeat)]
-            bases = [_run("decode", fmt, str(listing), split) for _ in range(args.repeat)]
-            assert all(r["n"] == args.n for r in loads + bases)
-            (t, t_sp), (mem, mem_sp) = _stat(loads, "seconds"), _stat(loads, "peak_mb")
-            (bt, bt_sp), (bmem, _) = _stat(bases, "seconds"), _stat(bases, "peak_mb")
-            rows.append({"format": fmt, "n_images": args.n, "width": args.width,
-                         "height": args.height, "file_type": files[0].suffix,
-                         "load_s": t, "load_s_halfrange": t_sp,
-                         "load_s_min": min(r["seconds"] for r in loads), "peak_mb": mem,
-                         "peak_mb_halfrange": mem_sp, "arrays_mb": loads[0]["array_mb"],
-                         "baseline_decode_s": bt, "baseline_decode_s_halfrange": bt_sp,
-                         "baseline_decode_s_min": min(r["seconds"] for r in bases),
-                         "baseline_decode_peak_mb": bmem})
+        scenes = write_scenes(tmp, args.n, args.width, args.height)
+        print(f"wrote 4 scenes of {args.n} images {args.width}x{args.height} in "
+              f"{time.perf_counter() - t0:.1f} s under {tmp}")
+        rows = [measure(fmt, root, files, tmp, args) for fmt, (root, files) in scenes.items()]
     finally:
         if not args.keep:
             shutil.rmtree(tmp, ignore_errors=True)
-    print(f"\n| format | files | load s median ± half-range (min) | peak MB | arrays MB | "
-          f"PIL decode s (baseline, min) | load / decode (min) |")
-    print("|---|---|---|---|---|---|---|")
-    for r in rows:
-        print(f"| {r['format']} | {r['file_type']} | {r['load_s']:.2f} ± {r['load_s_halfrange']:.2f}"
-              f" ({r['load_s_min']:.2f}) | {r['peak_mb']:.0f} | {r['arrays_mb']:.0f} | "
-              f"{r['baseline_decode_s']:.2f} ({r['baseline_decode_s_min']:.2f}) | "
-              f"{r['load_s_min'] / r['baseline_decode_s_min']:.2f}x |")
-    import numba
-    import torch
-
-    meta = {"machine": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version(),
-            "numpy": np.__version__, "torch": torch.__version__, "numba": numba.__version__,
-            "threads": min(8, os.cpu_count() or 1), "repeat": args.repeat,
-            "loadavg_1min_at_end": os.getloadavg()[0],
+    print()
+    print(markdown_table(
+        ["format", "files", "load s median ± half-range (min)", "peak MB", "arrays MB",
+         "PIL decode s (baseline, min)", "load / decode (min)"],
+        [[r["format"], r["file_type"], f"{r['load_s']:.2f} ± {r['load_s_halfrange']:.2f} "
+          f"({r['load_s_min']:.2f})", f"{r['peak_mb']:.0f}", f"{r['arrays_mb']:.0f}",
+          f"{r['baseline_decode_s']:.2f} ({r['baseline_decode_s_min']:.2f})",
+          f"{r['load_s_min'] / r['baseline_decode_s_min']:.2f}x"] for r in rows]))
+    meta = {"threads": min(8, os.cpu_count() or 1), "repeat": args.repeat,
             "note": "wall time of load_dataset (auto-detect) in a fresh process; peak RSS above "
                     "the post-import level; page cache warm"}
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"meta": meta, "results": rows}, indent=2))
+    out = write_json(args.out, {"benchmark": "dataset_load", "machine": machine_info(),
+                                "meta": meta, "results": rows})
     print(f"\nwrote {out}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

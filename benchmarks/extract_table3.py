@@ -28,9 +28,6 @@ Writes ``benchmarks/results/extract_table3[_procedural].json`` (``--out``), prin
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import statistics
 import sys
 import tempfile
 import time
@@ -38,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plenoctree._util import atomic_save_json
+from _bench import RESULTS, interleaved, machine_info, markdown_table, write_json
 from plenoctree.convert import AnalyticField, ExtractConfig, extract
 from plenoctree.convert.extraction import clamp_sigma_for_fp16
 from plenoctree.convert.visibility import rescale_cameras
@@ -46,23 +43,6 @@ from plenoctree.datasets import load_dataset
 from plenoctree.datasets.procedural import write_procedural_dataset
 from plenoctree.octree import load_tree, save_tree
 from plenoctree.render import RenderOptions, render_rays
-
-ROOT = Path(__file__).resolve().parent
-
-
-def machine() -> dict:
-    import numba
-    import torch
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if "model name" in line)
-    except (OSError, StopIteration):
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "numba_threads": numba.get_num_threads(),
-            "torch": torch.__version__, "numba": numba.__version__, "numpy": np.__version__,
-            "python": sys.version.split()[0]}
 
 
 def render_fps(tree_paths: dict[str, Path], cameras, views: int, size: int, repeats: int
@@ -77,20 +57,18 @@ def render_fps(tree_paths: dict[str, Path], cameras, views: int, size: int, repe
     rays = [cams.rays(int(i)) for i in idx]
     opts = RenderOptions(stop_thresh=0.01)
     trees = {k: load_tree(p) for k, p in tree_paths.items()}
-    for tree in trees.values():
-        render_rays(tree, *rays[0], opts, "numba")                  # warm-up (JIT cache load)
-    passes: dict[str, list[float]] = {k: [] for k in trees}
-    for _ in range(repeats):
-        for k, tree in trees.items():
-            t0 = time.perf_counter()
-            for o, d in rays:
-                render_rays(tree, o, d, opts, "numba")
-            passes[k].append((time.perf_counter() - t0) / len(rays))
+
+    def one_pass(tree):
+        for o, d in rays:
+            render_rays(tree, o, d, opts, "numba")
+
+    passes = interleaved({k: (lambda t=t: one_pass(t)) for k, t in trees.items()}, repeats)
     out = {}
-    for k, ps in passes.items():
-        ms = statistics.median(ps) * 1e3
-        out[k] = {"ms_per_frame": ms, "fps": 1e3 / ms, "spread_ms": [min(ps) * 1e3,
-                  max(ps) * 1e3], "size": [cams.width, cams.height], "views": len(rays)}
+    for k, t in passes.items():
+        t = t.scaled(1 / len(rays))
+        ms = t.median * 1e3
+        out[k] = {"ms_per_frame": ms, "fps": 1e3 / ms, "spread_ms": [min(t.wall) * 1e3,
+                  max(t.wall) * 1e3], "size": [cams.width, cams.height], "views": len(rays)}
     return out
 
 
@@ -135,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         base_cfg.update(run_dir=args.run)
         name = Path(args.run).name
-    out_json = Path(args.out) if args.out else ROOT / "results" / (
+    out_json = Path(args.out) if args.out else RESULTS / (
         "extract_table3" + ("_procedural" if args.procedural else "") + ".json")
 
     rows = {}
@@ -175,17 +153,17 @@ def main(argv: list[str] | None = None) -> int:
         r["render"] = fps[k]
 
     print(f"\n## Table 3 trade-offs on {name} (grid {args.grid}, {args.samples} samples/voxel)\n")
-    print("| variant | kept voxels | MB fp32 | MB fp16 | test PSNR | ms/frame | FPS | "
-          "extract s (grid / filter / sample) |")
-    print("|---|---|---|---|---|---|---|---|")
-    for key, r in rows.items():
-        s = r["stages"]
-        print(f"| {key} | {r['kept']} | {r['mb_fp32']:.1f} | {r['mb_fp16']:.1f} | "
-              f"{r['psnr']:.2f} | {r['render']['ms_per_frame']:.1f} | {r['render']['fps']:.2f} | "
-              f"{r['total_s']:.1f} ({s['grid']['seconds']:.1f} / {s['filter']['seconds']:.1f} / "
-              f"{s['sample']['seconds']:.1f}) |")
-    atomic_save_json(out_json, {"scene": name, "grid": args.grid, "samples": args.samples,
-                                "fps_size": args.fps_size, "machine": machine(), "rows": rows})
+    print(markdown_table(
+        ["variant", "kept voxels", "MB fp32", "MB fp16", "test PSNR", "ms/frame", "FPS",
+         "extract s (grid / filter / sample)"],
+        [[key, r["kept"], f"{r['mb_fp32']:.1f}", f"{r['mb_fp16']:.1f}", f"{r['psnr']:.2f}",
+          f"{r['render']['ms_per_frame']:.1f}", f"{r['render']['fps']:.2f}",
+          f"{r['total_s']:.1f} ({r['stages']['grid']['seconds']:.1f} / "
+          f"{r['stages']['filter']['seconds']:.1f} / {r['stages']['sample']['seconds']:.1f})"]
+         for key, r in rows.items()]))
+    write_json(out_json, {"benchmark": "extract_table3", "scene": name, "grid": args.grid,
+                          "samples": args.samples, "fps_size": args.fps_size,
+                          "machine": machine_info(), "rows": rows})
     print(f"\nwrote {out_json}")
     tmp.cleanup()
     return 0

@@ -4,8 +4,8 @@ slabs as they were (dense).
 Usage: ``python benchmarks/finetune_memory.py TREE.npz --data DATASET [--downscale 2]
 [--epochs 1] [--out benchmarks/results/finetune_memory.json]``
 
-Each mode runs in its own subprocess (so one's pages do not count for the other), with the
-settings of ``plenoctree run``'s fine-tuning stage (no test split):
+Each mode runs in its own subprocess (``_bench.child_json``: so one's pages do not count for
+the other), with the settings of ``plenoctree run``'s fine-tuning stage (no test split):
 
 - ``shipped``: ``finetune`` as it is: compact per-thread gradient slabs sized by the cells one
   batch reaches (:class:`plenoctree.optim._render_grad.SparseGrad`);
@@ -24,13 +24,12 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
 
-from _trees import machine_info
+from _bench import add_out, child_json, machine_info, markdown_table, write_json
 
 
 def _rss_mb() -> int:
@@ -94,40 +93,35 @@ def child(tree: str, data: str, downscale: int, epochs: int, dense: bool, out: s
                       "array_mb": {k: round(v / 2**20) for k, v in sizes.items()}}))
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("tree")
     ap.add_argument("--data", required=True)
     ap.add_argument("--downscale", type=int, default=2)
     ap.add_argument("--epochs", type=int, default=1)
-    ap.add_argument("--out", default="benchmarks/results/finetune_memory.json")
+    add_out(ap, "finetune_memory.json")
     ap.add_argument("--child", choices=("dense_slabs", "shipped"), help=argparse.SUPPRESS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     scratch = Path(args.out).with_suffix(".ft.npz")
     if args.child:
         child(args.tree, args.data, args.downscale, args.epochs, args.child == "dense_slabs",
               str(scratch))
-        return
-    rows = {}
-    for mode in ("dense_slabs", "shipped"):
-        res = subprocess.run([sys.executable, __file__, args.tree, "--data", args.data,
-                              "--downscale", str(args.downscale), "--epochs", str(args.epochs),
-                              "--out", args.out, "--child", mode],
-                             capture_output=True, text=True, check=True)
-        rows[mode] = json.loads(res.stdout.strip().splitlines()[-1])
+        return 0
+    rows = {mode: child_json([__file__, args.tree, "--data", args.data, "--downscale",
+                              args.downscale, "--epochs", args.epochs, "--out", args.out,
+                              "--child", mode])            # a process each: its own peak
+            for mode in ("dense_slabs", "shipped")}
     for p in (scratch, scratch.with_name(scratch.stem + ".log.jsonl"),
               scratch.with_name(scratch.stem + ".curve.png")):
         p.unlink(missing_ok=True)
-    print(f"{'mode':<12} {'peak RSS MB':>12} {'s':>7}  peak after")
-    for mode, r in rows.items():
-        print(f"{mode:<12} {r['peak_rss_mb']:>12} {r['seconds']:>7.1f}  {r['peak_after']}")
-        print(f"{'':<12} arrays (MB): {r['array_mb']}")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"machine": machine_info(), "tree": args.tree,
-                               "epochs": args.epochs, "results": rows}, indent=2) + "\n")
+    print(markdown_table(["mode", "peak RSS MB", "s", "peak after", "arrays (MB)"],
+                         [[mode, r["peak_rss_mb"], f"{r['seconds']:.1f}", r["peak_after"],
+                           r["array_mb"]] for mode, r in rows.items()]))
+    out = write_json(args.out, {"benchmark": "finetune_memory", "machine": machine_info(),
+                                "tree": args.tree, "epochs": args.epochs, "results": rows})
     print(f"wrote {out}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -1,10 +1,12 @@
 """GPU vs CPU, the paper-comparable figures: render FPS at 800², fine-tune rays/s, NeRF-SH training
 samples/s, extraction time — each GPU figure beside the CPU figure of the same run.
 
-Method (all on the lego scene of ``--data``):
+Method (all on the lego scene of ``--data``; ``--data`` and ``--run`` default to
+``nerf_synthetic/lego`` and ``runs/lego_cpu_400`` of the data root, ``--data-root``):
 
-- **render**: the tree (``--tree``; default ``/work/cache/lego_256.npz``, else extracted once
-  from ``--run`` into ``--scratch``) is rendered on ``--views`` test cameras at full size (800²).
+- **render**: the tree (``--tree``; default: extracted once from ``--run`` at ``--grid``³ into
+  ``benchmarks/results/cache/<run>_<grid>.npz``) is rendered on ``--views`` test cameras at full
+  size (800²).
   Rays are generated (and, for the GPU, moved to it) before timing; the tree is moved to the GPU
   once. One warm-up render (Triton / numba compilation), then ``--repeats`` passes; median ms per
   frame. The GPU render is checked against the CPU render (max |Δ rgb|).
@@ -34,10 +36,7 @@ the kernels' tests then run compiled on the GPU with
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
-import statistics
 import sys
 import tempfile
 import time
@@ -46,31 +45,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parent
-SHARED = Path(os.environ.get("PLENOCTREE_SHARED", "/work/shared"))
+from _bench import CACHE, Timing, add_data_root, add_out, data_path, machine_info, \
+    markdown_table, write_json
+
 STAGES = ("render", "finetune", "train", "extract")
-
-
-def _machine() -> dict:
-    import importlib.util
-
-    info = {"python": platform.python_version(), "torch": torch.__version__,
-            "cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-            "loadavg_start": os.getloadavg(), "cuda": torch.cuda.is_available()}
-    if importlib.util.find_spec("triton") is not None:
-        import triton
-
-        info["triton"] = triton.__version__
-    if torch.cuda.is_available():
-        info["gpu"] = torch.cuda.get_device_name(0)
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                info["cpu"] = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return info
 
 
 def _sync(dev: torch.device) -> None:
@@ -78,19 +56,18 @@ def _sync(dev: torch.device) -> None:
         torch.cuda.synchronize(dev)
 
 
-def _tree(args, scratch: Path):
+def _tree(args: argparse.Namespace):
+    """The tree of ``--tree``, else the one extracted once from ``--run`` into the cache."""
     from plenoctree.octree import load_tree
 
-    path = Path(args.tree) if args.tree else Path("/work/cache/lego_256.npz")
+    path = Path(args.tree) if args.tree else CACHE / f"{Path(args.run).name}_{args.grid}.npz"
     if not path.is_file():
         from plenoctree.convert.extraction import ExtractConfig, extract
 
-        path = scratch / "lego_tree.npz"
-        if not path.is_file():
-            print(f"[gpu_bench] extracting a tree from {args.run} -> {path}", flush=True)
-            extract(ExtractConfig(run_dir=str(args.run), data=str(args.data), out=str(path),
-                                  grid=args.grid,
-                                  eval=False, show_progress=False))
+        print(f"[gpu_bench] extracting a tree from {args.run} -> {path}", flush=True)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        extract(ExtractConfig(run_dir=str(args.run), data=str(args.data), out=str(path),
+                              grid=args.grid, eval=False, show_progress=False))
     return load_tree(path), str(path)
 
 
@@ -104,16 +81,14 @@ def bench_render(tree, data, dev: torch.device, repeats: int) -> dict:
         rays = [(torch.from_numpy(o).to(dev), torch.from_numpy(d).to(dev)) for o, d in rays]
     first = render_rays(t, *rays[0], opts)         # warm-up: compilation
     _sync(dev)
-    ms = []
+    timing = Timing()
     for _ in range(repeats):
         for o, d in rays:
-            t0 = time.perf_counter()
-            render_rays(t, o, d, opts)
-            _sync(dev)
-            ms.append((time.perf_counter() - t0) * 1e3)
-    med = statistics.median(ms)
-    return {"ms_per_frame": med, "fps": 1000.0 / med, "frames": len(ms),
-            "width": data.cameras.width, "height": data.cameras.height,
+            timing.call(lambda: (render_rays(t, o, d, opts), _sync(dev)))
+    med = timing.median * 1e3
+    return {"ms_per_frame": med, "ms_spread": timing.spread * 1e3, "fps": 1000.0 / med,
+            "frames": len(timing.wall), "width": data.cameras.width,
+            "height": data.cameras.height,
             "rgb_view0": first.rgb.detach().float().cpu().numpy()}
 
 
@@ -185,7 +160,7 @@ def _table(results: dict) -> str:
             ("fine-tune M rays/s", "finetune", "rays_per_s", "{:.2f}", 1e-6),
             ("NeRF-SH train M samples/s", "train", "samples_per_s", "{:.2f}", 1e-6),
             ("extraction s", "extract", "seconds", "{:.1f}")]
-    lines = ["| figure | CPU | GPU | GPU / CPU |", "|---|---|---|---|"]
+    lines = []
     for name, stage, key, fmt, *mult in rows:
         m = mult[0] if mult else 1.0
         c = cpu.get(stage, {}).get(key)
@@ -193,16 +168,18 @@ def _table(results: dict) -> str:
         ratio = "–"
         if c and g:
             ratio = f"{(c / g if key == 'seconds' else g / c):.1f}x"
-        lines.append(f"| {name} | {fmt.format(c * m) if c else '–'} | "
-                     f"{fmt.format(g * m) if g else '–'} | {ratio} |")
-    return "\n".join(lines)
+        lines.append([name, fmt.format(c * m) if c else "–", fmt.format(g * m) if g else "–",
+                      ratio])
+    return markdown_table(["figure", "CPU", "GPU", "GPU / CPU"], lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", default=str(SHARED / "data/nerf_synthetic/lego"))
-    ap.add_argument("--run", default=str(SHARED / "data/runs/lego_cpu_400"),
-                    help="trained NeRF-SH run (extraction, and the tree when none is given)")
+    ap.add_argument("--data", default=None,
+                    help="dataset (default: nerf_synthetic/lego of the data root)")
+    ap.add_argument("--run", default=None,
+                    help="trained NeRF-SH run (extraction, and the tree when none is given; "
+                         "default: runs/lego_cpu_400 of the data root)")
     ap.add_argument("--tree", default=None, help="tree to render / fine-tune")
     ap.add_argument("--views", type=int, default=5, help="test views rendered at 800²")
     ap.add_argument("--repeats", type=int, default=3)
@@ -215,30 +192,33 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cpu-only", action="store_true",
                     help="without a GPU: measure the CPU column anyway")
     ap.add_argument("--no-cpu", action="store_true", help="GPU column only")
-    ap.add_argument("--scratch", default=None, help="folder for trees and runs (default: temp)")
-    ap.add_argument("--out", default=str(ROOT / "results" / "gpu_bench.json"))
+    ap.add_argument("--scratch", default=None, help="folder for runs (default: temp)")
+    add_data_root(ap)
+    add_out(ap, "gpu_bench.json")
     args = ap.parse_args(argv)
 
-    from plenoctree._util import atomic_save_json
     from plenoctree._triton import has_triton
 
-    machine = _machine()
-    results: dict = {"machine": machine, "args": vars(args)}
+    load_before = os.getloadavg()
+    results: dict = {"benchmark": "gpu_bench", "args": vars(args)}
     have_gpu = torch.cuda.is_available()
     if not have_gpu:
         reason = "no CUDA device present: the GPU figures are still to be measured"
         print(f"[gpu_bench] {reason}", flush=True)
         results["gpu"] = {"skipped": reason}
         if not args.cpu_only:
-            machine["loadavg_end"] = os.getloadavg()
-            atomic_save_json(Path(args.out), results)
+            results["machine"] = machine_info(load_before)
+            write_json(args.out, results)
             print(f"[gpu_bench] wrote {args.out} (pass --cpu-only to measure the CPU column)")
             return 0
     elif not has_triton():
         print("[gpu_bench] CUDA is present but triton is not installed: the GPU column uses "
               "the torch twins (pip install triton)", flush=True)
+    args.data = args.data or str(data_path(args.data_root, "nerf_synthetic", "lego"))
+    if "extract" not in args.skip or not args.tree:
+        args.run = args.run or str(data_path(args.data_root, "runs", "lego_cpu_400"))
     for p in (args.data, args.run):
-        if not Path(p).exists():
+        if p is not None and not Path(p).exists():
             print(f"[gpu_bench] {p}: not found (pass --data / --run)", file=sys.stderr)
             return 2
     scratch = Path(args.scratch) if args.scratch else Path(tempfile.mkdtemp(prefix="gpu_bench_"))
@@ -246,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from plenoctree.datasets import load_dataset
 
-    tree, tree_path = _tree(args, scratch)
+    tree, tree_path = _tree(args)
     results["tree"] = {"path": tree_path, "n_leaves": int(tree.n_leaves),
                        "data_format": tree.data_format}
     need_views = "render" not in args.skip
@@ -281,11 +261,11 @@ def main(argv: list[str] | None = None) -> int:
     for col in ("cpu", "gpu"):
         if isinstance(results.get(col), dict):
             results[col].get("render", {}).pop("rgb_view0", None)
-    machine["loadavg_end"] = os.getloadavg()
+    results["machine"] = machine_info(load_before)
     table = _table(results)
     results["table"] = table
     print(table)
-    atomic_save_json(Path(args.out), json.loads(json.dumps(results, default=float)))
+    write_json(args.out, results)
     print(f"[gpu_bench] wrote {args.out}")
     return 0
 

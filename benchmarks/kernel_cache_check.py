@@ -20,17 +20,14 @@ differ or either is more than 1e-4 from the twin.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from _trees import ROOT, load_bench_tree, machine_info
-from render_speed import orbit_cameras
+from _bench import add_data_root, add_out, machine_info, markdown_table, run_python, write_json
+from _trees import load_bench_tree, orbit_cameras
 
 SPEC = 1e-4
 
@@ -46,48 +43,56 @@ def _images(tree, size: int, views: int, backend: str) -> np.ndarray:
                                              backend=backend).rgb) for i in range(views)])
 
 
+def numba_states(a: argparse.Namespace) -> dict[str, np.ndarray]:
+    """The numba images of a process that compiles the kernel (``fresh``) and of one that
+    loads it (``cached``): two child processes of this script (``--child``) sharing an empty
+    ``NUMBA_CACHE_DIR``, which numba reads when it loads, so it cannot be set in-process."""
+    imgs = {}
+    with tempfile.TemporaryDirectory(prefix="numba-cache-") as tmp:
+        for state in ("fresh", "cached"):
+            path = Path(tmp) / f"{state}.npy"
+            run_python([__file__, "--size", a.size, "--views", a.views, "--child", path]
+                       + (["--tree", a.tree] if a.tree else [])
+                       + (["--data-root", a.data_root] if a.data_root else []),
+                       env={"NUMBA_CACHE_DIR": tmp})
+            imgs[state] = np.load(path)
+    return imgs
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--tree", default=None, help="lego | procedural | PATH.npz (default lego)")
     ap.add_argument("--size", type=int, default=400)
     ap.add_argument("--views", type=int, default=2)
-    ap.add_argument("--out", default=str(ROOT / "results" / "kernel_cache_check.json"))
+    add_data_root(ap)
+    add_out(ap, "kernel_cache_check.json")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)   # internal: save numba
     a = ap.parse_args(argv)
     # (Here first: lego is extracted once, before the children load it.)
-    tree, desc = load_bench_tree(a.tree, log=lambda m: print(m, file=sys.stderr))
+    tree, desc = load_bench_tree(a.tree, root=a.data_root)
     if a.child:
         np.save(a.child, _images(tree, a.size, a.views, "numba"))
         return 0
-    with tempfile.TemporaryDirectory(prefix="numba-cache-") as tmp:
-        env = dict(os.environ, NUMBA_CACHE_DIR=tmp)
-        imgs = {}
-        for state in ("fresh", "cached"):
-            path = str(Path(tmp) / f"{state}.npy")
-            cmd = [sys.executable, __file__, "--size", str(a.size), "--views", str(a.views),
-                   "--child", path] + (["--tree", a.tree] if a.tree else [])
-            subprocess.run(cmd, env=env, check=True)
-            imgs[state] = np.load(path)
+    imgs = numba_states(a)
     twin = _images(tree, a.size, a.views, "torch")
     rows = {}
-    print(f"\n| kernel | max \\|Δ rgb\\| vs twin | values > {SPEC:g} | values > 1e-5 |")
-    print("|---|---|---|---|")
     for state, img in imgs.items():
         d = np.abs(img - twin)
         rows[state] = {"max_abs_vs_twin": float(d.max()), "over_spec": int((d > SPEC).sum()),
                        "over_1e-5": int((d > 1e-5).sum())}
-        print(f"| {state} | {d.max():.2e} | {rows[state]['over_spec']} | "
-              f"{rows[state]['over_1e-5']} |")
+    print()
+    print(markdown_table(["kernel", "max \\|Δ rgb\\| vs twin", f"values > {SPEC:g}",
+                          "values > 1e-5"],
+                         [[state, f"{r['max_abs_vs_twin']:.2e}", r["over_spec"], r["over_1e-5"]]
+                          for state, r in rows.items()]))
     between = float(np.abs(imgs["fresh"] - imgs["cached"]).max())
     ok = between == 0.0 and all(r["over_spec"] == 0 for r in rows.values())
     print(f"\nfresh vs cached: max |Δ| {between:.2e} ({'same image' if between == 0 else 'DIFFER'})"
           f"; {a.views} views at {a.size}²; {'OK' if ok else 'FAIL'}")
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps({"tree": desc["source"], "size": a.size,
-                                       "views": a.views, "states": rows,
-                                       "fresh_vs_cached": between, "ok": ok,
-                                       "machine": machine_info()}, indent=1))
-    print(f"wrote {a.out}")
+    out = write_json(a.out, {"benchmark": "kernel_cache_check", "tree": desc["source"],
+                             "size": a.size, "views": a.views, "states": rows,
+                             "fresh_vs_cached": between, "ok": ok, "machine": machine_info()})
+    print(f"wrote {out}")
     return 0 if ok else 1
 
 

@@ -41,17 +41,15 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 from numba import njit, prange
 from numba.cpython.unsafe.numbers import leading_zeros
 
-from _trees import ROOT, load_bench_tree, machine_info
-from render_speed import orbit_cameras
+from _bench import add_data_root, add_out, interleaved, machine_info, markdown_table, write_json
+from _trees import load_bench_tree, orbit_cameras
 
 from plenoctree.render._march_numba import (MARCH_MATH, MAX_LEVEL, STACK_SIZE, common_level,
                                             next_leaf, ray_octant, ray_start)
@@ -453,13 +451,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", type=int, default=800)
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--out", default=str(ROOT / "results" / "march_anatomy.json"))
+    add_data_root(ap)
+    add_out(ap, "march_anatomy.json")
     a = ap.parse_args(argv)
 
     from plenoctree._util import vec3 as _vec
     from plenoctree.render._spec import flat_tree as _flat
 
-    tree, desc = load_bench_tree(a.tree, log=lambda m: print(m, file=sys.stderr))
+    tree, desc = load_bench_tree(a.tree, root=a.data_root)
     child, data = _flat(tree.child, tree.data)
     off, inv, eps = _vec(tree.offset), _vec(tree.invradius), 1e-6
     cams = orbit_cameras(a.views, a.size)
@@ -498,25 +497,18 @@ def main(argv: list[str] | None = None) -> int:
                                            outs["geometry"][v]),
         "dda": lambda v: _dda(off, inv, *views[v], eps, segs[v], outs["dda"][v]),
     }
-    times: dict[str, list[float]] = {k: [] for k in calls}
-    for f in calls.values():                           # warm-up (compile / cache load)
-        for v in range(len(views)):
-            f(v)
-    for _ in range(a.repeats):                         # interleaved passes
-        for k, f in calls.items():
-            t0 = time.perf_counter()
-            for v in range(len(views)):
-                f(v)
-            times[k].append((time.perf_counter() - t0) / len(views))
+    passes = {k: (lambda f=f: [f(v) for v in range(len(views))]) for k, f in calls.items()}
+    times = {k: t.scaled(1 / len(views)) for k, t in interleaved(passes, a.repeats).items()}
     seg = np.concatenate(segs)
     hit = seg > 0
-    base = statistics.median(times["march"])
+    base = times["march"].median
     rows = {}
     for k in calls:
-        ms = 1e3 * statistics.median(times[k])
+        ms = 1e3 * times[k].median
         diff = (None if k in ("geometry", "dda") else
                 max(float(np.abs(outs[k][v] - outs["march"][v]).max()) for v in range(len(views))))
-        rows[k] = {"ms_per_frame": ms, "ratio_to_march": base * 1e3 / ms, "max_abs_dT": diff,
+        rows[k] = {"ms_per_frame": ms, "ms_spread": 1e3 * times[k].spread,
+                   "ratio_to_march": base * 1e3 / ms, "max_abs_dT": diff,
                    "ns_per_segment_core": ms * 1e6 * (os.cpu_count() or 1)
                    / max(1, seg.sum() / len(views))}
     report = {"benchmark": "march_anatomy", "tree": desc, "size": a.size, "views": a.views,
@@ -525,21 +517,20 @@ def main(argv: list[str] | None = None) -> int:
               "empty_skip_segments_per_hit_ray": float(np.concatenate(skip_segs)[hit].mean()),
               "empty_skip_build_s": sk.seconds, "rows": rows,
               "machine": machine_info()}
-    from plenoctree._util import atomic_save_json
-
-    atomic_save_json(Path(a.out), report)
+    out = write_json(a.out, report)
     print(f"\nMarch anatomy — {desc['source']}: {desc['n_leaves']} leaves, {a.size}², {a.views} "
           f"orbit views; {report['segments_per_hit_ray']:.1f} segments per hit ray, "
           f"{report['hit_fraction']:.0%} of rays hit the box; with empty-space skipping "
           f"{report['empty_skip_segments_per_hit_ray']:.1f} (tables built in "
           f"{sk.seconds:.1f} s)\n")
-    print("| variant | ms/frame (median) | × march | ns per segment-core | max \\|ΔT\\| vs march |")
-    print("|---|---|---|---|---|")
-    for k, r in rows.items():
-        d = "–" if r["max_abs_dT"] is None else f"{r['max_abs_dT']:.1e}"
-        print(f"| {k} | {r['ms_per_frame']:.1f} | {r['ratio_to_march']:.2f} | "
-              f"{r['ns_per_segment_core']:.1f} | {d} |")
-    print(f"\nload average {report['machine']['loadavg']}; wrote {a.out}")
+    print(markdown_table(
+        ["variant", "ms/frame (median)", "± ms", "× march", "ns per segment-core",
+         "max \\|ΔT\\| vs march"],
+        [[k, f"{r['ms_per_frame']:.1f}", f"{r['ms_spread']:.1f}", f"{r['ratio_to_march']:.2f}",
+          f"{r['ns_per_segment_core']:.1f}",
+          "–" if r["max_abs_dT"] is None else f"{r['max_abs_dT']:.1e}"]
+         for k, r in rows.items()]))
+    print(f"\nload average {report['machine']['loadavg']}; wrote {out}")
     return 0
 
 

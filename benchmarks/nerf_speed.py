@@ -14,47 +14,24 @@ Method: every figure comes from the package's own code paths on real data (lego 
   preset is timed on ``--render-rows`` rows of test view 0 and extrapolated (a full frame takes
   minutes); the CPU preset renders the whole frame.
 
+The data (``--data``) defaults to ``nerf_synthetic/lego`` of the data root (``--data-root``).
 Prints a markdown table and writes JSON (figures, config, machine, load average) to ``--out``.
-Re-executes itself once with ``OMP_WAIT_POLICY=PASSIVE`` like the CLI does.
+Run as a script it sets the process up as the CLI does (:func:`plenoctree.runtime.configure`:
+``OMP_WAIT_POLICY=PASSIVE`` before torch loads, the malloc thresholds); ``--threads`` sets the
+torch / numba thread count (0: all cores).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shutil
 import statistics
 import sys
 import tempfile
 from pathlib import Path
 
-if os.name == "posix" and "OMP_WAIT_POLICY" not in os.environ:
-    os.execve(sys.executable, [sys.executable, *sys.argv],
-              {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
-
-import torch  # noqa: E402
-
-from plenoctree.datasets import load_dataset  # noqa: E402
-from plenoctree.nerf import load_run, preset, train  # noqa: E402
-from plenoctree.nerf.evaluate import ImageOptions, evaluate_views  # noqa: E402
-from plenoctree.runtime import resolve_amp, setup_threads, tune_malloc  # noqa: E402
-
-tune_malloc()          # what the CLI's runtime.configure() does; train() no longer does it
-
-LEGO = Path(__file__).resolve().parents[2] / "shared" / "data" / "nerf_synthetic" / "lego"
-
-
-def _machine() -> dict:
-    import numba
-
-    return {"cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-            "torch": torch.__version__, "numba": numba.__version__,
-            "python": platform.python_version(), "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine(),
-            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
-            "loadavg_start": os.getloadavg()}
+from _bench import add_data_root, add_out, data_path, machine_info, write_json
 
 
 def _rows(run: Path) -> list[dict]:
@@ -62,6 +39,8 @@ def _rows(run: Path) -> list[dict]:
 
 
 def bench_cpu(data: str, downscale: int, minutes: float, root: Path) -> dict:
+    from plenoctree.nerf import preset, train
+
     cfg = preset("cpu")
     cfg.data, cfg.out, cfg.downscale = data, str(root / "cpu"), downscale
     cfg.minutes, cfg.max_steps, cfg.val_views, cfg.log_every = minutes, 10**9, 0, 10
@@ -81,6 +60,7 @@ def bench_resume(run: str, data: str, steps: int, root: Path) -> dict:
     ``plenoctree run`` NeRF directory with its optimizer state) trained ``steps`` more steps;
     median of the log rows after the first 10 steps (the late-training state where most of a
     run's steps are spent: settled occupancy grid, ~6 samples per ray)."""
+    from plenoctree.nerf import train
     from plenoctree.nerf.checkpoint import CheckpointError, read_checkpoint
 
     dst = root / "resumed"
@@ -104,6 +84,8 @@ def bench_resume(run: str, data: str, steps: int, root: Path) -> dict:
 
 
 def bench_paper(data: str, downscale: int, steps: int, amp: str, root: Path) -> dict:
+    from plenoctree.nerf import preset, train
+
     cfg = preset("paper")
     cfg.data, cfg.out, cfg.downscale = data, str(root / f"paper_{amp}"), downscale
     cfg.max_steps, cfg.log_every, cfg.val_views, cfg.amp = steps, 1, 0, amp
@@ -116,6 +98,13 @@ def bench_paper(data: str, downscale: int, steps: int, amp: str, root: Path) -> 
 
 
 def bench_render(run: str, data: str, rows: int | None) -> dict:
+    import torch
+
+    from plenoctree.datasets import load_dataset
+    from plenoctree.nerf import load_run
+    from plenoctree.nerf.evaluate import ImageOptions, evaluate_views
+    from plenoctree.runtime import resolve_amp
+
     nerf_run = load_run(run)
     model, cfg = nerf_run.model, nerf_run.config
     amp = resolve_amp(cfg.amp, torch.device("cpu"))
@@ -133,7 +122,8 @@ def bench_render(run: str, data: str, rows: int | None) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", default=str(LEGO))
+    ap.add_argument("--data", default=None,
+                    help="dataset (default: nerf_synthetic/lego of the data root)")
     ap.add_argument("--downscale", type=int, default=2, help="training resolution (2: 400x400)")
     ap.add_argument("--cpu-minutes", type=float, default=1.5)
     ap.add_argument("--paper-steps", type=int, default=8)
@@ -145,20 +135,24 @@ def main(argv: list[str] | None = None) -> int:
                          "(e.g. DIR/nerf of `plenoctree run`) continued --resume-steps steps; "
                          "run it under each code version to compare them")
     ap.add_argument("--resume-steps", type=int, default=100)
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "nerf_speed.json"))
+    add_data_root(ap)
+    add_out(ap, "nerf_speed.json")
     args = ap.parse_args(argv)
+    args.data = args.data or str(data_path(args.data_root, "nerf_synthetic", "lego"))
+    from plenoctree.runtime import setup_threads
+
     setup_threads(args.threads)
-    machine = _machine()
-    out: dict = {"machine": machine, "args": vars(args)}
+    machine = machine_info()
+    out: dict = {"benchmark": "nerf_speed", "machine": machine, "args": vars(args)}
     if args.resume:
         with tempfile.TemporaryDirectory(prefix="nerf_speed_") as tmp:
             r = out["cpu_resumed"] = bench_resume(args.resume, args.data, args.resume_steps,
                                                   Path(tmp))
-        machine["loadavg_end"] = os.getloadavg()
+        out["machine"] = machine = machine_info(machine["loadavg"])
         text = (f"NeRF-SH CPU preset, steady state: {args.resume} from step {r['from_step']}, "
                 f"{r['steps']} steps: {r['rays_per_s']:.0f} rays/s, {r['samples_per_s']:.0f} "
                 f"samples/s, {r['samples_per_ray']:.2f} samples/ray (load average "
-                f"{machine['loadavg_start'][0]:.2f} → {machine['loadavg_end'][0]:.2f})")
+                f"{machine['loadavg_before'][0]:.2f} → {machine['loadavg'][0]:.2f})")
         return _finish(out, text, args.out)
     with tempfile.TemporaryDirectory(prefix="nerf_speed_") as tmp:
         root = Path(tmp)
@@ -170,13 +164,13 @@ def main(argv: list[str] | None = None) -> int:
         out["paper_render_800"] = bench_render(out["paper_train_fp32"]["run"], args.data,
                                                args.render_rows)
         out["cpu_render_800"] = bench_render(out["cpu_train"]["run"], args.data, None)
-    machine["loadavg_end"] = os.getloadavg()
+    out["machine"] = machine = machine_info(machine["loadavg"])
     c, p, pb = out["cpu_train"], out["paper_train_fp32"], out["paper_train_bf16"]
     pr, cr = out["paper_render_800"], out["cpu_render_800"]
     lines = [
         f"NeRF-SH speed — {machine['cpu_count']} cores, torch {machine['torch']}, numba "
-        f"{machine['numba']}, load average {machine['loadavg_start'][0]:.2f} → "
-        f"{machine['loadavg_end'][0]:.2f}",
+        f"{machine['numba']}, load average {machine['loadavg_before'][0]:.2f} → "
+        f"{machine['loadavg'][0]:.2f}",
         "",
         "| preset | training rays/s | training samples/s | samples/ray | 800×800 render s/frame |",
         "|---|---|---|---|---|",
@@ -197,11 +191,12 @@ def main(argv: list[str] | None = None) -> int:
 def _finish(out: dict, text: str, path: str) -> int:
     print(text)
     out["table"] = text
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(json.dumps(out, indent=2, default=float) + "\n")
-    print(f"\nwrote {path}")
+    print(f"\nwrote {write_json(path, out)}")
     return 0
 
 
 if __name__ == "__main__":
+    from plenoctree import runtime
+
+    runtime.configure()         # as the CLI: before torch / numba load (OMP_WAIT_POLICY, malloc)
     sys.exit(main())

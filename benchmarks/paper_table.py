@@ -17,12 +17,12 @@ Modes:
   here if no ``.plnz`` is given) and measures everything above in one run. Stage wall times
   of training, extraction and fine-tuning are READ from the artefacts' JSON/log (marked
   ``read``); compression, SH truncation and all scores/speeds are MEASURED here.
-* ``--full --out DIR``: runs the whole chain from scratch with
+* ``--full DIR``: runs the whole chain from scratch with
   :func:`plenoctree.pipeline.run_pipeline` into ``DIR`` (resumable), then measures as above::
 
-      .venv/bin/python benchmarks/paper_table.py --full --out runs/lego_paper_table
-      .venv/bin/python benchmarks/paper_table.py --full --size 800 --train-minutes 40 \
-          --out runs/lego_paper_800
+      .venv/bin/python benchmarks/paper_table.py --full runs/lego_paper_table
+      .venv/bin/python benchmarks/paper_table.py --full runs/lego_paper_800 --size 800 \
+          --train-minutes 40
 
   (``--size 800`` trains, extracts, fine-tunes and scores at 800², the paper's protocol.) The
   per-stage wall minutes and peak RSS then come from the pipeline's ``summary.json``.
@@ -31,14 +31,16 @@ Modes:
   minutes and peak RSS from ``DIR/summary.json``; FPS, the SH-truncated rows and the NeRF-SH
   speed baselines are measured here::
 
-      plenoctree run --data ../shared/data/nerf_synthetic/lego --train-minutes 40 --out DIR
+      plenoctree run --data $PLENOCTREE_DATA/nerf_synthetic/lego --train-minutes 40 --out DIR
       .venv/bin/python benchmarks/paper_table.py --run-dir DIR --size 800
 
-Scores: the first ``--views`` test views at 400² (default 200 = all). FPS: 1000 / median
-per-view render ms (numba, after one warm-up render) on ``--fps-views`` views at 400² and 800².
-MB: 10^6 bytes on disk. Writes ``paper_table.json``, ``paper_table.md`` and
-``paper_table_psnr_fps.png`` (PSNR vs FPS at 800², log x, with the τ_w / grid variants of
-``extract_table3.json`` when that file exists) under ``--results``.
+Scores: the first ``--views`` test views at 400² (default 200 = all) of ``--data`` (default
+the data root's ``nerf_synthetic/lego``). FPS: 1000 / median per-view render ms (numba, after
+one warm-up render) on ``--fps-views`` views at 400² and 800². MB: 10^6 bytes on disk. Writes
+``--out`` (default ``benchmarks/results/paper_table.json``) and beside it, same stem, ``.md``,
+``_stages.json`` (the rows ``plenoctree plot`` reads) and ``_psnr_fps.png`` (PSNR vs FPS at
+800², log x, with the τ_w / grid variants of ``--table3`` when that file exists). As a script
+it sets the process up as the CLI does (:func:`plenoctree.runtime.configure`).
 """
 
 from __future__ import annotations
@@ -46,7 +48,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import re
 import shutil
 import statistics
@@ -54,15 +55,12 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
-if __name__ == "__main__" and os.name == "posix" and "OMP_WAIT_POLICY" not in os.environ:
-    # like the CLI: no OpenMP spin-waiting (it starves numba / other processes on 2 cores)
-    os.execve(sys.executable, [sys.executable, *sys.argv],
-              {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"})
+from _bench import RESULTS, add_data_root, add_out, data_path, fmt as _fmt, machine_info, \
+    write_json
 
 ROOT = Path(__file__).resolve().parents[1]
-LEGO = ROOT.parent / "shared" / "data" / "nerf_synthetic" / "lego"
-RESULTS = ROOT / "benchmarks" / "results"
 
 #: Paper Table 5 (lego column; FPS at 800² on a V100), Table 7 (GB), Table 8 (SH9 row).
 PAPER = {
@@ -88,31 +86,12 @@ ROWS = [
 ]
 
 _SHORT = {"nerf_sh": "NeRF-SH (ours, CPU preset)", "raw": "raw", "refined": "refined",
-          "ft": "fine-tuned",
-          "compressed": "compressed", "sh2": "ft SH9", "sh1": "ft SH4"}
+          "ft": "fine-tuned", "compressed": "compressed", "sh2": "ft SH9", "sh1": "ft SH4"}
 
 
 def _number(v):
     """``v`` when it is a finite number, else None (e.g. LPIPS "skipped: ..." or NaN)."""
     return float(v) if isinstance(v, (int, float)) and v == v else None
-
-
-def _fmt(v, spec: str) -> str:
-    return "–" if v is None else format(v, spec)
-
-
-def machine() -> dict:
-    """Machine metadata and the 1/5/15-minute load average now."""
-    import numba
-    import numpy
-    import torch
-
-    return {"cpu_count": os.cpu_count(), "numba_threads": numba.config.NUMBA_NUM_THREADS,
-            "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
-            "numba": numba.__version__, "numpy": numpy.__version__,
-            "python": platform.python_version(), "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine(),
-            "loadavg": list(os.getloadavg())}
 
 
 # --- measurements -----------------------------------------------------------------------
@@ -358,33 +337,16 @@ def run_full(out: Path, data: Path, views: int, downscale: int = 2, nerf: str = 
 
     cfg = PipelineConfig(data=str(data), out=str(out), downscale=downscale, preset="cpu",
                          eval_views=views, video_frames=0, web=False, nerf=nerf)
-    if finetune_epochs:
-        cfg.finetune_epochs = finetune_epochs
-    if train_minutes:
-        cfg.train_minutes = train_minutes
+    cfg.finetune_epochs = finetune_epochs or cfg.finetune_epochs
+    cfg.train_minutes = train_minutes or cfg.train_minutes
     run_pipeline(cfg)
     return read_run_dir(out)
 
 
 def pipeline_evals(out: Path) -> dict:
     """``{row key: eval.json}`` of the pipeline's own scoring in ``out`` (eval_raw, ...)."""
-    keys = {"raw": "raw", "refined": "refined", "ft": "ft", "compressed": "compressed"}
-    res = {}
-    for key, name in keys.items():
-        p = out / f"eval_{name}" / "eval.json"
-        if p.is_file():
-            res[key] = json.loads(p.read_text())
-    return res
-
-
-def pipeline_stage_figures(summary: dict) -> dict:
-    """``{row key: (seconds, peak RSS MB, CPU seconds)}`` of the stage that made each row, from a
-    pipeline summary (``times_s`` / ``peak_rss_mb`` / ``cpu_s``)."""
-    times, peaks = summary.get("times_s", {}), summary.get("peak_rss_mb", {})
-    cpu = summary.get("cpu_s", {})
-    stage = {"nerf_sh": "train", "raw": "extract", "refined": "refine", "ft": "finetune",
-             "compressed": "compress"}
-    return {k: (times.get(v), peaks.get(v), cpu.get(v)) for k, v in stage.items()}
+    paths = {k: out / f"eval_{k}" / "eval.json" for k in ("raw", "refined", "ft", "compressed")}
+    return {k: json.loads(p.read_text()) for k, p in paths.items() if p.is_file()}
 
 
 def read_run_dir(run_dir: Path) -> tuple[Path, Path, Path | None, Path, Path | None, dict]:
@@ -408,15 +370,163 @@ def read_run_dir(run_dir: Path) -> tuple[Path, Path, Path | None, Path, Path | N
             lay.compressed if lay.compressed.is_file() else None, summary)
 
 
-def main(argv: list[str] | None = None) -> int:
+class Inputs(NamedTuple):
+    """A table's NeRF-SH run, tree files (``refined``, ``plnz`` optional) and image size, and
+    the chain's summary and own scores (``{}`` unless a chain made them)."""
+
+    nerf_run: Path
+    tree: Path
+    refined: Path | None
+    ft: Path
+    plnz: Path | None
+    size: int
+    summary: dict
+    known: dict
+
+
+def resolve_inputs(a: argparse.Namespace, data: Path) -> Inputs:
+    """The inputs of the mode (``--run-dir``, ``--full`` or the artefact flags); ``--full``
+    runs the chain here."""
+    if a.run_dir:
+        nerf_run, tree, ref, ft, plnz, summary = read_run_dir(Path(a.run_dir))
+        run_size = 800 // int(summary.get("config", {}).get("downscale", 1))
+        size = a.size or run_size
+        if run_size != size:
+            print(f"note: the run was made at {run_size}², scored here at {size}²", flush=True)
+        known = pipeline_evals(Path(a.run_dir)) if run_size == size else {}
+        return Inputs(nerf_run, tree, ref, ft, plnz, size, summary, known)
+    size = a.size or 400
+    if a.full:
+        nerf_run, tree, ref, ft, plnz, summary = run_full(
+            Path(a.full), data, a.views, 800 // size, a.nerf_run or "", a.finetune_epochs,
+            a.train_minutes)
+        print(f"pipeline done ({summary.get('total_s', 0):.0f} s of stages); measuring",
+              flush=True)
+        return Inputs(nerf_run, tree, ref, ft, plnz, size, summary,
+                      pipeline_evals(Path(a.full)))
+    return Inputs(Path(a.nerf_run or ROOT / "runs/lego_cpu"), Path(a.tree),
+                  Path(a.tree_refined) if a.tree_refined else None, Path(a.tree_ft),
+                  Path(a.plnz) if a.plnz else None, size, {}, {})
+
+
+def measure_rows(inp: Inputs, a: argparse.Namespace, data: Path, read: dict, work: Path
+                 ) -> tuple[dict, dict]:
+    """The rows (:data:`ROWS`) measured here, and the paper-architecture NeRF-SH timing."""
+    down = 800 // inp.size
+    rows = {}
+    print("NeRF-SH (CPU preset) ...", flush=True)
+    rows["nerf_sh"] = {**measure_nerf_cpu(inp.nerf_run, a.nerf_views, work, down, data),
+                       "stage_s": read.get("train_s"), "stage_src": "read: training"}
+    print("paper-architecture NeRF-SH timing ...", flush=True)
+    paper_nerf = measure_nerf_paper(data, a.paper_rows)
+    print("raw tree ...", flush=True)
+    rows["raw"] = {**measure_tree(inp.tree, data, a.views, a.fps_views, work, down,
+                                  inp.known.get("raw")),
+                   "stage_s": read.get("extract_s"), "stage_src": "read: extraction"}
+    if inp.refined is not None and inp.refined.is_file():
+        print("refined tree ...", flush=True)
+        rj = inp.refined.with_name(inp.refined.stem + ".refine.json")
+        ref_s = json.loads(rj.read_text()).get("seconds") if rj.is_file() else None
+        rows["refined"] = {**measure_tree(inp.refined, data, a.views, a.fps_views, work, down,
+                                          inp.known.get("refined")),
+                           "stage_s": ref_s, "stage_src": "read: refinement"}
+    else:
+        rows["refined"] = {"psnr": None, "ssim": None, "fps_400": None, "fps_800": None,
+                           "mb": None, "stage_s": None, "stage_src": "not run"}
+    print("fine-tuned tree ...", flush=True)
+    rows["ft"] = {**measure_tree(inp.ft, data, a.views, a.fps_views, work, down,
+                                 inp.known.get("ft")),
+                  "stage_s": read.get("finetune_s"), "stage_src": "read: fine-tuning"}
+    rows.update(measure_derived(inp, a, data, work))
+    return rows, paper_nerf
+
+
+def measure_derived(inp: Inputs, a: argparse.Namespace, data: Path, work: Path) -> dict:
+    """The rows made from the fine-tuned tree here: compressed (unless a ``.plnz`` is given)
+    and truncated to SH degree 2 and 1."""
+    from plenoctree.compression import CompressOptions, compress, load_any_tree, save_compressed
+    from plenoctree.compression.lod import truncate_sh, write_tree_file
+
+    down, rows = 800 // inp.size, {}
+    ft_tree = load_any_tree(inp.ft)
+    plnz = inp.plnz
+    if plnz is None or not plnz.is_file():
+        print("compressing the ft tree ...", flush=True)
+        plnz = work / "tree_ft.plnz"
+        t0 = time.perf_counter()
+        save_compressed(compress(ft_tree, CompressOptions(bits=16)), plnz)
+        c_s, c_src = time.perf_counter() - t0, "measured: compression"
+    else:
+        cj = plnz.parent / "compress.json"
+        c_s = json.loads(cj.read_text()).get("compress_s") if cj.is_file() else None
+        c_src = "read: compression" if c_s is not None else "given .plnz"
+    rows["compressed"] = {**measure_tree(plnz, data, a.views, a.fps_views, work, down,
+                                         inp.known.get("compressed")),
+                          "stage_s": c_s, "stage_src": c_src}
+    for deg in (2, 1):
+        print(f"SH degree {deg} ...", flush=True)
+        t0 = time.perf_counter()
+        p = work / f"tree_ft_sh{deg}.npz"
+        write_tree_file(truncate_sh(ft_tree, deg), p)
+        rows[f"sh{deg}"] = {**measure_tree(p, data, a.views, a.fps_views, work, down),
+                            "stage_s": time.perf_counter() - t0,
+                            "stage_src": "measured: truncate+save"}
+    return rows
+
+
+def apply_stage_figures(res: dict, summary: dict) -> None:
+    """A chain's own wall time, peak RSS and CPU time of the stage that made each row, from its
+    ``summary.json`` (``times_s`` / ``peak_rss_mb`` / ``cpu_s``), onto the rows."""
+    stage = {"nerf_sh": "train", "raw": "extract", "refined": "refine", "ft": "finetune",
+             "compressed": "compress"}
+    for key, name in stage.items():
+        row, sec = res["rows"][key], summary.get("times_s", {}).get(name)
+        if sec is not None:
+            given = key == "nerf_sh" and res["nerf_given"]
+            row["stage_s"], row["stage_src"] = sec, "read: given run" if given else "pipeline"
+        row["peak_rss_mb"] = summary.get("peak_rss_mb", {}).get(name)
+        row["cpu_s"] = summary.get("cpu_s", {}).get(name)
+
+
+def write_outputs(res: dict, a: argparse.Namespace, read: dict, argv: list[str] | None) -> Path:
+    """``--out`` and, beside it, the markdown table, the stage rows and the plot."""
+    md = markdown_table(res)
+    res["markdown"] = md
+    out = Path(a.out)
+    variants = table3_variants(Path(a.table3))
+    res["table3_variants_plotted"] = variants
+    write_json(out, res)
+    meta = res["machine"]
+    given = (f", NeRF-SH given: {res['inputs']['nerf_run']} (trained before this run; its "
+             "training time is not counted)" if res["nerf_given"] else "")
+    text = (f"# lego {a.size}², CPU ({meta['cpu_count']} cores, load {meta['loadavg']})"
+            f"{given}\n\n{md}\nStage times marked `read` come from the artefacts; the rest "
+            f"were measured in this run ({res['wall_s']:.0f} s). Raw / ft PSNR over all 200 "
+            f"views (read): {_fmt(read.get('raw_psnr_all_views'), '.2f')} / "
+            f"{_fmt(read.get('ft_psnr_all_views'), '.2f')} dB.\n")
+    from plenoctree._util import atomic_write
+
+    with atomic_write(out.with_suffix(".md"), "w") as f:
+        f.write(text)
+    plot(res, out.with_name(out.stem + "_psnr_fps.png"), variants)
+    src = (f"python benchmarks/paper_table.py {' '.join(sys.argv[1:] if argv is None else argv)}"
+           f" (lego {a.size}², {a.views} test views; NeRF-SH: {res['rows']['nerf_sh'].get('views')}"
+           f" views; FPS at 800²; {meta['cpu_count']} CPU cores, load {meta['loadavg']})")
+    write_json(out.with_name(out.stem + "_stages.json"), {"source": src, "rows": stage_rows(res)})
+    print(md)
+    return out
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     mode = ap.add_mutually_exclusive_group()
     mode.add_argument("--from-artefacts", action="store_true", default=True)
-    mode.add_argument("--full", action="store_true", help="run the pipeline from scratch")
+    mode.add_argument("--full", default="", metavar="DIR",
+                      help="run the pipeline from scratch into DIR (resumable)")
     mode.add_argument("--run-dir", default="",
                       help="a finished `plenoctree run --out DIR`: its artefacts and figures")
-    ap.add_argument("--out", default="runs/lego_paper_table", help="--full output folder")
-    ap.add_argument("--data", default=str(LEGO))
+    ap.add_argument("--data", default=None,
+                    help="dataset (default: nerf_synthetic/lego of the data root)")
     ap.add_argument("--nerf-run", default=None,
                     help="trained NeRF-SH run (default runs/lego_cpu); with --full the chain "
                          "starts from it instead of training (plenoctree run --nerf)")
@@ -435,112 +545,39 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fps-views", type=int, default=3, help="views timed at 800²")
     ap.add_argument("--nerf-views", type=int, default=5)
     ap.add_argument("--paper-rows", type=int, default=4)
-    ap.add_argument("--results", default=str(RESULTS))
+    ap.add_argument("--table3", default=str(RESULTS / "extract_table3.json"),
+                    help="extract_table3.py's JSON: its variants go into the plot when it "
+                         "exists")
     ap.add_argument("--keep", action="store_true", help="keep the scratch folder (renders, "
                     "SH-truncated trees, .plnz)")
-    a = ap.parse_args(argv)
+    add_data_root(ap)
+    add_out(ap, "paper_table.json")
+    return ap.parse_args(argv)
 
+
+def main(argv: list[str] | None = None) -> int:
+    a = parse_args(argv)
     t_start = time.perf_counter()
-    data = Path(a.data)
-    meta = machine()
-    stage_figs: dict = {}
-    if a.run_dir:
-        nerf_run, tree, tree_ref, tree_ft, plnz, summary = read_run_dir(Path(a.run_dir))
-        run_size = 800 // int(summary.get("config", {}).get("downscale", 1))
-        a.size = a.size or run_size
-        if run_size != a.size:
-            print(f"note: the run was made at {run_size}², scored here at {a.size}²",
-                  flush=True)
-        stage_figs = pipeline_stage_figures(summary)
-        known = pipeline_evals(Path(a.run_dir)) if run_size == a.size else {}
-    a.size = a.size or 400
-    down = 800 // a.size
-    if a.full:
-        nerf_run, tree, tree_ref, tree_ft, plnz, summary = run_full(
-            Path(a.out), data, a.views, down, a.nerf_run or "", a.finetune_epochs,
-            a.train_minutes)
-        stage_figs = pipeline_stage_figures(summary)
-        known = pipeline_evals(Path(a.out))
-        print(f"pipeline done ({summary.get('total_s', 0):.0f} s of stages); measuring",
-              flush=True)
-    elif not a.run_dir:
-        nerf_run = Path(a.nerf_run or ROOT / "runs/lego_cpu")
-        tree, tree_ft = Path(a.tree), Path(a.tree_ft)
-        known = {}
-        tree_ref = Path(a.tree_refined) if a.tree_refined else None
-        plnz = Path(a.plnz) if a.plnz else None
-    read = read_stage_times(nerf_run, tree, tree_ft)
+    load_before = os.getloadavg()
+    data = Path(a.data) if a.data else data_path(a.data_root, "nerf_synthetic", "lego")
+    inp = resolve_inputs(a, data)
+    a.size = inp.size
+    read = read_stage_times(inp.nerf_run, inp.tree, inp.ft)
     work = Path(tempfile.mkdtemp(prefix="paper_table_"))
-    res = {"mode": "full" if a.full else ("run-dir" if a.run_dir else "from-artefacts"),
-           "views": a.views, "size": a.size,
-           "fps_views": a.fps_views, "machine": meta, "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+    chain = bool(a.full or a.run_dir)
+    res = {"benchmark": "paper_table",
+           "mode": "full" if a.full else ("run-dir" if a.run_dir else "from-artefacts"),
+           "views": a.views, "size": a.size, "fps_views": a.fps_views,
            "read_from_artefacts": read,
-           "inputs": {"nerf_run": str(nerf_run), "tree": str(tree), "tree_ft": str(tree_ft)},
+           "inputs": {"nerf_run": str(inp.nerf_run), "tree": str(inp.tree),
+                      "tree_ft": str(inp.ft)},
            "nerf_given": bool(a.full and a.nerf_run) or bool(
-               a.run_dir and summary.get("config", {}).get("nerf")),
-           "finetune": summary.get("finetune") if (a.full or a.run_dir) else None,
-           "rows": {}}
-    rows = res["rows"]
-
-    print("NeRF-SH (CPU preset) ...", flush=True)
-    rows["nerf_sh"] = {**measure_nerf_cpu(nerf_run, a.nerf_views, work, down, data),
-                       "stage_s": read.get("train_s"), "stage_src": "read: training"}
-    print("paper-architecture NeRF-SH timing ...", flush=True)
-    res["paper_nerf"] = measure_nerf_paper(data, a.paper_rows)
-    print("raw tree ...", flush=True)
-    rows["raw"] = {**measure_tree(tree, data, a.views, a.fps_views, work, down,
-                                  known.get("raw")),
-                   "stage_s": read.get("extract_s"), "stage_src": "read: extraction"}
-    if tree_ref is not None and tree_ref.is_file():
-        print("refined tree ...", flush=True)
-        rj = tree_ref.with_name(tree_ref.stem + ".refine.json")
-        ref_s = json.loads(rj.read_text()).get("seconds") if rj.is_file() else None
-        rows["refined"] = {**measure_tree(tree_ref, data, a.views, a.fps_views, work, down,
-                                          known.get("refined")),
-                           "stage_s": ref_s, "stage_src": "read: refinement"}
-    else:
-        rows["refined"] = {"psnr": None, "ssim": None, "fps_400": None, "fps_800": None,
-                           "mb": None, "stage_s": None, "stage_src": "not run"}
-    print("fine-tuned tree ...", flush=True)
-    rows["ft"] = {**measure_tree(tree_ft, data, a.views, a.fps_views, work, down,
-                                 known.get("ft")),
-                  "stage_s": read.get("finetune_s"), "stage_src": "read: fine-tuning"}
-
-    from plenoctree.compression import CompressOptions, compress, load_any_tree, save_compressed
-    from plenoctree.compression.lod import truncate_sh, write_tree_file
-
-    ft_tree = load_any_tree(tree_ft)
-    if plnz is None or not plnz.is_file():
-        print("compressing the ft tree ...", flush=True)
-        plnz = work / "tree_ft.plnz"
-        t0 = time.perf_counter()
-        save_compressed(compress(ft_tree, CompressOptions(bits=16)), plnz)
-        c_s, c_src = time.perf_counter() - t0, "measured: compression"
-    else:
-        cj = plnz.parent / "compress.json"
-        c_s = json.loads(cj.read_text()).get("compress_s") if cj.is_file() else None
-        c_src = "read: compression" if c_s is not None else "given .plnz"
-    rows["compressed"] = {**measure_tree(plnz, data, a.views, a.fps_views, work, down,
-                                         known.get("compressed")),
-                          "stage_s": c_s, "stage_src": c_src}
-    for deg in (2, 1):
-        print(f"SH degree {deg} ...", flush=True)
-        t0 = time.perf_counter()
-        p = work / f"tree_ft_sh{deg}.npz"
-        write_tree_file(truncate_sh(ft_tree, deg), p)
-        rows[f"sh{deg}"] = {**measure_tree(p, data, a.views, a.fps_views, work, down),
-                            "stage_s": time.perf_counter() - t0,
-                            "stage_src": "measured: truncate+save"}
-    del ft_tree
-    for key, (sec, peak, cpu) in stage_figs.items():   # --full: the pipeline's own figures
-        given = key == "nerf_sh" and res["nerf_given"]
-        if key in rows and sec is not None:
-            rows[key]["stage_s"] = sec
-            rows[key]["stage_src"] = "read: given run" if given else "pipeline"
-        if key in rows:
-            rows[key]["peak_rss_mb"], rows[key]["cpu_s"] = peak, cpu
-
-    ft, nerf, pn = rows["ft"], rows["nerf_sh"], res["paper_nerf"]
+               a.run_dir and inp.summary.get("config", {}).get("nerf")),
+           "finetune": inp.summary.get("finetune") if chain else None}
+    res["rows"], res["paper_nerf"] = measure_rows(inp, a, data, read, work)
+    if chain:
+        apply_stage_figures(res, inp.summary)
+    ft, nerf, pn = res["rows"]["ft"], res["rows"]["nerf_sh"], res["paper_nerf"]
     res["speedup"] = {
         "paper_nerf_400": ft["fps_400"] * pn["s_400"], "paper_nerf_800": ft["fps_800"] * pn["s_800"],
         "cpu_nerf_400": ft["fps_400"] * nerf["s_400"], "cpu_nerf_800": ft["fps_800"] * nerf["s_800"],
@@ -548,41 +585,19 @@ def main(argv: list[str] | None = None) -> int:
         "paper_reported_mean": PAPER_MEAN_FPS["plenoctree"] / PAPER_MEAN_FPS["nerf_sh"]}
     res["paper"] = PAPER
     res["wall_s"] = time.perf_counter() - t_start
-    res["machine"]["loadavg_end"] = list(os.getloadavg())
-
+    res["machine"] = machine_info(load_before)
     if a.keep:
         print(f"renders and variant trees kept in {work}")
     else:
         shutil.rmtree(work, ignore_errors=True)
-    md = markdown_table(res)
-    res["markdown"] = md
-    out = Path(a.results)
-    out.mkdir(parents=True, exist_ok=True)
-    variants = table3_variants(out / "extract_table3.json")
-    res["table3_variants_plotted"] = variants
-    from plenoctree._util import atomic_save_json, atomic_write
-
-    atomic_save_json(out / "paper_table.json", res)
-    with atomic_write(out / "paper_table.md", "w") as f:
-        given = (f", NeRF-SH given: {nerf_run} (trained before this run; its training time is "
-                 "not counted)" if res["nerf_given"] else "")
-        f.write(f"# lego {a.size}², CPU ({meta['cpu_count']} cores, load {meta['loadavg']})"
-                f"{given}\n\n")
-        f.write(md)
-        f.write(f"\nStage times marked `read` come from the artefacts; the rest were measured "
-                f"in this run ({res['wall_s']:.0f} s). Raw / ft PSNR over all 200 views "
-                f"(read): {_fmt(read.get('raw_psnr_all_views'), '.2f')} / "
-                f"{_fmt(read.get('ft_psnr_all_views'), '.2f')} dB.\n")
-    plot(res, out / "paper_table_psnr_fps.png", variants)
-    src = (f"python benchmarks/paper_table.py {' '.join(sys.argv[1:] if argv is None else argv)}"
-           f" (lego {a.size}², {a.views} test views; NeRF-SH: {res['rows']['nerf_sh'].get('views')}"
-           f" views; FPS at 800²; {meta['cpu_count']} CPU cores, load {meta['loadavg']})")
-    atomic_save_json(out / "paper_table_stages.json", {"source": src, "rows": stage_rows(res)})
-    print(md)
-    print(f"wrote {out / 'paper_table.json'}, paper_table.md, paper_table_psnr_fps.png "
+    out = write_outputs(res, a, read, argv)
+    print(f"wrote {out}, {out.stem}.md, {out.stem}_stages.json, {out.stem}_psnr_fps.png "
           f"({res['wall_s']:.0f} s)")
     return 0
 
 
 if __name__ == "__main__":
+    from plenoctree import runtime
+
+    runtime.configure()         # as the CLI: before torch / numba load (OMP_WAIT_POLICY, malloc)
     sys.exit(main())

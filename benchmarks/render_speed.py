@@ -1,5 +1,5 @@
-"""Octree rendering speed on a real tree: today's numba kernel vs the frozen baseline kernel,
-where a ray's time goes, and the torch twin for accuracy.
+"""Octree rendering speed on a real tree: the numba renderer's paths against the torch twin,
+where a ray's time goes, and the twin's accuracy check.
 
 Method: a fixed set of orbit views (30° elevation, distance 4, the NeRF-synthetic field of view;
 for the forward-facing tree, the LLFF capture's own NDC cameras at 504×378) is rendered at each
@@ -19,10 +19,13 @@ Paths:
   checks + kernel: the API for arbitrary rays);
 - ``kernel``: the same kernel called with prepared ray arrays (so ``rays - kernel`` is the time
   per frame spent outside the kernel by the ray API);
-- ``baseline``: a frame as it was before issue 12 (``cameras.rays`` in numpy + the frozen kernel
-  ``benchmarks/baseline/render_kernel.py``): the ratio ``baseline / numba`` is the speed-up;
-- ``torch``: the twin (float32) on a strided subset of ``--twin-views`` views, per-ray time
-  extrapolated; it gives max |Δ rgb| against ``numba`` and ``rays`` (the spec: ≤ 1e-4).
+- ``torch``: the baseline measured in the same run, the renderer's torch twin (float32, the
+  specification) on a strided subset of ``--twin-views`` views, per-ray time extrapolated to the
+  frame: ``torch / numba`` is the speed-up; it also gives max |Δ rgb| against ``numba`` and
+  ``rays`` (the spec: ≤ 1e-4).
+
+Old code against new: ``python benchmarks/ab.py --rev REV -- render_speed.py --tree T ...``
+runs this script under both revisions, alternating, and tabulates each figure's ratio.
 
 The time numpy takes to make the ray arrays of a frame (``cameras.rays``) is reported as
 ``raygen ms``.
@@ -34,7 +37,7 @@ rate goal is explained by numbers.
 
 Usage (each ≤ 2-3 min on 2 loaded cores)::
 
-    .venv/bin/python benchmarks/render_speed.py                  # lego when ../shared is there
+    .venv/bin/python benchmarks/render_speed.py                  # lego when the data root has it
     .venv/bin/python benchmarks/render_speed.py --tree procedural
     .venv/bin/python benchmarks/render_speed.py --tree ff        # forward-facing NDC, 504x378
     .venv/bin/python benchmarks/render_speed.py --tree my.npz --sizes 400
@@ -46,65 +49,26 @@ Writes ``benchmarks/results/render_speed_<tree>.json`` (``--out``) and prints ma
 from __future__ import annotations
 
 import argparse
-import math
 import os
-import statistics
 import sys
 import time
-from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from _trees import ROOT, load_bench_tree, machine_info
+from _bench import RESULTS, Timing, interleaved, machine_info, markdown_table, write_json
+from _trees import add_tree_args, data_cameras, orbit_cameras, tree_from_args
+
+PATHS = ("numba", "noskip", "rays", "kernel")
 
 
-def orbit_cameras(n_views: int, size: int) -> Any:
-    """``n_views`` cameras on a 30° orbit at distance 4 (NeRF-synthetic field of view)."""
-    from plenoctree.datasets import Cameras
-    from plenoctree.datasets.procedural import CAMERA_ANGLE_X, CAMERA_DISTANCE, look_at
-
-    fx = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
-    c2w = []
-    for i in range(n_views):
-        a = 2 * math.pi * i / n_views
-        el = math.radians(30.0)
-        eye = CAMERA_DISTANCE * np.array([math.cos(el) * math.cos(a), math.cos(el) * math.sin(a),
-                                          math.sin(el)])
-        c2w.append(look_at(eye, np.zeros(3)))
-    return Cameras(np.stack(c2w), fx, fx, size / 2.0, size / 2.0, size, size)
-
-
-def data_cameras(root: str, n_views: int, split: str = "test") -> tuple[Any, list[int]]:
-    """The ``split`` cameras of the dataset at ``root`` (any format; NDC ones for a
-    forward-facing capture) and up to ``n_views`` indices evenly spread over them: a tree timed
-    from the views it was made for."""
-    from plenoctree.datasets import load_dataset
-
-    cams = load_dataset(root, split=split).cameras
-    idx = np.linspace(0, len(cams) - 1, min(n_views, len(cams))).round().astype(int)
-    return cams, sorted({int(i) for i in idx})
-
-
-def time_passes(fn: Callable[[], Any], repeats: int) -> tuple[list[float], list[float]]:
-    """Wall-clock and process CPU seconds (all threads) of ``repeats`` calls of ``fn``."""
-    wall, cpu = [], []
-    for _ in range(repeats):
-        c0, t0 = time.process_time(), time.perf_counter()
-        fn()
-        wall.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return wall, cpu
-
-
-def summarise(per_frame_s: list[float], cpu_per_frame_s: list[float],
-              rays_per_frame: int) -> dict[str, Any]:
-    med = statistics.median(per_frame_s)
-    return {"ms_per_frame": 1e3 * med, "ms_min": 1e3 * min(per_frame_s),
-            "ms_max": 1e3 * max(per_frame_s), "fps": 1.0 / med,
+def summarise(t: Timing, rays_per_frame: int) -> dict[str, Any]:
+    """The JSON row of a path's per-frame timing ``t``."""
+    med = t.median
+    return {"ms_per_frame": 1e3 * med, "ms_min": 1e3 * min(t.wall),
+            "ms_max": 1e3 * max(t.wall), "fps": 1.0 / med,
             "mrays_per_s": rays_per_frame / med / 1e6,
-            "cpu_ms_per_frame": 1e3 * statistics.median(cpu_per_frame_s),
-            "repeats": len(per_frame_s)}
+            "cpu_ms_per_frame": 1e3 * t.cpu_median, "repeats": len(t.wall)}
 
 
 def ray_counters(tree: Any, views: list, opts: Any, skip: Any = None) -> dict[str, float]:
@@ -126,35 +90,145 @@ def ray_counters(tree: Any, views: list, opts: Any, skip: Any = None) -> dict[st
                for n in ("leaves", "sigma_leaves", "negligible", "descent")}, **per_hit}
 
 
-def main(argv: list[str] | None = None) -> int:
+def path_functions(tree: Any, fast: Any, cams: Any, idx: list[int], views: list,
+                   opts: Any) -> dict[str, Callable[[], Any]]:
+    """One pass over the views for each of :data:`PATHS`."""
+    from plenoctree.render import render_image, render_rays
+    from plenoctree.render import _render_numba as kern
+    from plenoctree.render.options import parse_data_format
+
+    info = parse_data_format(tree.data_format, tree.data_dim, tree.extra_data)
+    flat = [(o.reshape(-1, 3), d.reshape(-1, 3)) for o, d in views]
+    prepared = kern.prepare(fast, info, opts)
+    outs = [kern.empty_outputs(len(o)) for o, _ in flat]
+
+    def run_public():
+        for i in idx:
+            render_image(fast, cams, i, opts, backend="numba")
+
+    def run_noskip():
+        for i in idx:
+            render_image(tree, cams, i, opts, backend="numba")
+
+    def run_rays():
+        for o, d in views:
+            render_rays(fast, o, d, opts, backend="numba")
+
+    def run_kernel():
+        for (o, d), out in zip(flat, outs):
+            kern.render_prepared(prepared, o, d, out, width=cams.width)
+
+    return {"numba": run_public, "noskip": run_noskip, "rays": run_rays, "kernel": run_kernel}
+
+
+def twin_pass(tree: Any, fast: Any, cams: Any, idx: list[int], views: list, opts: Any,
+              args: argparse.Namespace) -> tuple[dict, float]:
+    """The torch twin on a strided subset of rays of the first ``--twin-views`` views (one
+    pass: it is slow), its time extrapolated to a frame, and the largest |Δ rgb| of the numba
+    paths against it."""
+    from plenoctree.render import render_image, render_rays
+
+    n_px = cams.width * cams.height
+    stride = max(1, n_px // max(1, args.twin_rays))
+    subsets = [(o.reshape(-1, 3)[::stride], d.reshape(-1, 3)[::stride])
+               for o, d in views[:max(1, args.twin_views)]]
+    n_sub = sum(len(o) for o, _ in subsets)
+    t = Timing()
+    t.call(lambda: [render_rays(tree, o, d, opts, backend="torch").rgb for o, d in subsets])
+    row = {**summarise(t.scaled(n_px / n_sub), n_px), "extrapolated": True, "rays_timed": n_sub}
+
+    def sub(img):
+        return img.rgb.reshape(-1, 3)[::stride]
+
+    diff = max(max(float((sub(render_image(fast, cams, i, opts, backend="numba")) - ref)
+                         .abs().max()),
+                   float((sub(render_image(tree, cams, i, opts, backend="numba")) - ref)
+                         .abs().max()),
+                   float((render_rays(fast, o, d, opts, backend="numba").rgb - ref).abs().max()))
+               for i, (o, d), ref in zip(idx, subsets, t.result))
+    return row, diff
+
+
+def measure_set(tree: Any, fast: Any, cams: Any, idx: list[int], opts: Any,
+                args: argparse.Namespace) -> dict[str, Any]:
+    """Every path, the twin, the counters and the time breakdown on one view set."""
+    n_px = cams.width * cams.height
+    t0 = time.perf_counter()
+    views = [cams.rays(i) for i in idx]
+    raygen_ms = 1e3 * (time.perf_counter() - t0) / len(views)
+    timings = interleaved(path_functions(tree, fast, cams, idx, views, opts), args.repeats)
+    rows = {p: summarise(t.scaled(1 / len(views)), n_px) for p, t in timings.items()}
+    rows["torch"], max_diff = twin_pass(tree, fast, cams, idx, views, opts, args)
+    counters = ray_counters(tree, views, opts)
+    counters["with_skip"] = ray_counters(tree, views, opts, fast.empty_skip)
+    pub, ker = rows["numba"]["ms_per_frame"], rows["kernel"]["ms_per_frame"]
+    breakdown = {"raygen_ms": raygen_ms, "outside_kernel_ms": pub - ker,
+                 "rays_api_outside_kernel_ms": rows["rays"]["ms_per_frame"] - ker,
+                 "kernel_ms": ker,
+                 "kernel_ns_per_ray_core": ker * 1e6 / n_px * (os.cpu_count() or 1)}
+    return {"rows": rows, "counters": counters, "breakdown": breakdown, "max_diff": max_diff}
+
+
+def print_report(report: dict, tree: Any) -> None:
+    """The markdown tables of a report."""
+    sets, results = report["sets"], report["results"]
+    print(f"\nOctree render speed — {report['tree']['source']}: {tree.data_format}, "
+          f"{tree.n_leaves} leaves, max depth {tree.max_depth}, {report['views']} views, "
+          f"stop_thresh {report['options']['stop_thresh']}\n")
+    print(markdown_table(
+        ["path", "size", "ms/frame (median)", "spread", "FPS", "M rays/s", "CPU ms/frame"],
+        [[name + (" (extrapolated)" if r.get("extrapolated") else ""), k,
+          f"{r['ms_per_frame']:.1f}", f"{r['ms_min']:.1f}–{r['ms_max']:.1f}", f"{r['fps']:.2f}",
+          f"{r['mrays_per_s']:.2f}", f"{r['cpu_ms_per_frame']:.1f}"]
+         for name, per in results.items() for k, r in per.items()]))
+    rows = []
+    for k in sets:
+        c, b = report["ray_counters"][k], report["time_breakdown"][k]
+        rows.append([k, f"{c['hit_fraction']:.1%}", f"{c['leaves_per_hit_ray']:.1f} "
+                     f"({c['with_skip']['leaves_per_hit_ray']:.1f})",
+                     f"{c['sigma_leaves_per_hit_ray']:.1f}", f"{c['negligible_per_hit_ray']:.1f}",
+                     f"{c['descent_per_hit_ray']:.1f}", f"{c['stopped_fraction_of_hit']:.1%}",
+                     f"{b['raygen_ms']:.1f}", f"{b['outside_kernel_ms']:.1f}",
+                     f"{b['rays_api_outside_kernel_ms']:.1f}",
+                     f"{b['kernel_ns_per_ray_core']:.0f}"])
+    print()
+    print(markdown_table(
+        ["size", "hit rays", "leaves/hit ray (with skip)", "σ>0 leaves", "negligible (w<1e-4)",
+         "child reads", "stopped early", "numpy raygen ms", "render_image − kernel ms",
+         "render_rays − kernel ms", "kernel ns/ray/core"], rows))
+    print()
+    for k in sets:
+        print(f"{k}: numba {results['numba'][k]['fps']:.1f} FPS, "
+              f"{report['speedup_numba_over_twin'][k]:.0f}x the torch twin; "
+              f"{report['speedup_skip_over_noskip'][k]:.2f}x without empty-space skipping; "
+              f"max |Δ rgb| numba/rays vs twin = {report['max_abs_diff_rgb_numba_vs_torch'][k]:.2e}")
+    m = report["machine"]
+    print(f"\nmachine: {m['cpu_model']}, {m['cpu_count']} cores, numba {m['numba']} "
+          f"({m['numba_threading_layer']}, {m['numba_threads']} threads); load average before "
+          f"{m['loadavg_before'][0]:.2f}, after {m['loadavg'][0]:.2f}")
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--tree", default=None,
-                    help="lego | procedural | ff | PATH.npz (default: lego when found)")
-    ap.add_argument("--resolution", type=int, default=256, help="procedural/ff tree resolution")
+    add_tree_args(ap, "dataset of the tree: time its test views (at their own size) instead "
+                      "of orbit views; needed for a forward-facing (NDC) tree file",
+                  "render_speed")
     ap.add_argument("--sizes", type=int, nargs="+", default=[400, 800],
                     help="image sizes (px; orbit views)")
     ap.add_argument("--views", type=int, default=4, help="views per pass")
-    ap.add_argument("--data", default=None,
-                    help="dataset of the tree: time its test views (at their own size) instead "
-                         "of orbit views; needed for a forward-facing (NDC) tree file")
     ap.add_argument("--repeats", type=int, default=5, help="timed passes per path and size")
     ap.add_argument("--twin-rays", type=int, default=8000,
                     help="rays per view rendered by the torch twin (strided subset)")
     ap.add_argument("--twin-views", type=int, default=1, help="views rendered by the twin")
-    ap.add_argument("--no-baseline", action="store_true", help="skip the frozen kernel")
-    ap.add_argument("--stop-thresh", type=float, default=0.01)
-    ap.add_argument("--out", default=None,
-                    help="JSON path (default benchmarks/results/render_speed_<tree>.json)")
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
 
-    from plenoctree.render import RenderOptions, render_image, render_rays, tree_to_device
-    from plenoctree.render import _render_numba as kern
-    from plenoctree.render.options import parse_data_format
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    from plenoctree.render import RenderOptions, tree_to_device
 
     load_before = os.getloadavg()
-    tree, desc = load_bench_tree(args.tree, args.resolution,
-                                 log=lambda m: print(m, file=sys.stderr), data=args.data)
-    info = parse_data_format(tree.data_format, tree.data_dim, tree.extra_data)
+    tree, desc = tree_from_args(args)
     opts = RenderOptions(stop_thresh=args.stop_thresh)
     if desc.get("data"):      # --data, or the ff tree's own capture (all its cameras)
         cams, idx = data_cameras(desc["data"], args.views,
@@ -163,147 +237,37 @@ def main(argv: list[str] | None = None) -> int:
     else:
         sets = {f"{s}x{s}": (orbit_cameras(args.views, s), list(range(args.views)))
                 for s in args.sizes}
-
     fast = tree_to_device(tree, "cpu")                 # as eval / video prepare the tree
     print(f"empty-space skip tables: {fast.empty_skip.seconds:.1f} s, "
           f"{fast.empty_skip.nbytes / 2**20:.1f} MiB", file=sys.stderr)
-    paths = ["numba", "noskip", "rays", "kernel"] + ([] if args.no_baseline else ["baseline"])
-    results: dict[str, dict[str, Any]] = {p: {} for p in paths + ["torch"]}
-    counters, breakdown, max_diff = {}, {}, {}
+    per_set = {}
     for key, (cams, idx) in sets.items():
-        n_px = cams.width * cams.height
-        t0 = time.perf_counter()
-        views = [cams.rays(i) for i in idx]
-        raygen_ms = 1e3 * (time.perf_counter() - t0) / len(views)
-        flat = [(o.reshape(-1, 3), d.reshape(-1, 3)) for o, d in views]
+        per_set[key] = measure_set(tree, fast, cams, idx, opts, args)
+        r = per_set[key]["rows"]
+        print(f"[{key}] numba {r['numba']['ms_per_frame']:.1f} ms, kernel "
+              f"{r['kernel']['ms_per_frame']:.1f} ms, twin {r['torch']['ms_per_frame']:.0f} ms "
+              "(extrapolated)", file=sys.stderr)
+    results = {p: {k: s["rows"][p] for k, s in per_set.items()} for p in PATHS + ("torch",)}
 
-        def run_public():
-            for i in idx:
-                render_image(fast, cams, i, opts, backend="numba")
+    def ratio(slow: str, fast_path: str) -> dict[str, float]:
+        return {k: results[slow][k]["ms_per_frame"] / results[fast_path][k]["ms_per_frame"]
+                for k in sets}
 
-        def run_noskip():
-            for i in idx:
-                render_image(tree, cams, i, opts, backend="numba")
-
-        def run_rays():
-            for o, d in views:
-                render_rays(fast, o, d, opts, backend="numba")
-
-        prepared = kern.prepare(fast, info, opts)
-        outs = [kern.empty_outputs(len(o)) for o, _ in flat]
-        width = cams.width
-
-        def run_kernel():
-            for (o, d), out in zip(flat, outs):
-                kern.render_prepared(prepared, o, d, out, width=width)
-
-        fns: dict[str, Callable[[], Any]] = {"numba": run_public, "noskip": run_noskip,
-                                             "rays": run_rays, "kernel": run_kernel}
-        if "baseline" in paths:
-            from baseline import render_kernel as base
-
-            def run_base():      # what a frame cost before issue 12: ray arrays + the kernel
-                for i in idx:
-                    o, d = cams.rays(i)
-                    base.render_rays_numba(tree.child, tree.data, tree.offset, tree.invradius,
-                                           info, tree.extra_data, o.reshape(-1, 3),
-                                           d.reshape(-1, 3), opts)
-
-            fns["baseline"] = run_base
-        for name in paths:
-            fns[name]()                                             # warm-up
-        for _ in range(args.repeats):                               # interleaved passes
-            for name in paths:
-                wall, cpu = time_passes(fns[name], 1)
-                results[name].setdefault(key, ([], []))
-                results[name][key][0].append(wall[0] / len(views))
-                results[name][key][1].append(cpu[0] / len(views))
-        for name in paths:
-            results[name][key] = summarise(*results[name][key], n_px)
-
-        stride = max(1, n_px // max(1, args.twin_rays))
-        subsets = [(o[::stride], d[::stride]) for o, d in flat[:max(1, args.twin_views)]]
-        n_sub = sum(len(o) for o, _ in subsets)
-        c0, t0 = time.process_time(), time.perf_counter()    # one pass: it is slow
-        twin = [render_rays(tree, o, d, opts, backend="torch").rgb for o, d in subsets]
-        wall, cpu = [time.perf_counter() - t0], [time.process_time() - c0]
-        results["torch"][key] = summarise([w / n_sub * n_px for w in wall],
-                                          [c / n_sub * n_px for c in cpu], n_px)
-        results["torch"][key].update(extrapolated=True, rays_timed=n_sub)
-        max_diff[key] = max(max(
-            float((render_image(fast, cams, i, opts, backend="numba").rgb.reshape(-1, 3)
-                   [::stride] - ref).abs().max()),
-            float((render_image(tree, cams, i, opts, backend="numba").rgb.reshape(-1, 3)
-                   [::stride] - ref).abs().max()),
-            float((render_rays(fast, o, d, opts, backend="numba").rgb - ref).abs().max()))
-            for i, (o, d), ref in zip(idx, subsets, twin))
-        counters[key] = ray_counters(tree, views, opts)
-        counters[key]["with_skip"] = ray_counters(tree, views, opts, fast.empty_skip)
-        pub, ker = results["numba"][key]["ms_per_frame"], results["kernel"][key]["ms_per_frame"]
-        breakdown[key] = {"raygen_ms": raygen_ms, "outside_kernel_ms": pub - ker,
-                          "rays_api_outside_kernel_ms": results["rays"][key]["ms_per_frame"] - ker,
-                          "kernel_ms": ker,
-                          "kernel_ns_per_ray_core": ker * 1e6 / n_px * (os.cpu_count() or 1)}
-        print(f"[{key}] numba {pub:.1f} ms, kernel {ker:.1f} ms"
-              + (f", baseline {results['baseline'][key]['ms_per_frame']:.1f} ms"
-                 if "baseline" in paths else ""), file=sys.stderr)
-
-    ratio = ({k: results["baseline"][k]["ms_per_frame"] / results["numba"][k]["ms_per_frame"]
-              for k in sets} if "baseline" in paths else {})
-    skip_ratio = {k: results["noskip"][k]["ms_per_frame"] / results["numba"][k]["ms_per_frame"]
-                  for k in sets}
     report = {
         "benchmark": "render_speed", "tree": desc, "views": args.views,
         "sets": list(sets), "repeats": args.repeats,
         "options": {"stop_thresh": opts.stop_thresh, "background": list(opts.background)},
-        "results": results, "ray_counters": counters, "time_breakdown": breakdown,
-        "speedup_numba_over_baseline": ratio, "speedup_skip_over_noskip": skip_ratio,
+        "results": results, "ray_counters": {k: s["counters"] for k, s in per_set.items()},
+        "time_breakdown": {k: s["breakdown"] for k, s in per_set.items()},
+        "speedup_numba_over_twin": ratio("torch", "numba"),
+        "speedup_skip_over_noskip": ratio("noskip", "numba"),
         "empty_skip": {"seconds": fast.empty_skip.seconds, "mib": fast.empty_skip.nbytes / 2**20,
                        "grid_bits": fast.empty_skip.grid_bits},
-        "max_abs_diff_rgb_numba_vs_torch": max_diff,
-        "machine": {**machine_info(), "loadavg_before": list(load_before),
-                    "loadavg_after": list(os.getloadavg())},
+        "max_abs_diff_rgb_numba_vs_torch": {k: s["max_diff"] for k, s in per_set.items()},
+        "machine": machine_info(load_before),
     }
-    out = Path(args.out or ROOT / "results" / f"render_speed_{desc['kind']}.json")
-    from plenoctree._util import atomic_save_json
-
-    atomic_save_json(out, report)
-
-    print(f"\nOctree render speed — {desc['source']}: {tree.data_format}, {tree.n_leaves} "
-          f"leaves, max depth {tree.max_depth}, {args.views} views, stop_thresh "
-          f"{opts.stop_thresh}\n")
-    print("| path | size | ms/frame (median) | spread | FPS | M rays/s | CPU ms/frame |")
-    print("|---|---|---|---|---|---|---|")
-    for name, per in results.items():
-        for k, r in per.items():
-            note = " (extrapolated)" if r.get("extrapolated") else ""
-            print(f"| {name}{note} | {k} | {r['ms_per_frame']:.1f} | {r['ms_min']:.1f}–"
-                  f"{r['ms_max']:.1f} | {r['fps']:.2f} | {r['mrays_per_s']:.2f} | "
-                  f"{r['cpu_ms_per_frame']:.1f} |")
-    print("\n| size | hit rays | leaves/hit ray (with skip) | σ>0 leaves | negligible (w<1e-4) "
-          "| child reads "
-          "| stopped early | numpy raygen ms | render_image − kernel ms | render_rays − kernel ms "
-          "| kernel ns/ray/core |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for k in sets:
-        c, b = counters[k], breakdown[k]
-        print(f"| {k} | {c['hit_fraction']:.1%} | {c['leaves_per_hit_ray']:.1f} "
-              f"({c['with_skip']['leaves_per_hit_ray']:.1f}) | "
-              f"{c['sigma_leaves_per_hit_ray']:.1f} | {c['negligible_per_hit_ray']:.1f} | "
-              f"{c['descent_per_hit_ray']:.1f} | {c['stopped_fraction_of_hit']:.1%} | "
-              f"{b['raygen_ms']:.1f} | {b['outside_kernel_ms']:.1f} | "
-              f"{b['rays_api_outside_kernel_ms']:.1f} | "
-              f"{b['kernel_ns_per_ray_core']:.0f} |")
-    print()
-    for k in sets:
-        sp = f"{ratio[k]:.2f}x a pre-issue-12 frame; " if ratio else ""
-        sp += f"{skip_ratio[k]:.2f}x without empty-space skipping; "
-        print(f"{k}: numba {results['numba'][k]['fps']:.1f} FPS, {sp}max |Δ rgb| numba/rays vs "
-              f"twin = {max_diff[k]:.2e}")
-    m = report["machine"]
-    print(f"\nmachine: {m['cpu_model']}, {m['cpu_count']} cores, numba {m['numba']} "
-          f"({m['numba_threading_layer']}, {m['numba_threads']} threads); load average before "
-          f"{load_before[0]:.2f}, after {m['loadavg_after'][0]:.2f}")
+    out = write_json(args.out or RESULTS / f"render_speed_{desc['kind']}.json", report)
+    print_report(report, tree)
     print(f"wrote {out}")
     return 0
 

@@ -1,17 +1,24 @@
 """What scoring a stage costs outside the renderer: loading the tree and SSIM per view, each
-against the previous implementation in the same run.
+against a reference implementation measured in the same run.
 
 - ``load``: :func:`plenoctree.octree.load_tree` (uncompressed members read straight into the
-  array, CRC-32 checked, plus the tree's integrity check) against reading the same members
-  through ``zipfile``'s ``readinto`` (what the reader did before; no checks), on ``--tree`` (``lego``: the default extraction of
-  ``shared/data/runs/lego_cpu_400``, cached once; or a path, e.g. a refined tree);
-- ``ssim``: :func:`plenoctree.metrics.ssim` (numpy separable blur) against the previous
-  torch ``conv2d`` blur (``benchmarks/baseline/scoring.py``), on pairs of consecutive lego test views
-  at 400² (real content), with the largest difference of the two values.
+  array, CRC-32 checked, plus the tree's integrity check) against numpy's own ``.npz`` reader
+  (``np.load`` reading every member; no checks), on ``--tree`` (``lego``: the default
+  extraction of the data root's ``runs/lego_cpu_400``, cached once; or a path, e.g. a refined
+  tree);
+- ``ssim``: :func:`plenoctree.metrics.ssim` (numpy separable blur) against scikit-image's
+  ``structural_similarity`` (Gaussian weights, σ 1.5, population covariance: the common
+  reference implementation; its values differ slightly, the NeRF variant clamps σxy and
+  averages the valid region only), on pairs of consecutive test views of ``--data`` (default
+  the data root's lego at 400², real content), with the largest difference of the two values.
+  Skipped with a note without scikit-image.
+
+Each figure is the median of ``--repeats`` timed calls after a warm-up (page cache warm for
+both readers). Old code against new: ``python benchmarks/ab.py --rev REV -- scoring_speed.py``.
 
 Usage::
 
-    .venv/bin/python benchmarks/scoring_speed.py [--tree lego|PATH.npz] [--pairs 10]
+    .venv/bin/python benchmarks/scoring_speed.py [--tree lego|PATH.npz] [--data DIR] [--pairs 10]
 
 Prints a table and writes ``benchmarks/results/scoring_speed.json`` (``--out``).
 """
@@ -19,76 +26,92 @@ Prints a table and writes ``benchmarks/results/scoring_speed.json`` (``--out``).
 from __future__ import annotations
 
 import argparse
-import json
-import sys
-import time
+import importlib.util
 from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from _bench import add_data_root, add_out, data_path, machine_info, markdown_table, timed, \
+    write_json
+from _trees import LEGO_TREE, load_bench_tree
 
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _trees import CACHE, ROOT, find_lego_run, load_bench_tree, machine_info  # noqa: E402
-from baseline.scoring import read_members_zipfile, ssim_torch  # noqa: E402
+def read_npz(path: Path) -> None:
+    """Every member of the ``.npz`` through numpy's reader."""
+    with np.load(path, allow_pickle=False) as z:
+        for k in z.files:
+            z[k]
 
 
-def best_of(fn, repeats: int) -> float:
-    """Fastest of ``repeats`` calls, seconds."""
-    out = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t0)
-    return min(out)
+def ssim_skimage(a: np.ndarray, b: np.ndarray) -> float:
+    """scikit-image's SSIM with the evaluation's window (Gaussian, σ 1.5, data range 1)."""
+    from skimage.metrics import structural_similarity
+
+    return float(structural_similarity(a, b, gaussian_weights=True, sigma=1.5,
+                                       use_sample_covariance=False, data_range=1.0,
+                                       channel_axis=-1))
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--tree", default="lego", help="lego | PATH.npz")
-    ap.add_argument("--pairs", type=int, default=10, help="test-view pairs scored by SSIM")
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--out", default=str(ROOT / "results" / "scoring_speed.json"))
-    args = ap.parse_args()
+def row(what: str, new: Any, ref: Any, ref_name: str, per: int = 1) -> dict[str, Any]:
+    """A table row of two timings (seconds per item: ``per`` items a call)."""
+    return {"what": what, "reference": ref_name, "new_s": new.median / per,
+            "new_spread_s": new.spread / per, "reference_s": ref.median / per,
+            "reference_spread_s": ref.spread / per, "speedup": ref.median / new.median}
 
+
+def ssim_row(data: Path, n_pairs: int, repeats: int) -> dict[str, Any]:
+    """The ``ssim`` row on consecutive test-view pairs of ``data`` at 400² (downscale 2)."""
     from plenoctree.datasets import load_dataset
     from plenoctree.metrics import ssim
+
+    if importlib.util.find_spec("skimage") is None:
+        return {"skipped": "scikit-image is not installed (pip install scikit-image)"}
+    test = load_dataset(str(data), split="test", downscale=2)
+    pairs = [(test.images[k], test.images[k + 1]) for k in range(min(n_pairs, len(test) - 1))]
+    diff = max(abs(ssim(a, b) - ssim_skimage(a, b)) for a, b in pairs)
+    new = timed(lambda: [ssim(a, b) for a, b in pairs], repeats)
+    ref = timed(lambda: [ssim_skimage(a, b) for a, b in pairs], repeats)
+    h, w = pairs[0][0].shape[:2]
+    return {**row(f"{len(pairs)} test-view pairs of {data.name} at {w}x{h}", new, ref,
+                  "skimage structural_similarity", len(pairs)), "max_abs_diff": diff}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--tree", default="lego", help="lego | PATH.npz")
+    ap.add_argument("--data", default=None,
+                    help="dataset of the SSIM pairs (default: nerf_synthetic/lego of the data "
+                         "root)")
+    ap.add_argument("--pairs", type=int, default=10, help="test-view pairs scored by SSIM")
+    ap.add_argument("--repeats", type=int, default=3)
+    add_data_root(ap)
+    add_out(ap, "scoring_speed.json")
+    args = ap.parse_args(argv)
+
     from plenoctree.octree import load_tree
 
     if args.tree == "lego":
-        load_bench_tree("lego")                      # extracts it once into the cache
-        path = CACHE / "lego_cpu_400_256.npz"
+        load_bench_tree("lego", root=args.data_root)      # extracts it once into the cache
+        path = LEGO_TREE
     else:
         path = Path(args.tree)
-    load_tree(path)                                  # page cache warm for both paths
-
-    t_new = best_of(lambda: load_tree(path), args.repeats)
-    t_old = best_of(lambda: read_members_zipfile(path), args.repeats)
-    mb = path.stat().st_size / 1e6
-
-    run = find_lego_run()
-    if run is None:
-        raise SystemExit("needs shared/data/nerf_synthetic/lego beside the repository")
-    test = load_dataset(str(run.parents[1] / "nerf_synthetic" / "lego"), split="test",
-                        downscale=2)
-    pairs = [(test.images[k], test.images[k + 1]) for k in range(min(args.pairs,
-                                                                     len(test) - 1))]
-    diff = max(abs(ssim(a, b) - ssim_torch(a, b)) for a, b in pairs)
-    s_new = best_of(lambda: [ssim(a, b) for a, b in pairs], args.repeats) / len(pairs)
-    s_old = best_of(lambda: [ssim_torch(a, b) for a, b in pairs], args.repeats) / len(pairs)
-
-    h, w = pairs[0][0].shape[:2]
-    rows = {"load": {"what": f"{path} ({mb:.0f} MB)", "new_s": t_new, "before_s": t_old,
-                     "speedup": t_old / t_new},
-            "ssim": {"what": f"{len(pairs)} lego test-view pairs at {w}x{h}",
-                     "new_s": s_new, "before_s": s_old, "speedup": s_old / s_new,
-                     "max_abs_diff": diff}}
-    print("| what | on | now | before (same run) | speed-up |\n|---|---|---|---|---|")
-    print(f"| load_tree | {rows['load']['what']} | {t_new:.2f} s | {t_old:.2f} s (zipfile readinto) | "
-          f"{t_old / t_new:.1f}x |")
-    print(f"| ssim per view | {rows['ssim']['what']} | {s_new * 1e3:.0f} ms | "
-          f"{s_old * 1e3:.0f} ms (torch conv2d) | {s_old / s_new:.1f}x |")
-    print(f"ssim values: max |numpy - torch| = {diff:.2e}")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"machine": machine_info(), "rows": rows}, indent=2) + "\n")
+    new = timed(lambda: load_tree(path), args.repeats)   # the warm-up fills the page cache
+    ref = timed(lambda: read_npz(path), args.repeats)
+    rows = {"load": row(f"{path} ({path.stat().st_size / 1e6:.0f} MB)", new, ref, "np.load")}
+    data = Path(args.data) if args.data else data_path(args.data_root, "nerf_synthetic", "lego")
+    rows["ssim"] = ssim_row(data, args.pairs, args.repeats)
+    table = [[name, r["what"], f"{r['new_s'] * 1e3:.1f} ± {r['new_spread_s'] * 1e3:.1f} ms",
+              f"{r['reference_s'] * 1e3:.1f} ms ({r['reference']})", f"{r['speedup']:.2f}x"]
+             for name, r in rows.items() if "skipped" not in r]
+    print(markdown_table(["what", "on", "now", "reference (same run)", "reference / now"],
+                         table))
+    if "skipped" in rows["ssim"]:
+        print(f"ssim: skipped ({rows['ssim']['skipped']})")
+    else:
+        print(f"ssim values: max |plenoctree - skimage| = {rows['ssim']['max_abs_diff']:.2e}")
+    out = write_json(args.out, {"benchmark": "scoring_speed", "rows": rows,
+                                "machine": machine_info()})
     print(f"wrote {out}")
     return 0
 

@@ -1,4 +1,4 @@
-"""The speed benchmarks' tree and view choice (benchmarks/_trees.py, render_speed.py): a
+"""The speed benchmarks' tree and view choice (benchmarks/_trees.py): a
 forward-facing (NDC) tree is timed from its own capture's cameras, never from orbit views; and
 benchmarks/kernel_cache_check.py (the render kernel's image does not depend on numba's cache)."""
 
@@ -18,13 +18,12 @@ _BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 def bench(monkeypatch):
     monkeypatch.syspath_prepend(str(_BENCH))
     import _trees
-    import render_speed
 
-    return _trees, render_speed
+    return _trees
 
 
 def test_ndc_tree_file_needs_its_data(bench, tmp_path):
-    trees, rs = bench
+    trees = bench
     data = write_forward_facing_dataset(tmp_path / "ff", n_images=9, width=18, height=12,
                                         n_samples=8)
     path = tmp_path / "ff.npz"
@@ -33,9 +32,9 @@ def test_ndc_tree_file_needs_its_data(bench, tmp_path):
         trees.load_bench_tree(str(path))
     tree, desc = trees.load_bench_tree(str(path), data=str(data))
     assert desc["data"] == str(data) and tree.ndc is not None
-    cams, idx = rs.data_cameras(desc["data"], 4)              # the test split: 0 and 8
+    cams, idx = trees.data_cameras(desc["data"], 4)           # the test split: 0 and 8
     assert cams.ndc and len(cams) == 2 and idx == [0, 1]
-    cams, idx = rs.data_cameras(desc["data"], 4, "all")
+    cams, idx = trees.data_cameras(desc["data"], 4, "all")
     assert len(cams) == 9 and idx == [0, 3, 5, 8]
 
 

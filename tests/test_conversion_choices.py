@@ -11,7 +11,7 @@ import numpy as np
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "conversion_choices.py"
 
 
-def test_rows_on_a_tiny_run(tmp_path):
+def test_rows_on_a_tiny_run(tmp_path, monkeypatch):
     from nerf_fixtures import tiny_run_and_tree
 
     from plenoctree.octree import load_tree
@@ -19,6 +19,7 @@ def test_rows_on_a_tiny_run(tmp_path):
     data, _, tree = tiny_run_and_tree(tmp_path)
     spec = importlib.util.spec_from_file_location("conversion_choices", _PATH)
     mod = importlib.util.module_from_spec(spec)
+    monkeypatch.syspath_prepend(str(_PATH.parent))     # its sibling modules (_bench)
     spec.loader.exec_module(mod)
     out = tmp_path / "cc.json"
     args = ["--run", str(tmp_path / "run"), "--tree", str(tree), "--data", str(data),

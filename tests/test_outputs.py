@@ -169,7 +169,7 @@ def test_cli_eval_save_images_writes_comparison_and_raw_depth(tmp_path):
     assert any(n.endswith("_alpha.npy") for n in names)
 
 
-def test_stage_plot_reads_paper_table_json(tmp_path, capsys):
+def test_stage_plot_reads_paper_table_json(tmp_path, capsys, monkeypatch):
     """`plenoctree plot paper_table.json` (the stage plot of docs/results.md): every row of
     benchmarks/paper_table.py, FPS at the table's size, unmeasured rows left out."""
     import importlib.util
@@ -182,6 +182,7 @@ def test_stage_plot_reads_paper_table_json(tmp_path, capsys):
     path = Path(__file__).resolve().parents[1] / "benchmarks" / "paper_table.py"
     spec = importlib.util.spec_from_file_location("paper_table_for_plot", path)
     pt = importlib.util.module_from_spec(spec)
+    monkeypatch.syspath_prepend(str(path.parent))      # its sibling modules (_bench)
     spec.loader.exec_module(pt)
     assert [k for k, _ in PAPER_TABLE_STAGES] == [k for k, _ in pt.ROWS]   # same rows
     rows = {k: {"psnr": 30.0 + i, "ssim": 0.9, "fps_400": 2.0 + i, "fps_800": 0.5 + i,

@@ -18,7 +18,9 @@ _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "paper_table.py"
 def pt():
     spec = importlib.util.spec_from_file_location("paper_table", _PATH)
     mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.syspath_prepend(str(_PATH.parent))          # its sibling modules (_bench)
+        spec.loader.exec_module(mod)
     return mod
 
 
