@@ -215,17 +215,17 @@ def test_run_images_stage_reports_bad_photos(tmp_path):
     d.mkdir()
     _noise(d / "only.png")
     with pytest.raises(PipelineError, match=r"stage 'process' failed: .*imgs: 1 photo"):
-        run_pipeline(PipelineConfig(images=str(d), out=str(tmp_path / "run")), log=lambda *_: None)
+        run_pipeline(PipelineConfig(images=str(d), out=str(tmp_path / "run")))
     assert not (tmp_path / "run" / "data").exists()
     with pytest.raises(ConfigError, match="either --data .* or --images"):
         run_pipeline(PipelineConfig(images=str(d), data=str(d), out=str(tmp_path / "run")))
 
 
 @pytest.mark.parametrize("flags, message", [
-    (["--finetune.lr-decay", "5"], "lr_decay must be in"),
-    (["--grid", "100"], "grid"),
+    (["--finetune.lr-decay", "5"], "--finetune.lr-decay must be in"),
+    (["--extract.grid", "100"], "grid"),
     (["--train.lr-init", "-1"], "learning rates must be > 0"),
-    (["--process.frames", "2"], "--frames must be an integer >= 3"),
+    (["--process.frames", "2"], "--process.frames must be an integer >= 3"),
     (["--process.camera-model", "FISH"], "camera model must be one of"),
     (["--process.mapper", '{"no_such_option": 1}'], "unknown COLMAP mapper option"),
 ])
@@ -253,7 +253,7 @@ def test_run_images_passes_process_options(tmp_path, monkeypatch):
     from plenoctree.pipeline import PipelineConfig, PipelineError, run_pipeline
 
     seen = []
-    monkeypatch.setattr(proc, "process", lambda cfg, log=print: seen.append(cfg))
+    monkeypatch.setattr(proc, "process", lambda cfg: seen.append(cfg))
     d = tmp_path / "imgs"
     d.mkdir()
     for i in range(3):
@@ -268,7 +268,7 @@ def test_run_images_passes_process_options(tmp_path, monkeypatch):
     assert cfg.images == str(d) and cfg.out == str(tmp_path / "run" / "data")
     with pytest.raises(ConfigError, match=r"--process\.\* options apply to --images"):
         run_pipeline(PipelineConfig(data=str(d), out=str(tmp_path / "run2"),
-                                    extra={"process": {"frames": 40}}), log=lambda *_: None)
+                                    process=ProcessConfig(frames=40)))
 
 
 @pytest.mark.parametrize("scene", ["360", "forward"])

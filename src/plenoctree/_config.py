@@ -13,7 +13,8 @@ from typing import Any
 
 from .errors import ConfigError
 
-__all__ = ["apply", "field_help", "load_config_file", "config_dict", "parse_background"]
+__all__ = ["apply", "field_help", "flag_name", "load_config_file", "config_dict",
+           "parse_background"]
 
 
 def field_help(cls: type) -> dict[str, str]:
@@ -51,20 +52,30 @@ def parse_background(text: str) -> tuple[float, float, float]:
     return vals  # type: ignore[return-value]
 
 
-def apply(cfg: Any, values: dict[str, Any], where: str = "config") -> Any:
+def flag_name(f: dataclasses.Field, prefix: str = "", flag: str | None = None) -> str:
+    """The command-line flag of config field ``f``: ``--<prefix><name>`` with ``-`` for ``_``,
+    or ``--<prefix><flag>`` (default: ``metadata["flag"]``); ``show_progress`` is
+    ``--<prefix>progress``."""
+    name = (flag or f.metadata.get("flag")
+            or ("progress" if f.name == "show_progress" else f.name))
+    return "--" + prefix + name.replace("_", "-")
+
+
+def apply(cfg: Any, values: dict[str, Any], where: str = "config", _path: str = "") -> Any:
     """Set ``values`` (nested dicts for nested dataclasses) on dataclass ``cfg``; returns it.
 
-    Unknown names raise :class:`ConfigError` naming ``where``; lists become tuples where the
-    field's default is a tuple (JSON has no tuples); a ``background`` given as text
-    (``white``, ``black``, ``R,G,B``) becomes its RGB tuple (:func:`parse_background`)."""
+    Unknown names raise :class:`ConfigError` naming ``where`` and the dotted key
+    (``c.json: unknown option 'extract.gird'``); lists become tuples where the field's default
+    is a tuple (JSON has no tuples); a ``background`` given as text (``white``, ``black``,
+    ``R,G,B``) becomes its RGB tuple (:func:`parse_background`)."""
     names = {f.name: f for f in dataclasses.fields(cfg)}
     for key, value in values.items():
         if key not in names:
-            raise ConfigError(f"{where}: unknown option {key!r}; known: "
+            raise ConfigError(f"{where}: unknown option {_path + key!r}; known: "
                               f"{', '.join(sorted(names))}")
         cur = getattr(cfg, key)
         if dataclasses.is_dataclass(cur) and isinstance(value, dict):
-            apply(cur, value, f"{where}.{key}")
+            apply(cur, value, where, f"{_path}{key}.")
             continue
         ann = str(names[key].type)
         if key == "background" and isinstance(value, str):

@@ -53,7 +53,7 @@ class ExportConfig:
     """mesh .glb: the scene's up axis, turned onto glTF's +Y (default +z, Blender scenes; +y for
     forward-facing NDC trees)"""
     show_progress: bool = True
-    """progress output (off: --quiet)"""
+    """progress output (off: --quiet or --no-progress)"""
 
 
 def _run(cfg: ExportConfig, args: argparse.Namespace) -> int:
@@ -86,7 +86,7 @@ def _run(cfg: ExportConfig, args: argparse.Namespace) -> int:
 
         mesh = export_mesh(tree, out, resolution=cfg.resolution, level=cfg.level,
                            smooth=cfg.smooth, view=cfg.view or "normal", up=cfg.up,
-                           show_progress=cfg.show_progress and not args.quiet)
+                           show_progress=cfg.show_progress)
         what = (f"mesh, {len(mesh.vertices)} vertices, {len(mesh.faces)} faces "
                 f"(sigma level {mesh.level:.4g})")
     if fmt != "svox" and tree.ndc is not None:
@@ -98,14 +98,12 @@ def _run(cfg: ExportConfig, args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``export`` command (one flag per :class:`ExportConfig` field)."""
     from ._options import add_command
-    from ._output import add_quiet
 
-    p = add_command(
+    add_command(
         sub, "export", ExportConfig, _run,
         help="export a tree: svox .npz, PLY point cloud or coloured mesh (.ply/.glb/.obj)",
         description="svox: the svox/volrend .npz layout (float16). ply: one point per occupied "
         "leaf (centre, colour, opacity, density, size). mesh: marching cubes on the density "
         "sampled from the tree, vertex colours from the SH; opens in Blender and MeshLab. "
         "ply and mesh need the 'export' extra (plyfile, trimesh, scikit-image).",
-        positional=("tree",), required=("out",), rename={"show_progress": "progress"})
-    add_quiet(p, "no progress output")
+        positional=("tree",), fields={"out": {"required": True}})
