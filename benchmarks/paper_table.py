@@ -31,7 +31,7 @@ Modes:
   minutes and peak RSS from ``DIR/summary.json``; FPS, the SH-truncated rows and the NeRF-SH
   speed baselines are measured here::
 
-      plenoctree run --data ../shared/data/nerf_synthetic/lego --train-minutes 40 --out DIR
+      plenoctree run --data ../shared/data/nerf_synthetic/lego --train.minutes 40 --out DIR
       .venv/bin/python benchmarks/paper_table.py --run-dir DIR --size 800
 
 Scores: the first ``--views`` test views at 400² (default 200 = all). FPS: 1000 / median
@@ -354,14 +354,14 @@ def run_full(out: Path, data: Path, views: int, downscale: int = 2, nerf: str = 
     ``plenoctree run`` defaults; ``nerf``: a trained NeRF-SH run to start from, as
     ``plenoctree run --nerf``; ``finetune_epochs`` / ``train_minutes``: 0 = the run's
     default); return :func:`read_run_dir` of ``out``."""
-    from plenoctree.pipeline import PipelineConfig, run_pipeline
+    from plenoctree.pipeline import PipelineConfig, layer_settings, run_pipeline
 
-    cfg = PipelineConfig(data=str(data), out=str(out), downscale=downscale, preset="cpu",
+    cfg = PipelineConfig(data=str(data), out=str(out), downscale=downscale,
                          eval_views=views, video_frames=0, web=False, nerf=nerf)
     if finetune_epochs:
-        cfg.finetune_epochs = finetune_epochs
+        cfg.finetune.epochs = finetune_epochs
     if train_minutes:
-        cfg.train_minutes = train_minutes
+        layer_settings(cfg, {"train": {"minutes": train_minutes}}, "paper_table")
     run_pipeline(cfg)
     return read_run_dir(out)
 

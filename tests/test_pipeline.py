@@ -55,7 +55,7 @@ def scene(tmp_path_factory):
     return root / "data"
 
 
-def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path, logs):
+def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path, logs, capsys):
     out = tmp_path / "run"
     s = run_pipeline(_tiny_cfg(scene, out))
     for name in ("nerf/checkpoint.pt", "tree.npz", "tree_refined.npz", "tree_ft.npz", "tree_ft.plnz",
@@ -80,6 +80,12 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path, logs):
     logs.clear()
     s2 = run_pipeline(_tiny_cfg(scene, out))
     assert set(s2["skipped"]) >= {"train", "extract", "refine", "finetune", "compress", "eval_ft"}
+    # OUT/config.json is the nested config; `run --config` of it is the same config
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["finetune"]["epochs"] == 1 and saved["extract"]["run_dir"] == str(out / "nerf")
+    capsys.readouterr()
+    assert main(["run", "--config", str(out / "config.json"), "--print-config"]) == 0
+    assert json.loads(capsys.readouterr().out) == saved == s2["config"]
 
     # Changing a fine-tuning setting reruns fine-tuning and what depends on it only.
     logs.clear()

@@ -29,7 +29,8 @@ from .compress.codec import CompressOptions
 from .errors import ConfigError, PlenOctreeError
 from .nerf.config import TrainConfig
 from .pipeline_config import (PRESETS, STAGE_OPTIONS, PipelineConfig, layer_settings,
-                              name_the_flags, pipeline_preset, train_preset, wired)
+                              name_the_flags, nerf_run_dir, pipeline_preset, train_preset,
+                              wired)
 from .pipeline_summary import finetune_outcome, pipeline_summary, summary_markdown
 
 __all__ = ["PipelineConfig", "PipelineError", "Stage", "run_pipeline", "plan_stages",
@@ -40,6 +41,8 @@ logger = logging.getLogger(__name__)
 
 STAGES = ("process", "train", "nerf_eval", "extract", "refine", "finetune", "compress",
           "eval", "web", "video")
+"""The stages of the chain, in their order (``eval`` is one stage per octree file)."""
+
 
 class PipelineError(PlenOctreeError, RuntimeError):
     """A pipeline stage failed; the message names the stage and what to do."""
@@ -70,10 +73,10 @@ class RunLayout:
 
 
 def _given_nerf(path: str) -> Path:
-    """:func:`_nerf_dir`, checked to hold a checkpoint."""
+    """:func:`nerf_run_dir`, checked to hold a checkpoint."""
     from .nerf.checkpoint import CHECKPOINT_NAME
 
-    p = _nerf_dir(path)
+    p = nerf_run_dir(path)
     if not (p / CHECKPOINT_NAME).is_file():
         raise ConfigError(f"--nerf {path}: no {CHECKPOINT_NAME} there (give the run folder of a "
                           "trained NeRF-SH, e.g. the OUT/nerf of an earlier run)")
@@ -301,12 +304,12 @@ def plan_stages(cfg: PipelineConfig, lay: RunLayout) -> list[Stage]:
                             lambda: _train(cfg.train), "check the dataset and training options"))
     if cfg.nerf_eval_views >= 0:
         stages.append(_nerf_eval_stage(cfg, lay, common))
-    stages.append(Stage("extract", config_dict(cfg.extract), [ckpt], [lay.tree],
+    stages.append(Stage("extract", _settings(cfg.extract), [ckpt], [lay.tree],
                         lambda: _call("convert.extract", "extract", cfg.extract),
                         "change the extraction options (--extract.grid, "
                         "--extract.weight-thresh)"))
     if cfg.refine.passes > 0:
-        stages.append(Stage("refine", config_dict(cfg.refine), [lay.tree, ckpt], [lay.refined],
+        stages.append(Stage("refine", _settings(cfg.refine), [lay.tree, ckpt], [lay.refined],
                             lambda: _call("convert.refine", "refine", cfg.refine),
                             "lower --refine.passes or raise --refine.threshold"))
     stages.append(Stage("finetune", _settings(cfg.finetune), [Path(cfg.finetune.tree)],

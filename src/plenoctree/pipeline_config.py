@@ -25,7 +25,7 @@ from .process import ProcessConfig
 
 __all__ = ["PipelineConfig", "StageOptions", "STAGE_OPTIONS", "PRESETS", "UNLIMITED_STEPS",
            "pipeline_preset", "train_preset", "time_budget", "layer_settings", "wired",
-           "stage_flags", "name_the_flags"]
+           "stage_flags", "name_the_flags", "nerf_run_dir"]
 
 UNLIMITED_STEPS = 10**9
 """``train.max_steps`` when the time budget (``train.minutes``) decides."""
@@ -185,7 +185,7 @@ def layer_settings(cfg: PipelineConfig, values: dict, where: str) -> PipelineCon
     return cfg
 
 
-def _nerf_dir(nerf: str) -> Path:
+def nerf_run_dir(nerf: str) -> Path:
     """The run folder of ``--nerf`` (a folder holding the checkpoint, or the checkpoint)."""
     from .nerf.checkpoint import CHECKPOINT_NAME
 
@@ -199,7 +199,7 @@ def wired(cfg: PipelineConfig) -> PipelineConfig:
     c = copy.deepcopy(cfg)
     out = Path(c.out)
     data = str(out / "data") if c.images else c.data
-    run_dir = str(_nerf_dir(c.nerf) if c.nerf else out / "nerf")
+    run_dir = str(nerf_run_dir(c.nerf) if c.nerf else out / "nerf")
     tree, refined = str(out / "tree.npz"), str(out / "tree_refined.npz")
     shared = {"seed": c.seed, "device": c.device, "backend": c.backend, "threads": c.threads,
               "downscale": c.downscale, "format": c.format}

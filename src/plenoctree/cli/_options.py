@@ -113,16 +113,11 @@ def _default_of(f: dataclasses.Field) -> Any:
     return None
 
 
-def _field_spec(f: dataclasses.Field, fields: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """The flag options of field ``f``: its metadata, overridden by ``fields[f.name]``."""
-    return {**f.metadata, **fields.get(f.name, {})}
-
-
 def _add_field(target: Any, f: dataclasses.Field, spec: dict[str, Any], prefix: str,
                dest: str, default: Any) -> None:
     """Add the flag (or positional argument) of one config field (see :func:`add_config`)."""
     kind, parse = _kind(f)
-    text = field_help_text(f, spec.get("help", ""), default, kind)
+    text = field_help_text(spec.get("help", ""), default, kind)
     if spec.get("positional"):
         target.add_argument(dest, metavar=f.name.upper(), help=text)
         return
@@ -146,7 +141,7 @@ def _add_field(target: Any, f: dataclasses.Field, spec: dict[str, Any], prefix: 
     target.add_argument(*names, **kw)
 
 
-def field_help_text(f: dataclasses.Field, text: str, default: Any, kind: str) -> str:
+def field_help_text(text: str, default: Any, kind: str) -> str:
     """``--help`` of a field: its docstring and the real default (``(default: 0.01)``)."""
     shown_default = format_default(default)
     if shown_default is not None and kind != "json":
@@ -184,7 +179,7 @@ def add_config(p: argparse.ArgumentParser | Any, cls: type, *, prefix: str = "",
             continue
         if f.name in skip or not f.metadata.get("cli", True) or dataclasses.is_dataclass(value):
             continue
-        spec = {"help": docs.get(f.name, ""), **_field_spec(f, fields)}
+        spec = {"help": docs.get(f.name, ""), **f.metadata, **fields.get(f.name, {})}
         _add_field(p, f, spec, prefix, dprefix + f.name, value)
         dests.append(dprefix + f.name)
     for inner_cls, kw in later:
@@ -294,11 +289,11 @@ def hidden_sections(p: argparse.ArgumentParser, sections: dict[str, Any]) -> Non
 def add_command(sub: argparse._SubParsersAction, name: str, cls: type,
                 run: Callable[[Any, argparse.Namespace], int | None], *, help: str,
                 description: str | None = None, base: Callable[[], Any] | None = None,
-                positional: Iterable[str] = (), **options: Any) -> argparse.ArgumentParser:
+                **options: Any) -> argparse.ArgumentParser:
     """Add the sub-command ``name`` whose options are the fields of dataclass ``cls``:
     ``--config FILE``, ``--quiet`` (and ``--progress`` when ``cls`` has ``show_progress``)
-    and one flag per field (:func:`add_config`; ``options`` are its keyword arguments,
-    ``positional`` the fields taken as positional arguments). When used, it calls
+    and one flag per field (:func:`add_config`; ``options`` are its keyword arguments, and
+    ``positional``: the fields taken as positional arguments). When used, it calls
     ``run(cfg, args)`` with ``cfg`` = ``base()`` (default ``cls()``) under ``--config`` and
     the flags given (:func:`layered`; ``--quiet`` turns progress bars off unless
     ``--progress`` is given); ``args`` holds the flags that are not options (``--json``,
@@ -309,7 +304,8 @@ def add_command(sub: argparse._SubParsersAction, name: str, cls: type,
     p = sub.add_parser(name, help=help, description=description)
     add_config_file(p)
     add_quiet(p)
-    fields = {**options.pop("fields", {}), **{n: {"positional": True} for n in positional}}
+    positional = {n: {"positional": True} for n in options.pop("positional", ())}
+    fields = {**options.pop("fields", {}), **positional}
     dests = add_config(p, cls, fields=fields, **options)
     make = base or cls
 
