@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 from pathlib import Path
 from typing import Any
 
 from .errors import ConfigError
 
-__all__ = ["apply", "field_help", "flag_name", "load_config_file", "config_dict",
-           "parse_background"]
+__all__ = ["apply", "field_help", "flag_name", "spell_flags", "load_config_file",
+           "config_dict", "parse_background"]
 
 
 def field_help(cls: type) -> dict[str, str]:
@@ -59,6 +60,22 @@ def flag_name(f: dataclasses.Field, prefix: str = "", flag: str | None = None) -
     name = (flag or f.metadata.get("flag")
             or ("progress" if f.name == "show_progress" else f.name))
     return "--" + prefix + name.replace("_", "-")
+
+
+_FIELD_NAMED = r"(?<![\w.-])(?:\w+(?::\s|\.))?([a-z][a-z0-9_]*)(?= (?:must|is required|exceeds))"
+"""A field name as config checks write it: ``lr_decay must``, ``finetune: lr_decay must``,
+``CompressOptions.bits must``."""
+
+
+def spell_flags(message: str, flags: dict[str, str], dashed: dict[str, str] | None = None
+                ) -> str:
+    """An error ``message`` of a config check with its field names spelled as the flags the
+    user typed: ``flags`` maps field names to flags (``{"lr_decay": "--finetune.lr-decay"}``),
+    ``dashed`` other flags to the flags typed (``{"--grid": "--extract.grid"}``)."""
+    if dashed:
+        message = re.sub(r"(?<![\w.-])--[a-z0-9][a-z0-9-]*",
+                         lambda m: dashed.get(m.group(0), m.group(0)), message)
+    return re.sub(_FIELD_NAMED, lambda m: flags.get(m.group(1), m.group(0)), message)
 
 
 def apply(cfg: Any, values: dict[str, Any], where: str = "config", _path: str = "") -> Any:

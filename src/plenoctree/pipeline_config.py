@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from ._config import apply, flag_name
+from ._config import apply, flag_name, spell_flags
 from .compress.codec import CompressOptions
 from .convert.extract import ExtractConfig
 from .convert.refine import RefineConfig
@@ -117,7 +116,8 @@ class StageOptions:
     name: str
     """the field of :class:`PipelineConfig` and the flag prefix"""
     wired: tuple[str, ...]
-    """fields the pipeline sets (paths, copies of pipeline-wide settings): no flag"""
+    """fields set by the pipeline (paths, copies of pipeline-wide settings) or by ``--preset``
+    (``train.preset``): no flag"""
     title: str
     """the help section"""
     flat: tuple[str, ...] = ()
@@ -203,7 +203,7 @@ def wired(cfg: PipelineConfig) -> PipelineConfig:
     tree, refined = str(out / "tree.npz"), str(out / "tree_refined.npz")
     shared = {"seed": c.seed, "device": c.device, "backend": c.backend, "threads": c.threads,
               "downscale": c.downscale, "format": c.format}
-    quiet_stage = bool(c.show_progress)     # refinement shows bars only when asked
+    refine_progress = bool(c.show_progress)     # refinement shows bars only when asked
     paths = {
         "process": {"images": c.images, "out": str(out / "data"), "overwrite": True},
         "train": {"data": data, "out": run_dir},
@@ -211,7 +211,7 @@ def wired(cfg: PipelineConfig) -> PipelineConfig:
                     "show_progress": c.show_progress},
         "refine": {"tree": tree, "run_dir": run_dir, "out": refined, "data": data,
                    "averaging": c.extract.averaging, "eval_views": 0,
-                   "show_progress": quiet_stage},
+                   "show_progress": refine_progress},
         "finetune": {"tree": refined if c.refine.passes > 0 else tree, "data": data,
                      "out": str(out / "tree_ft.npz"), "test_views": -1, "resume": True,
                      "verbose": False, "show_progress": c.show_progress, "checkpoint": None,
@@ -245,9 +245,4 @@ def name_the_flags(opt: StageOptions, message: str) -> str:
     flags = stage_flags(opt)
     dashed = {f"--{name.replace('_', '-')}": flag for name, flag in flags.items()}
     dashed.update({flag.replace(f"--{opt.name}.", "--"): flag for flag in flags.values()})
-    message = re.sub(r"(?<![\w.-])--[a-z0-9][a-z0-9-]*",
-                     lambda m: dashed.get(m.group(0), m.group(0)), message)
-    field_named = r"(?<![\w.-])(?:\w+(?::\s|\.))?([a-z][a-z0-9_]*)(?= (?:must|is required|exceeds))"
-    return re.sub(field_named, lambda m: flags.get(m.group(1), m.group(0)), message)
-
-
+    return spell_flags(message, flags, dashed)

@@ -36,7 +36,8 @@ import json
 import re
 from typing import Any, Callable, Iterable
 
-from .._config import apply, field_help, flag_name, load_config_file, parse_background
+from .._config import (apply, field_help, flag_name, load_config_file, parse_background,
+                       spell_flags)
 from ..errors import ConfigError
 
 __all__ = ["add_command", "add_config", "given", "layered", "apply", "field_help",
@@ -312,5 +313,20 @@ def add_command(sub: argparse._SubParsersAction, name: str, cls: type,
     def resolve(args: argparse.Namespace) -> Any:
         return quiet_progress(layered(args, make(), name), args)
 
-    p.set_defaults(func=lambda args: run(resolve(args), args), _dests=dests, _resolve=resolve)
+    p.set_defaults(func=lambda args: _spelled(p, lambda: run(resolve(args), args)),
+                   _dests=dests, _resolve=resolve)
     return p
+
+
+def _spelled(p: argparse.ArgumentParser, call: Callable[[], Any]) -> Any:
+    """``call()``, its ConfigError spelling the config's field names as ``p``'s flags
+    (``finetune: lr_decay must`` → ``--lr-decay must``)."""
+    try:
+        return call()
+    except ConfigError as e:
+        flags = {a.dest.rsplit(".", 1)[-1]: a.option_strings[0]
+                 for a in p._actions if a.option_strings and a.dest != "help"}
+        spelled = spell_flags(str(e), flags)
+        if spelled == str(e):
+            raise
+        raise ConfigError(spelled) from e
