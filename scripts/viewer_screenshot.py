@@ -1,5 +1,5 @@
 """Screenshot of the web viewer in headless Chromium (the Playwright set-up of the tests), as in
-the README: the tree served by ``ViewerServer`` with the dataset's training cameras, optionally
+docs/viewer.md: the tree served by ``ViewerServer`` with the dataset's training cameras, optionally
 a mesh (``plenoctree export``) inserted beside it, seen from a fixed camera.
 
     .venv/bin/python scripts/viewer_screenshot.py lego_web.plnz --data DATASET \\

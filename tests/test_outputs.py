@@ -170,7 +170,7 @@ def test_cli_eval_save_images_writes_comparison_and_raw_depth(tmp_path):
 
 
 def test_stage_plot_reads_paper_table_json(tmp_path, capsys):
-    """`plenoctree plot paper_table.json` (README's stage plot): every row of
+    """`plenoctree plot paper_table.json` (the stage plot of docs/results.md): every row of
     benchmarks/paper_table.py, FPS at the table's size, unmeasured rows left out."""
     import importlib.util
     import json

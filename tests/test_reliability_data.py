@@ -61,7 +61,7 @@ def test_file_paths_must_stay_inside_the_dataset(scene, fp):
         load_blender(scene, "train")
 
 
-def test_inside_paths_and_symlinked_folders_still_load(scene, tmp_path):
+def test_inside_paths_load_and_symlinks_out_of_the_folder_are_refused(scene, tmp_path):
     obj = json.loads((scene / "transforms_train.json").read_text())
     fp = obj["frames"][0]["file_path"]
     _edit_frame(scene, "file_path", "./train/../" + fp.lstrip("./"), index=0)
@@ -69,8 +69,9 @@ def test_inside_paths_and_symlinked_folders_still_load(scene, tmp_path):
     _edit_frame(scene, "file_path", fp, index=0)
     moved = tmp_path / "elsewhere"
     (scene / "train").rename(moved)
-    (scene / "train").symlink_to(moved)                    # the user's own link: followed
-    assert len(load_blender(scene, "train")) == 3
+    (scene / "train").symlink_to(moved)     # followed before issue 37; the dataset's files
+    with pytest.raises(DatasetError, match="outside the dataset folder"):   # must lie inside it
+        load_blender(scene, "train")
 
 
 def test_nerfstudio_mask_path_outside_is_refused(tmp_path):

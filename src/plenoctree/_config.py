@@ -9,6 +9,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import types
+import typing
 from pathlib import Path
 from typing import Any
 
@@ -100,8 +102,72 @@ def apply(cfg: Any, values: dict[str, Any], where: str = "config", _path: str = 
         if isinstance(value, list) and (isinstance(cur, tuple) or ann.startswith("tuple")
                                         or key == "background"):
             value = tuple(value)
+        check_value(type(cfg), names[key], value, where, _path + key)
         setattr(cfg, key, value)
     return cfg
+
+
+def _type_ok(value: Any, tp: Any) -> bool:
+    """Whether ``value`` fits the annotation ``tp`` (the types configs use; others pass)."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if tp is Any or tp is object:
+        return True
+    if tp is type(None):
+        return value is None
+    if origin in (typing.Union, types.UnionType):
+        return any(_type_ok(value, a) for a in args)
+    if origin is typing.Literal:
+        return value in args
+    if tp is bool:
+        return isinstance(value, bool)
+    if tp is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if tp is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if tp is str or tp is Path:
+        return isinstance(value, (str, Path))
+    if origin is tuple:
+        if not isinstance(value, (tuple, list)):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_type_ok(v, args[0]) for v in value)
+        return len(args) == len(value) and all(_type_ok(v, a) for v, a in zip(value, args))
+    if origin in (list, dict) or tp in (list, dict):
+        return isinstance(value, origin or tp)
+    if dataclasses.is_dataclass(tp):
+        return isinstance(value, tp)
+    return True
+
+
+def _type_words(tp: Any) -> str:
+    names = {bool: "true or false", int: "an integer", float: "a number", str: "a string",
+             Path: "a path", type(None): "null"}
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        return " or ".join(_type_words(a) for a in typing.get_args(tp))
+    if typing.get_origin(tp) is tuple:
+        return f"a list of {len(typing.get_args(tp))} values"
+    if typing.get_origin(tp) is typing.Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
+    return names.get(tp, getattr(tp, "__name__", str(tp)))
+
+
+def check_value(cls: type, f: dataclasses.Field, value: Any, where: str, key: str = "") -> None:
+    """ConfigError unless ``value`` fits field ``f`` of dataclass ``cls`` (its type annotation
+    and its ``choices`` metadata); the message names ``where`` (the config file), the key
+    (``key``: its dotted path, default the field's name) and, for a top-level key, the flag
+    (``--steps`` for ``max_steps``)."""
+    try:
+        tp = typing.get_type_hints(cls)[f.name]
+    except Exception:  # noqa: BLE001 - an annotation that cannot be resolved: no type check
+        tp = Any
+    key = key or f.name
+    named = f"{key!r}" + ("" if "." in key else f" ({flag_name(f)})")
+    if not _type_ok(value, tp):
+        raise ConfigError(f"{where}: {named} must be {_type_words(tp)}, got {value!r}")
+    choices = f.metadata.get("choices")
+    if choices and value is not None and value not in choices:
+        raise ConfigError(f"{where}: {named} must be one of "
+                          f"{', '.join(map(str, choices))}, got {value!r}")
 
 
 def load_config_file(path: str | Path | None) -> dict[str, Any]:

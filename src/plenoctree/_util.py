@@ -26,6 +26,7 @@ __all__ = [
     "clean_stale_tmp",
     "check_output_file",
     "check_output_dir",
+    "replaceable_output",
     "save_png",
     "progress",
     "LogProgress",
@@ -59,7 +60,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[Any]:
 
 
 _TMP_RE = re.compile(r"\.tmp-(\d+)(\.[^.]*)?$")
-_LOCK_NAME = ".plenoctree.lock"
+LOCK_NAME = _LOCK_NAME = ".plenoctree.lock"   # a run folder's lock file
 _held_locks: dict[str, list] = {}        # lock path -> [fd, depth] held by this process
 
 
@@ -111,7 +112,8 @@ def run_lock(target: str | os.PathLike, command: str = "", folder: bool = True) 
     ``.<name>.lock`` beside an output file), which names its holder as JSON: pid, host, start time, command. The kernel drops
     the lock when its process dies, so the lock of a killed run is simply taken over. A second
     process gets a :class:`~plenoctree.errors.ConfigError` naming the holder; the same process
-    may nest locks on one target (``run`` → ``train``). Yields the lock file's path.
+    may nest locks on one target (``run`` → ``train``). Folders the lock created are removed
+    again if the block fails and leaves them empty. Yields the lock file's path.
     """
     from .errors import ConfigError
 
@@ -125,11 +127,13 @@ def run_lock(target: str | os.PathLike, command: str = "", folder: bool = True) 
         finally:
             _held_locks[key][1] -= 1
         return
+    created = _missing_folders(path.parent)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
         import fcntl
     except ImportError:            # no flock (Windows): run without a lock
-        yield path
+        with _removed_on_failure(created):
+            yield path
         return
     while True:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -159,15 +163,41 @@ def run_lock(target: str | os.PathLike, command: str = "", folder: bool = True) 
     os.ftruncate(fd, 0)
     os.write(fd, (json.dumps(info) + "\n").encode())
     _held_locks[key] = [fd, 1]
-    try:
-        yield path
-    finally:
-        del _held_locks[key]
+    with _removed_on_failure(created):
         try:
-            os.unlink(path)
-        except OSError:
-            pass
-        os.close(fd)
+            yield path
+        finally:
+            del _held_locks[key]
+            try:
+                os.unlink(path)
+            except OSError:
+                pass
+            os.close(fd)
+
+
+def _missing_folders(folder: Path) -> list[Path]:
+    """The folders from ``folder`` up that do not exist yet, deepest first."""
+    missing = []
+    f = Path(folder).absolute()
+    while not f.exists() and f != f.parent:
+        missing.append(f)
+        f = f.parent
+    return missing
+
+
+@contextlib.contextmanager
+def _removed_on_failure(created: list[Path]) -> Iterator[None]:
+    """On an exception in the block, remove the folders of ``created`` (deepest first) that
+    are empty: a refused or failed command leaves no empty ``--out`` folder behind."""
+    try:
+        yield
+    except BaseException:
+        for d in created:
+            try:
+                d.rmdir()
+            except OSError:
+                break
+        raise
 
 
 def _is_plenoctree_file(path: Path) -> bool:
@@ -184,51 +214,128 @@ def _is_plenoctree_file(path: Path) -> bool:
         or {"child", "data", "offset"} <= keys
 
 
-def check_output_file(path: str | os.PathLike, what: str = "--out") -> Path:
-    """Check, before any work, that a tree file can be written to ``path``.
+def _is_json_file(path: Path) -> bool:
+    """A file of at most 64 MB holding valid JSON (a report this package may have written)."""
+    try:
+        if path.stat().st_size > 64 << 20:
+            return False
+        json.loads(path.read_bytes())
+    except (OSError, ValueError, RecursionError):
+        return False
+    return True
 
-    Refuses (``ConfigError``, one line naming the path): an existing directory, a parent that
-    is a file or not writable, and an existing file that is not a tree file written by this
-    package (a stray ``notes.txt`` is never overwritten). Returns ``Path(path)``.
+
+def _starts_with(*magic: bytes, at: int = 0):
+    def check(path: Path) -> bool:
+        try:
+            with open(path, "rb") as f:
+                head = f.read(at + max(len(m) for m in magic))
+        except OSError:
+            return False
+        return any(head[at:at + len(m)] == m for m in magic)
+    return check
+
+
+#: What an existing file must look like, by suffix, to be replaced without ``--overwrite``:
+#: an output of the same kind (a tree, a JSON report, an image, a video, a mesh). Anything else
+#: (``notes.txt`` given to ``--json``) is refused.
+_OURS = {
+    ".npz": _is_plenoctree_file, ".plnz": _is_plenoctree_file, ".json": _is_json_file,
+    ".png": _starts_with(b"\x89PNG"), ".ply": _starts_with(b"ply"),
+    ".glb": _starts_with(b"glTF"), ".obj": _starts_with(b"# ", b"v ", b"o ", b"mtllib"),
+    ".mp4": _starts_with(b"ftyp", at=4), ".mov": _starts_with(b"ftyp", at=4),
+    ".mkv": _starts_with(b"\x1aE\xdf\xa3"), ".webm": _starts_with(b"\x1aE\xdf\xa3"),
+}
+
+
+_KINDS = {"tree": (_is_plenoctree_file, "a tree file"), "json": (_is_json_file, "a JSON file")}
+
+
+def replaceable_output(path: str | os.PathLike, kind: str | None = None) -> bool:
+    """True if the existing file ``path`` looks like an output of ``kind`` (``"tree"``,
+    ``"json"``; ``None``: of its suffix's kind, :data:`_OURS`)."""
+    p = Path(path)
+    check = _KINDS[kind][0] if kind else _OURS.get(p.suffix.lower())
+    return bool(check and check(p))
+
+
+def check_output_file(path: str | os.PathLike, what: str = "--out", overwrite: bool = False,
+                      kind: str | None = "tree") -> Path:
+    """Check, before any work, that an output file can be written to ``path``.
+
+    Refuses (``ConfigError``, one line naming ``what`` and the path): an existing directory, a
+    name too long for the file system, a parent that is a file, does not exist on a read-only
+    or virtual file system (``/proc``) or is not writable (probed by creating and removing a
+    file there), and an existing file that is not an output of the same kind
+    ``kind`` (:func:`replaceable_output`: a stray ``notes.txt`` is never overwritten) unless
+    ``overwrite``. Returns ``Path(path)``.
     """
     from .errors import ConfigError
 
     p = Path(path)
+    _check_name_lengths(p, what)
     if p.is_dir():
         raise ConfigError(f"{p}: {what} is a directory; give a file name such as "
-                          f"{p / 'tree.npz'}")
+                          f"{p / ('tree' + (p.suffix or '.npz'))}")
     _check_creatable(p, p.parent if str(p.parent) else Path("."), what)
     if p.exists() or p.is_symlink():
         if not p.is_file():
             raise ConfigError(f"{p}: {what} exists and is not a regular file")
-        if not _is_plenoctree_file(p):
-            raise ConfigError(f"{p}: exists and is not a tree file written by plenoctree; "
-                              "refusing to overwrite it (choose another name or delete it)")
+        if not overwrite and not replaceable_output(p, kind):
+            label = _KINDS[kind][1] if kind else f"a {p.suffix or 'suffix-less'} file"
+            raise ConfigError(f"{p}: exists and is not {label} written by plenoctree; "
+                              f"refusing to overwrite it ({what}: choose another name, delete "
+                              "it, or add --overwrite)")
     return p
 
 
 def check_output_dir(path: str | os.PathLike, what: str = "--out") -> Path:
-    """Check, before any work, that ``path`` can be used as an output folder (``ConfigError``)."""
+    """Check, before any work, that ``path`` can be used as an output folder (``ConfigError``).
+
+    Creates nothing: a folder that does not exist yet is probed in its nearest existing
+    ancestor, so a command refused later leaves no empty folder behind.
+    """
     from .errors import ConfigError
 
     p = Path(path)
+    _check_name_lengths(p, what)
     if p.exists() and not p.is_dir():
         raise ConfigError(f"{p}: {what} must be a folder, but a file of that name exists")
     _check_creatable(p, p, what)
     return p
 
 
+def _check_name_lengths(p: Path, what: str) -> None:
+    """``ConfigError`` for a path component or a whole path too long for the file system."""
+    from .errors import ConfigError
+
+    for part in p.parts:
+        if len(os.fsencode(part)) > 255:
+            raise ConfigError(f"{what}: a file or folder name of {len(os.fsencode(part))} "
+                              f"bytes is too long (at most 255): {part[:40]}...")
+    if len(os.fsencode(str(p.absolute()))) > 4000:
+        raise ConfigError(f"{what}: the path is too long ({len(str(p.absolute()))} characters)")
+
+
 def _check_creatable(p: Path, folder: Path, what: str) -> None:
-    """``ConfigError`` unless the nearest existing ancestor of ``folder`` is a writable folder."""
+    """``ConfigError`` unless a file can be created in the nearest existing ancestor of
+    ``folder`` (a real, writable folder: probed by creating and removing a temp file)."""
+    import tempfile
+
     from .errors import ConfigError
 
     anc = folder
-    while not anc.exists() and anc != anc.parent:
+    while not (anc.exists() or anc.is_symlink()) and anc != anc.parent:
         anc = anc.parent
-    if anc.exists() and not anc.is_dir():
+    if not anc.is_dir():
         raise ConfigError(f"{p}: {what}: {anc} is a file, not a folder")
-    if not os.access(anc, os.W_OK | os.X_OK):
-        raise ConfigError(f"{p}: {what}: folder {anc} is not writable")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".plenoctree-probe-", dir=anc)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise ConfigError(f"{p}: {what}: cannot write in folder {anc} "
+                          f"({e.strerror or e})") from None
 
 
 def atomic_save_npz(path: str | os.PathLike, compressed: bool = False, **arrays: np.ndarray) -> None:

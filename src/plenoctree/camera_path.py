@@ -111,8 +111,15 @@ def load_camera_path(path: str | os.PathLike, width: int | None = None,
     except (KeyError, TypeError, ValueError):
         raise _fail(path, "needs render_width and render_height (or give --width/--height)"
                     ) from None
-    if w <= 0 or h <= 0:
-        raise _fail(path, f"render size must be positive, got {w}x{h}")
+    from .datasets._files import MAX_FRAMES
+    from .datasets.cameras import check_image_size
+
+    try:
+        check_image_size(w, h, "render size" if width is None else "--width/--height")
+    except ConfigError as e:
+        raise _fail(path, str(e)) from None
+    if len(frames) > MAX_FRAMES:
+        raise _fail(path, f"{len(frames)} frames; at most {MAX_FRAMES} are supported")
     c2w = np.empty((len(frames), 4, 4), dtype=np.float64)
     focal = np.empty(len(frames), dtype=np.float64)
     for i, fr in enumerate(frames):

@@ -20,6 +20,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+import re
 import sys
 from typing import Any
 
@@ -125,10 +126,20 @@ def resolve_device(name: str) -> Any:
     Returns a ``torch.device``."""
     import torch
 
+    if isinstance(name, torch.device):
+        name = str(name)
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device 'cuda' requested but no CUDA GPU is available")
+    m = re.fullmatch(r"(cpu|cuda)(?::(\d+))?", str(name))
+    if m is None or (m.group(1) == "cpu" and m.group(2) not in (None, "0")):
+        raise ConfigError(f"--device {name!r}: expected auto, cpu, cuda or cuda:N")
+    if m.group(1) == "cuda":
+        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if n == 0:
+            raise ConfigError(f"--device {name}: no CUDA GPU is available (use cpu or auto)")
+        if m.group(2) is not None and int(m.group(2)) >= n:
+            raise ConfigError(f"--device {name}: this machine has {n} CUDA GPU(s), "
+                              f"cuda:0 to cuda:{n - 1}")
     return torch.device(name)
 
 

@@ -147,9 +147,12 @@ def _check_frames(n: object) -> None:
 
 
 def _check_size(width: object, height: object) -> None:
+    from .datasets.cameras import check_image_size
+
     for name, v in (("--width", width), ("--height", height)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             raise ConfigError(f"{name} must be a positive integer, got {v!r}")
+    check_image_size(width, height, "--width/--height")
 
 
 # --- frames ---------------------------------------------------------------------------------
@@ -354,6 +357,8 @@ class VideoConfig:
     """H.264 quality on imageio's 0-10 scale."""
     show_progress: bool | None = None
     """Progress bar: None = only on a terminal."""
+    overwrite: bool = False
+    """replace an existing --out file even if it does not look like a video"""
 
 
 @dataclass
@@ -519,7 +524,10 @@ def make_video(cfg: VideoConfig, log=print) -> VideoResult:
         tail = "" if cfg.mode == "color" else f"_{cfg.mode}"
         out = tree_path.parent / f"{tree_path.stem}_{kind}{tail}.mp4"
     if out.suffix.lower() not in VIDEO_SUFFIXES:
-        raise ConfigError(f"{out}: video file must end in {', '.join(VIDEO_SUFFIXES)}")
+        raise ConfigError(f"--out {out}: a video file must end in {', '.join(VIDEO_SUFFIXES)}")
+    from ._util import check_output_file, run_lock
+
+    check_output_file(out, "--out", cfg.overwrite, kind=None)
     near, far = (tuple(float(v) for v in cfg.depth_range) if cfg.depth_range is not None
                  else depth_bounds(tree, cams))
     bg = tuple(float(b) for b in cfg.background) if cfg.background is not None else (1.0,) * 3
@@ -539,7 +547,8 @@ def make_video(cfg: VideoConfig, log=print) -> VideoResult:
     fps = float(cfg.fps or info.get("fps") or 30.0)
     if not fps > 0:
         raise ConfigError(f"--fps must be positive, got {cfg.fps}")
-    n, w, h = write_video(out, frames(), fps, cfg.quality)
+    with run_lock(out, "video", folder=False):
+        n, w, h = write_video(out, frames(), fps, cfg.quality)
     timed = ms[1:] if len(ms) > 1 else ms
     res = VideoResult(out=out, path=kind, mode=cfg.mode, n_frames=n, width=w, height=h,
                       render_width=cams.width, render_height=cams.height, fps=fps,

@@ -74,6 +74,14 @@ def main(argv: list[str] | None = None) -> int:
     except PlenOctreeError as e:
         print(f"plenoctree {args.command}: error: {e}", file=sys.stderr)
         return 1
+    except OSError as e:           # a file system refusal the checks could not foresee
+        where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+        print(f"plenoctree {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
+        return 1
+    except MemoryError:
+        print(f"plenoctree {args.command}: error: out of memory (use a smaller image size, "
+              "--views or --downscale)", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"plenoctree {args.command}: interrupted", file=sys.stderr)
         return 130

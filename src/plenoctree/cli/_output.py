@@ -5,21 +5,29 @@
 - ``--quiet``: only warnings and errors: no per-step lines and, unless ``--progress`` is
   given, no progress bars (every command built by :func:`~._options.add_command`);
 - ``--json [PATH]``: also write the command's result as JSON to PATH (``-`` or no value:
-  stdout).
+  stdout);
+- ``--overwrite``: replace an existing output file that does not look like plenoctree's.
 
 A count of views is ``--views N`` wherever it selects views of a dataset split, and 0 means
 all of them.
+
+Every command that writes a file or folder checks it *before* the work with
+:func:`output_file` / :func:`output_dir` (writable, not a folder, not an unrelated file) and
+holds a lock on it while it writes, so two commands writing one path cannot mix their results:
+the second is refused naming the first.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
-from typing import Any
+from pathlib import Path
+from typing import Any, Iterator
 
-__all__ = ["add_json", "add_quiet", "add_progress", "quiet_progress", "write_json", "VIEWS",
-           "views_or_all"]
+__all__ = ["add_json", "add_quiet", "add_progress", "quiet_progress", "add_overwrite",
+           "write_json", "check_json", "output_file", "output_dir", "VIEWS", "views_or_all"]
 
 VIEWS = {"flag": "views", "metavar": "N"}
 """The flag options of a config field counting the views of a split to use (``fields=`` of
@@ -71,3 +79,46 @@ def write_json(path: str | None, obj: Any) -> None:
     from .._util import atomic_save_json
 
     atomic_save_json(path, obj)
+
+
+def add_overwrite(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing output file even if plenoctree did not write it")
+
+
+def check_json(args: argparse.Namespace) -> None:
+    """Check ``--json PATH`` before the work: a writable file that is not a folder nor an
+    unrelated existing file (``--overwrite`` allows that). ``-`` / absent: nothing to check."""
+    path = getattr(args, "json", None)
+    if path not in (None, "-"):
+        from .._util import check_output_file
+
+        check_output_file(path, "--json", getattr(args, "overwrite", False), kind="json")
+
+
+@contextlib.contextmanager
+def output_file(path: str | Path, command: str, flag: str = "--out",
+                overwrite: bool = False, kind: str | None = None) -> Iterator[Path]:
+    """Check an output file before the work and hold its lock while the block writes it.
+
+    ``kind``: what an existing file must be to be replaced without ``overwrite`` (``"tree"``,
+    ``"json"``, ``None``: the suffix's kind). A second process writing the same path gets a
+    ``ConfigError`` naming the holder.
+    """
+    from .._util import check_output_file, run_lock
+
+    p = check_output_file(path, flag, overwrite, kind=kind)
+    with run_lock(p, command, folder=False):
+        yield p
+
+
+@contextlib.contextmanager
+def output_dir(path: str | Path, command: str, flag: str = "--out") -> Iterator[Path]:
+    """Check an output folder before the work (nothing is created until the block writes) and
+    hold its lock (``<folder>/.plenoctree.lock``) while the block runs."""
+    from .._util import check_output_dir, run_lock
+
+    p = check_output_dir(path, flag)
+    with run_lock(p, command):
+        yield p
+

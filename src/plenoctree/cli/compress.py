@@ -76,25 +76,32 @@ class LodConfig:
 def _check_out(src: Path, out: Path, suffixes: tuple[str, ...], what: str) -> None:
     if out.suffix not in suffixes:
         raise ConfigError(f"--out must end in {what}, got {out}")
-    if out.resolve() == src.resolve():
+    if out.absolute() == src.absolute() or (out.exists() and src.exists()
+                                            and out.samefile(src)):
         raise ConfigError(f"--out {out} would overwrite the input")
 
 
 def _run_compress(cfg: CompressConfig, args: argparse.Namespace) -> int:
     from ..compress.report import compression_report, format_report
-    from ._output import views_or_all, write_json
+    from ._output import check_json, output_file, views_or_all, write_json
 
     src = Path(cfg.tree)
     out = Path(cfg.out) if cfg.out else src.with_suffix(".plnz")
     _check_out(src, out, (".plnz",), ".plnz")
+    if isinstance(cfg.views, bool) or not isinstance(cfg.views, int) or cfg.views < 1:
+        raise ConfigError(f"--orbit-views must be a positive integer (orbit views for the "
+                          f"fidelity check), got {cfg.views!r}")
+    check_json(args)
     data = None
-    if cfg.data:
-        from ..datasets import load_dataset
+    with output_file(out, "compress", overwrite=args.overwrite, kind="tree"):
+        if cfg.data:
+            from ..datasets import load_dataset
 
-        data = load_dataset(cfg.data, split=cfg.split, downscale=cfg.downscale,
-                            limit=views_or_all(cfg.limit))
-    rep = compression_report(src, out, cfg.codec.validated(), data=data, n_views=cfg.views,
-                             size=cfg.size, backend=cfg.backend, evaluate=cfg.evaluate)
+            data = load_dataset(cfg.data, split=cfg.split, downscale=cfg.downscale,
+                                limit=views_or_all(cfg.limit))
+        rep = compression_report(src, out, cfg.codec.validated(), data=data,
+                                 n_views=cfg.views, size=cfg.size, backend=cfg.backend,
+                                 evaluate=cfg.evaluate)
     print(format_report(rep))
     write_json(args.json, rep)
     return 0
@@ -103,13 +110,14 @@ def _run_compress(cfg: CompressConfig, args: argparse.Namespace) -> int:
 def _run_decompress(cfg: DecompressConfig, args: argparse.Namespace) -> int:
     from ..compress import decompress, load_compressed
     from ..octree.io import save_tree
+    from ._output import output_file
 
     src = Path(cfg.tree)
     out = Path(cfg.out) if cfg.out else src.with_name(src.stem + "_decompressed.npz")
-    if out.suffix != ".npz":
-        raise ConfigError(f"--out must end in .npz, got {out}")
-    tree = decompress(load_compressed(src), name=str(src))
-    save_tree(tree, out, precision=cfg.precision)
+    _check_out(src, out, (".npz",), ".npz")
+    with output_file(out, "decompress", overwrite=args.overwrite, kind="tree"):
+        tree = decompress(load_compressed(src), name=str(src))
+        save_tree(tree, out, precision=cfg.precision)
     print(f"{src} -> {out}: {tree.data_format}, {tree.n_leaves} leaves, "
           f"{out.stat().st_size / 1e6:.2f} MB ({cfg.precision})")
     return 0
@@ -118,20 +126,22 @@ def _run_decompress(cfg: DecompressConfig, args: argparse.Namespace) -> int:
 def _run_lod(cfg: LodConfig, args: argparse.Namespace) -> int:
     from ..compress import fit_to_size, load_any_tree, make_lod
     from ..compress.lod import write_tree_file
-    from ._output import write_json
+    from ._output import check_json, output_file, write_json
 
     src, out = Path(cfg.tree), Path(cfg.out)
     _check_out(src, out, (".plnz", ".npz"), ".plnz (compressed) or .npz")
-    tree = load_any_tree(src)
+    check_json(args)
     base = cfg.lod.validated()
     copts = cfg.codec.validated()
-    print(f"{src}: {tree.data_format}, {tree.n_leaves} leaves, depth {tree.max_depth + 1}, "
-          f"{src.stat().st_size / 1e6:.2f} MB")
-    if cfg.target_mb is not None:
-        used, size = fit_to_size(tree, out, cfg.target_mb, base, copts)
-    else:
-        used = base
-        size = write_tree_file(make_lod(tree, base), out, copts)
+    with output_file(out, "lod", overwrite=args.overwrite, kind="tree"):
+        tree = load_any_tree(src)
+        print(f"{src}: {tree.data_format}, {tree.n_leaves} leaves, depth {tree.max_depth + 1}, "
+              f"{src.stat().st_size / 1e6:.2f} MB")
+        if cfg.target_mb is not None:
+            used, size = fit_to_size(tree, out, cfg.target_mb, base, copts)
+        else:
+            used = base
+            size = write_tree_file(make_lod(tree, base), out, copts)
     print(f"-> {out}: {used.describe()}, {size / 1e6:.2f} MB")
     write_json(args.json, {"source": str(src), "output": str(out), "bytes": size,
                            "options": json.loads(json.dumps(used.__dict__))})
@@ -141,7 +151,7 @@ def _run_lod(cfg: LodConfig, args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``compress``, ``decompress`` and ``lod`` commands."""
     from ._options import add_command
-    from ._output import VIEWS, add_json
+    from ._output import VIEWS, add_json, add_overwrite
 
     codec = {"codec": {}}
     p = add_command(sub, "compress", CompressConfig, _run_compress,
@@ -153,9 +163,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                     fields={"evaluate": {"flag": "eval"}, "limit": VIEWS,
                             "views": {"flag": "orbit-views", "metavar": "N"}})
     add_json(p, "the report")
-    add_command(sub, "decompress", DecompressConfig, _run_decompress,
-                help="turn a .plnz (or svox compressed .npz) into a normal tree",
-                positional=("tree",))
+    add_overwrite(p)
+    p = add_command(sub, "decompress", DecompressConfig, _run_decompress,
+                    help="turn a .plnz (or svox compressed .npz) into a normal tree",
+                    positional=("tree",))
+    add_overwrite(p)
     p = add_command(sub, "lod", LodConfig, _run_lod,
                     help="a smaller tree for the web (SH degree, depth, pruning, size)",
                     description="Reduce a tree: keep SH bands up to --sh-degree, merge cells "
@@ -165,3 +177,4 @@ def register(sub: argparse._SubParsersAction) -> None:
                     positional=("tree",), fields={"out": {"required": True}},
                     nested={"lod": {}, **codec})
     add_json(p, "a summary")
+    add_overwrite(p)

@@ -14,7 +14,14 @@ def _run(cfg, args: argparse.Namespace) -> int:
     from ._output import views_or_all, write_json
     from ._provenance import data_from_provenance
 
+    from ._output import check_json
+
     cfg.limit = views_or_all(cfg.limit)
+    check_json(args)
+    if cfg.out is not None:
+        from .._util import check_output_dir
+
+        check_output_dir(cfg.out)
     if not cfg.data:
         cfg.data = data_from_provenance(cfg.tree, "eval")
     if args.json not in (None, "-"):
@@ -32,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     from ..datasets import FORMATS
     from ..evaluation import EvalConfig
     from ._options import add_command
-    from ._output import VIEWS, add_json
+    from ._output import VIEWS, add_json, add_overwrite
 
     p = add_command(
         sub, "eval", EvalConfig, _run,
@@ -45,3 +52,4 @@ def register(sub: argparse._SubParsersAction) -> None:
         fields={"limit": VIEWS, "format": {"choices": FORMATS},
                 "lpips_net": {"choices": ("vgg", "alex", "squeeze")}})
     add_json(p, "the report")
+    add_overwrite(p)

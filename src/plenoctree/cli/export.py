@@ -58,15 +58,24 @@ class ExportConfig:
 
 def _run(cfg: ExportConfig, args: argparse.Namespace) -> int:
     from ..compress import load_any_tree
+    from ._output import output_file
 
     src, out = Path(cfg.tree), Path(cfg.out)
     fmt = cfg.format or _infer_format(out)
     want = {"svox": (".npz",), "ply": (".ply",), "mesh": (".ply", ".glb", ".obj")}[fmt]
     if out.suffix.lower() not in want:
         raise ConfigError(f"--out {out}: --format {fmt} writes {' or '.join(want)} files")
-    if out.exists() and out.resolve() == src.resolve():
+    if out.exists() and src.exists() and out.samefile(src):
         raise ConfigError(f"--out {out} would overwrite the input")
-    tree = load_any_tree(src)
+    with output_file(out, "export", overwrite=args.overwrite,
+                     kind="tree" if fmt == "svox" else None):
+        what = _export(cfg, args, load_any_tree(src), fmt, out)
+    print(f"{src} -> {out}: {what}, {out.stat().st_size / 1e6:.2f} MB")
+    return 0
+
+
+def _export(cfg: ExportConfig, args: argparse.Namespace, tree, fmt: str, out: Path) -> str:
+    """Write ``tree`` to ``out`` in format ``fmt``; returns what was written, in words."""
     if fmt == "svox":
         from ..export import export_svox_file
 
@@ -91,15 +100,15 @@ def _run(cfg: ExportConfig, args: argparse.Namespace) -> int:
                 f"(sigma level {mesh.level:.4g})")
     if fmt != "svox" and tree.ndc is not None:
         what += "; NDC tree, written in world coordinates"
-    print(f"{src} -> {out}: {what}, {out.stat().st_size / 1e6:.2f} MB")
-    return 0
+    return what
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``export`` command (one flag per :class:`ExportConfig` field)."""
     from ._options import add_command
+    from ._output import add_overwrite
 
-    add_command(
+    p = add_command(
         sub, "export", ExportConfig, _run,
         help="export a tree: svox .npz, PLY point cloud or coloured mesh (.ply/.glb/.obj)",
         description="svox: the svox/volrend .npz layout (float16). ply: one point per occupied "
@@ -107,3 +116,4 @@ def register(sub: argparse._SubParsersAction) -> None:
         "sampled from the tree, vertex colours from the SH; opens in Blender and MeshLab. "
         "ply and mesh need the 'export' extra (plyfile, trimesh, scikit-image).",
         positional=("tree",), fields={"out": {"required": True}})
+    add_overwrite(p)

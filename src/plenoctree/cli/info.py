@@ -63,6 +63,9 @@ def tree_info(path: str) -> dict:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from ._output import check_json
+
+    check_json(args)
     info = tree_info(args.tree) if args.tree else collect_info()
     if args.json:
         from ._output import write_json
@@ -84,11 +87,12 @@ def _run(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``info`` command."""
-    from ._output import add_json
+    from ._output import add_json, add_overwrite
 
     p = sub.add_parser("info", help="print version, backends, threads and GPU; or a tree's "
                                     "format, size, depth and box")
     p.add_argument("tree", nargs="?", default=None,
                    help="a tree file (.npz native/svox, .plnz): describe it instead")
     add_json(p, "the information")
+    add_overwrite(p)
     p.set_defaults(func=_run)

@@ -86,19 +86,37 @@ def _render_options(cfg: RenderConfig, data_background):
 
 
 def _check_size(cfg: RenderConfig) -> None:
+    """--width/--height: both or neither, positive, at most ``MAX_IMAGE_PIXELS`` together."""
+    from ..datasets.cameras import check_image_size
+
     if (cfg.width is None) != (cfg.height is None):
         raise ConfigError("--width and --height must be given together")
+    if cfg.width is not None:
+        check_image_size(cfg.width, cfg.height, "--width/--height")
 
 
 def _run(cfg: RenderConfig, args: argparse.Namespace) -> int:
+    from ._output import output_dir
+
+    _check_size(cfg)
+    if cfg.camera_path:
+        out = Path(cfg.out) if cfg.out else Path(cfg.tree).parent / (
+            Path(cfg.tree).stem + f"_render_{Path(cfg.camera_path).stem}")
+        with output_dir(out, "render"):
+            return _run_camera_path(cfg, out)
+    out = Path(cfg.out) if cfg.out else Path(cfg.tree).with_suffix("").parent / (
+        Path(cfg.tree).stem + f"_render_{cfg.split}")
+    with output_dir(out, "render"):
+        return _run_dataset(cfg, out)
+
+
+def _run_dataset(cfg: RenderConfig, out: Path) -> int:
+    """``render TREE``: the views of a dataset split, with scores."""
     from ..datasets import load_dataset
     from ..evaluation import evaluate_tree
     from ..compress import load_any_tree
-
     from ._output import views_or_all
 
-    if cfg.camera_path:
-        return _run_camera_path(cfg)
     if not cfg.data:
         from ._provenance import data_from_provenance
 
@@ -107,37 +125,31 @@ def _run(cfg: RenderConfig, args: argparse.Namespace) -> int:
     bg = tuple(cfg.background) if cfg.background else (1.0, 1.0, 1.0)
     data = load_dataset(cfg.data, split=cfg.split, format=cfg.format,
                         downscale=cfg.downscale, background=bg, limit=views_or_all(cfg.limit))
-    _check_size(cfg)
     if cfg.width is not None:
-        if cfg.width <= 0 or cfg.height <= 0:
-            raise ConfigError("--width/--height must be positive")
         data = resize_dataset(data, cfg.width, cfg.height)
     options = _render_options(cfg, data.background)
-    out = Path(cfg.out) if cfg.out else Path(cfg.tree).with_suffix("").parent / (
-        Path(cfg.tree).stem + f"_render_{cfg.split}")
     res = evaluate_tree(tree, data, out, options, cfg.backend, device=cfg.device,
                         show_progress=cfg.show_progress)
     print(f"{len(res.names)} views at {res.width}x{res.height} -> {out}")
-    print(f"PSNR {res.mean_psnr:.2f} dB  SSIM {res.mean_ssim:.4f}  "
+    ssim = (f"{res.mean_ssim:.4f}" if res.mean_ssim == res.mean_ssim
+            else "n/a (images under the 11x11 SSIM window)")
+    print(f"PSNR {res.mean_psnr:.2f} dB  SSIM {ssim}  "
           f"{res.ms_per_frame:.1f} ms/frame ({res.fps:.1f} FPS, backend {res.backend} on "
           f"{res.extra.get('device', 'cpu')})")
     return 0
 
 
-def _run_camera_path(cfg: RenderConfig) -> int:
+def _run_camera_path(cfg: RenderConfig, out: Path) -> int:
     """``render TREE --camera-path JSON``: frames along a nerfstudio camera path, no scores."""
     from ..camera_path import load_camera_path
     from ..compress import load_any_tree
     from ..video import render_path_images
 
-    _check_size(cfg)
     if cfg.data is not None:
         raise ConfigError("--camera-path renders its own cameras: leave out --data")
     cp = load_camera_path(cfg.camera_path, cfg.width, cfg.height, cfg.dataparser_transforms)
     tree = load_any_tree(cfg.tree)
     options = _render_options(cfg, (1.0, 1.0, 1.0))
-    out = Path(cfg.out) if cfg.out else Path(cfg.tree).parent / (
-        Path(cfg.tree).stem + f"_render_{Path(cfg.camera_path).stem}")
     cams = cp.cameras if tree.ndc is None else tree.ndc.apply(cp.cameras)   # NDC tree: NDC rays
     from ._output import views_or_all
 

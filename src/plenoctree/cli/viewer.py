@@ -108,6 +108,7 @@ def _run_view(cfg: ViewConfig, args: argparse.Namespace) -> int:
 
 def _run_export(cfg: ExportWebConfig, args: argparse.Namespace) -> int:
     from ..viewer import export_web
+    from ._output import output_dir
 
     from ..viewer.budget import check_budget
 
@@ -115,16 +116,17 @@ def _run_export(cfg: ExportWebConfig, args: argparse.Namespace) -> int:
     _check_tree(path)
     check_budget(path, cfg.max_mb)
     extra = _cameras_extra(cfg)
-    out = export_web(path, cfg.out, title=cfg.title, overwrite=cfg.overwrite,
-                     max_mb=cfg.max_mb)
-    if extra:
-        import json
+    with output_dir(cfg.out, "export-web"):
+        out = export_web(path, cfg.out, title=cfg.title, overwrite=cfg.overwrite,
+                         max_mb=cfg.max_mb)
+        if extra:
+            import json
 
-        from .._util import atomic_save_json
+            from .._util import atomic_save_json
 
-        cfg = json.loads((out / "config.json").read_text())
-        cfg.update(extra)
-        atomic_save_json(out / "config.json", cfg)
+            cfg = json.loads((out / "config.json").read_text())
+            cfg.update(extra)
+            atomic_save_json(out / "config.json", cfg)
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     print(f"wrote {out} ({size / 1e6:.2f} MB); serve it with any static web server, e.g.\n"
           f"  python -m http.server --bind 127.0.0.1 8000 --directory {out}")

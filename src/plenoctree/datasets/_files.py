@@ -22,10 +22,17 @@ from typing import Any, Iterator
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
-from .cameras import degenerate_rotations
+from .cameras import MAX_IMAGE_PIXELS, degenerate_rotations
 
 _PNG_END = b"IEND\xaeB`\x82"   # the last 8 bytes of every complete PNG
-_MAX_PIXELS = 1 << 27          # refuse absurd image headers before allocating anything
+_MAX_PIXELS = MAX_IMAGE_PIXELS  # refuse absurd image headers before allocating anything
+#: Most frames (views) a dataset file may list: 100,000 (a 20-minute video at 60 fps would
+#: need 72,000). A file listing more is refused before any frame is validated or loaded.
+MAX_FRAMES = 100_000
+#: Largest metadata JSON read (``transforms*.json``): 64 MB, about 200,000 frames' worth.
+MAX_JSON_BYTES = 64 << 20
+#: Rotations (``c2w[:3, :3]``) must be orthonormal to this tolerance: ``|RᵀR - I| <= 1e-2``.
+ROTATION_TOL = 1e-2
 
 
 def _is_number(v: Any) -> bool:
@@ -54,7 +61,32 @@ def _matrix(value: Any, where: str) -> np.ndarray:
     if degenerate_rotations(m[None]).size:
         raise DatasetError(f"{where}: transform_matrix rotation (the upper-left 3x3) is singular "
                            "(e.g. all zeros); a camera needs three independent axes")
+    m[:3, :3] = rigid_rotation(m[:3, :3], f"{where}: transform_matrix")
     return m
+
+
+def rigid_rotation(r: np.ndarray, where: str) -> np.ndarray:
+    """A camera rotation ``[3, 3]`` without its uniform scale: ``r / s`` must be orthonormal
+    within :data:`ROTATION_TOL` (``s``: the mean column length). A uniformly scaled rotation
+    is valid input (ray directions do not depend on it) and is returned unscaled; a mirror is
+    allowed; a non-uniform scale or a shear distorts the rays and is refused (DatasetError)."""
+    s = float(np.linalg.norm(r, axis=0).mean())
+    u = r / s
+    err = float(np.abs(u.T @ u - np.eye(3)).max())
+    if not err <= ROTATION_TOL:
+        lengths = ", ".join(f"{v:.3g}" for v in np.linalg.norm(r, axis=0))
+        raise DatasetError(f"{where}: rotation (the upper-left 3x3) is not a scaled orthonormal "
+                           f"matrix (column lengths {lengths}, |UᵀU - I| = {err:.3g} > "
+                           f"{ROTATION_TOL:g} for U = R / {s:.3g}): a non-uniform scale or a "
+                           "shear would distort the camera's rays")
+    return u
+
+
+def check_frame_count(n: int, where: str) -> None:
+    """At most :data:`MAX_FRAMES` frames in one dataset file (DatasetError)."""
+    if n > MAX_FRAMES:
+        raise DatasetError(f"{where}: lists {n} frames; at most {MAX_FRAMES} are supported "
+                           "(keep every k-th frame)")
 
 
 def _frame_file_path(fr: Any, where: str) -> str:
@@ -75,8 +107,9 @@ def _frame_file_path(fr: Any, where: str) -> str:
 def check_inside_dataset(rel: str, where: str) -> None:
     """A path listed in a dataset file must stay inside the dataset folder (DatasetError).
 
-    Lexical: absolute paths and paths whose normal form starts with ``..`` are refused
-    (symlinks inside the folder are the user's choice and are followed).
+    Lexical: absolute paths and paths whose normal form starts with ``..`` are refused; a
+    symbolic link that leads out of the folder is refused where the file is opened
+    (:func:`confined`).
     """
     norm = os.path.normpath(rel.replace("\\", "/"))
     if os.path.isabs(norm) or norm == ".." or norm.startswith(".." + os.sep) \
@@ -87,13 +120,33 @@ def check_inside_dataset(rel: str, where: str) -> None:
 
 def _image_path(root: Path, file_path: str) -> Path:
     p = root / file_path
-    return p if p.suffix.lower() in (".png", ".jpg", ".jpeg") else p.with_name(p.name + ".png")
+    p = p if p.suffix.lower() in (".png", ".jpg", ".jpeg") else p.with_name(p.name + ".png")
+    return confined(root, p)
+
+
+def confined(root: Path, p: Path) -> Path:
+    """``p`` (a file named by a dataset file) if it lies inside ``root`` after resolving every
+    symbolic link; DatasetError otherwise, so a dataset cannot make the loader read a file
+    outside its folder (``../../etc/passwd``, or a link to one). Returns ``p`` unresolved."""
+    try:
+        real, base = p.resolve(), root.resolve()
+    except (OSError, RuntimeError) as e:          # a symlink loop
+        raise DatasetError(f"{p}: cannot resolve the path ({e})") from None
+    if not real.is_relative_to(base):
+        raise DatasetError(f"{p}: resolves to {real}, outside the dataset folder {base} (a "
+                           "symbolic link?); the files a dataset names must lie inside it: "
+                           "copy them there, or give the real folder as --data")
+    return p
 
 
 def read_json_object(path: Path) -> dict:
     """The JSON object in file ``path`` (a loader's metadata file); anything else raises one
     :class:`DatasetError` naming it (missing, unreadable, not JSON, not an object)."""
     try:
+        size = path.stat().st_size
+        if size > MAX_JSON_BYTES:
+            raise DatasetError(f"{path}: {size / 2**20:.0f} MB; a dataset's JSON file may be at "
+                               f"most {MAX_JSON_BYTES >> 20} MB")
         raw = path.read_bytes()
     except FileNotFoundError:
         raise DatasetError(f"{path}: file not found") from None

@@ -23,7 +23,7 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
-from ._files import (_check_options, _finite_number, _frame_file_path, _image_path, _matrix,
+from ._files import (check_frame_count, _check_options, _finite_number, _frame_file_path, _image_path, _matrix,
                      read_json_object, take_views)
 from ._images import load_images
 from .cameras import Cameras
@@ -66,6 +66,7 @@ def read_transforms(path: str | os.PathLike) -> tuple[dict, list[tuple[str, np.n
         raise DatasetError(f"{path}: 'frames' must be a list")
     if not obj["frames"]:
         raise DatasetError(f"{path}: 'frames' is empty")
+    check_frame_count(len(obj["frames"]), str(path))
     frames = []
     for i, fr in enumerate(obj["frames"]):
         where = f"{path}: frames[{i}]"

@@ -21,7 +21,44 @@ import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["Cameras", "generate_rays"]
+__all__ = ["Cameras", "generate_rays", "check_image_size", "MAX_IMAGE_PIXELS"]
+
+#: Most pixels of one image, read or rendered: 2^27 (134 MP, e.g. 11585 x 11585). A render of
+#: that size already needs ~6 GB for its rays; an image header or a ``--width/--height``
+#: beyond it is refused before anything is allocated.
+MAX_IMAGE_PIXELS = 1 << 27
+#: Plausible intrinsics: focal lengths within [1e-3, 1e3] x the larger image side (fields of
+#: view from ~0.06 to ~179.9 degrees), principal point within one image size of the image.
+FOCAL_RANGE = (1e-3, 1e3)
+
+
+def check_image_size(width: Any, height: Any, what: str = "image size") -> tuple[int, int]:
+    """``(width, height)`` as ints if both are positive integers whose product is at most
+    :data:`MAX_IMAGE_PIXELS`; ``ConfigError`` naming ``what`` otherwise."""
+    for v in (width, height):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v <= 0:
+            raise ConfigError(f"{what} must be positive integers, got {width!r} x {height!r}")
+    w, h = int(width), int(height)
+    if w * h > MAX_IMAGE_PIXELS:
+        raise ConfigError(f"{what} {w}x{h} is {w * h / 1e6:.0f} MP; at most "
+                          f"{MAX_IMAGE_PIXELS / 1e6:.0f} MP per image (e.g. 8192x8192)")
+    return w, h
+
+
+def _check_plausible(fx: Any, fy: Any, cx: Any, cy: Any, width: int, height: int) -> None:
+    """ConfigError for intrinsics no real camera has (see :data:`FOCAL_RANGE`)."""
+    side = max(width, height)
+    lo, hi = FOCAL_RANGE[0] * side, FOCAL_RANGE[1] * side
+    for name, v in (("fx", fx), ("fy", fy)):
+        v = np.asarray(v, dtype=np.float64)
+        if not ((v >= lo) & (v <= hi)).all():
+            raise ConfigError(f"camera {name} = {float(v.flat[0]):g} px is implausible for a "
+                              f"{width}x{height} image (expected {lo:g} to {hi:g} px)")
+    for name, v, size in (("cx", cx, width), ("cy", cy, height)):
+        v = np.asarray(v, dtype=np.float64)
+        if not ((v >= -size) & (v <= 2 * size)).all():
+            raise ConfigError(f"camera {name} = {float(v.flat[0]):g} px is implausible for a "
+                              f"{width}x{height} image (expected -{size} to {2 * size} px)")
 
 
 def _check_intrinsics(fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> None:
@@ -161,6 +198,7 @@ class Cameras:
         for name, val in (("width", self.width), ("height", self.height)):
             if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val <= 0:
                 raise ConfigError(f"camera {name} must be a positive integer, got {val!r}")
+        check_image_size(self.width, self.height, "camera size")
         self.c2w = _check_c2w(self.c2w, batched=True).astype(np.float32)
         n = len(self)
         self.fx = _intrinsic("fx", self.fx, n, True)
@@ -168,6 +206,7 @@ class Cameras:
         self.cx = _intrinsic("cx", self.cx, n, False)
         self.cy = _intrinsic("cy", self.cy, n, False)
         self.width, self.height = int(self.width), int(self.height)
+        _check_plausible(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
         self.ndc = bool(self.ndc)
         near = self.ndc_near
         if isinstance(near, bool) or not isinstance(near, (int, float, np.floating, np.integer)) \

@@ -12,7 +12,7 @@ undistorted on load by COLMAP's own undistortion (:mod:`plenoctree.datasets.undi
 needs pycolmap); every undistorted camera must come out at one image size.
 
 :func:`normalize_scene` decides the capture kind and fixes the world frame (the contract
-the rest of the chain relies on; ``docs/architecture.md``, "Scene normalisation"):
+the rest of the chain relies on; ``docs/capture.md``, "What process does"):
 
 * **kind**: ``forward`` when every optical axis lies within ~25° of their mean
   (``|mean forward axis| >= FORWARD_THRESHOLD``), else ``360`` (an object seen from around it).
@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, near_far_from_box
-from ._files import _check_options, take_views
+from ._files import _check_options, check_inside_dataset, confined, take_views
 from .cameras import Cameras
 from .colmap_model import colmap_c2w, find_colmap_model, read_colmap_model
 from .dataset import Dataset
@@ -197,8 +197,10 @@ def load_colmap(root: str | os.PathLike, split: str = "train", downscale: int = 
     f = int(downscale)
     img_dir = root / images
     pre = root / f"{images}_{f}"
+    for i in sel:
+        check_inside_dataset(names[i], f"{folder / 'images'}: image name")
     use_pre = f > 1 and all((pre / names[i]).is_file() for i in sel)
-    paths = [(pre if use_pre else img_dir) / names[i] for i in sel]
+    paths = [confined(root, (pre if use_pre else img_dir) / names[i]) for i in sel]
     for p in paths:
         if not p.is_file():
             raise DatasetError(f"{p}: image file not found (listed in {folder / 'images'})")

@@ -43,7 +43,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, load_masks, near_far_from_box
-from ._files import (_check_options, _finite_number, _frame_file_path, _image_path, _matrix,
+from ._files import (check_frame_count, _check_options, _finite_number, _frame_file_path, _image_path, _matrix,
                      check_inside_dataset, read_json_object, take_views)
 from .cameras import Cameras
 from .dataset import Dataset
@@ -131,6 +131,7 @@ def read_nerfstudio(path: str | os.PathLike) -> tuple[dict, list[dict]]:
     frames_in = obj.get("frames")
     if not isinstance(frames_in, list) or not frames_in:
         raise DatasetError(f"{path}: missing or empty 'frames' list")
+    check_frame_count(len(frames_in), str(path))
     frames = []
     for i, fr in enumerate(frames_in):
         where = f"{path}: frames[{i}]"

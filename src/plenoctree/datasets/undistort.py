@@ -38,22 +38,45 @@ def _camera(pycolmap: Any, model: str, params: np.ndarray, width: int, height: i
                            params=np.asarray(params, dtype=np.float64))
 
 
+#: Undistortion must keep at least this share of each image side: absurd coefficients
+#: (``k1 = 1e6``) shrink a photo to a few pixels, which is refused rather than trained on.
+MIN_KEPT_SIDE = 0.5
+
+
+def check_kept_size(where: Any, model: str, params: np.ndarray, size: tuple[int, int],
+                    kept: tuple[int, int]) -> None:
+    """DatasetError if undistorting a ``size`` (w, h) image of ``model`` keeps less than
+    :data:`MIN_KEPT_SIDE` of either side (``kept``: the undistorted w, h)."""
+    (w, h), (uw, uh) = size, kept
+    if uw < MIN_KEPT_SIDE * w or uh < MIN_KEPT_SIDE * h:
+        coeffs = ", ".join(f"{v:g}" for v in np.asarray(params, dtype=np.float64)[
+            _N_FOCAL_CENTRE.get(model, 4):])
+        raise DatasetError(f"{where}: the {model} distortion ({coeffs}) leaves {uw}x{uh} of "
+                           f"the {w}x{h} image after undistortion (less than "
+                           f"{MIN_KEPT_SIDE:.0%} of a side): the coefficients are implausible; "
+                           "check the camera model and its distortion values")
+
+
 def pinhole_camera(model: str, params: np.ndarray, width: int, height: int,
                    where: Any = "camera") -> tuple[int, int, np.ndarray]:
     """COLMAP's undistorted pinhole camera for a distorting one: ``(width, height,
-    [fx, fy, cx, cy])`` (pixels)."""
+    [fx, fy, cx, cy])`` (pixels). DatasetError if it keeps too little of the image."""
     pycolmap = _pycolmap(where)
     cam = _camera(pycolmap, model, params, width, height)
     out = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), cam)
+    check_kept_size(where, model, params, (width, height), (int(out.width), int(out.height)))
     return int(out.width), int(out.height), np.array(out.params[:4], dtype=np.float64)
+
+
+#: Leading focal / principal-point parameters of each COLMAP model (the rest: distortion).
+_N_FOCAL_CENTRE = {"SIMPLE_PINHOLE": 3, "SIMPLE_RADIAL": 3, "RADIAL": 3,
+                   "SIMPLE_RADIAL_FISHEYE": 3, "RADIAL_FISHEYE": 3, "FOV": 4}
 
 
 def _scaled(model: str, params: np.ndarray, s: float) -> np.ndarray:
     """Params of ``model`` for images scaled by ``s`` (focal and principal point only)."""
     p = np.array(params, dtype=np.float64)
-    n_fc = {"SIMPLE_PINHOLE": 3, "SIMPLE_RADIAL": 3, "RADIAL": 3, "SIMPLE_RADIAL_FISHEYE": 3,
-            "RADIAL_FISHEYE": 3, "FOV": 4}.get(model, 4)
-    p[:n_fc] *= s
+    p[:_N_FOCAL_CENTRE.get(model, 4)] *= s
     return p
 
 
@@ -87,6 +110,8 @@ def undistort_images(images: np.ndarray, cameras: Sequence[Any], scale: float = 
         arr = bmp.to_array()
         if size is None:
             size = arr.shape[:2]
+            check_kept_size(paths[i] if paths else f"image {i}", c.model, c.params, (w, h),
+                            (arr.shape[1], arr.shape[0]))
         elif arr.shape[:2] != size:
             p = paths[i] if paths else f"image {i}"
             raise DatasetError(f"{p}: undistorts to {arr.shape[1]}x{arr.shape[0]} pixels, the "

@@ -34,7 +34,7 @@ from typing import Any
 
 import torch
 
-from .._util import atomic_write
+from .._util import atomic_write, clean_stale_tmp
 from ..errors import ConfigError, PlenOctreeError
 from .config import TrainConfig, config_from_dict, config_to_dict
 from .model import NeRFModel
@@ -89,6 +89,11 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     if path.is_dir():
         path = path / CHECKPOINT_NAME
     if not path.is_file():
+        partial = [p for p in clean_stale_tmp(path.parent) if p.name.startswith(path.name)]
+        if partial:
+            raise CheckpointError(f"{path}: no checkpoint yet: the run was stopped while "
+                                  f"writing its first one (the partial {partial[0].name} was "
+                                  "removed); start the training again without --resume")
         raise CheckpointError(f"{path}: checkpoint not found")
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)

@@ -11,7 +11,7 @@ one of three heads:
   the SH-projection path of the conversion step); its "coefficients" are the pre-sigmoid RGB.
 
 Coefficients are channel-major ``[R_0..R_{B-1}, G_0.., B_0..]`` and pre-sigmoid, exactly the
-layout of an octree leaf (``docs/architecture.md``). Colour is ``sigmoid(Σ_b k_b·Y_b(d))``
+layout of an octree leaf (``docs/format.md``). Colour is ``sigmoid(Σ_b k_b·Y_b(d))``
 with ``Y`` from :func:`plenoctree.sh.eval_sh_bases` or :func:`plenoctree.sh.eval_sg_bases`.
 
 :class:`NeRFModel` bundles the fine network, the optional coarse one, the occupancy grid and

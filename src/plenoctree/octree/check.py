@@ -97,10 +97,27 @@ def _check_arrays(tree: Octree, name: str) -> int:
                         f"{None if extra is None else list(np.shape(extra))}")
         if not np.isfinite(extra).all():
             _fail(name, "extra_data has non-finite values")
+        _check_sg_lobes(extra, name)
     elif extra is not None:
         _fail(name, f"extra_data must be None for data_format {tree.data_format!r}, got shape "
                     f"{list(np.shape(extra))}")
     return n
+
+
+def _check_sg_lobes(extra: np.ndarray, name: str) -> None:
+    """SG ``extra_data [B, 4]`` (λ, μ): sharpness in ``[0, MAX_SG_SHARPNESS]``, unit axes."""
+    from .limits import MAX_SG_SHARPNESS, SG_AXIS_TOL
+
+    lam = np.asarray(extra[:, 0], dtype=np.float64)
+    bad = np.flatnonzero(~((lam >= 0) & (lam <= MAX_SG_SHARPNESS)))
+    if bad.size:
+        _fail(name, f"extra_data[{bad[0]}, 0]: SG lobe sharpness {lam[bad[0]]:g} is outside "
+                    f"[0, {MAX_SG_SHARPNESS:g}]")
+    norm = np.linalg.norm(np.asarray(extra[:, 1:4], dtype=np.float64), axis=1)
+    bad = np.flatnonzero(~(np.abs(norm - 1.0) <= SG_AXIS_TOL))
+    if bad.size:
+        _fail(name, f"extra_data[{bad[0]}, 1:4]: SG lobe axis has length {norm[bad[0]]:g}, not "
+                    f"1 (within {SG_AXIS_TOL:g})")
 
 
 def check_child(child: np.ndarray, depth_limit: int, name: str = "tree") -> None:

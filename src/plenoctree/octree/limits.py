@@ -37,18 +37,26 @@
 ``MAX_ABS_VALUE``
     Bound on ``|data|`` (colour coefficients and σ) accepted at load: ``1e30``. A basis sum of
     25 such values stays inside float32; larger finite values overflow to ``inf - inf = NaN``.
+
+``MAX_SG_SHARPNESS``, ``SG_AXIS_TOL``
+    Bounds on an SG tree's ``extra_data`` (per lobe: sharpness λ, then the axis μ): ``0 <= λ <=
+    1e4`` (a lobe 0.01 rad wide; svox's learned values are below 100) and ``| |μ| - 1 | <=
+    1e-3``. Within them ``exp(λ (μ·d - 1)) <= exp(λ · 2e-3) < e^20`` stays finite in float32;
+    a negative λ or a long axis makes it overflow (``inf · 0 = NaN`` colours).
 """
 
 from __future__ import annotations
 
 __all__ = ["MAX_DEPTH", "MAX_STEPS_CAP", "MAX_ABS_BOX", "MAX_ABS_VALUE", "MAX_RAY_ORIGIN",
-           "max_steps"]
+           "MAX_SG_SHARPNESS", "SG_AXIS_TOL", "max_steps"]
 
 MAX_DEPTH = 21
 MAX_STEPS_CAP = 1 << 20
 MAX_ABS_BOX = 1e15
 MAX_RAY_ORIGIN = 1e8
 MAX_ABS_VALUE = 1e30
+MAX_SG_SHARPNESS = 1e4
+SG_AXIS_TOL = 1e-3
 
 
 def max_steps(depth: int) -> int:

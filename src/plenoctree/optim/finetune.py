@@ -22,7 +22,7 @@ Defaults (Adam 2e-2 for colour and opacity, constant, 3 back-offs) chosen by mea
 the procedural demo scene the paper's SGD 1e7 diverges (validation 34.97 → 27.46 dB, the input
 kept; with back-offs +0.16 dB) while Adam gains +2.1 dB in 6 epochs; on lego's refined tree
 (400², 100 validation views) Adam 2e-2 beats 1e-2 (epoch 10: 33.93 vs 33.79 dB) and a ×0.1
-decay over 20 epochs loses (epoch 16: 33.68 vs 33.91 dB); see README "Figures".
+decay over 20 epochs loses (epoch 16: 33.68 vs 33.91 dB); see docs/tuning.md, "Fine-tuning".
 
 >>> cfg = FinetuneConfig(tree="tree.npz", data="data/lego", out="tree_ft.npz", epochs=4)  # doctest: +SKIP
 >>> result = finetune(cfg)                                                          # doctest: +SKIP

@@ -95,8 +95,9 @@ class ProcessConfig:
 
 
 def _check_out(out: Path, overwrite: bool) -> None:
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"{out}: exists and is not a folder")
+    from .._util import check_output_dir
+
+    check_output_dir(out)
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise ConfigError(f"{out}: output folder exists and is not empty; choose another "
                           "--out or pass --overwrite")

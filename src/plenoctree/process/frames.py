@@ -14,6 +14,7 @@ once, in order, and only one candidate per run is held in memory.
 from __future__ import annotations
 
 import math
+import re
 import os
 from pathlib import Path
 from typing import Callable
@@ -95,6 +96,19 @@ def sharpness(rgb: np.ndarray) -> float:
     return float(lap.var())
 
 
+_BANNER = re.compile(r"^(ffmpeg version|built with|configuration:|lib[a-z]+\s+\d|Input #|"
+                     r"Metadata:|Duration:|Stream #|=== stderr|=+$)", re.IGNORECASE)
+
+
+def decoder_message(e: BaseException) -> str:
+    """A decoder failure in one line: imageio's first line and ffmpeg's last, without the
+    version banner and configuration ffmpeg prints before every error."""
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    lines = [ln for ln in lines if not _BANNER.match(ln)] or [type(e).__name__]
+    keep = lines[:1] + ([lines[-1]] if len(lines) > 1 else [])
+    return "; ".join(keep)[:300]
+
+
 def video_frames(video: str | os.PathLike, out_dir: str | os.PathLike, n_frames: int = 150,
                  drop: float = 0.5, log: Callable[[str], None] = print) -> list[Path]:
     """Write ``n_frames`` sharp, evenly spread frames of ``video`` as ``out_dir/frame_NNNNN.png``
@@ -118,7 +132,7 @@ def video_frames(video: str | os.PathLike, out_dir: str | os.PathLike, n_frames:
         reader = iio.get_reader(str(video), format="FFMPEG")
         total = reader.count_frames()
     except Exception as e:  # noqa: BLE001 - any decoder failure
-        raise ProcessError(f"{video}: unreadable video ({type(e).__name__}: {e})") from None
+        raise ProcessError(f"{video}: unreadable video ({decoder_message(e)})") from None
     if total < 3:
         raise ProcessError(f"{video}: {total} frame(s); need at least 3")
     n_cand = min(total, math.ceil(n_frames / (1.0 - drop)))
@@ -153,7 +167,7 @@ def video_frames(video: str | os.PathLike, out_dir: str | os.PathLike, n_frames:
                 if i >= want[-1]:
                     break
     except Exception as e:  # noqa: BLE001
-        raise ProcessError(f"{video}: decoding failed ({type(e).__name__}: {e})") from None
+        raise ProcessError(f"{video}: decoding failed ({decoder_message(e)})") from None
     finally:
         reader.close()
     flush()

@@ -118,7 +118,9 @@ def export_web(tree_path: str | os.PathLike, out_dir: str | os.PathLike,
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{out}: exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
+    from .._util import LOCK_NAME
+
+    if out.is_dir() and any(p.name != LOCK_NAME for p in out.iterdir()) and not overwrite:
         raise ConfigError(f"{out}: folder is not empty (pass --overwrite to replace the bundle)")
     name = _tree_name(tree)
     if (out / "data" / name).resolve() == tree.resolve():
