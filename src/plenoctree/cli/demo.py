@@ -5,22 +5,28 @@ from __future__ import annotations
 import argparse
 
 
-def _run(args: argparse.Namespace) -> int:
-    from ..demo import DemoConfig, run_demo
+def _config(args: argparse.Namespace):
+    """The :class:`DemoConfig`: its defaults, then ``--config FILE``, then the flags given."""
+    from ..demo import DemoConfig
     from ..pipeline import layer_settings
     from ._options import layered
     from ._output import quiet_progress
 
-    run_demo(quiet_progress(layered(args, DemoConfig(), "demo", layer_settings), args))
+    return quiet_progress(layered(args, DemoConfig(), "demo", layer_settings), args)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from ..demo import run_demo
+
+    run_demo(_config(args))
     return 0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``demo`` command (``run``'s flags, with the demo's defaults)."""
     from ..demo import DemoConfig
-    from ._options import add_config_file, layered
+    from ._options import add_config_file
     from ._output import add_quiet
-    from ..pipeline import layer_settings
     from .run import add_pipeline_flags
 
     p = sub.add_parser("demo", help="the whole chain on the embedded procedural scene",
@@ -32,5 +38,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_quiet(p)
     dests = add_pipeline_flags(p, DemoConfig(), skip=("images", "nerf", "downscale",
                                                       "nerf_eval_views"))
-    p.set_defaults(func=_run, _dests=dests,
-                   _resolve=lambda args: layered(args, DemoConfig(), "demo", layer_settings))
+    p.set_defaults(func=_run, _dests=dests, _resolve=_config)
