@@ -63,7 +63,8 @@ def make_twin(data: Path, twin: Path, lego: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from plenoctree.pipeline import PipelineConfig, run_pipeline
+    from plenoctree._log import configure_cli
+    from plenoctree.pipeline import PipelineConfig, layer_settings, run_pipeline
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True, help="a lego dataset written by `process`")
@@ -88,11 +89,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.only and not name.startswith(args.only):
             continue
         cfg = PipelineConfig(data=str(d), out=str(work / name.replace(" ", "_")),
-                             downscale=args.downscale, train_minutes=0, train_steps=args.steps,
-                             grid=args.grid, finetune_epochs=args.epochs, nerf_eval_views=0,
-                             video_frames=0, web=False, format="nerfstudio",
-                             extra={"train": {"val_views": 0}})
-        s = run_pipeline(cfg, log=lambda m: print("  " + m, flush=True))
+                             downscale=args.downscale, nerf_eval_views=-1, video_frames=0,
+                             web=False, format="nerfstudio")
+        layer_settings(cfg, {"train": {"minutes": 0, "max_steps": args.steps, "val_views": 0},
+                             "extract": {"grid": args.grid},
+                             "finetune": {"epochs": args.epochs}}, "colmap_chain")
+        configure_cli()                          # the pipeline's progress lines on stdout
+        s = run_pipeline(cfg)
         res[name] = {row["stage"]: row["psnr"] for row in s["rows"] if row["psnr"] is not None}
     if args.only:
         return 0

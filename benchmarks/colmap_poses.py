@@ -132,8 +132,7 @@ def run_process(images: Path, out: Path, sfm, frames: int = 150
     t0 = time.perf_counter()
     r0 = resource.getrusage(resource.RUSAGE_SELF)
     summary = process(ProcessConfig(images=str(images), out=str(out), sfm=sfm, overwrite=True,
-                                    frames=frames),
-                      log=lambda m: print("  " + m, flush=True))
+                                    frames=frames))
     minutes = (time.perf_counter() - t0) / 60
     r1 = resource.getrusage(resource.RUSAGE_SELF)
     summary["cpu_minutes"] = (r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime) / 60
@@ -143,7 +142,10 @@ def run_process(images: Path, out: Path, sfm, frames: int = 150
 
 
 def main(argv: list[str] | None = None) -> int:
+    from plenoctree._log import configure_cli
     from plenoctree.process import SfmOptions
+
+    configure_cli()                          # process's progress lines on stdout
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=400)

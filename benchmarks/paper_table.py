@@ -31,7 +31,7 @@ Modes:
   minutes and peak RSS from ``DIR/summary.json``; FPS, the SH-truncated rows and the NeRF-SH
   speed baselines are measured here::
 
-      plenoctree run --data $PLENOCTREE_DATA/nerf_synthetic/lego --train-minutes 40 --out DIR
+      plenoctree run --data $PLENOCTREE_DATA/nerf_synthetic/lego --train.minutes 40 --out DIR
       .venv/bin/python benchmarks/paper_table.py --run-dir DIR --size 800
 
 Scores: the first ``--views`` test views at 400² (default 200 = all) of ``--data`` (default
@@ -104,19 +104,17 @@ def measure_tree(path: Path, data: Path, views: int, fps_views: int, work: Path,
     are used instead of rendering the views again (800² FPS is still measured here)."""
     from plenoctree.evaluation import EvalConfig, eval_tree_file
 
-    quiet = lambda *a, **k: None  # noqa: E731
     t0 = time.perf_counter()
     if known and known.get("dataset", {}).get("n_views") == views:
         r4 = known
     else:
         r4 = eval_tree_file(EvalConfig(tree=path, data=data, downscale=downscale, limit=views,
-                                       out=work / f"{path.stem}_400", show_progress=False),
-                            log=quiet)
+                                       out=work / f"{path.stem}_400", show_progress=False))
     r8 = eval_tree_file(EvalConfig(tree=path, data=data, downscale=1, limit=fps_views,
-                                   out=work / f"{path.stem}_800", show_progress=False), log=quiet)
+                                   out=work / f"{path.stem}_800", show_progress=False))
     r4s = r4 if downscale == 2 else eval_tree_file(      # scored at 800²: time 400² here
         EvalConfig(tree=path, data=data, downscale=2, limit=fps_views,
-                   out=work / f"{path.stem}_400fps", show_progress=False), log=quiet)
+                   out=work / f"{path.stem}_400fps", show_progress=False))
     lp = r4["mean"].get("lpips")
     return {"path": str(path), "psnr": r4["mean"]["psnr"], "ssim": r4["mean"]["ssim"],
             "lpips": _number(lp), "lpips_note": lp if isinstance(lp, str) else None,
@@ -333,12 +331,14 @@ def run_full(out: Path, data: Path, views: int, downscale: int = 2, nerf: str = 
     ``plenoctree run`` defaults; ``nerf``: a trained NeRF-SH run to start from, as
     ``plenoctree run --nerf``; ``finetune_epochs`` / ``train_minutes``: 0 = the run's
     default); return :func:`read_run_dir` of ``out``."""
-    from plenoctree.pipeline import PipelineConfig, run_pipeline
+    from plenoctree.pipeline import PipelineConfig, layer_settings, run_pipeline
 
-    cfg = PipelineConfig(data=str(data), out=str(out), downscale=downscale, preset="cpu",
+    cfg = PipelineConfig(data=str(data), out=str(out), downscale=downscale,
                          eval_views=views, video_frames=0, web=False, nerf=nerf)
-    cfg.finetune_epochs = finetune_epochs or cfg.finetune_epochs
-    cfg.train_minutes = train_minutes or cfg.train_minutes
+    if finetune_epochs:
+        cfg.finetune.epochs = finetune_epochs
+    if train_minutes:
+        layer_settings(cfg, {"train": {"minutes": train_minutes}}, "paper_table")
     run_pipeline(cfg)
     return read_run_dir(out)
 

@@ -119,7 +119,7 @@ def test_cli_render_camera_path(tree_and_path, tmp_path, capsys):
     tree, path, cams = tree_and_path
     out = tmp_path / "frames"
     assert main(["render", str(tree), "--camera-path", str(path), "--out", str(out),
-                 "--limit", "3"]) == 0
+                 "--views", "3"]) == 0
     assert "3 frames at 16x16" in capsys.readouterr().out
     for i in range(3):
         assert (out / f"frame_{i:05d}.png").exists()

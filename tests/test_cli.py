@@ -15,7 +15,7 @@ from plenoctree.octree import save_tree
 def test_render_writes_pngs_and_metrics(tiny_scene, tmp_path, capsys):
     out = tmp_path / "r"
     rc = main(["render", str(tiny_scene / "tree.npz"), "--data", str(tiny_scene / "data"),
-               "--split", "test", "--out", str(out), "--limit", "2"])
+               "--split", "test", "--out", str(out), "--views", "2"])
     assert rc == 0
     m = json.loads((out / "metrics.json").read_text())
     assert len(m["views"]) == 2
@@ -31,7 +31,7 @@ def test_render_writes_pngs_and_metrics(tiny_scene, tmp_path, capsys):
 def test_render_width_height_and_torch_backend(tiny_scene, tmp_path):
     out = tmp_path / "r"
     rc = main(["render", str(tiny_scene / "tree.npz"), "--data", str(tiny_scene / "data"),
-               "--out", str(out), "--limit", "1", "--width", "8", "--height", "8",
+               "--out", str(out), "--views", "1", "--width", "8", "--height", "8",
                "--backend", "torch", "--stop-thresh", "0", "--background", "black"])
     assert rc == 0
     m = json.loads((out / "metrics.json").read_text())
@@ -46,7 +46,7 @@ def test_render_width_height_and_torch_backend(tiny_scene, tmp_path):
 ])
 def test_render_bad_options_give_clear_errors(tiny_scene, tmp_path, capsys, extra, needle):
     rc = main(["render", str(tiny_scene / "tree.npz"), "--data", str(tiny_scene / "data"),
-               "--out", str(tmp_path / "r"), "--limit", "1", *extra])
+               "--out", str(tmp_path / "r"), "--views", "1", *extra])
     assert rc == 1
     assert needle in capsys.readouterr().err
 

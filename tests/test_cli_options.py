@@ -34,14 +34,22 @@ def test_version_and_python_dash_m(capsys):
     assert "finetune" in out and "COMMAND" in out
 
 
-def test_every_help_shows_real_defaults():
+def _help(argv: list[str], capsys) -> str:
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 0
+    return capsys.readouterr().out
+
+
+def test_every_help_shows_real_defaults(capsys):
     for name, sub in _subparsers(build_parser()).items():
         text = sub.format_help()
         assert "(default None)" not in text and "default: None" not in text, name
         assert "%%" not in text, name
-    run_help = _subparsers(build_parser())["run"].format_help()
+    run_help = _help(["run", "--help-all"], capsys)
     assert "--finetune.epochs" in run_help and "--train.net-width" in run_help
     assert "--extract.bbox-scale" in run_help
+    assert "(default None)" not in run_help and "%%" not in run_help
     train_help = _subparsers(build_parser())["train"].format_help()
     assert "(default: 0.01)" in train_help            # lr_init of the cpu preset
 
@@ -101,14 +109,94 @@ def test_run_nested_stage_flags_presets_and_saved_config(tmp_path, capsys):
             "0", "--print-config"]
     assert main(args) == 0
     cfg = json.loads(capsys.readouterr().out)
-    assert cfg["grid"] == 128 and cfg["video_frames"] == 0                 # the quick preset
-    assert cfg["extra"] == {"finetune": {"epochs": 3}, "train": {"model": {"net_width": 32}},
-                            "extract": {"center": [0.0, 0.0, 0.0]}}
+    assert cfg["extract"]["grid"] == 128 and cfg["video_frames"] == 0      # the quick preset
+    assert (cfg["finetune"]["epochs"], cfg["train"]["model"]["net_width"],
+            cfg["extract"]["center"]) == (3, 32, [0.0, 0.0, 0.0])
     saved = tmp_path / "config.json"
     saved.write_text(json.dumps(cfg))
-    assert main(["run", "--config", str(saved), "--grid", "64", "--print-config"]) == 0
+    assert main(["run", "--config", str(saved), "--extract.grid", "64", "--print-config"]) == 0
     again = json.loads(capsys.readouterr().out)
-    assert again["grid"] == 64 and again["extra"]["finetune"] == {"epochs": 3}
+    assert again["extract"]["grid"] == 64 and again["finetune"]["epochs"] == 3
+    # the saved config alone is the same config (save, reload, equal)
+    assert main(["run", "--config", str(saved), "--print-config"]) == 0
+    assert json.loads(capsys.readouterr().out) == cfg
+
+
+def test_run_help_is_short_and_shows_the_stages_on_demand(capsys):
+    text = _help(["run", "--help"], capsys)
+    assert len(text.splitlines()) <= 150, len(text.splitlines())
+    assert "--help-all" in text and "--finetune.epochs" not in text
+    stage = _help(["run", "--help-stage", "finetune"], capsys)
+    assert "--finetune.epochs" in stage and "--train.net-width" not in stage
+    assert len(_help(["run", "--help-all"], capsys).splitlines()) > 150
+
+
+def test_one_flag_per_setting_of_run():
+    """No two flags of `run` set the same value: each dest has one flag (a boolean's --no-x
+    aside), and no pipeline-wide setting is also a stage flag."""
+    run = _subparsers(build_parser())["run"]
+    by_dest: dict[str, list[str]] = {}
+    for action in run._actions:
+        names = [s for s in action.option_strings if not s.startswith("--no-")]
+        if names and action.dest != "help":
+            by_dest.setdefault(action.dest, []).extend(names)
+    assert all(len(v) == 1 for v in by_dest.values()), {k: v for k, v in by_dest.items()
+                                                         if len(v) > 1}
+    from plenoctree.pipeline import STAGE_OPTIONS
+
+    for opt in STAGE_OPTIONS:           # what the pipeline sets (paths, --seed...) has no flag
+        for name in opt.wired:
+            assert f"{opt.name}.{name}" not in by_dest, (opt.name, name)
+    for wide in ("seed", "device", "backend", "downscale", "threads", "format", "data", "out"):
+        assert wide in by_dest
+    for removed in ("--finetune-epochs", "--grid", "--train-minutes", "--compress-bits"):
+        assert removed not in run._option_string_actions
+
+
+@pytest.mark.parametrize("argv, typed, meant", [
+    (["run", "--data", "d", "--out", "o", "--finetune-epochs", "3"], "--finetune-epochs",
+     "--finetune.epochs"),
+    (["run", "--data", "d", "--out", "o", "--finetune.epo", "3"], "--finetune.epo",
+     "--finetune.epochs"),
+    (["eval", "t.npz", "--limit", "2"], "--limit", None),
+    (["train", "--out", "o", "--max-steps", "2"], "--max-steps", "--steps"),
+    (["demo", "--grid", "16"], "--grid", None),
+])
+def test_abbreviated_and_unknown_flags_are_refused_by_their_command(argv, typed, meant, capsys):
+    """An abbreviation or an old alias is refused: the error is the sub-command's (its usage),
+    names the flag typed and, when one is close, the flag meant."""
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2
+    assert f"usage: plenoctree {argv[0]}" in err and f"plenoctree {argv[0]}: error" in err, err
+    assert f"unrecognized arguments: {typed}" in err
+    if meant:
+        assert f"did you mean {meant}?" in err
+
+
+def test_every_long_command_has_quiet_and_progress():
+    subs = _subparsers(build_parser())
+    for name in ("train", "extract", "refine", "finetune", "eval", "render", "video", "export",
+                 "run", "demo"):
+        flags = subs[name]._option_string_actions
+        assert {"--quiet", "--progress", "--no-progress"} <= set(flags), name
+    train = subs["train"]._option_string_actions["--preset"].choices
+    assert set(train) == set(subs["run"]._option_string_actions["--preset"].choices)
+
+
+def test_views_means_views_of_the_split_everywhere(tiny_scene, tmp_path, capsys):
+    """--views N: N views of the split, 0 = all (eval, render, compress, render-nerf)."""
+    subs = _subparsers(build_parser())
+    for name in ("eval", "render", "compress", "render-nerf"):
+        assert "--views" in subs[name]._option_string_actions, name
+    assert main(["render", str(tiny_scene / "tree.npz"), "--data", str(tiny_scene / "data"),
+                 "--views", "0", "--out", str(tmp_path / "r")]) == 0
+    n = len(json.loads((tmp_path / "r" / "metrics.json").read_text())["views"])
+    assert n > 1
+    assert main(["render", str(tiny_scene / "tree.npz"), "--data", str(tiny_scene / "data"),
+                 "--views", "-1", "--out", str(tmp_path / "s")]) == 1
+    assert "--views must be >= 0 (0 = all)" in capsys.readouterr().err
 
 
 def test_run_checks_the_video_extra_first(tmp_path, monkeypatch, capsys):
@@ -140,7 +228,7 @@ def test_eval_and_render_take_data_from_the_trees_provenance(tiny_scene, tmp_pat
     out = capsys.readouterr().out
     assert f"--data {tiny_scene / 'data'}" in out
     assert json.loads((tmp_path / "e.json").read_text())["dataset"]["n_views"] == 1
-    assert main(["render", str(tree), "--limit", "1", "--out", str(tmp_path / "r")]) == 0
+    assert main(["render", str(tree), "--views", "1", "--out", str(tmp_path / "r")]) == 0
     assert (tmp_path / "r" / "metrics.json").exists()
 
 

@@ -130,7 +130,7 @@ def test_eval_compressed_tree(scene, tmp_path, monkeypatch):
 def test_eval_cli(scene, tmp_path, capsys):
     out = tmp_path / "e"
     rc = main(["eval", str(scene / "tree.npz"), "--data", str(scene / "data"), "--out", str(out),
-               "--limit", "2", "--format", "blender", "--backend", "torch", "--save-images",
+               "--views", "2", "--format", "blender", "--backend", "torch", "--save-images",
                "--background", "black", "--stop-thresh", "0"])
     assert rc == 0
     rep = json.loads((out / "eval.json").read_text())
@@ -180,7 +180,7 @@ def test_eval_bad_inputs(scene, tmp_path, capsys):
 
 
 def test_render_format_option(scene, tmp_path, capsys):
-    args = ["render", str(scene / "tree.npz"), "--data", str(scene / "data"), "--limit", "1"]
+    args = ["render", str(scene / "tree.npz"), "--data", str(scene / "data"), "--views", "1"]
     assert main([*args, "--format", "blender", "--out", str(tmp_path / "r")]) == 0
     assert (tmp_path / "r" / "metrics.json").exists()
     assert main([*args, "--format", "nsvf", "--out", str(tmp_path / "s")]) == 1

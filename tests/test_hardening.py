@@ -147,7 +147,7 @@ def test_bad_output_paths_get_one_line_naming_the_flag(tiny_scene, tmp_path, cap
 
 # --- 5. typed config files and --device ---------------------------------------------------------
 @pytest.mark.parametrize("cmd, values, needle", [
-    ("train", {"max_steps": "ten"}, "'max_steps' (--max-steps) must be an integer, got 'ten'"),
+    ("train", {"max_steps": "ten"}, "'max_steps' (--steps) must be an integer, got 'ten'"),
     ("render", {"stop_thresh": "low"}, "'stop_thresh' (--stop-thresh) must be a number"),
     ("eval", {"save_images": "yes"}, "'save_images' (--save-images) must be true or false"),
 ])
@@ -311,8 +311,8 @@ def test_a_corrupt_video_gives_one_line_without_the_ffmpeg_banner(tmp_path, caps
 
 
 def test_compress_views_zero_blames_views(tiny_scene, tmp_path, capsys):
-    _fails(capsys, ["compress", tiny_scene / "tree.npz", "--views", "0", "--out",
-                    tmp_path / "c.plnz"], "--views must be a positive integer")
+    _fails(capsys, ["compress", tiny_scene / "tree.npz", "--orbit-views", "0", "--out",
+                    tmp_path / "c.plnz"], "--orbit-views must be a positive integer")
 
 
 def test_check_output_file_kinds(tmp_path):

@@ -272,7 +272,7 @@ def test_video_and_camera_path_of_an_ndc_tree_without_data(ff, tmp_path, capsys)
     write_camera_path(tmp_path / "path.json", world, fps=10)
     out = tmp_path / "frames"
     assert main(["render", str(ff["path"]), "--camera-path", str(tmp_path / "path.json"),
-                 "--out", str(out), "--limit", "2"]) == 0
+                 "--out", str(out), "--views", "2"]) == 0
     for i in range(2):          # the NDC tree rendered along world poses = the dataset's view
         ref = render_image(ff["tree"], data.cameras, i).depth.numpy()
         got = np.load(out / f"frame_{i:05d}_depth.npy")

@@ -57,8 +57,8 @@ def test_two_gloo_processes_match_one_process(tmp_path):
 
     _run(train + ["--out", "single"], tmp_path)
     # two processes, interrupted half-way and resumed (again with two processes)
-    _run(ddp + train + ["--out", "ddp", "--max-steps", str(STEPS // 2)], tmp_path)
-    _run(ddp + train + ["--out", "ddp", "--resume", "--max-steps", str(STEPS)], tmp_path)
+    _run(ddp + train + ["--out", "ddp", "--steps", str(STEPS // 2)], tmp_path)
+    _run(ddp + train + ["--out", "ddp", "--resume", "--steps", str(STEPS)], tmp_path)
 
     summary = json.loads((tmp_path / "ddp" / "summary.json").read_text())
     assert summary["world_size"] == 2 and summary["step"] == STEPS

@@ -3,32 +3,49 @@
 from __future__ import annotations
 
 import json
+import logging
 
 import pytest
 
 from plenoctree.cli import main
 from plenoctree.datasets.procedural import write_procedural_dataset
 from plenoctree.errors import ConfigError
-from plenoctree.pipeline import PipelineConfig, PipelineError, run_pipeline
+from plenoctree.pipeline import PipelineConfig, PipelineError, layer_settings, run_pipeline
 
 # A tiny network and budget: the chain's plumbing, not its quality, is under test here.
 TINY_TRAIN = {"val_views": 1, "chunk": 1024, "target_samples": 4096, "sparsity_points": 256,
-              "model": None}
+              "minutes": 0, "max_steps": 4, "occ_res": 16, "render_step": 0.05,
+              "model": {"grid_levels": 4, "grid_max_res": 32, "grid_log2_table": 10,
+                        "net_width": 16}}
+# An (almost) untrained model renders nothing: keep every voxel of the full box.
+TINY_EXTRACT = {"grid": 16, "samples": 2, "bbox": "fixed", "masking": "sigma",
+                "mask_alpha_thresh": 1e-12}
 
 
-def _tiny_cfg(data, out, **kw) -> PipelineConfig:
-    from plenoctree.nerf.config import ModelConfig
-
-    model = ModelConfig(grid_levels=4, grid_max_res=32, grid_log2_table=10, net_width=16)
-    train = {**TINY_TRAIN, "model": model, "occ_res": 16, "render_step": 0.05}
-    # An (almost) untrained model renders nothing: keep every voxel of the full box.
-    cfg = PipelineConfig(data=str(data), out=str(out), train_minutes=0, train_steps=4, grid=16,
-                         samples=2, finetune_epochs=1, nerf_eval_views=1, video_frames=2,
-                         extra={"train": train, "extract": {
-                             "bbox": "fixed", "masking": "sigma", "mask_alpha_thresh": 1e-12}})
+def _tiny_cfg(data, out, stages: dict | None = None, **kw) -> PipelineConfig:
+    """The tiny chain; ``stages``: stage settings over it (``{"finetune": {"epochs": 2}}``)."""
+    cfg = PipelineConfig(data=str(data), out=str(out), nerf_eval_views=1, video_frames=2)
+    layer_settings(cfg, {"train": TINY_TRAIN, "extract": TINY_EXTRACT,
+                         "finetune": {"epochs": 1}}, where="test")
+    layer_settings(cfg, stages or {}, where="test")
     for k, v in kw.items():
         setattr(cfg, k, v)
     return cfg
+
+
+@pytest.fixture
+def logs():
+    """The messages of the ``plenoctree`` logger (whatever the CLI configured before)."""
+    records: list[str] = []
+    handler = logging.Handler(logging.INFO)
+    handler.emit = lambda r: records.append(r.getMessage())  # type: ignore[method-assign]
+    logger = logging.getLogger("plenoctree")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    yield records
+    logger.removeHandler(handler)
+    logger.setLevel(level)
 
 
 @pytest.fixture(scope="module")
@@ -38,10 +55,9 @@ def scene(tmp_path_factory):
     return root / "data"
 
 
-def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path):
+def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path, logs, capsys):
     out = tmp_path / "run"
-    logs: list[str] = []
-    s = run_pipeline(_tiny_cfg(scene, out), log=logs.append)
+    s = run_pipeline(_tiny_cfg(scene, out))
     for name in ("nerf/checkpoint.pt", "tree.npz", "tree_refined.npz", "tree_ft.npz", "tree_ft.plnz",
                  "eval_ft/eval.json", "web/index.html", "orbit.mp4", "summary.json",
                  "summary.md", "nerf_eval.json", "stages.png"):
@@ -62,12 +78,18 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path):
     assert not s["skipped"]
 
     logs.clear()
-    s2 = run_pipeline(_tiny_cfg(scene, out), log=logs.append)
+    s2 = run_pipeline(_tiny_cfg(scene, out))
     assert set(s2["skipped"]) >= {"train", "extract", "refine", "finetune", "compress", "eval_ft"}
+    # OUT/config.json is the nested config; `run --config` of it is the same config
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["finetune"]["epochs"] == 1 and saved["extract"]["run_dir"] == str(out / "nerf")
+    capsys.readouterr()
+    assert main(["run", "--config", str(out / "config.json"), "--print-config"]) == 0
+    assert json.loads(capsys.readouterr().out) == saved == s2["config"]
 
     # Changing a fine-tuning setting reruns fine-tuning and what depends on it only.
     logs.clear()
-    s3 = run_pipeline(_tiny_cfg(scene, out, finetune_epochs=2), log=logs.append)
+    s3 = run_pipeline(_tiny_cfg(scene, out, {"finetune": {"epochs": 2}}))
     assert "train" in s3["skipped"] and "extract" in s3["skipped"]
     assert "finetune" not in s3["skipped"] and "compress" not in s3["skipped"]
     # every stage records its CPU seconds beside the wall time
@@ -77,8 +99,7 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path):
     ck = out / "nerf" / "checkpoint.pt"
     before = ck.stat().st_mtime_ns
     out2 = tmp_path / "from_nerf"
-    s4 = run_pipeline(_tiny_cfg(scene, out2, nerf=str(out / "nerf"), video_frames=0, web=False),
-                      log=logs.append)
+    s4 = run_pipeline(_tiny_cfg(scene, out2, nerf=str(out / "nerf"), video_frames=0, web=False))
     assert not (out2 / "nerf").exists() and ck.stat().st_mtime_ns == before
     assert "train" in s4["skipped"] and s4["rows"][0]["given"]
     assert (out2 / "tree_ft.npz").exists() and "(given run)" in (out2 / "summary.md").read_text()
@@ -88,23 +109,22 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path):
                                               if v and k != "train"))
     assert "training not counted" in (out2 / "summary.md").read_text()
     with pytest.raises(ConfigError, match="no checkpoint.pt"):
-        run_pipeline(_tiny_cfg(scene, tmp_path / "x", nerf=str(tmp_path)), log=logs.append)
+        run_pipeline(_tiny_cfg(scene, tmp_path / "x", nerf=str(tmp_path)))
 
 
 def test_bad_stage_options_fail_before_training(scene, tmp_path):
     out = tmp_path / "early"
-    with pytest.raises(ConfigError, match="--grid must be a power of two"):
-        run_pipeline(_tiny_cfg(scene, out, grid=3), log=lambda *_: None)
-    with pytest.raises(ConfigError, match="finetune: optimizer"):
-        run_pipeline(_tiny_cfg(scene, out, extra={"finetune": {"optimizer": "lbfgs"}}),
-                     log=lambda *_: None)
-    with pytest.raises(ConfigError, match="--extract: unknown option 'gird'"):
-        run_pipeline(_tiny_cfg(scene, out, extra={"extract": {"gird": 64}}),
-                     log=lambda *_: None)
+    with pytest.raises(ConfigError, match="--extract.grid must be a power of two"):
+        run_pipeline(_tiny_cfg(scene, out, {"extract": {"grid": 3}}))
+    with pytest.raises(ConfigError, match="--finetune.optimizer must be"):
+        run_pipeline(_tiny_cfg(scene, out, {"finetune": {"optimizer": "lbfgs"}}))
+    with pytest.raises(ConfigError, match="test: unknown option 'extract.gird'"):
+        run_pipeline(_tiny_cfg(scene, out, {"extract": {"gird": 64}}))
     assert not (out / "nerf").exists()
 
 
-def test_failing_stage_names_itself_keeps_artefacts_and_resumes(scene, tmp_path, monkeypatch):
+def test_failing_stage_names_itself_keeps_artefacts_and_resumes(scene, tmp_path, monkeypatch,
+                                                                logs):
     import plenoctree.convert.extraction as ex
 
     def broken(cfg, field=None):
@@ -113,12 +133,12 @@ def test_failing_stage_names_itself_keeps_artefacts_and_resumes(scene, tmp_path,
     out = tmp_path / "run"
     monkeypatch.setattr(ex, "extract", broken)
     with pytest.raises(PipelineError, match="stage 'extract' failed") as e:
-        run_pipeline(_tiny_cfg(scene, out), log=lambda *_: None)
+        run_pipeline(_tiny_cfg(scene, out))
     monkeypatch.undo()
     assert "rerun the same command to resume" in str(e.value)
     assert (out / "nerf" / "checkpoint.pt").exists() and not (out / "tree.npz").exists()
-    logs: list[str] = []
-    run_pipeline(_tiny_cfg(scene, out), log=logs.append)
+    logs.clear()
+    run_pipeline(_tiny_cfg(scene, out))
     assert "[train] up to date, skipped" in logs
     assert (out / "tree_ft.npz").exists()
 
@@ -131,8 +151,8 @@ def test_run_cli_bad_data(tmp_path, capsys):
 def test_demo_cli_tiny(tmp_path, capsys):
     out = tmp_path / "demo"
     args = ["demo", "--out", str(out), "--image-size", "32", "--n-train", "6", "--n-test", "2",
-            "--train-minutes", "0", "--train-steps", "200", "--grid", "16",
-            "--finetune-epochs", "1", "--video-frames", "0"]
+            "--train.minutes", "0", "--train.steps", "200", "--extract.grid", "16",
+            "--finetune.epochs", "1", "--video-frames", "0"]
     assert main(args) == 0
     s = json.loads((out / "summary.json").read_text())
     assert len(s["rows"]) == 5 and (out / "tree_ft.plnz").exists()
@@ -144,8 +164,8 @@ def test_demo_cli_tiny(tmp_path, capsys):
 
 def test_demo_on_a_user_dataset(scene, tmp_path, capsys):
     out = tmp_path / "demo_data"
-    args = ["demo", "--data", str(scene), "--out", str(out), "--train-minutes", "0",
-            "--train-steps", "200", "--grid", "16", "--finetune-epochs", "1",
+    args = ["demo", "--data", str(scene), "--out", str(out), "--train.minutes", "0",
+            "--train.steps", "200", "--extract.grid", "16", "--finetune.epochs", "1",
             "--video-frames", "0"]
     assert main(args) == 0
     text = capsys.readouterr().out
@@ -162,7 +182,7 @@ def test_pipeline_on_llff_capture_whose_size_4_does_not_divide(tmp_path):
     data = write_forward_facing_dataset(tmp_path / "ff", n_images=9, width=18, height=12,
                                         n_samples=8)
     out = tmp_path / "run"
-    run_pipeline(_tiny_cfg(data, out, video_frames=0), log=lambda *_: None)
+    run_pipeline(_tiny_cfg(data, out, video_frames=0))
     cfg = json.loads((out / "web" / "config.json").read_text())
     assert cfg["cameras"]["width"] == 3 and cfg["ndc"]["width"] == 3
     assert (out / "summary.md").exists()

@@ -124,13 +124,12 @@ def test_video_frames_even_and_blurriest_dropped(tmp_path):
     assert sharpness(frames[5]) < 0.5 * sharpness(frames[4])
     # 18 frames kept of 20 evenly spaced candidates, in 18 runs (16 single frames, pairs 4-5
     # and 14-15): the two blurred ones give way to their sharp neighbours
-    paths = video_frames(video, tmp_path / "f", n_frames=18, drop=0.1, log=lambda *_: None)
+    paths = video_frames(video, tmp_path / "f", n_frames=18, drop=0.1)
     assert len(paths) == 18
     idx = [int(round((np.asarray(Image.open(p))[52:60, 8:56].mean() - 20) / 10)) for p in paths]
     assert idx == [i for i in range(20) if i not in blurry]
     # 10 of 20 (drop 0.5): the sharper of each pair; no gap longer than 3 frames
-    idx = [int(p.stem[6:]) for p in video_frames(video, tmp_path / "g", n_frames=10, drop=0.5,
-                                                 log=lambda *_: None)]
+    idx = [int(p.stem[6:]) for p in video_frames(video, tmp_path / "g", n_frames=10, drop=0.5)]
     assert len(idx) == 10 and not blurry & set(idx) and max(np.diff(idx)) <= 3
     assert idx == sorted(idx) and [i // 2 for i in idx] == list(range(10))
 
@@ -157,8 +156,7 @@ def test_video_sfm_failure_names_the_video(tmp_path):
     iio.mimwrite(video, [rng.integers(0, 255, (48, 64, 3), dtype=np.uint8) for _ in range(8)],
                  fps=5, macro_block_size=16)
     with pytest.raises(ProcessError) as e:
-        process(ProcessConfig(images=str(video), out=str(tmp_path / "out"), frames=6),
-                log=lambda *_: None)
+        process(ProcessConfig(images=str(video), out=str(tmp_path / "out"), frames=6))
     assert str(e.value).startswith(f"{video}: ") and ".tmp-" not in str(e.value)
     _no_output(tmp_path / "out")
 
@@ -186,8 +184,7 @@ def test_lego_video_end_to_end(tmp_path):
     video = tmp_path / "lego.mp4"
     iio.mimwrite(video, frames, fps=10, quality=9, macro_block_size=16)
     out = tmp_path / "data"
-    s = process(ProcessConfig(images=str(video), out=str(out), frames=60, drop_blurry=0.1),
-                log=lambda *_: None)
+    s = process(ProcessConfig(images=str(video), out=str(out), frames=60, drop_blurry=0.1))
     assert s["format"] == "nerfstudio" and s["kind"] == "360" and s["video"]
     assert s["n_images"] == 60 and s["n_registered"] >= 30
     from plenoctree.datasets import load_dataset
@@ -215,17 +212,17 @@ def test_run_images_stage_reports_bad_photos(tmp_path):
     d.mkdir()
     _noise(d / "only.png")
     with pytest.raises(PipelineError, match=r"stage 'process' failed: .*imgs: 1 photo"):
-        run_pipeline(PipelineConfig(images=str(d), out=str(tmp_path / "run")), log=lambda *_: None)
+        run_pipeline(PipelineConfig(images=str(d), out=str(tmp_path / "run")))
     assert not (tmp_path / "run" / "data").exists()
     with pytest.raises(ConfigError, match="either --data .* or --images"):
         run_pipeline(PipelineConfig(images=str(d), data=str(d), out=str(tmp_path / "run")))
 
 
 @pytest.mark.parametrize("flags, message", [
-    (["--finetune.lr-decay", "5"], "lr_decay must be in"),
-    (["--grid", "100"], "grid"),
+    (["--finetune.lr-decay", "5"], "--finetune.lr-decay must be in"),
+    (["--extract.grid", "100"], "grid"),
     (["--train.lr-init", "-1"], "learning rates must be > 0"),
-    (["--process.frames", "2"], "--frames must be an integer >= 3"),
+    (["--process.frames", "2"], "--process.frames must be an integer >= 3"),
     (["--process.camera-model", "FISH"], "camera model must be one of"),
     (["--process.mapper", '{"no_such_option": 1}'], "unknown COLMAP mapper option"),
 ])
@@ -253,7 +250,7 @@ def test_run_images_passes_process_options(tmp_path, monkeypatch):
     from plenoctree.pipeline import PipelineConfig, PipelineError, run_pipeline
 
     seen = []
-    monkeypatch.setattr(proc, "process", lambda cfg, log=print: seen.append(cfg))
+    monkeypatch.setattr(proc, "process", lambda cfg: seen.append(cfg))
     d = tmp_path / "imgs"
     d.mkdir()
     for i in range(3):
@@ -268,7 +265,7 @@ def test_run_images_passes_process_options(tmp_path, monkeypatch):
     assert cfg.images == str(d) and cfg.out == str(tmp_path / "run" / "data")
     with pytest.raises(ConfigError, match=r"--process\.\* options apply to --images"):
         run_pipeline(PipelineConfig(data=str(d), out=str(tmp_path / "run2"),
-                                    extra={"process": {"frames": 40}}), log=lambda *_: None)
+                                    process=ProcessConfig(frames=40)))
 
 
 @pytest.mark.parametrize("scene", ["360", "forward"])
@@ -297,8 +294,7 @@ def test_dataset_writing_from_a_reconstruction(tmp_path, scene):
     stage, work = tmp_path / "out", tmp_path / "work"
     stage.mkdir()
     res = SfmResult(rec, len(names), len(names), 1, {})
-    s = _write_dataset(res, img, names, stage, work, ProcessConfig(scene=scene),
-                       log=lambda *_: None)
+    s = _write_dataset(res, img, names, stage, work, ProcessConfig(scene=scene))
     assert s["kind"] == scene and s["n_registered"] == 9 and s["image_size"] == [80, 64]
     assert detect_format(stage) == ("nerfstudio" if scene == "360" else "llff")
     data = load_dataset(stage, "all")

@@ -154,26 +154,24 @@ def test_run_checks_every_stage_and_locks_its_folder(tmp_path):
     """``run --grid 100`` (or bad compression bits) failed after the whole training; a second
     ``run`` into a live run's folder raced it."""
     from plenoctree.datasets.procedural import write_procedural_dataset
-    from plenoctree.pipeline import PipelineConfig, run_pipeline
+    from plenoctree.pipeline import PipelineConfig, layer_settings, run_pipeline
 
     data = tmp_path / "scene"
     write_procedural_dataset(data, n_train=2, n_val=1, n_test=1, width=8, height=8, seed=0)
     out = tmp_path / "run"
-    for kw, msg in (({"grid": 100}, "--grid must be a power of two"),
-                    ({"compress_bits": 40}, "bits must be an integer in 1..")):
+    for kw, msg in (({"extract": {"grid": 100}}, "--extract.grid must be a power of two"),
+                    ({"compress": {"bits": 40}}, "bits must be an integer in 1..")):
         with pytest.raises(ConfigError, match=msg):
-            run_pipeline(PipelineConfig(data=str(data), out=str(out), video_frames=0, **kw),
-                         log=lambda *_: None)
+            run_pipeline(layer_settings(PipelineConfig(data=str(data), out=str(out),
+                                                       video_frames=0), kw, "test"))
     assert not (out / "nerf").exists()
     p = _holder(out)
     try:
         with pytest.raises(ConfigError, match=f"in use by another plenoctree process: pid {p.pid}"):
-            run_pipeline(PipelineConfig(data=str(data), out=str(out), video_frames=0),
-                         log=lambda *_: None)
+            run_pipeline(PipelineConfig(data=str(data), out=str(out), video_frames=0))
     finally:
         p.kill()
         p.wait()
     (tmp_path / "file").write_text("x")
     with pytest.raises(ConfigError, match="must be a folder"):
-        run_pipeline(PipelineConfig(data=str(data), out=str(tmp_path / "file")),
-                     log=lambda *_: None)
+        run_pipeline(PipelineConfig(data=str(data), out=str(tmp_path / "file")))

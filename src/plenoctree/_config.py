@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import types
 import typing
 from pathlib import Path
@@ -15,7 +16,8 @@ from typing import Any
 
 from .errors import ConfigError
 
-__all__ = ["apply", "field_help", "load_config_file", "config_dict", "parse_background"]
+__all__ = ["apply", "field_help", "flag_name", "spell_flags", "load_config_file",
+           "config_dict", "parse_background"]
 
 
 def field_help(cls: type) -> dict[str, str]:
@@ -53,20 +55,46 @@ def parse_background(text: str) -> tuple[float, float, float]:
     return vals  # type: ignore[return-value]
 
 
-def apply(cfg: Any, values: dict[str, Any], where: str = "config") -> Any:
+def flag_name(f: dataclasses.Field, prefix: str = "", flag: str | None = None) -> str:
+    """The command-line flag of config field ``f``: ``--<prefix><name>`` with ``-`` for ``_``,
+    or ``--<prefix><flag>`` (default: ``metadata["flag"]``); ``show_progress`` is
+    ``--<prefix>progress``."""
+    name = (flag or f.metadata.get("flag")
+            or ("progress" if f.name == "show_progress" else f.name))
+    return "--" + prefix + name.replace("_", "-")
+
+
+_FIELD_NAMED = r"(?<![\w.-])(?:\w+(?::\s|\.))?([a-z][a-z0-9_]*)(?= (?:must|is required|exceeds))"
+"""A field name as config checks write it: ``lr_decay must``, ``finetune: lr_decay must``,
+``CompressOptions.bits must``."""
+
+
+def spell_flags(message: str, flags: dict[str, str], dashed: dict[str, str] | None = None
+                ) -> str:
+    """An error ``message`` of a config check with its field names spelled as the flags the
+    user typed: ``flags`` maps field names to flags (``{"lr_decay": "--finetune.lr-decay"}``),
+    ``dashed`` other flags to the flags typed (``{"--grid": "--extract.grid"}``)."""
+    if dashed:
+        message = re.sub(r"(?<![\w.-])--[a-z0-9][a-z0-9-]*",
+                         lambda m: dashed.get(m.group(0), m.group(0)), message)
+    return re.sub(_FIELD_NAMED, lambda m: flags.get(m.group(1), m.group(0)), message)
+
+
+def apply(cfg: Any, values: dict[str, Any], where: str = "config", _path: str = "") -> Any:
     """Set ``values`` (nested dicts for nested dataclasses) on dataclass ``cfg``; returns it.
 
-    Unknown names raise :class:`ConfigError` naming ``where``; lists become tuples where the
-    field's default is a tuple (JSON has no tuples); a ``background`` given as text
-    (``white``, ``black``, ``R,G,B``) becomes its RGB tuple (:func:`parse_background`)."""
+    Unknown names raise :class:`ConfigError` naming ``where`` and the dotted key
+    (``c.json: unknown option 'extract.gird'``); lists become tuples where the field's default
+    is a tuple (JSON has no tuples); a ``background`` given as text (``white``, ``black``,
+    ``R,G,B``) becomes its RGB tuple (:func:`parse_background`)."""
     names = {f.name: f for f in dataclasses.fields(cfg)}
     for key, value in values.items():
         if key not in names:
-            raise ConfigError(f"{where}: unknown option {key!r}; known: "
+            raise ConfigError(f"{where}: unknown option {_path + key!r}; known: "
                               f"{', '.join(sorted(names))}")
         cur = getattr(cfg, key)
         if dataclasses.is_dataclass(cur) and isinstance(value, dict):
-            apply(cur, value, f"{where}.{key}")
+            apply(cur, value, where, f"{_path}{key}.")
             continue
         ann = str(names[key].type)
         if key == "background" and isinstance(value, str):
@@ -74,7 +102,7 @@ def apply(cfg: Any, values: dict[str, Any], where: str = "config") -> Any:
         if isinstance(value, list) and (isinstance(cur, tuple) or ann.startswith("tuple")
                                         or key == "background"):
             value = tuple(value)
-        check_value(type(cfg), names[key], value, where)
+        check_value(type(cfg), names[key], value, where, _path + key)
         setattr(cfg, key, value)
     return cfg
 
@@ -123,21 +151,22 @@ def _type_words(tp: Any) -> str:
     return names.get(tp, getattr(tp, "__name__", str(tp)))
 
 
-def check_value(cls: type, f: dataclasses.Field, value: Any, where: str) -> None:
+def check_value(cls: type, f: dataclasses.Field, value: Any, where: str, key: str = "") -> None:
     """ConfigError unless ``value`` fits field ``f`` of dataclass ``cls`` (its type annotation
-    and its ``choices`` metadata); the message names ``where`` (the config file) and the flag
-    (``--max-steps`` for ``max_steps``)."""
+    and its ``choices`` metadata); the message names ``where`` (the config file), the key
+    (``key``: its dotted path, default the field's name) and, for a top-level key, the flag
+    (``--steps`` for ``max_steps``)."""
     try:
         tp = typing.get_type_hints(cls)[f.name]
     except Exception:  # noqa: BLE001 - an annotation that cannot be resolved: no type check
         tp = Any
-    flag = "--" + f.name.replace("_", "-")
+    key = key or f.name
+    named = f"{key!r}" + ("" if "." in key else f" ({flag_name(f)})")
     if not _type_ok(value, tp):
-        raise ConfigError(f"{where}: {f.name!r} ({flag}) must be {_type_words(tp)}, got "
-                          f"{value!r}")
+        raise ConfigError(f"{where}: {named} must be {_type_words(tp)}, got {value!r}")
     choices = f.metadata.get("choices")
     if choices and value is not None and value not in choices:
-        raise ConfigError(f"{where}: {f.name!r} ({flag}) must be one of "
+        raise ConfigError(f"{where}: {named} must be one of "
                           f"{', '.join(map(str, choices))}, got {value!r}")
 
 

@@ -4,27 +4,34 @@
 Blender-format dataset, then runs :func:`plenoctree.pipeline.run_pipeline` on it with settings
 scaled to the scene: NeRF-SH training (CPU preset), extraction, fine-tuning, evaluation,
 compression, the web-viewer bundle and an orbit video. Stages already done are skipped, so a
-killed demo resumes where it stopped.
+killed demo resumes where it stopped. :class:`DemoConfig` is ``run``'s
+:class:`~plenoctree.pipeline.PipelineConfig` with the demo's defaults and the scene's size.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
-from dataclasses import dataclass
+import logging
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from ._util import atomic_save_json, check_output_dir, run_lock
+from .convert.extraction import ExtractConfig
 from .errors import ConfigError
-from .optim.finetuning import DEFAULT_EPOCHS
+from .nerf.config import TrainConfig
+from .pipeline_config import PipelineConfig, train_preset
 
 __all__ = ["DemoConfig", "run_demo"]
 
+logger = logging.getLogger(__name__)
+
 
 @dataclass
-class DemoConfig:
-    """Settings of ``plenoctree demo``."""
+class DemoConfig(PipelineConfig):
+    """Settings of ``plenoctree demo``: ``run``'s, with the demo's defaults."""
 
-    out: Path = Path("out/demo")
+    out: str = "out/demo"
     """output folder (dataset, NeRF-SH run, trees, renders, video, web bundle, tables)"""
     data: str = ""
     """run on this dataset (any supported format) instead of the procedural scene; images are
@@ -34,47 +41,48 @@ class DemoConfig:
     n_train: int = 40
     """training views of the procedural dataset"""
     n_test: int = 8
-    """test views rendered and scored"""
-    train_minutes: float = 3.0
-    """NeRF-SH training budget in minutes (0 = use train_steps)"""
-    train_steps: int = 0
-    """NeRF-SH training steps (0 = the time budget decides)"""
-    grid: int = 128
-    """octree finest resolution at extraction (power of two)"""
-    finetune_epochs: int = DEFAULT_EPOCHS
-    """maximum fine-tuning epochs"""
+    """test views of the procedural dataset, every one scored (the NeRF-SH's too)"""
     video_frames: int = 40
-    """frames of the orbit video (0 = none)"""
-    backend: str = "auto"
-    """renderer backend: auto, numba, triton or torch"""
-    device: str = "auto"
-    """device of every stage: auto (CUDA when a GPU is present, else cpu), cpu, cuda or cuda:N"""
-    seed: int = 0
-    """seed of the dataset's cameras and of training"""
+    """frames of the orbit video (0 = no video)"""
+    train: TrainConfig = field(default_factory=lambda: train_preset("quick"))
+    """NeRF-SH training (`plenoctree train`; on the procedural scene it validates on 2 views of
+    its val split)"""
+    extract: ExtractConfig = field(default_factory=lambda: ExtractConfig(grid=128, eval=False))
+    """octree extraction (`plenoctree extract`)"""
 
 
-def run_demo(cfg: DemoConfig, log=print) -> dict:
+DEMO_ONLY = ("image_size", "n_train", "n_test")
+"""The :class:`DemoConfig` fields that are not :class:`PipelineConfig` fields."""
+
+
+def run_demo(cfg: DemoConfig) -> dict:
     """Write the procedural dataset (once) and run the pipeline on it; returns its summary.
 
     Holds the lock of ``cfg.out`` (:func:`plenoctree._util.run_lock`) throughout.
     """
     if cfg.image_size < 8:
         raise ConfigError(f"--image-size must be >= 8, got {cfg.image_size}")
-    if cfg.grid < 2 or cfg.grid & (cfg.grid - 1):
-        raise ConfigError(f"--grid must be a power of two >= 2, got {cfg.grid}")
     out = Path(cfg.out)
     check_output_dir(out)
     out.mkdir(parents=True, exist_ok=True)
+    run = PipelineConfig(**{f.name: getattr(cfg, f.name)
+                            for f in dataclasses.fields(cfg) if f.name not in DEMO_ONLY})
     with run_lock(out, "demo"):     # run_pipeline nests the same lock
         if cfg.data:
-            return _run_on_dataset(cfg, out, log)
-        return _run_procedural(cfg, out, log)
+            _scale_to_dataset(run)
+        else:
+            _procedural_scene(cfg, run, out)
+        from .pipeline import run_pipeline
+
+        summary = run_pipeline(run)
+    logger.info(f"open the viewer: plenoctree view {out / 'tree_ft.plnz'}")
+    return summary
 
 
-def _run_procedural(cfg: DemoConfig, out: Path, log) -> dict:
-    """The demo chain on the procedural scene (dataset written once)."""
+def _procedural_scene(cfg: DemoConfig, run: PipelineConfig, out: Path) -> None:
+    """Write the procedural scene to ``OUT/data`` (once) and point ``run`` at it: every test
+    view scored by every row, training validated on 2 views of the val split."""
     from .datasets.procedural import write_procedural_dataset
-    from .pipeline import PipelineConfig, run_pipeline
 
     data_dir = out / "data"
     settings = {"size": cfg.image_size, "n_train": cfg.n_train, "n_test": cfg.n_test,
@@ -85,41 +93,26 @@ def _run_procedural(cfg: DemoConfig, out: Path, log) -> dict:
     except (OSError, ValueError):
         done = False
     if done and (data_dir / "transforms_test.json").exists():
-        log("[dataset] up to date, skipped")
+        logger.info("[dataset] up to date, skipped")
     else:
-        log(f"[dataset] writing the procedural scene ({cfg.image_size}² px, {cfg.n_train} train "
-            f"/ {cfg.n_test} test views) to {data_dir}")
+        logger.info(f"[dataset] writing the procedural scene ({cfg.image_size}² px, {cfg.n_train} "
+                    f"train / {cfg.n_test} test views) to {data_dir}")
         write_procedural_dataset(data_dir, n_train=cfg.n_train, n_val=4, n_test=cfg.n_test,
                                  width=cfg.image_size, height=cfg.image_size, seed=cfg.seed)
         atomic_save_json(stamp, settings)
-    pcfg = PipelineConfig(
-        data=str(data_dir), out=str(out), train_minutes=cfg.train_minutes,
-        train_steps=cfg.train_steps, grid=cfg.grid, finetune_epochs=cfg.finetune_epochs,
-        video_frames=cfg.video_frames, backend=cfg.backend, device=cfg.device, seed=cfg.seed,
-        nerf_eval_views=cfg.n_test,  # the NeRF-SH row scores the same views as the octree rows
-        extra={"train": {"val_views": 2, "val_split": "val"}},
-    )
-    summary = run_pipeline(pcfg, log=log)
-    log(f"open the viewer: plenoctree view {out / 'tree_ft.plnz'}")
-    return summary
+    run.data, run.nerf_eval_views = str(data_dir), cfg.n_test
+    run.train.val_views, run.train.val_split = 2, "val"
 
 
-def _run_on_dataset(cfg: DemoConfig, out: Path, log) -> dict:
-    """The demo chain on a user dataset, with the resolution and grid scaled to its images."""
+def _scale_to_dataset(run: PipelineConfig) -> None:
+    """The resolution and grid of ``run`` scaled to the images of its dataset."""
     from .datasets import common_downscale, load_dataset
-    from .pipeline import PipelineConfig, run_pipeline
 
-    probe = load_dataset(cfg.data, "train", limit=1)
+    probe = load_dataset(run.data, "train", limit=1)
     width = probe.cameras.width
-    downscale = common_downscale(width, probe.cameras.height, max(1, -(-width // 400)))
-    size = width // downscale
-    grid = max(cfg.grid, 256) if size >= 256 else cfg.grid
-    log(f"[demo] {cfg.data}: {width} px wide -> downscale {downscale} ({size} px), grid {grid}³")
-    pcfg = PipelineConfig(data=str(cfg.data), out=str(out), downscale=downscale,
-                          train_minutes=cfg.train_minutes, train_steps=cfg.train_steps,
-                          grid=grid, finetune_epochs=cfg.finetune_epochs,
-                          video_frames=cfg.video_frames, backend=cfg.backend, device=cfg.device,
-                          seed=cfg.seed)
-    summary = run_pipeline(pcfg, log=log)
-    log(f"open the viewer: plenoctree view {out / 'tree_ft.plnz'}")
-    return summary
+    run.downscale = common_downscale(width, probe.cameras.height, max(1, -(-width // 400)))
+    size = width // run.downscale
+    if size >= 256:
+        run.extract.grid = max(run.extract.grid, 256)
+    logger.info(f"[demo] {run.data}: {width} px wide -> downscale {run.downscale} ({size} px), "
+                f"grid {run.extract.grid}³")

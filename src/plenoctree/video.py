@@ -11,6 +11,7 @@ The camera paths themselves (orbit convention, up axis, NDC spiral) live in
 
 from __future__ import annotations
 
+import logging
 import dataclasses
 import importlib.util
 import math
@@ -33,6 +34,8 @@ __all__ = ["PATHS", "MODES", "UP_AXES", "VideoConfig", "VideoResult", "axis_vect
            "ndc_spiral_cameras", "detect_up_axis", "fit_radius", "orbit_poses", "orbit_cameras",
            "resize_cameras", "depth_bounds", "compose_frame", "pad_even", "write_video",
            "video_cameras", "make_video", "render_path_images"]
+
+logger = logging.getLogger(__name__)
 
 PATHS = ("orbit", "dataset", "spiral")
 MODES = ("color", "depth", "both")
@@ -385,7 +388,7 @@ def video_cameras(cfg: VideoConfig, tree) -> tuple[Cameras, dict]:
     return cams, info
 
 
-def make_video(cfg: VideoConfig, log=print) -> VideoResult:
+def make_video(cfg: VideoConfig) -> VideoResult:
     """Render ``cfg.tree`` along a camera path and write the video (see :class:`VideoConfig`).
 
     Frames are rendered and encoded one by one; ``render_fps`` counts rendering only (and the
@@ -449,7 +452,7 @@ def make_video(cfg: VideoConfig, log=print) -> VideoResult:
                       depth_range=(near, far), up=info["up"], radius=info["radius"],
                       device=str(device))
     if (w, h) != ((2 if cfg.mode == "both" else 1) * cams.width, cams.height):
-        log(f"note: frames padded to even size {w}x{h} for H.264")
+        logger.info(f"note: frames padded to even size {w}x{h} for H.264")
     return res
 
 

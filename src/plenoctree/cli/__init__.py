@@ -40,14 +40,16 @@ def _group_modules() -> list[str]:
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the full argument parser with every command group registered."""
-    parser = argparse.ArgumentParser(
+    from ._options import CommandParser, Parser
+
+    parser = Parser(
         prog="plenoctree",
         description="PlenOctrees: train NeRF-SH, convert to an octree, fine-tune, render, view.",
     )
     from .. import __version__
 
     parser.add_argument("--version", action="version", version=f"plenoctree {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=CommandParser)
     for name in _group_modules():
         importlib.import_module(f"{__name__}.{name}").register(sub)
     return parser

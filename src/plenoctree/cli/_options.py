@@ -15,8 +15,13 @@ field into a flag; a new field becomes a flag with no other edit:
   annotation, ``tuple[float, float]``, is checked); ``dict``/``list`` → a JSON value; a field
   named ``background`` → ``white``, ``black`` or ``R,G,B`` (parsed with the other values by
   :func:`apply`, so a config file may use the same names);
-- field metadata (``field(metadata={...})``) may add ``"choices"``, ``"flag"`` (another flag
-  name, e.g. ``"steps"``), ``"positional": True``, ``"cli": False`` (no flag), ``"metavar"``.
+- field metadata (``field(metadata={...})``), or a command's ``fields={name: {...}}``, may
+  add ``"choices"``, ``"flag"`` (the flag's name instead of the field's, e.g. ``"steps"``;
+  one flag per field, never two), ``"positional": True``, ``"cli": False`` (no flag),
+  ``"metavar"``; a ``show_progress`` field is ``--progress/--no-progress``.
+
+Every parser is a :class:`Parser`: abbreviated flags are refused, and an unknown flag is
+reported by its sub-command, naming it and the closest known flag.
 
 Flags default to "not given" (``None``), so values layer: the dataclass default or preset, then
 ``--config FILE`` (JSON, the ``config.json`` a run saves), then the flags given. :func:`given`
@@ -31,12 +36,13 @@ import json
 import re
 from typing import Any, Callable, Iterable
 
-from .._config import apply, field_help, load_config_file, parse_background
+from .._config import (apply, field_help, flag_name, load_config_file, parse_background,
+                       spell_flags)
 from ..errors import ConfigError
 
 __all__ = ["add_command", "add_config", "given", "layered", "apply", "field_help",
-           "load_config_file", "parse_background", "add_config_file", "config_to_json",
-           "format_default"]
+           "load_config_file", "parse_background", "add_config_file", "format_default",
+           "Parser", "CommandParser", "hidden_sections"]
 
 
 def _numbers(conv: type, length: int | None):
@@ -108,15 +114,45 @@ def _default_of(f: dataclasses.Field) -> Any:
     return None
 
 
+def _add_field(target: Any, f: dataclasses.Field, spec: dict[str, Any], prefix: str,
+               dest: str, default: Any) -> None:
+    """Add the flag (or positional argument) of one config field (see :func:`add_config`)."""
+    kind, parse = _kind(f)
+    text = field_help_text(spec.get("help", ""), default, kind)
+    if spec.get("positional"):
+        target.add_argument(dest, metavar=f.name.upper(), help=text)
+        return
+    names = [flag_name(f, prefix, spec.get("flag"))]
+    if spec.get("short") and not prefix:
+        names.append(spec["short"])
+    kw: dict[str, Any] = {"dest": dest, "default": None, "help": text}
+    if spec.get("required") and not prefix:
+        kw["required"] = True
+    metavar = spec.get("metavar") or {"background": "COLOUR", "json": "JSON",
+                                      "tuple": "X"}.get(kind, f.name.upper())
+    if kind == "bool":
+        kw["action"] = argparse.BooleanOptionalAction
+    elif kind == "tuple":
+        ann = f.type if isinstance(f.type, str) else str(f.type)
+        kw.update(nargs="+", action=_numbers(parse, _tuple_length(ann)), metavar=metavar)
+    elif "choices" in spec:
+        kw.update(type=parse, choices=list(spec["choices"]))
+    else:
+        kw.update(type=parse, metavar=metavar)
+    target.add_argument(*names, **kw)
+
+
+def field_help_text(text: str, default: Any, kind: str) -> str:
+    """``--help`` of a field: its docstring and the real default (``(default: 0.01)``)."""
+    shown_default = format_default(default)
+    if shown_default is not None and kind != "json":
+        text = f"{text} (default: {shown_default})" if text else f"default: {shown_default}"
+    return text.replace("``", "").replace("%", "%%")
+
+
 def add_config(p: argparse.ArgumentParser | Any, cls: type, *, prefix: str = "",
-               dest_prefix: str | None = None, shown: Any = None,
-               skip: Iterable[str] = (), title: str | None = None,
-               positional: Iterable[str] = (), short: dict[str, str] | None = None,
-               rename: dict[str, str] | None = None,
-               aliases: dict[str, str] | None = None,
-               choices: dict[str, Iterable[str]] | None = None,
-               required: Iterable[str] = (),
-               metavars: dict[str, str] | None = None,
+               dest_prefix: str | None = None, shown: Any = None, skip: Iterable[str] = (),
+               fields: dict[str, dict[str, Any]] | None = None,
                nested: dict[str, dict[str, Any]] | None = None) -> list[str]:
     """Add one flag per field of dataclass ``cls`` to parser (or group) ``p``.
 
@@ -124,85 +160,42 @@ def add_config(p: argparse.ArgumentParser | Any, cls: type, *, prefix: str = "",
     ``finetune.epochs``); ``dest_prefix`` overrides the dest prefix alone (``"model."`` for
     ``ModelConfig`` fields shown as plain ``--grid-levels``). ``shown``: an instance whose
     values ``--help`` shows as the defaults (a preset); default: the dataclass defaults.
-    ``skip``: fields without a flag. ``positional``: fields taken as positional arguments
-    (required). ``short``: extra short flags (``{"out": "-o"}``). ``rename``: flag names
-    differing from the field's (``{"show_progress": "progress"}``). ``aliases``: an older
-    flag name kept working (``{"limit": "--limit"}``). ``choices``: allowed values of
-    fields (as the ``"choices"`` metadata). ``required``: flags that must be given on the
-    command line (e.g. ``--out``). ``metavars``: shown value names (``{"tree": "JSON"}``).
-    ``nested``: fields holding a dataclass whose own fields get
+    ``skip``: fields without a flag. ``fields``: per-field flag options over the field's
+    metadata, ``{name: {...}}`` with ``"positional": True`` (a required positional
+    argument), ``"required": True`` (a flag that must be given), ``"short"`` (an extra short
+    flag, ``"-o"``), ``"flag"`` (the flag's name when it is not the field's), ``"choices"``,
+    ``"metavar"``, ``"help"``. ``nested``: fields holding a dataclass whose own fields get
     flags too, ``{field: add_config keyword arguments}`` (flags unprefixed unless given a
     ``prefix``; dest ``<field>.<name>``). Returns the dests added.
     """
-    choices, required, metavars = choices or {}, set(required), metavars or {}
-    positional, short, rename, aliases = set(positional), short or {}, rename or {}, aliases or {}
     dprefix = prefix if dest_prefix is None else dest_prefix
-    docs = field_help(cls)
-    target = p.add_argument_group(title) if title else p
-    skip = set(skip)
+    docs, fields, nested, skip = field_help(cls), fields or {}, nested or {}, set(skip)
     dests: list[str] = []
     later: list[tuple[type, dict[str, Any]]] = []
-    nested = nested or {}
     for f in dataclasses.fields(cls):
+        value = getattr(shown, f.name) if shown is not None else _default_of(f)
         if f.name in nested:
-            inner = getattr(shown, f.name) if shown is not None else _default_of(f)
-            kw = {"prefix": prefix, "dest_prefix": f"{dprefix}{f.name}.", "shown": inner,
-                  **nested[f.name]}
-            later.append((type(inner), kw))
+            later.append((type(value), {"prefix": prefix, "dest_prefix": f"{dprefix}{f.name}.",
+                                        "shown": value, **nested[f.name]}))
             continue
-        if f.name in skip or not f.metadata.get("cli", True) or dataclasses.is_dataclass(
-                _default_of(f)):
+        if f.name in skip or not f.metadata.get("cli", True) or dataclasses.is_dataclass(value):
             continue
-        kind, parse = _kind(f)
-        default = getattr(shown, f.name) if shown is not None else _default_of(f)
-        text = docs.get(f.name, "")
-        shown_default = format_default(default)
-        if shown_default is not None and kind != "json":
-            text = f"{text} (default: {shown_default})" if text else f"default: {shown_default}"
-        text = text.replace("``", "").replace("%", "%%")
-        dest = dprefix + f.name
-        if f.metadata.get("positional") or f.name in positional:
-            target.add_argument(dest, metavar=f.name.upper(), help=text)
-            dests.append(dest)
-            continue
-        names = ["--" + prefix + rename.get(f.name, f.name).replace("_", "-")]
-        if "flag" in f.metadata:
-            names.insert(0, "--" + prefix + f.metadata["flag"])
-        if f.name in short and not prefix:
-            names.append(short[f.name])
-        if f.name in aliases and not prefix:
-            names.append(aliases[f.name])
-        kw: dict[str, Any] = {"dest": dest, "default": None, "help": text}
-        if f.name in required and not prefix:
-            kw["required"] = True
-        if kind == "bool":
-            kw["action"] = argparse.BooleanOptionalAction
-        elif kind == "tuple":
-            ann = f.type if isinstance(f.type, str) else str(f.type)
-            kw["nargs"] = "+"
-            kw["action"] = _numbers(parse, _tuple_length(ann))
-            kw["metavar"] = metavars.get(f.name) or f.metadata.get("metavar") or "X"
-        else:
-            kw["type"] = parse
-            if "choices" in f.metadata or f.name in choices:
-                kw["choices"] = list(choices.get(f.name) or f.metadata["choices"])
-            kw["metavar"] = metavars.get(f.name) or f.metadata.get("metavar") or {
-                "background": "COLOUR", "json": "JSON"}.get(kind, f.name.upper())
-            if "choices" in kw:
-                kw.pop("metavar")
-        target.add_argument(*names, **kw)
-        dests.append(dest)
+        spec = {"help": docs.get(f.name, ""), **f.metadata, **fields.get(f.name, {})}
+        _add_field(p, f, spec, prefix, dprefix + f.name, value)
+        dests.append(dprefix + f.name)
     for inner_cls, kw in later:
         dests += add_config(p, inner_cls, **kw)
     return dests
 
 
-def layered(args: argparse.Namespace, base: Any, where: str) -> Any:
+def layered(args: argparse.Namespace, base: Any, where: str,
+            layer: Callable[[Any, dict, str], Any] = apply) -> Any:
     """``base`` (a config instance: defaults or a preset) with ``--config FILE`` and then the
-    flags of ``args._dests`` applied: the one layering rule of every command."""
-    apply(base, load_config_file(getattr(args, "_config_file", None)),
-          where=str(getattr(args, "_config_file", None) or where))
-    return apply(base, given(args, args._dests), where=where)
+    flags of ``args._dests`` set by ``layer`` (default :func:`apply`): the one layering rule of
+    every command."""
+    file = getattr(args, "_config_file", None)
+    layer(base, load_config_file(file), str(file or where))
+    return layer(base, given(args, args._dests), where)
 
 
 def given(args: argparse.Namespace, dests: Iterable[str], prefix: str = "") -> dict[str, Any]:
@@ -230,9 +223,68 @@ def add_config_file(p: argparse.ArgumentParser) -> None:
                         "command line override it")
 
 
-def config_to_json(cfg: Any) -> str:
-    """A dataclass config as indented JSON (tuples as lists, paths as strings)."""
-    return json.dumps(dataclasses.asdict(cfg), indent=2, default=str)
+class Parser(argparse.ArgumentParser):
+    """The parser of ``plenoctree`` and of every sub-command: no abbreviated flags, and an
+    unknown flag is reported by the sub-command that got it, with its usage and the closest
+    flag it knows (``--finetune-epochs`` → did you mean ``--finetune.epochs``?)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs["allow_abbrev"] = False
+        super().__init__(*args, **kwargs)
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        ns, extras = super().parse_known_args(args, namespace)
+        if extras and getattr(self, "_is_command", False):
+            self.error(self.unknown(extras))
+        return ns, extras
+
+    def unknown(self, extras: list[str]) -> str:
+        """The error for the unknown arguments ``extras``, naming each."""
+        import difflib
+
+        hints = []
+        for word in extras:
+            close = difflib.get_close_matches(word.split("=")[0], list(self._option_string_actions),
+                                              n=1, cutoff=0.75) if word.startswith("-") else []
+            hints.append(f"{word} (did you mean {close[0]}?)" if close else word)
+        return "unrecognized arguments: " + " ".join(hints)
+
+
+class CommandParser(Parser):
+    """A sub-command's parser (see :class:`Parser`)."""
+
+    _is_command = True
+
+
+class _HelpSections(argparse.Action):
+    """``--help-all`` / ``--help-stage NAME``: ``--help`` with the hidden option sections
+    (all, or the one named) shown."""
+
+    def __init__(self, option_strings, dest, sections: dict[str, Any], **kw):
+        super().__init__(option_strings, dest, **kw)
+        self.sections = sections
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        for name, group in self.sections.items():
+            if not values or values == name:
+                for action in group._group_actions:
+                    action.help = getattr(action, "_hidden_help", action.help)
+        parser.print_help()
+        parser.exit()
+
+
+def hidden_sections(p: argparse.ArgumentParser, sections: dict[str, Any]) -> None:
+    """Hide the options of the argument groups ``sections`` (``{name: group}``) from
+    ``--help``; add ``--help-all`` and ``--help-stage NAME``, which show them."""
+    for group in sections.values():
+        for action in group._group_actions:
+            action._hidden_help, action.help = action.help, argparse.SUPPRESS  # type: ignore
+    names = ", ".join(sections)
+    p.add_argument("--help-all", nargs=0, action=_HelpSections, sections=sections,
+                   help="show every option, the stages' too, and exit")
+    p.add_argument("--help-stage", choices=list(sections), action=_HelpSections,
+                   sections=sections, metavar="STAGE",
+                   help=f"show the options of one stage ({names}) and exit")
 
 
 def add_command(sub: argparse._SubParsersAction, name: str, cls: type,
@@ -240,18 +292,41 @@ def add_command(sub: argparse._SubParsersAction, name: str, cls: type,
                 description: str | None = None, base: Callable[[], Any] | None = None,
                 **options: Any) -> argparse.ArgumentParser:
     """Add the sub-command ``name`` whose options are the fields of dataclass ``cls``:
-    ``--config FILE`` and one flag per field (:func:`add_config`; ``options`` are its keyword
-    arguments). When used, it calls ``run(cfg, args)`` with ``cfg`` = ``base()`` (default
-    ``cls()``) under ``--config`` and the flags given (:func:`layered`); ``args`` holds the
-    flags that are not options (``--json``, ``--quiet``); ``args._resolve(args)`` gives the
-    config alone (tests). Returns the parser, to add those flags."""
+    ``--config FILE``, ``--quiet`` (and ``--progress`` when ``cls`` has ``show_progress``)
+    and one flag per field (:func:`add_config`; ``options`` are its keyword arguments, and
+    ``positional``: the fields taken as positional arguments). When used, it calls
+    ``run(cfg, args)`` with ``cfg`` = ``base()`` (default ``cls()``) under ``--config`` and
+    the flags given (:func:`layered`; ``--quiet`` turns progress bars off unless
+    ``--progress`` is given); ``args`` holds the flags that are not options (``--json``,
+    ``--quiet``); ``args._resolve(args)`` gives the config alone (tests). Returns the parser,
+    to add those flags."""
+    from ._output import add_quiet, quiet_progress
+
     p = sub.add_parser(name, help=help, description=description)
     add_config_file(p)
-    dests = add_config(p, cls, **options)
+    add_quiet(p)
+    positional = {n: {"positional": True} for n in options.pop("positional", ())}
+    fields = {**options.pop("fields", {}), **positional}
+    dests = add_config(p, cls, fields=fields, **options)
     make = base or cls
 
     def resolve(args: argparse.Namespace) -> Any:
-        return layered(args, make(), name)
+        return quiet_progress(layered(args, make(), name), args)
 
-    p.set_defaults(func=lambda args: run(resolve(args), args), _dests=dests, _resolve=resolve)
+    p.set_defaults(func=lambda args: _spelled(p, lambda: run(resolve(args), args)),
+                   _dests=dests, _resolve=resolve)
     return p
+
+
+def _spelled(p: argparse.ArgumentParser, call: Callable[[], Any]) -> Any:
+    """``call()``, its ConfigError spelling the config's field names as ``p``'s flags
+    (``finetune: lr_decay must`` → ``--lr-decay must``)."""
+    try:
+        return call()
+    except ConfigError as e:
+        flags = {a.dest.rsplit(".", 1)[-1]: a.option_strings[0]
+                 for a in p._actions if a.option_strings and a.dest != "help"}
+        spelled = spell_flags(str(e), flags)
+        if spelled == str(e):
+            raise
+        raise ConfigError(spelled) from e

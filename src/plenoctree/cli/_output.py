@@ -1,11 +1,15 @@
-"""The flags every command spells the same way: progress, quiet, JSON output, view counts.
+"""The flags every command spells the same way: progress, quiet, JSON output.
 
-- ``--progress / --no-progress``: progress bars (default: when stderr is a terminal);
-- ``--quiet``: no progress bars and no per-step lines;
+- ``--progress / --no-progress``: progress bars (default: when stderr is a terminal); the
+  ``show_progress`` field of a command's config, or :func:`add_progress`;
+- ``--quiet``: only warnings and errors: no per-step lines and, unless ``--progress`` is
+  given, no progress bars (every command built by :func:`~._options.add_command`);
 - ``--json [PATH]``: also write the command's result as JSON to PATH (``-`` or no value:
   stdout);
-- ``--views N``: use N views of the dataset split (0 / omitted = all);
 - ``--overwrite``: replace an existing output file that does not look like plenoctree's.
+
+A count of views is ``--views N`` wherever it selects views of a dataset split, and 0 means
+all of them.
 
 Every command that writes a file or folder checks it *before* the work with
 :func:`output_file` / :func:`output_dir` (writable, not a folder, not an unrelated file) and
@@ -22,8 +26,12 @@ import sys
 from pathlib import Path
 from typing import Any, Iterator
 
-__all__ = ["add_json", "add_quiet", "add_progress", "add_views", "add_overwrite", "write_json",
-           "check_json", "output_file", "output_dir"]
+__all__ = ["add_json", "add_quiet", "add_progress", "quiet_progress", "add_overwrite",
+           "write_json", "check_json", "output_file", "output_dir", "VIEWS", "views_or_all"]
+
+VIEWS = {"flag": "views", "metavar": "N"}
+"""The flag options of a config field counting the views of a split to use (``fields=`` of
+:func:`~._options.add_command`): ``--views N``, 0 = all."""
 
 
 def add_json(p: argparse.ArgumentParser, what: str = "the report") -> None:
@@ -31,20 +39,33 @@ def add_json(p: argparse.ArgumentParser, what: str = "the report") -> None:
                    help=f"also write {what} as JSON to PATH ('-' or no value: stdout)")
 
 
-def add_quiet(p: argparse.ArgumentParser, text: str = "no progress bars or per-step lines"
-              ) -> None:
-    p.add_argument("--quiet", action="store_true", help=text)
+def add_quiet(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quiet", action="store_true",
+                   help="only warnings and errors: no per-step lines, no progress bars unless "
+                        "--progress")
 
 
-def add_progress(p: argparse.ArgumentParser, dest: str = "show_progress") -> None:
-    p.add_argument("--progress", dest=dest, action=argparse.BooleanOptionalAction,
+def add_progress(p: argparse.ArgumentParser) -> None:
+    """``--progress/--no-progress`` for a command whose config has no ``show_progress``."""
+    p.add_argument("--progress", dest="show_progress", action=argparse.BooleanOptionalAction,
                    default=None, help="progress bars (default: when stderr is a terminal)")
 
 
-def add_views(p: argparse.ArgumentParser, dest: str = "views", legacy: str | None = None,
-              text: str = "use only the first N views of the split (default: all)") -> None:
-    names = ["--views"] + ([legacy] if legacy else [])
-    p.add_argument(*names, dest=dest, type=int, default=None, metavar="N", help=text)
+def quiet_progress(cfg: Any, args: argparse.Namespace) -> Any:
+    """``cfg`` with ``show_progress`` off under ``--quiet`` unless ``--progress`` was given."""
+    if (getattr(args, "quiet", False) and hasattr(cfg, "show_progress")
+            and getattr(args, "show_progress", None) is None):
+        cfg.show_progress = False
+    return cfg
+
+
+def views_or_all(n: int | None) -> int | None:
+    """The value of ``--views N`` as a view limit: ``None`` (all) for 0 or not given."""
+    if n is not None and n < 0:
+        from ..errors import ConfigError
+
+        raise ConfigError(f"--views must be >= 0 (0 = all), got {n}")
+    return n or None
 
 
 def write_json(path: str | None, obj: Any) -> None:

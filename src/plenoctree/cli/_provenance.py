@@ -10,12 +10,15 @@ training run's ``config.json``), then ``DIR/config.json`` (``plenoctree run``'s 
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigError
 
 __all__ = ["dataset_of", "data_from_provenance"]
+
+logger = logging.getLogger(__name__)
 
 
 def _read(path: Path) -> Any:
@@ -68,7 +71,7 @@ def dataset_of(tree: str | Path) -> tuple[str, Path] | None:
 
 
 def data_from_provenance(tree: str | Path, command: str) -> str:
-    """The dataset of ``tree`` (printed), or a ConfigError asking for ``--data``."""
+    """The dataset of ``tree`` (logged), or a ConfigError asking for ``--data``."""
     found = dataset_of(tree)
     if found is None:
         raise ConfigError(f"{tree}: --data is needed (no record of the dataset this tree was "
@@ -77,5 +80,5 @@ def data_from_provenance(tree: str | Path, command: str) -> str:
     if not Path(data).exists():
         raise ConfigError(f"{tree}: the dataset recorded in {source} ({data}) does not exist; "
                           f"pass --data")
-    print(f"plenoctree {command}: --data {data} (from {source})")
+    logger.info(f"plenoctree {command}: --data {data} (from {source})")
     return str(data)

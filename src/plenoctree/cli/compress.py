@@ -34,7 +34,7 @@ class CompressConfig:
     downscale: int = 4
     """integer image downscale for the PSNR check"""
     limit: int | None = None
-    """only the first N views"""
+    """only the first N views of the split (0 or default: all)"""
     views: int = 4
     """orbit views for the fidelity check without --data"""
     size: int = 128
@@ -83,14 +83,14 @@ def _check_out(src: Path, out: Path, suffixes: tuple[str, ...], what: str) -> No
 
 def _run_compress(cfg: CompressConfig, args: argparse.Namespace) -> int:
     from ..compression_report import compression_report, format_report
-    from ._output import check_json, output_file, write_json
+    from ._output import check_json, output_file, views_or_all, write_json
 
     src = Path(cfg.tree)
     out = Path(cfg.out) if cfg.out else src.with_suffix(".plnz")
     _check_out(src, out, (".plnz",), ".plnz")
     if isinstance(cfg.views, bool) or not isinstance(cfg.views, int) or cfg.views < 1:
-        raise ConfigError(f"--views must be a positive integer (orbit views for the fidelity "
-                          f"check), got {cfg.views!r}")
+        raise ConfigError(f"--orbit-views must be a positive integer (orbit views for the "
+                          f"fidelity check), got {cfg.views!r}")
     check_json(args)
     data = None
     with output_file(out, "compress", overwrite=args.overwrite, kind="tree"):
@@ -98,7 +98,7 @@ def _run_compress(cfg: CompressConfig, args: argparse.Namespace) -> int:
             from ..datasets import load_dataset
 
             data = load_dataset(cfg.data, split=cfg.split, downscale=cfg.downscale,
-                                limit=cfg.limit)
+                                limit=views_or_all(cfg.limit))
         rep = compression_report(src, out, cfg.codec.validated(), data=data,
                                  n_views=cfg.views, size=cfg.size, backend=cfg.backend,
                                  evaluate=cfg.evaluate)
@@ -138,7 +138,7 @@ def _run_lod(cfg: LodConfig, args: argparse.Namespace) -> int:
         print(f"{src}: {tree.data_format}, {tree.n_leaves} leaves, depth {tree.max_depth + 1}, "
               f"{src.stat().st_size / 1e6:.2f} MB")
         if cfg.target_mb is not None:
-            used, size = fit_to_size(tree, out, cfg.target_mb, base, copts, log=print)
+            used, size = fit_to_size(tree, out, cfg.target_mb, base, copts)
         else:
             used = base
             size = write_tree_file(make_lod(tree, base), out, copts)
@@ -151,7 +151,7 @@ def _run_lod(cfg: LodConfig, args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``compress``, ``decompress`` and ``lod`` commands."""
     from ._options import add_command
-    from ._output import add_json, add_overwrite
+    from ._output import VIEWS, add_json, add_overwrite
 
     codec = {"codec": {}}
     p = add_command(sub, "compress", CompressConfig, _run_compress,
@@ -159,7 +159,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     description="Quantise each SH basis's RGB coefficients by median cut into "
                     "2^bits float16 colours (uint16 index per leaf), keep sigma as float16, "
                     "DEFLATE the file. Prints the size ratio, timings and the PSNR change.",
-                    positional=("tree",), rename={"evaluate": "eval"}, nested=codec)
+                    positional=("tree",), nested=codec,
+                    fields={"evaluate": {"flag": "eval"}, "limit": VIEWS,
+                            "views": {"flag": "orbit-views", "metavar": "N"}})
     add_json(p, "the report")
     add_overwrite(p)
     p = add_command(sub, "decompress", DecompressConfig, _run_decompress,
@@ -172,6 +174,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "below --max-depth, empty leaves with opacity below --prune-alpha. With "
                     "--target-mb, reduce further step by step (prune 1 %, SH degree 2, prune "
                     "5 %, shallower depths, SH 1, SH 0) until the file fits.",
-                    positional=("tree",), required=("out",), nested={"lod": {}, **codec})
+                    positional=("tree",), fields={"out": {"required": True}},
+                    nested={"lod": {}, **codec})
     add_json(p, "a summary")
     add_overwrite(p)

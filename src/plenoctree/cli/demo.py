@@ -3,24 +3,39 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 
-def _run(cfg, args: argparse.Namespace) -> int:
+def _config(args: argparse.Namespace):
+    """The :class:`DemoConfig`: its defaults, then ``--config FILE``, then the flags given."""
+    from ..demo import DemoConfig
+    from ..pipeline import layer_settings
+    from ._options import layered
+    from ._output import quiet_progress
+
+    return quiet_progress(layered(args, DemoConfig(), "demo", layer_settings), args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from ..demo import run_demo
 
-    cfg.out = Path(cfg.out)
-    run_demo(cfg)
+    run_demo(_config(args))
     return 0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the ``demo`` command (one flag per :class:`DemoConfig` field)."""
+    """Add the ``demo`` command (``run``'s flags, with the demo's defaults)."""
     from ..demo import DemoConfig
-    from ._options import add_command
+    from ._options import add_config_file
+    from ._output import add_quiet
+    from .run import add_pipeline_flags
 
-    add_command(sub, "demo", DemoConfig, _run,
-                help="the whole chain on the embedded procedural scene",
-                description="Write the procedural scene as a dataset, train a NeRF-SH, "
-                            "extract, fine-tune, evaluate, compress, export the viewer and an "
-                            "orbit video; prints one summary table.")
+    p = sub.add_parser("demo", help="the whole chain on the embedded procedural scene",
+                       description="Write the procedural scene as a dataset, train a NeRF-SH, "
+                                   "extract, fine-tune, evaluate, compress, export the viewer "
+                                   "and an orbit video; prints one summary table. Takes "
+                                   "`plenoctree run`'s options (--help-all).")
+    add_config_file(p)
+    add_quiet(p)
+    dests = add_pipeline_flags(p, DemoConfig(), skip=("images", "nerf", "downscale",
+                                                      "nerf_eval_views"))
+    p.set_defaults(func=_run, _dests=dests, _resolve=_config)

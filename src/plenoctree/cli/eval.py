@@ -11,11 +11,12 @@ import argparse
 
 def _run(cfg, args: argparse.Namespace) -> int:
     from ..evaluation import eval_markdown, eval_tree_file
-    from ._output import write_json
+    from ._output import views_or_all, write_json
     from ._provenance import data_from_provenance
 
     from ._output import check_json
 
+    cfg.limit = views_or_all(cfg.limit)
     check_json(args)
     if cfg.out is not None:
         from .._util import check_output_dir
@@ -38,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     from ..datasets import FORMATS
     from ..evaluation import EvalConfig
     from ._options import add_command
-    from ._output import add_json, add_overwrite
+    from ._output import VIEWS, add_json, add_overwrite
 
     p = add_command(
         sub, "eval", EvalConfig, _run,
@@ -48,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "on disk), render FPS at the dataset resolution (median after a warm-up), "
                     "leaves, nodes and MB. Writes eval.json and eval.md.",
         base=lambda: EvalConfig(tree="", data=""), positional=("tree",), skip=("json_path",),
-        rename={"limit": "views", "show_progress": "progress"}, aliases={"limit": "--limit"},
-        choices={"format": FORMATS, "lpips_net": ("vgg", "alex", "squeeze")})
+        fields={"limit": VIEWS, "format": {"choices": FORMATS},
+                "lpips_net": {"choices": ("vgg", "alex", "squeeze")}})
     add_json(p, "the report")
     add_overwrite(p)

@@ -53,7 +53,7 @@ class ExportConfig:
     """mesh .glb: the scene's up axis, turned onto glTF's +Y (default +z, Blender scenes; +y for
     forward-facing NDC trees)"""
     show_progress: bool = True
-    """progress output (off: --quiet)"""
+    """progress output (off: --quiet or --no-progress)"""
 
 
 def _run(cfg: ExportConfig, args: argparse.Namespace) -> int:
@@ -95,7 +95,7 @@ def _export(cfg: ExportConfig, args: argparse.Namespace, tree, fmt: str, out: Pa
 
         mesh = export_mesh(tree, out, resolution=cfg.resolution, level=cfg.level,
                            smooth=cfg.smooth, view=cfg.view or "normal", up=cfg.up,
-                           show_progress=cfg.show_progress and not args.quiet)
+                           show_progress=cfg.show_progress)
         what = (f"mesh, {len(mesh.vertices)} vertices, {len(mesh.faces)} faces "
                 f"(sigma level {mesh.level:.4g})")
     if fmt != "svox" and tree.ndc is not None:
@@ -106,7 +106,7 @@ def _export(cfg: ExportConfig, args: argparse.Namespace, tree, fmt: str, out: Pa
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``export`` command (one flag per :class:`ExportConfig` field)."""
     from ._options import add_command
-    from ._output import add_overwrite, add_quiet
+    from ._output import add_overwrite
 
     p = add_command(
         sub, "export", ExportConfig, _run,
@@ -115,6 +115,5 @@ def register(sub: argparse._SubParsersAction) -> None:
         "leaf (centre, colour, opacity, density, size). mesh: marching cubes on the density "
         "sampled from the tree, vertex colours from the SH; opens in Blender and MeshLab. "
         "ply and mesh need the 'export' extra (plyfile, trimesh, scikit-image).",
-        positional=("tree",), required=("out",), rename={"show_progress": "progress"})
-    add_quiet(p, "no progress output")
+        positional=("tree",), fields={"out": {"required": True}})
     add_overwrite(p)

@@ -69,5 +69,4 @@ def register(sub: argparse._SubParsersAction) -> None:
                 description="Convert a trained NeRF-SH (RUN_DIR/checkpoint.pt) into a "
                 "PlenOctree (paper section 4.2): auto box, sigma grid, visibility filter over "
                 "the training views, per-voxel sampling, octree, test PSNR.",
-                positional=("run_dir",), short={"out": "-o"},
-                rename={"show_progress": "progress"})
+                positional=("run_dir",), fields={"out": {"short": "-o"}})

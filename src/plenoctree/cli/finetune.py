@@ -16,7 +16,6 @@ def _run(cfg, args: argparse.Namespace) -> int:
 
     if args.quiet:
         cfg.verbose = False
-        cfg.show_progress = False if cfg.show_progress is None else cfg.show_progress
     if not cfg.data and cfg.tree:
         cfg.data = data_from_provenance(cfg.tree, "finetune")
     res = finetune(cfg)
@@ -34,13 +33,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``finetune`` command."""
     from ..optim.finetuning import FinetuneConfig
     from ._options import add_command
-    from ._output import add_json, add_quiet
+    from ._output import add_json
 
     p = add_command(sub, "finetune", FinetuneConfig, _run,
                     help="fine-tune a tree's leaf values on the training images",
                     description="Optimise σ and the SH coefficients of every leaf on the "
                                 "training photos (tree structure fixed). Prints the test "
                                 "PSNR before and after.",
-                    positional=("tree",), skip=("verbose",), rename={"show_progress": "progress"})
-    add_quiet(p, "no per-epoch lines on stderr, no progress bar")
+                    positional=("tree",), skip=("verbose",))
     add_json(p, "the result")

@@ -32,6 +32,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "write a dataset that `plenoctree run --data` reads without flags: "
                     "nerfstudio transforms.json for 360° captures, LLFF poses_bounds.npy (NDC) "
                     "for forward-facing ones.",
-        positional=("images",), required=("out",),
-        choices={"scene": ("auto", "360", "forward")},
-        nested={"sfm": {"skip": ("mapper",), "title": "COLMAP (SfmOptions)"}})
+        positional=("images",),
+        fields={"out": {"required": True}, "scene": {"choices": ("auto", "360", "forward")}},
+        nested={"sfm": {"skip": ("mapper",)}})

@@ -33,4 +33,4 @@ def register(sub: argparse._SubParsersAction) -> None:
                 description="Score every leaf by the spread of the NeRF-SH inside it, "
                             "subdivide the worst (one level per pass), optionally merge "
                             "sibling leaves that agree; the tree stays svox-compatible.",
-                positional=("tree",), short={"out": "-o"}, rename={"show_progress": "progress"})
+                positional=("tree",), fields={"out": {"short": "-o"}})

@@ -62,7 +62,7 @@ class RenderConfig:
     height: int | None = None
     """render height (with --width)"""
     limit: int | None = None
-    """use only the first N views of the split (default: all)"""
+    """use only the first N views of the split (0 or default: all)"""
     backend: str = "auto"
     """auto, numba, triton or torch"""
     device: str = "auto"
@@ -71,6 +71,8 @@ class RenderConfig:
     """early ray termination when transmittance < this; 0 disables"""
     background: tuple[float, float, float] | None = None
     """white, black or R,G,B (default: the dataset's background)"""
+    show_progress: bool | None = None
+    """progress bar (default: when stderr is a terminal)"""
 
 
 def _render_options(cfg: RenderConfig, data_background):
@@ -113,6 +115,7 @@ def _run_dataset(cfg: RenderConfig, out: Path) -> int:
     from ..datasets import load_dataset
     from ..evaluation import evaluate_tree
     from ..compression import load_any_tree
+    from ._output import views_or_all
 
     if not cfg.data:
         from ._provenance import data_from_provenance
@@ -121,11 +124,12 @@ def _run_dataset(cfg: RenderConfig, out: Path) -> int:
     tree = load_any_tree(cfg.tree)
     bg = tuple(cfg.background) if cfg.background else (1.0, 1.0, 1.0)
     data = load_dataset(cfg.data, split=cfg.split, format=cfg.format,
-                        downscale=cfg.downscale, background=bg, limit=cfg.limit)
+                        downscale=cfg.downscale, background=bg, limit=views_or_all(cfg.limit))
     if cfg.width is not None:
         data = resize_dataset(data, cfg.width, cfg.height)
     options = _render_options(cfg, data.background)
-    res = evaluate_tree(tree, data, out, options, cfg.backend, device=cfg.device)
+    res = evaluate_tree(tree, data, out, options, cfg.backend, device=cfg.device,
+                        show_progress=cfg.show_progress)
     print(f"{len(res.names)} views at {res.width}x{res.height} -> {out}")
     ssim = (f"{res.mean_ssim:.4f}" if res.mean_ssim == res.mean_ssim
             else "n/a (images under the 11x11 SSIM window)")
@@ -147,9 +151,12 @@ def _run_camera_path(cfg: RenderConfig, out: Path) -> int:
     tree = load_any_tree(cfg.tree)
     options = _render_options(cfg, (1.0, 1.0, 1.0))
     cams = cp.cameras if tree.ndc is None else tree.ndc.apply(cp.cameras)   # NDC tree: NDC rays
-    if cfg.limit is not None:
+    from ._output import views_or_all
+
+    if views_or_all(cfg.limit):
         cams = cams.select(np.arange(min(cfg.limit, len(cams))))
-    paths = render_path_images(tree, cams, out, options, cfg.backend)
+    paths = render_path_images(tree, cams, out, options, cfg.backend,
+                               show_progress=cfg.show_progress)
     print(f"{len(paths)} frames at {cams.width}x{cams.height} along {cfg.camera_path} -> {out}")
     return 0
 
@@ -158,9 +165,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``render`` command (one flag per :class:`RenderConfig` field)."""
     from ..datasets import FORMATS
     from ._options import add_command
+    from ._output import VIEWS
 
     add_command(sub, "render", RenderConfig, _run,
                 help="render a tree over a dataset split (PNGs + metrics.json)",
-                positional=("tree",), rename={"limit": "views"}, aliases={"limit": "--limit"},
-                metavars={"camera_path": "JSON", "dataparser_transforms": "JSON", "limit": "N"},
-                choices={"format": FORMATS})
+                positional=("tree",),
+                fields={"limit": VIEWS, "camera_path": {"metavar": "JSON"},
+                        "dataparser_transforms": {"metavar": "JSON"},
+                        "format": {"choices": FORMATS}})

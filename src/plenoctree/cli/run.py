@@ -1,56 +1,38 @@
 """``plenoctree run``: the whole chain as a resumable pipeline on any dataset.
 
-Flags: one per :class:`~plenoctree.pipeline.PipelineConfig` field, and every option of the
-stages in :data:`~plenoctree.pipeline.STAGE_OPTIONS` as ``--<stage>.<field>``
-(``--train.lr-init``, ``--train.net-width``, ``--extract.bbox-scale``,
-``--finetune.optimizer``, ``--process.frames`` for ``--images``...), all generated from the config dataclasses. Values layer:
-``--preset`` → ``--config FILE`` (e.g. a previous run's ``OUT/config.json``) → flags.
+Flags: one per pipeline-wide :class:`~plenoctree.pipeline.PipelineConfig` field, and every
+stage option as ``--<stage>.<field>`` (``--train.lr-init``, ``--extract.bbox-scale``,
+``--finetune.epochs``, ``--process.frames`` for ``--images``...), shown by ``--help-all`` or
+``--help-stage STAGE``; all generated from the config dataclasses, one flag per setting.
+Values layer: ``--preset`` → ``--config FILE`` (e.g. a previous run's ``OUT/config.json``)
+→ flags.
 """
 
 from __future__ import annotations
 
 import argparse
-
-# Stage config fields the pipeline sets itself (paths between the stages).
-_STAGE_SKIP = {"train": ("data", "out", "preset", "model"),
-               "extract": ("run_dir", "out", "data"),
-               "refine": ("tree", "run_dir", "out", "data"),
-               "finetune": ("tree", "data", "out"),
-               "process": ("images", "out", "overwrite", "sfm")}
+from typing import Any
 
 
 def config_from_args(args: argparse.Namespace):
     """The :class:`PipelineConfig`: preset, then ``--config FILE``, then the flags given."""
-    from .._config import apply, load_config_file
-    from ..pipeline import STAGE_OPTIONS, pipeline_preset
-    from ._options import given
+    from ..pipeline import layer_settings, pipeline_preset
+    from ._options import layered
 
-    file = load_config_file(args._config_file)
-    cfg = pipeline_preset(args.run_preset or "cpu")
-    apply(cfg, file, where=str(args._config_file))
-    flags = given(args, args._dests)
-    stages = {k: flags.pop(k) for k in STAGE_OPTIONS if k in flags}
-    apply(cfg, flags, where="run")
-    for stage, values in stages.items():
-        merged = dict(cfg.extra.get(stage, {}))
-        for k, v in values.items():
-            if isinstance(v, dict):
-                merged[k] = {**merged.get(k, {}), **v}
-            else:
-                merged[k] = v
-        cfg.extra[stage] = merged
-    return cfg
+    return layered(args, pipeline_preset(args.run_preset or "cpu"), "run", layer_settings)
 
 
 def _run(args: argparse.Namespace) -> int:
-    from ..pipeline import run_pipeline
+    from ..pipeline import run_pipeline, wired
+    from ._output import quiet_progress
 
-    cfg = config_from_args(args)
+    cfg = quiet_progress(config_from_args(args), args)
     if args.print_config:
-        from .._config import config_dict
         import json
 
-        print(json.dumps(config_dict(cfg), indent=2))
+        from .._config import config_dict
+
+        print(json.dumps(config_dict(wired(cfg)), indent=2))
         return 0
     summary = run_pipeline(cfg)
     if summary.get("web"):
@@ -58,40 +40,35 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_stage_flags(p: argparse.ArgumentParser) -> list[str]:
-    """``--<stage>.<field>`` for every field of the stage configs; returns the dests."""
-    from ..convert.extraction import ExtractConfig
-    from ..nerf.config import ModelConfig, TrainConfig, preset
-    from ..optim.finetuning import FinetuneConfig
-    from ._options import add_config
+def add_pipeline_flags(p: argparse.ArgumentParser, shown: Any, skip: tuple[str, ...] = ()
+                       ) -> list[str]:
+    """The pipeline-wide flags of :class:`PipelineConfig` (or a subclass: the demo's) and, in
+    sections shown by ``--help-all`` / ``--help-stage``, ``--<stage>.<field>`` for every
+    stage option; returns the dests. ``shown``: the config whose values ``--help`` shows."""
+    from ..datasets.dataset import FORMATS
+    from ..pipeline import STAGE_OPTIONS
+    from ._options import add_config, hidden_sections
 
-    dests = add_config(p, TrainConfig, prefix="train.", shown=preset("cpu"),
-                       skip=_STAGE_SKIP["train"], title="training stage (--train.*)")
-    dests += add_config(p, ModelConfig, prefix="train.", dest_prefix="train.model.",
-                        title="network of the training stage (--train.*)")
-    dests += add_config(p, ExtractConfig, prefix="extract.", skip=_STAGE_SKIP["extract"],
-                        title="extraction stage (--extract.*)")
-    from ..convert.refine import RefineConfig
-
-    dests += add_config(p, RefineConfig, prefix="refine.", skip=_STAGE_SKIP["refine"],
-                        title="refinement stage (--refine.*)")
-    dests += add_config(p, FinetuneConfig, prefix="finetune.", skip=_STAGE_SKIP["finetune"],
-                        title="fine-tuning stage (--finetune.*)")
-    from ..process import ProcessConfig, SfmOptions
-
-    dests += add_config(p, ProcessConfig, prefix="process.", skip=_STAGE_SKIP["process"],
-                        title="camera poses of --images (--process.*, as `plenoctree "
-                              "process`'s options)", choices={"scene": ("auto", "360", "forward")})
-    dests += add_config(p, SfmOptions, prefix="process.", dest_prefix="process.sfm.",
-                        title="COLMAP options of --images (--process.*)")
+    stages = tuple(o.name for o in STAGE_OPTIONS)
+    group = p.add_argument_group("pipeline")
+    dests = add_config(group, type(shown), shown=shown, skip=stages + skip,
+                       fields={"format": {"choices": FORMATS}})
+    sections = {}
+    for opt in STAGE_OPTIONS:
+        sections[opt.name] = p.add_argument_group(f"{opt.name} stage: {opt.title}")
+        inner = getattr(shown, opt.name)
+        dests += add_config(sections[opt.name], type(inner), prefix=f"{opt.name}.",
+                            dest_prefix=f"{opt.name}.", shown=inner, skip=opt.wired,
+                            nested={n: {"skip": opt.wired} for n in opt.flat})
+    hidden_sections(p, sections)
     return dests
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``run`` command."""
-    from ..datasets.dataset import FORMATS
-    from ..pipeline import PRESETS, PipelineConfig
-    from ._options import add_config, add_config_file
+    from ..pipeline import PRESETS, pipeline_preset
+    from ._options import add_config_file
+    from ._output import add_quiet
 
     p = sub.add_parser(
         "run", help="photos -> NeRF-SH -> octree -> fine-tuned -> compressed + viewer (resumable)",
@@ -99,15 +76,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Run the whole chain on a dataset. Each stage writes its artefact "
                     "atomically and is skipped when its artefact and settings are unchanged, "
                     "so a killed run continues where it stopped. Every stage option is a flag "
-                    "(--train.*, --extract.*, --finetune.*); the options used are saved in "
-                    "OUT/config.json (reuse them with --config).")
+                    "--<stage>.<option> (--train.*, --extract.*, --refine.*, --finetune.*, "
+                    "--compress.*, --process.*; see --help-all or --help-stage STAGE); the "
+                    "settings used are saved in OUT/config.json (reuse them with --config).")
     p.add_argument("--preset", dest="run_preset", choices=sorted(PRESETS), default=None,
                    help="settings to start from: cpu (default), paper (the paper's NeRF-SH "
                         "and 512^3; for GPUs) or quick (a few minutes end to end)")
     add_config_file(p)
     p.add_argument("--print-config", action="store_true",
                    help="print the resolved configuration as JSON and exit")
-    dests = add_config(p, PipelineConfig, skip=("extra", "preset"),
-                       title="pipeline (PipelineConfig)", choices={"format": FORMATS})
-    dests += add_stage_flags(p)
+    add_quiet(p)
+    dests = add_pipeline_flags(p, pipeline_preset("cpu"))
     p.set_defaults(func=_run, _dests=dests)

@@ -51,18 +51,20 @@ class RenderNerfConfig:
 def register(sub) -> None:
     """Add ``train`` and ``render-nerf`` to the CLI."""
     from ..datasets.dataset import FORMATS
-    from ..nerf.config import ModelConfig, TrainConfig, preset
+    from ..nerf.config import ModelConfig, TrainConfig
+    from ..pipeline_config import PRESETS, train_preset
     from ._options import add_command, add_config, add_config_file
+    from ._output import add_progress, add_quiet
 
     p = sub.add_parser("train", help="train a NeRF-SH (paper §4.1) on posed images",
                        description="Train a NeRF-SH. Presets: 'cpu' (hash grid + occupancy "
-                       "grid, most quality per minute on a few cores) and 'paper' (the "
-                       "paper's 8x256 NeRF-SH, 64+128 samples; for GPUs). A killed run "
-                       "continues from its last checkpoint with --resume. Every option below "
-                       "is a TrainConfig/ModelConfig field; defaults shown are the cpu "
-                       "preset's.")
+                       "grid, most quality per minute on a few cores), 'paper' (the "
+                       "paper's 8x256 NeRF-SH, 64+128 samples; for GPUs) and 'quick' (cpu for "
+                       "3 minutes), as `plenoctree run --preset`. A killed run continues from "
+                       "its last checkpoint with --resume. Every option below is a "
+                       "TrainConfig/ModelConfig field; defaults shown are the cpu preset's.")
     p.add_argument("--out", required=True, help="run directory (checkpoint, logs, curve.png)")
-    p.add_argument("--preset", choices=["cpu", "paper"], default=None,
+    p.add_argument("--preset", choices=sorted(PRESETS), default=None,
                    help="starting configuration (default: cpu, or --config's)")
     add_config_file(p)
     p.add_argument("--resume", action="store_true",
@@ -70,29 +72,31 @@ def register(sub) -> None:
                         "kept; model options may not change)")
     p.add_argument("--print-config", action="store_true",
                    help="print the resolved configuration as JSON and exit")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    shown = preset("cpu")
-    dests = add_config(p, TrainConfig, shown=shown, skip=_TRAIN_SKIP,
-                       title="training (TrainConfig)", choices={"format": FORMATS})
-    dests += add_config(p, ModelConfig, dest_prefix="model.", shown=shown.model,
-                        title="network (ModelConfig)")
+    add_quiet(p)
+    add_progress(p)
+    shown = train_preset("cpu")
+    dests = add_config(p.add_argument_group("training (TrainConfig)"), TrainConfig, shown=shown,
+                       skip=_TRAIN_SKIP, fields={"format": {"choices": FORMATS}})
+    dests += add_config(p.add_argument_group("network (ModelConfig)"), ModelConfig,
+                        dest_prefix="model.", shown=shown.model)
     p.set_defaults(func=run_train, _dests=dests)
 
     add_command(sub, "render-nerf", RenderNerfConfig, run_render_nerf,
                 help="render a split with a trained NeRF-SH (the baseline)",
                 description="Render views with the network itself (no octree), in chunks, and "
                 "report PSNR, SSIM and seconds per frame.", positional=("run_dir",),
-                choices={"amp": ("auto", "bf16", "off")})
+                fields={"amp": {"choices": ("auto", "bf16", "off")}})
 
 
 def build_config(args: argparse.Namespace):
     """The :class:`TrainConfig` of parsed ``train`` arguments: preset, then ``--config FILE``,
     then the flags given. Returns ``(config, given flags)``."""
-    from ..nerf.config import preset, validate
+    from ..nerf.config import validate
+    from ..pipeline_config import time_budget, train_preset
     from ._options import apply, given, load_config_file
 
     file = load_config_file(args._config_file)
-    cfg = preset(args.preset or file.get("preset", "cpu"))
+    cfg = train_preset(args.preset or file.get("preset", "cpu"))
     apply(cfg, {k: v for k, v in file.items() if k != "preset"},
           where=str(args._config_file or "config"))
     cfg.out = args.out
@@ -101,8 +105,7 @@ def build_config(args: argparse.Namespace):
     flat = {**flags, **flags.get("model", {})}
     if "batch_rays" in flat and "max_rays" not in flat:
         cfg.max_rays = cfg.batch_rays
-    if "minutes" in flat and "max_steps" not in flat:
-        cfg.max_steps = 10**9
+    time_budget(cfg, flags)
     return validate(cfg), flags
 
 
@@ -110,14 +113,14 @@ def _resume_config(args: argparse.Namespace, given: dict):
     """The checkpoint's configuration with the flags given on this command line applied."""
     from ..nerf.checkpoint import CHECKPOINT_NAME, read_checkpoint
     from ..nerf.config import validate
+    from ..pipeline_config import time_budget
     from ._options import apply
 
     ck = read_checkpoint(Path(args.out) / CHECKPOINT_NAME)
     cfg = ck["config"]
     cfg.out = args.out
     apply(cfg, given, where="train")
-    if "minutes" in given and "max_steps" not in given:
-        cfg.max_steps = 10**9
+    time_budget(cfg, given)
     return validate(cfg)
 
 
@@ -133,7 +136,10 @@ def run_train(args: argparse.Namespace) -> int:
         return 0
     if not cfg.data:
         raise ConfigError("--data is required (the dataset folder)")
-    res = train(cfg, resume=args.resume, quiet=True if args.quiet else None)
+    progress = args.show_progress if args.show_progress is not None else (
+        False if args.quiet else None)
+    quiet = None if progress is None else not progress
+    res = train(cfg, resume=args.resume, quiet=quiet)
     print(f"trained {res.step} steps in {res.train_time_s / 60:.1f} min of training; "
           f"validation PSNR {res.val_psnr:.2f} dB; run directory {res.run_dir}")
     return 0

@@ -32,6 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                 description="Render a tree along a camera path into an H.264 video (needs the "
                             "plenoctree[video] extra: imageio, imageio-ffmpeg).",
                 base=lambda: VideoConfig(tree=""), positional=("tree",),
-                rename={"show_progress": "progress"},
-                metavars={"camera_path": "JSON", "dataparser_transforms": "JSON"},
-                choices={"path": PATHS, "format": FORMATS, "up": UP_AXES, "mode": MODES})
+                fields={"camera_path": {"metavar": "JSON"},
+                        "dataparser_transforms": {"metavar": "JSON"},
+                        "path": {"choices": PATHS}, "format": {"choices": FORMATS},
+                        "up": {"choices": UP_AXES}, "mode": {"choices": MODES}})

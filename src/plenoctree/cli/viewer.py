@@ -146,4 +146,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_command(sub, "export-web", ExportWebConfig, _run_export,
                 help="write a static viewer bundle (page + tree)",
                 description="Write the viewer page and TREE into a folder that any static web "
-                "host can serve.", positional=("tree",), required=("out",))
+                "host can serve.", positional=("tree",), fields={"out": {"required": True}})

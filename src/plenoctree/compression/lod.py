@@ -17,6 +17,7 @@ Three reductions, each returning a new tree (the input is never modified):
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import tempfile
@@ -33,6 +34,8 @@ from .fileio import save_compressed
 
 __all__ = ["LodOptions", "truncate_sh", "prune", "merge_to_depth", "make_lod", "fit_to_size",
            "write_tree_file"]
+
+logger = logging.getLogger(__name__)
 
 _MIN_T = 1e-30
 
@@ -246,8 +249,8 @@ def _schedule(tree: Octree, base: LodOptions) -> list[LodOptions]:
 
 
 def fit_to_size(tree: Octree, out_path: str | os.PathLike, target_mb: float,
-                base: LodOptions | None = None, compress_options: CompressOptions | None = None,
-                log: Callable[[str], None] | None = None) -> tuple[LodOptions, int]:
+                base: LodOptions | None = None, compress_options: CompressOptions | None = None
+                ) -> tuple[LodOptions, int]:
     """Write the least-reduced level of detail of ``tree`` whose file is ``<= target_mb``.
 
     Tries :func:`make_lod` with the settings of a fixed schedule (prune 1 %, SH degree 2,
@@ -273,8 +276,7 @@ def fit_to_size(tree: Octree, out_path: str | os.PathLike, target_mb: float,
         with tempfile.TemporaryDirectory(dir=out_path.parent) as tmp:
             tmp_path = Path(tmp) / out_path.name
             size = write_tree_file(lod, tmp_path, compress_options)
-            if log:
-                log(f"  {cand.describe():<45s} {lod.n_leaves:>10d} leaves  {size / 1e6:9.2f} MB")
+            logger.info(f"  {cand.describe():<45s} {lod.n_leaves:>10d} leaves  {size / 1e6:9.2f} MB")
             if size <= budget:
                 os.replace(tmp_path, out_path)
                 return cand, size

@@ -22,13 +22,13 @@ half-written output.
 
 from __future__ import annotations
 
+import logging
 import json
 import os
 import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -37,6 +37,8 @@ from .frames import VIDEO_SUFFIXES, is_video, list_photos, require_video_reader,
 from .sfm import ProcessError, SfmOptions, require_pycolmap, run_sfm
 
 __all__ = ["ProcessConfig", "process", "ProcessError", "SfmOptions", "DOWNSCALES"]
+
+logger = logging.getLogger(__name__)
 
 DOWNSCALES = (2, 4, 8)
 
@@ -103,7 +105,7 @@ def _check_out(out: Path, overwrite: bool) -> None:
                           "--out or pass --overwrite")
 
 
-def process(cfg: ProcessConfig, log: Callable[[str], None] = print) -> dict:
+def process(cfg: ProcessConfig) -> dict:
     """Run the whole processing (module docstring); returns the ``process.json`` summary.
 
     Raises:
@@ -125,12 +127,12 @@ def process(cfg: ProcessConfig, log: Callable[[str], None] = print) -> dict:
     try:
         work = stage / ".work"
         if video:
-            photos = video_frames(src, work / "frames", cfg.frames, cfg.drop_blurry, log)
+            photos = video_frames(src, work / "frames", cfg.frames, cfg.drop_blurry)
         image_dir = photos[0].parent
         names = [p.name for p in photos]
-        log(f"process: {len(names)} images from {src}")
-        res = run_sfm(image_dir, work, names, cfg.sfm, sequential=video, log=log, label=src)
-        summary = _write_dataset(res, image_dir, names, stage, work, cfg, log)
+        logger.info(f"process: {len(names)} images from {src}")
+        res = run_sfm(image_dir, work, names, cfg.sfm, sequential=video, label=src)
+        summary = _write_dataset(res, image_dir, names, stage, work, cfg)
         summary.update(source=str(src), video=video, seconds_total=time.perf_counter() - t_start,
                        config={k: v for k, v in asdict(cfg).items()})
         shutil.rmtree(work)
@@ -145,7 +147,7 @@ def process(cfg: ProcessConfig, log: Callable[[str], None] = print) -> dict:
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
-    log(f"process: wrote {summary['format']} dataset ({summary['kind']} capture, "
+    logger.info(f"process: wrote {summary['format']} dataset ({summary['kind']} capture, "
         f"{summary['n_registered']} of {summary['n_images']} images registered) to {out}")
     return summary
 
@@ -162,7 +164,7 @@ def _crop_box(w: int, h: int, cx: float, cy: float, centred: bool) -> tuple[int,
 
 
 def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Path,
-                   cfg: ProcessConfig, log: Callable[[str], None]) -> dict:
+                   cfg: ProcessConfig) -> dict:
     """Undistort, normalise and write the dataset into ``stage``; returns the summary."""
     import pycolmap
     from PIL import Image
@@ -253,7 +255,7 @@ def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Pa
     model_out.mkdir(parents=True)
     for p in (und / "sparse").iterdir():
         shutil.copy2(p, model_out / p.name)
-    log(f"process: {frame.kind} capture -> {fmt_name} dataset, images {w}x{h}")
+    logger.info(f"process: {frame.kind} capture -> {fmt_name} dataset, images {w}x{h}")
     return {"format": fmt_name, "kind": frame.kind, "n_images": len(names),
             "n_registered": len(reg), "n_models": res.n_models,
             "unregistered": sorted(set(names) - set(reg)), "image_size": [w, h],

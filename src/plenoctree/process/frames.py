@@ -13,11 +13,11 @@ once, in order, and only one candidate per run is held in memory.
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 import os
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -25,6 +25,8 @@ from .sfm import ProcessError
 
 __all__ = ["list_photos", "video_frames", "sharpness", "is_video", "require_video_reader",
            "VIDEO_SUFFIXES", "PHOTO_SUFFIXES"]
+
+logger = logging.getLogger(__name__)
 
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
@@ -110,7 +112,7 @@ def decoder_message(e: BaseException) -> str:
 
 
 def video_frames(video: str | os.PathLike, out_dir: str | os.PathLike, n_frames: int = 150,
-                 drop: float = 0.5, log: Callable[[str], None] = print) -> list[Path]:
+                 drop: float = 0.5) -> list[Path]:
     """Write ``n_frames`` sharp, evenly spread frames of ``video`` as ``out_dir/frame_NNNNN.png``
     (``NNNNN``: the frame's number in the video, from 0): the sharpest of each run of
     ``1 / (1 - drop)`` evenly spaced candidates (module docstring).
@@ -171,6 +173,6 @@ def video_frames(video: str | os.PathLike, out_dir: str | os.PathLike, n_frames:
     finally:
         reader.close()
     flush()
-    log(f"video: {len(paths)} of {total} frames kept (the sharpest of each run of "
+    logger.info(f"video: {len(paths)} of {total} frames kept (the sharpest of each run of "
         f"{len(want) / max(1, len(paths)):.2g} evenly spaced candidates)")
     return paths

@@ -26,16 +26,19 @@ follows the features (:func:`min_inliers`).
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 from ..errors import ConfigError, PlenOctreeError
 
 __all__ = ["SfmOptions", "SfmResult", "run_sfm", "require_pycolmap", "check_options",
            "ProcessError", "sequential_pairs", "min_inliers"]
+
+logger = logging.getLogger(__name__)
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV",
                  "OPENCV_FISHEYE")
@@ -155,7 +158,7 @@ def _mapper_options(pycolmap: Any, opts: SfmOptions) -> Any:
 
 def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Sequence[str],
             opts: SfmOptions | None = None, sequential: bool = False,
-            log: Callable[[str], None] = print, show_progress: bool | None = None,
+            show_progress: bool | None = None,
             label: str | os.PathLike | None = None) -> SfmResult:
     """Features, matches and an incremental reconstruction of ``names`` in ``image_dir``.
 
@@ -236,7 +239,7 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     cap = popt.mapper.abs_pose_min_num_inliers
     popt.mapper.abs_pose_min_num_inliers = min_inliers(n_kp[len(n_kp) // 2], cap)
     if popt.mapper.abs_pose_min_num_inliers < cap:
-        log(f"colmap: {n_kp[len(n_kp) // 2]} features in the median image: an image is "
+        logger.info(f"colmap: {n_kp[len(n_kp) // 2]} features in the median image: an image is "
             f"registered with >= {popt.mapper.abs_pose_min_num_inliers} inliers")
     sparse = work / "sparse"
     sparse.mkdir(exist_ok=True)
@@ -253,14 +256,14 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     best = max(models.values(), key=lambda r: r.num_reg_images())
     weak = drop_weak_images(best, WEAK_IMAGE_FRACTION)
     if weak:
-        log(f"colmap: {len(weak)} weakly supported image(s) left out: {', '.join(weak)}")
+        logger.info(f"colmap: {len(weak)} weakly supported image(s) left out: {', '.join(weak)}")
     # A final global bundle adjustment of the chosen model.
     pycolmap.logging.minloglevel = 2          # (the mapper resets COLMAP's log level)
     t0 = time.perf_counter()
     _global_ba(pycolmap, best)
     times["final_ba"] = time.perf_counter() - t0
     n_reg = best.num_reg_images()
-    log(f"colmap: {n_reg} of {len(names)} images registered"
+    logger.info(f"colmap: {n_reg} of {len(names)} images registered"
         + (f" (largest of {len(models)} models)" if len(models) > 1 else ""))
     if n_reg < 3:
         raise ProcessError(f"{label}: only {n_reg} of {len(names)} images could be "

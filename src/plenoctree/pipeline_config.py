@@ -1,0 +1,248 @@
+"""The settings of the pipeline: :class:`PipelineConfig` (pipeline-wide settings plus one typed
+config per stage), its presets, and how ``run`` exposes each stage as ``--<stage>.*`` flags.
+
+Each setting has one place: the stage configs' paths between the stages and their copies of
+pipeline-wide settings (``train.seed`` ← ``seed``) are set by :func:`wired`, never given.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from ._config import apply, flag_name, spell_flags
+from .compression.codec import CompressOptions
+from .convert.extraction import ExtractConfig
+from .convert.refine import RefineConfig
+from .errors import ConfigError
+from .nerf.config import TrainConfig
+from .optim.finetuning import FinetuneConfig
+from .process import ProcessConfig
+
+__all__ = ["PipelineConfig", "StageOptions", "STAGE_OPTIONS", "PRESETS", "UNLIMITED_STEPS",
+           "pipeline_preset", "train_preset", "time_budget", "layer_settings", "wired",
+           "stage_flags", "name_the_flags", "nerf_run_dir"]
+
+UNLIMITED_STEPS = 10**9
+"""``train.max_steps`` when the time budget (``train.minutes``) decides."""
+
+
+def train_preset(name: str) -> TrainConfig:
+    """The NeRF-SH training settings of preset ``name``: ``cpu`` and ``paper`` (the trainer's
+    presets) or ``quick`` (cpu with a 3-minute budget). ``plenoctree train --preset`` and
+    ``run --preset`` take the same names."""
+    from .nerf.config import preset
+
+    if name == "quick":
+        return dataclasses.replace(preset("cpu"), minutes=3.0, max_steps=UNLIMITED_STEPS)
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    return preset(name)
+
+
+def _run_train() -> TrainConfig:
+    """``run``'s default training: the cpu preset for 30 minutes (the budget decides)."""
+    return dataclasses.replace(train_preset("cpu"), minutes=30.0, max_steps=UNLIMITED_STEPS)
+
+
+@dataclass
+class PipelineConfig:
+    """Settings of ``plenoctree run`` (and of the demo, which fills them for its scene).
+
+    The stage configs' paths between the stages (``extract.run_dir``, ``finetune.tree``...)
+    and the fields that copy a pipeline-wide setting (``train.seed`` ← ``seed``...) are set by
+    the pipeline (:func:`wired`, :data:`STAGE_OPTIONS`); ``config.json`` shows them as run.
+    """
+
+    data: str = ""
+    """dataset folder (any supported format)"""
+    images: str = ""
+    """your photos (a folder) or a video instead of --data: the first stage, `process`
+    (COLMAP poses), writes the dataset OUT/data"""
+    out: str = ""
+    """output folder: every artefact of the chain goes there"""
+    format: str | None = None
+    """dataset format (default: detected from the folder)"""
+    nerf: str = ""
+    """a trained NeRF-SH (run folder holding checkpoint.pt, or the checkpoint) to start from:
+    the train stage is skipped and the folder is only read"""
+    downscale: int = 1
+    """integer area downscale of the images for every stage (2 = lego at 400²)"""
+    backend: str = "auto"
+    """renderer backend: auto, numba, triton or torch"""
+    device: str = "auto"
+    """device of every stage but refinement (--refine.device): auto (CUDA when a GPU is
+    present, else cpu), cpu, cuda or cuda:N"""
+    threads: int = 0
+    """CPU threads of training and extraction (0 = all)"""
+    seed: int = 0
+    """random seed of training, extraction, refinement and fine-tuning"""
+    show_progress: bool | None = None
+    """progress bars of the stages (default: training, extraction and fine-tuning when stderr
+    is a terminal)"""
+    eval_views: int = 0
+    """test views scored per octree stage, evenly spaced over the split (0 = all)"""
+    nerf_eval_views: int = 2
+    """test views rendered with the NeRF-SH for its PSNR and speed baseline, evenly spaced
+    (0 = all, -1 = skip)"""
+    video_frames: int = 60
+    """frames of the orbit video (0 = no video)"""
+    video_size: int = 0
+    """orbit video width/height in pixels (0 = the dataset's)"""
+    web: bool = True
+    """export the static web-viewer bundle"""
+    process: ProcessConfig = field(default_factory=lambda: ProcessConfig(overwrite=True))
+    """camera poses of --images (`plenoctree process`)"""
+    train: TrainConfig = field(default_factory=_run_train)
+    """NeRF-SH training (`plenoctree train`)"""
+    extract: ExtractConfig = field(default_factory=lambda: ExtractConfig(eval=False))
+    """octree extraction (`plenoctree extract`)"""
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    """adaptive refinement (`plenoctree refine`; --refine.passes 0 = off)"""
+    finetune: FinetuneConfig = field(default_factory=lambda: FinetuneConfig(
+        precision="fp32", test_views=-1, resume=True, verbose=False))
+    """fine-tuning (`plenoctree finetune`)"""
+    compress: CompressOptions = field(default_factory=CompressOptions)
+    """compression of the fine-tuned tree (`plenoctree compress`)"""
+
+
+@dataclass(frozen=True)
+class StageOptions:
+    """How one stage config of :class:`PipelineConfig` becomes ``run``'s ``--<name>.*`` flags."""
+
+    name: str
+    """the field of :class:`PipelineConfig` and the flag prefix"""
+    wired: tuple[str, ...]
+    """fields set by the pipeline (paths, copies of pipeline-wide settings) or by ``--preset``
+    (``train.preset``): no flag"""
+    title: str
+    """the help section"""
+    flat: tuple[str, ...] = ()
+    """nested config fields whose own fields are flags under the same prefix (train.model)"""
+
+
+STAGE_OPTIONS = (
+    StageOptions("process", ("images", "out", "overwrite"), "camera poses of --images "
+                 "(as `plenoctree process`)", ("sfm",)),
+    StageOptions("train", ("data", "out", "preset", "format", "downscale", "device", "threads",
+                           "seed"), "NeRF-SH training (as `plenoctree train`)", ("model",)),
+    StageOptions("extract", ("run_dir", "out", "data", "eval", "eval_views", "eval_downscale",
+                             "eval_out", "backend", "device", "threads", "seed",
+                             "show_progress"), "octree extraction (as `plenoctree extract`)"),
+    StageOptions("refine", ("tree", "run_dir", "out", "data", "averaging", "eval_views", "seed",
+                            "show_progress"), "adaptive refinement (as `plenoctree refine`)"),
+    StageOptions("finetune", ("tree", "data", "out", "downscale", "backend", "device", "seed",
+                              "test_views", "resume", "verbose", "show_progress", "checkpoint",
+                              "log"), "fine-tuning (as `plenoctree finetune`)"),
+    StageOptions("compress", (), "compression (as `plenoctree compress`)"),
+)
+"""The stages whose settings ``run`` exposes as ``--<stage>.<field>`` flags."""
+
+
+def _preset_paper() -> PipelineConfig:
+    cfg = PipelineConfig(train=train_preset("paper"))
+    cfg.extract.grid, cfg.extract.samples, cfg.extract.bbox_scale = 512, 256, 1.1
+    return cfg
+
+
+def _preset_quick() -> PipelineConfig:
+    cfg = PipelineConfig(train=train_preset("quick"), nerf_eval_views=1, eval_views=5,
+                         video_frames=0)
+    cfg.extract.grid, cfg.extract.samples, cfg.finetune.epochs = 128, 4, 2
+    return cfg
+
+
+PRESETS: dict[str, Callable[[], PipelineConfig]] = {
+    "cpu": PipelineConfig, "paper": _preset_paper, "quick": _preset_quick}
+"""``plenoctree run --preset NAME``: ``cpu`` (the defaults: cpu NeRF-SH preset for 30 minutes,
+256³), ``paper`` (the paper's NeRF-SH, 512³, 256 samples per voxel; for GPUs), ``quick`` (a few
+minutes end to end, to try a dataset)."""
+
+
+def pipeline_preset(name: str) -> PipelineConfig:
+    """A fresh :class:`PipelineConfig` of preset ``name`` (see :data:`PRESETS`)."""
+    if name not in PRESETS:
+        raise ConfigError(f"unknown run preset {name!r}; choose one of {sorted(PRESETS)}")
+    return PRESETS[name]()
+
+
+def time_budget(train: TrainConfig, given: dict) -> None:
+    """A training budget given without a step count decides alone: ``minutes > 0`` lifts the
+    step limit, ``minutes == 0`` restores the preset's steps (``given``: the values set)."""
+    if "minutes" in given and "max_steps" not in given:
+        train.max_steps = (UNLIMITED_STEPS if train.minutes > 0
+                           else train_preset(train.preset).max_steps)
+
+
+def layer_settings(cfg: PipelineConfig, values: dict, where: str) -> PipelineConfig:
+    """Set ``values`` (nested dicts, e.g. a ``config.json`` or the flags given) on ``cfg``,
+    with the training-budget rule of :func:`time_budget`; unknown names raise ConfigError."""
+    apply(cfg, values, where=where)
+    time_budget(cfg.train, values.get("train") or {})
+    return cfg
+
+
+def nerf_run_dir(nerf: str) -> Path:
+    """The run folder of ``--nerf`` (a folder holding the checkpoint, or the checkpoint)."""
+    from .nerf.checkpoint import CHECKPOINT_NAME
+
+    p = Path(nerf)
+    return p.parent if p.name == CHECKPOINT_NAME and p.is_file() else p
+
+
+def wired(cfg: PipelineConfig) -> PipelineConfig:
+    """A copy of ``cfg`` whose stage configs hold what each stage runs with: the paths between
+    the stages and the pipeline-wide settings (the :data:`STAGE_OPTIONS` ``wired`` fields)."""
+    c = copy.deepcopy(cfg)
+    out = Path(c.out)
+    data = str(out / "data") if c.images else c.data
+    run_dir = str(nerf_run_dir(c.nerf) if c.nerf else out / "nerf")
+    tree, refined = str(out / "tree.npz"), str(out / "tree_refined.npz")
+    shared = {"seed": c.seed, "device": c.device, "backend": c.backend, "threads": c.threads,
+              "downscale": c.downscale, "format": c.format}
+    refine_progress = bool(c.show_progress)     # refinement shows bars only when asked
+    paths = {
+        "process": {"images": c.images, "out": str(out / "data"), "overwrite": True},
+        "train": {"data": data, "out": run_dir},
+        "extract": {"run_dir": run_dir, "out": tree, "data": data, "eval": False,
+                    "show_progress": c.show_progress},
+        "refine": {"tree": tree, "run_dir": run_dir, "out": refined, "data": data,
+                   "averaging": c.extract.averaging, "eval_views": 0,
+                   "show_progress": refine_progress},
+        "finetune": {"tree": refined if c.refine.passes > 0 else tree, "data": data,
+                     "out": str(out / "tree_ft.npz"), "test_views": -1, "resume": True,
+                     "verbose": False, "show_progress": c.show_progress, "checkpoint": None,
+                     "log": None},
+    }
+    for opt in STAGE_OPTIONS:
+        stage_cfg = getattr(c, opt.name)
+        for name in opt.wired:
+            if name in paths.get(opt.name, {}):
+                setattr(stage_cfg, name, paths[opt.name][name])
+            elif name in shared:
+                setattr(stage_cfg, name, shared[name])
+    return c
+
+
+def stage_flags(opt: StageOptions) -> dict[str, str]:
+    """``{field name: flag}`` of one stage's ``run`` flags (``max_steps`` → ``--train.steps``)."""
+    cfg = getattr(PipelineConfig(), opt.name)
+    flags = {}
+    for owner in [cfg] + [getattr(cfg, n) for n in opt.flat]:
+        for f in dataclasses.fields(owner):
+            if f.name not in opt.wired and f.name not in opt.flat and f.metadata.get("cli", True):
+                flags[f.name] = flag_name(f, opt.name + ".")
+    return flags
+
+
+def name_the_flags(opt: StageOptions, message: str) -> str:
+    """``message`` with the stage's fields and bare flags spelled as ``run``'s flags
+    (``--grid`` / ``finetune: lr_decay must`` → ``--extract.grid`` / ``--finetune.lr-decay
+    must``)."""
+    flags = stage_flags(opt)
+    dashed = {f"--{name.replace('_', '-')}": flag for name, flag in flags.items()}
+    dashed.update({flag.replace(f"--{opt.name}.", "--"): flag for flag in flags.values()})
+    return spell_flags(message, flags, dashed)
