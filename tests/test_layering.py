@@ -63,10 +63,14 @@ ALLOWED: dict[str, set[str]] = {
     "optim": _LEAF | {"_lazy", "_util", "_triton", "backend", "device", "plots", "datasets",
                       "octree", "render", "evaluation"},
     "_config": _LEAF,
+    "pipeline_config": _LEAF | {"_config", "compression", "convert", "nerf", "optim",
+                                "process"},
+    "pipeline_summary": _LEAF | {"_config", "device"},
     "pipeline": _LEAF | {"_config", "_util", "device", "plots", "datasets", "octree",
                          "compression", "evaluation", "process", "nerf", "convert", "optim",
-                         "video", "viewer"},
-    "demo": _LEAF | {"_util", "datasets", "optim", "pipeline"},
+                         "video", "viewer", "pipeline_config", "pipeline_summary"},
+    "demo": _LEAF | {"_util", "datasets", "optim", "convert", "pipeline", "pipeline_config",
+             "nerf"},
     "cli": None,          # everything (filled in below)
     "__main__": {"cli"},
 }
