@@ -156,6 +156,9 @@ class _Handler(BaseHTTPRequestHandler):
     server: _Server
     protocol_version = "HTTP/1.1"
     timeout = IDLE_TIMEOUT_S     # socket timeout: idle keep-alive and slow clients are dropped
+    # headers and body are two writes: with Nagle's algorithm the body would wait for the
+    # client's delayed ACK of the headers (~40 ms per frame on Linux)
+    disable_nagle_algorithm = True
 
     def log_message(self, fmt: str, *args: Any) -> None:      # quiet unless asked
         if self.server.verbose:

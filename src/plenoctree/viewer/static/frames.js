@@ -122,6 +122,7 @@ export class CpuFrames {
       const resp = await fetch(`frame?${frameQuery(view, opts, q)}`, { cache: "no-store" });
       if (!resp.ok) throw new FrameError(`the server could not draw this view: ${(await resp.text()).trim()}`);
       const renderMs = Number(resp.headers.get("X-Render-Ms")) || 0;
+      const encodeMs = Number(resp.headers.get("X-Encode-Ms")) || 0;
       const bmp = await createImageBitmap(await resp.blob());
       const [W, H] = target || [view.width, view.height];
       if (this.canvas.width !== W || this.canvas.height !== H) {
@@ -135,7 +136,7 @@ export class CpuFrames {
       const full = scale === 1;
       if (full) this.sharpKey = key;
       this._adapt(ms, renderMs, view.width * view.height, W * H);
-      this.stats.add({ width: view.width, height: view.height, full, ms, renderMs, key });
+      this.stats.add({ width: view.width, height: view.height, full, ms, renderMs, encodeMs, key });
     } catch (err) {
       this.sentKey = null;
       if (chain) this.onError(err);
