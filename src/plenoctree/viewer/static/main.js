@@ -436,7 +436,7 @@ function glTick(now, continuous) {
       glPending = drawFrame(moving ? autoScale : 1);
       needFull = moving && autoScale < 1;
     } else {
-      glPending = drawFrame(scaleMode === "auto" ? 1 : Number(scaleMode));
+      glPending = drawFrame(Number(scaleMode));
     }
   } else if (needFull && now - lastChange >= FULL_AFTER_MS) {
     needFull = false;
