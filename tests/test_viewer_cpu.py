@@ -289,5 +289,33 @@ def test_webgl_mode_label_and_no_sync_readback_in_the_frame_loop(browser, proc):
             page.close()
 
 
+def test_webgl_full_frame_refined_in_bands_equals_the_direct_frame(browser, proc):
+    """A slow full frame is drawn in bands into an offscreen target over several animation
+    frames (the page never stalls for a whole frame), then shown: the same pixels as drawing
+    it at once. ``?band_ms=0.5`` makes every full frame banded."""
+    with ViewerServer(proc, port=0) as srv:
+        page = _open(browser, srv.url + "?band_ms=0.5")
+        try:
+            box = page.locator("#canvas").bounding_box()
+            page.mouse.move(box["x"] + 100, box["y"] + 100)
+            page.mouse.down()
+            page.mouse.move(box["x"] + 150, box["y"] + 120, steps=3)
+            page.mouse.up()
+            n = len(page.evaluate("window.viewer.stats().log"))
+            page.wait_for_function(f"window.viewer.stats().log.slice({n}).some(e => e.bands)",
+                                   timeout=60_000)
+            last = page.evaluate("window.viewer.stats().last")
+            assert last["full"] and last["bands"]
+            banded = page.evaluate("window.viewer.pixels()")
+            page.evaluate("window.viewer.render()")                   # the same view at once
+            direct = page.evaluate("window.viewer.pixels()")
+        finally:
+            page.close()
+    a = np.frombuffer(base64.b64decode(banded), np.uint8)
+    b = np.frombuffer(base64.b64decode(direct), np.uint8)
+    assert a.shape == b.shape and np.abs(a.astype(int) - b).max() <= 1
+    assert b.std() > 10
+
+
 if __name__ == "__main__":                 # pragma: no cover
     sys.exit(pytest.main([__file__, "-q"]))

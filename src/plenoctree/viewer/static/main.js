@@ -32,7 +32,11 @@ let fixedView = null;     // a camera set by a script (setView) replaces the orb
 let scaleMode = params.get("scale") || "auto";
 let autoScale = 1;
 const TARGET_MS = 60;
-const FULL_AFTER_MS = 300;   // WebGL: the full-resolution frame this long after the last change
+const FULL_AFTER_MS = 100;   // WebGL: the full-resolution frame this long after the last change
+// WebGL: a full frame slower than this is refined in bands this long (URL: ?band_ms=)
+const BAND_MS = Number(params.get("band_ms")) || 40;
+let fullMsEst = 0;           // WebGL: measured ms of a full-resolution frame
+let refine = null;           // WebGL: the full frame being refined band by band (see glTick)
 let dirty = true;
 let lastChange = 0;
 let needFull = false;
@@ -392,6 +396,7 @@ function glFrameDone(f, ms) {
   lastFrameMs = ms;
   if (scaleMode === "auto" && !fixedView && f.scale > 0) {
     const fullMs = ms / (f.scale * f.scale);
+    fullMsEst = fullMs;
     autoScale = Math.max(0.2, Math.min(1, Math.sqrt(TARGET_MS / Math.max(fullMs, 1e-3))));
   }
   stats.add({ width: f.width, height: f.height, full: f.scale === 1, ms });
@@ -421,16 +426,23 @@ function showRate() {
   if ($("fps").textContent !== text) $("fps").textContent = text;
 }
 
+// One animation frame of the WebGL mode: poll the frame in flight (a fence: never a read-back),
+// then draw the next one: a moving camera at the auto scale, else the full-resolution frame,
+// at once when it is fast (under BAND_MS) or refined in bands of about BAND_MS each into an
+// offscreen target, shown when complete (a slow GPU, e.g. software GL, never stalls the page
+// for a whole frame); a camera move drops the refinement.
 function glTick(now, continuous) {
   if (glPending) {
     const gl = renderer.gl;
     if (gl.getSyncParameter(glPending.sync, gl.SYNC_STATUS) !== gl.SIGNALED) return;
     gl.deleteSync(glPending.sync);
-    glFrameDone(glPending, now - glPending.t0);
+    if (glPending.band) bandDone(now, glPending);
+    else glFrameDone(glPending, now - glPending.t0);
     glPending = null;
   }
   if (dirty || continuous) {
     dirty = false;
+    refine = null;
     if (scaleMode === "auto") {
       const moving = continuous || now - lastChange < FULL_AFTER_MS;
       glPending = drawFrame(moving ? autoScale : 1);
@@ -438,10 +450,47 @@ function glTick(now, continuous) {
     } else {
       glPending = drawFrame(Number(scaleMode));
     }
+  } else if (refine) {
+    nextBand();
   } else if (needFull && now - lastChange >= FULL_AFTER_MS) {
     needFull = false;
-    glPending = drawFrame(1);
+    if (fixedView || fullMsEst <= 1.5 * BAND_MS) {
+      glPending = drawFrame(1);
+    } else {
+      const [w, h] = targetSize(1);
+      const view = camera.view(w, h);
+      updateDepthRange();
+      renderer.beginBands(view);
+      const meshTex = meshPass && meshPass.meshes.length ? meshPass.draw(view) : null;
+      const rows = Math.max(4, Math.min(h, Math.round(h * BAND_MS / fullMsEst)));
+      refine = { view, meshTex, y: 0, rows, t0: now };
+      nextBand();
+    }
   }
+}
+
+function nextBand() {
+  const r = refine, h = r.view.height, y1 = Math.min(h, r.y + r.rows);
+  renderer.drawBand(r.view, opts, r.meshTex, r.y, y1);
+  const gl = renderer.gl;
+  const sync = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);
+  gl.flush();
+  glPending = { sync, t0: performance.now(), band: true, rows: y1 - r.y };
+  r.y = y1;
+}
+
+// A band is done: size the next one to BAND_MS; show the frame when its last band is done.
+function bandDone(now, f) {
+  const r = refine;
+  if (!r) return;                          // dropped by a camera move
+  const ms = Math.max(now - f.t0, 1);
+  fullMsEst = ms * r.view.height / f.rows;
+  r.rows = Math.max(4, Math.min(r.view.height, Math.round(f.rows * BAND_MS / ms)));
+  if (r.y < r.view.height) return;
+  renderer.presentBands();
+  drawCameras(r.view);
+  stats.add({ width: r.view.width, height: r.view.height, full: true, ms: now - r.t0, bands: true });
+  refine = null;
 }
 
 // ---------------------------------------------------------------- CPU mode
