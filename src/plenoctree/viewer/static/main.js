@@ -14,6 +14,7 @@ import { drawFrustums } from "./overlay.js";
 import { probeRay, lumisphere } from "./probe.js";
 import { MeshPass, parseObj, parseGlb, toSceneUp } from "./mesh.js";
 import { detectGL, glRendererName, FrameStats, CpuFrames } from "./frames.js";
+import { GlFrames } from "./glframes.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -27,26 +28,17 @@ let config = {};
 let renderer = null;
 let camera = new OrbitCamera();
 let fixedView = null;     // a camera set by a script (setView) replaces the orbit camera
-// Resolution scale: a number, or "auto": while the view changes, frames render at autoScale
-// (tuned so a frame takes ~TARGET_MS), and 300 ms after the last change once at full size.
+// Resolution scale: a number, or "auto": while the view changes, frames render at a scale
+// that keeps them fast (glframes.js, frames.js), then once at full size.
 let scaleMode = params.get("scale") || "auto";
-let autoScale = 1;
-const TARGET_MS = 60;
-const FULL_AFTER_MS = 100;   // WebGL: the full-resolution frame this long after the last change
-// WebGL: a full frame slower than this is refined in bands this long (URL: ?band_ms=)
-const BAND_MS = Number(params.get("band_ms")) || 40;
-let fullMsEst = 0;           // WebGL: measured ms of a full-resolution frame
-let refine = null;           // WebGL: the full frame being refined band by band (see glTick)
 let dirty = true;
 let lastChange = 0;
-let needFull = false;
-let lastFrameMs = null;
 // "webgl" or "cpu"; scene: what the camera and controls need of the tree (the packed tree in
 // WebGL mode, config.json's "cpu" description in CPU mode)
 let drawMode = "webgl";
 let scene = null;
 let cpu = null;
-let glPending = null;        // the WebGL frame in flight: {sync, t0, width, height, scale}
+let glf = null;              // WebGL mode: GlFrames
 let rendererLabel = "";
 let glInfo = null;           // detectGL(): {webgl2, renderer, software}
 const stats = new FrameStats();
@@ -374,41 +366,10 @@ function updateDepthRange() {
   }
 }
 
-// Issue a WebGL frame (no wait); returns {sync, t0, width, height, scale}: the fence is polled
-// by the frame loop (glTick), so the page never blocks on the GPU.
-function drawFrame(scale) {
-  if (!renderer || !renderer.tree) throw new Error("no tree loaded");
-  const [w, h] = targetSize(scale);
-  const view = fixedView || camera.view(w, h);
-  updateDepthRange();
-  const t0 = performance.now();
-  const meshTex = meshPass && meshPass.meshes.length ? meshPass.draw(view) : null;
-  renderer.draw(view, opts, meshTex);
-  drawCameras(view);
-  const gl = renderer.gl;
-  const sync = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);
-  gl.flush();
-  return { sync, t0, width: view.width, height: view.height, scale };
-}
-
-// A WebGL frame is done after ms: adapt the auto scale, count it.
-function glFrameDone(f, ms) {
-  lastFrameMs = ms;
-  if (scaleMode === "auto" && !fixedView && f.scale > 0) {
-    const fullMs = ms / (f.scale * f.scale);
-    fullMsEst = fullMs;
-    autoScale = Math.max(0.2, Math.min(1, Math.sqrt(TARGET_MS / Math.max(fullMs, 1e-3))));
-  }
-  stats.add({ width: f.width, height: f.height, full: f.scale === 1, ms });
-}
-
 // Draw and wait for the GPU (scripts: api.render / benchmark, Save PNG): ms.
 function renderOnce(scale = scaleMode === "auto" ? 1 : Number(scaleMode)) {
-  const f = drawFrame(scale);
-  renderer.finish();
-  const ms = performance.now() - f.t0;
-  renderer.gl.deleteSync(f.sync);
-  glFrameDone(f, ms);
+  if (!renderer || !renderer.tree) throw new Error("no tree loaded");
+  const ms = glf.renderNow(scale, scaleMode);
   showRate();
   return ms;
 }
@@ -424,73 +385,6 @@ function showRate() {
   const text = last ? `${rendererLabel} · ${stats.fps()} FPS @ ${last.width}x${last.height}`
     + ` · ${last.ms.toFixed(0)} ms/frame` : rendererLabel;
   if ($("fps").textContent !== text) $("fps").textContent = text;
-}
-
-// One animation frame of the WebGL mode: poll the frame in flight (a fence: never a read-back),
-// then draw the next one: a moving camera at the auto scale, else the full-resolution frame,
-// at once when it is fast (under BAND_MS) or refined in bands of about BAND_MS each into an
-// offscreen target, shown when complete (a slow GPU, e.g. software GL, never stalls the page
-// for a whole frame); a camera move drops the refinement.
-function glTick(now, continuous) {
-  if (glPending) {
-    const gl = renderer.gl;
-    if (gl.getSyncParameter(glPending.sync, gl.SYNC_STATUS) !== gl.SIGNALED) return;
-    gl.deleteSync(glPending.sync);
-    if (glPending.band) bandDone(now, glPending);
-    else glFrameDone(glPending, now - glPending.t0);
-    glPending = null;
-  }
-  if (dirty || continuous) {
-    dirty = false;
-    refine = null;
-    if (scaleMode === "auto") {
-      const moving = continuous || now - lastChange < FULL_AFTER_MS;
-      glPending = drawFrame(moving ? autoScale : 1);
-      needFull = moving && autoScale < 1;
-    } else {
-      glPending = drawFrame(Number(scaleMode));
-    }
-  } else if (refine) {
-    nextBand();
-  } else if (needFull && now - lastChange >= FULL_AFTER_MS) {
-    needFull = false;
-    if (fixedView || fullMsEst <= 1.5 * BAND_MS) {
-      glPending = drawFrame(1);
-    } else {
-      const [w, h] = targetSize(1);
-      const view = camera.view(w, h);
-      updateDepthRange();
-      renderer.beginBands(view);
-      const meshTex = meshPass && meshPass.meshes.length ? meshPass.draw(view) : null;
-      const rows = Math.max(4, Math.min(h, Math.round(h * BAND_MS / fullMsEst)));
-      refine = { view, meshTex, y: 0, rows, t0: now };
-      nextBand();
-    }
-  }
-}
-
-function nextBand() {
-  const r = refine, h = r.view.height, y1 = Math.min(h, r.y + r.rows);
-  renderer.drawBand(r.view, opts, r.meshTex, r.y, y1);
-  const gl = renderer.gl;
-  const sync = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);
-  gl.flush();
-  glPending = { sync, t0: performance.now(), band: true, rows: y1 - r.y };
-  r.y = y1;
-}
-
-// A band is done: size the next one to BAND_MS; show the frame when its last band is done.
-function bandDone(now, f) {
-  const r = refine;
-  if (!r) return;                          // dropped by a camera move
-  const ms = Math.max(now - f.t0, 1);
-  fullMsEst = ms * r.view.height / f.rows;
-  r.rows = Math.max(4, Math.min(r.view.height, Math.round(f.rows * BAND_MS / ms)));
-  if (r.y < r.view.height) return;
-  renderer.presentBands();
-  drawCameras(r.view);
-  stats.add({ width: r.view.width, height: r.view.height, full: true, ms: now - r.t0, bands: true });
-  refine = null;
 }
 
 // ---------------------------------------------------------------- CPU mode
@@ -531,7 +425,7 @@ function loop() {
   try {
     if (api.state === "ready") {
       if (drawMode === "cpu") cpu.pump(cpuView());
-      else glTick(now, $("continuous").checked);
+      else dirty = glf.tick(now, dirty, lastChange, scaleMode, $("continuous").checked);
       showRate();
     }
   } catch (err) { showError(err); }
@@ -801,6 +695,13 @@ async function main() {
   rendererLabel = `WebGL (${gpu.length > 60 ? gpu.slice(0, 57) + "..." : gpu})`
     + (glInfo.software ? " - software GL: slow; plenoctree view --render cpu draws with the CPU" : "");
   $("fps").title = gpu;
+  glf = new GlFrames(renderer, stats, {
+    view: (scale) => { const [w, h] = targetSize(scale); return fixedView || camera.view(w, h); },
+    fixed: () => Boolean(fixedView),
+    opts: () => { updateDepthRange(); return opts; },
+    meshes: (view) => (meshPass && meshPass.meshes.length ? meshPass.draw(view) : null),
+    overlay: drawCameras,
+  }, Number(params.get("band_ms")) || 40);
   requestAnimationFrame(loop);
   if (!treeUrl) {
     throw new FormatError("no tree given: open this page with ?tree=URL, or use 'Open another tree'");
