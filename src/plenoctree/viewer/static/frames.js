@@ -159,3 +159,19 @@ export class CpuFrames {
     this.scale = Math.max(MIN_SCALE, Math.min(1, s));
   }
 }
+
+// CPU mode: disable the tools that need the tree in the page (probe, slicing box, meshes,
+// opening another tree), with a tooltip saying why.
+export function markWebglOnly() {
+  const $ = (id) => document.getElementById(id);
+  const why = "WebGL only: the page is drawn by the CPU renderer on the server (open the page "
+    + "with ?render=webgl, or start plenoctree view --render webgl, to use it)";
+  const inputs = ["probe_mode", "mesh_file", "mesh_clear", "mesh_shading", "slice_reset", "file"]
+    .map($).concat([...$("slices").querySelectorAll("input")]);
+  for (const el of inputs) { el.disabled = true; el.title = why; }
+  for (const id of ["probe_box", "slices_box", "mesh_box", "file_box"]) {
+    const sum = $(id).querySelector("summary");
+    sum.title = why;
+    sum.insertAdjacentHTML("beforeend", ' <span class="small">(WebGL only)</span>');
+  }
+}

@@ -6,14 +6,14 @@
 // drawn by the server's CPU renderer. The frame loop never waits for the GPU: a fence tells
 // when a WebGL frame is done (no synchronous read-back).
 
-import { NpzArchive, FormatError } from "./npz.js";
+import { NpzArchive, FormatError, fetchBuffer, toBase64 } from "./npz.js";
 import { packTree, LimitError } from "./tree.js";
 import { Renderer, GLError } from "./renderer.js";
 import { OrbitCamera, UP, applyHeldKeys, isMoveKey } from "./camera.js";
 import { drawFrustums } from "./overlay.js";
-import { probeRay, lumisphere } from "./probe.js";
+import { probeRay, lumisphere, treeRay } from "./probe.js";
 import { MeshPass, parseObj, parseGlb, toSceneUp } from "./mesh.js";
-import { detectGL, glRendererName, FrameStats, CpuFrames } from "./frames.js";
+import { detectGL, glRendererName, FrameStats, CpuFrames, markWebglOnly } from "./frames.js";
 import { GlFrames } from "./glframes.js";
 
 const $ = (id) => document.getElementById(id);
@@ -65,10 +65,7 @@ const api = {
   // frame of the current view on screen (ms from request to screen).
   render() { return drawMode === "cpu" ? cpuDrawNow() : renderOnce(); },
   pixels() {
-    const px = drawMode === "cpu" ? canvasPixels() : renderer.readPixels();
-    let s = "";
-    for (let i = 0; i < px.length; i += 0x8000) s += String.fromCharCode.apply(null, px.subarray(i, i + 0x8000));
-    return btoa(s);
+    return toBase64(drawMode === "cpu" ? canvasPixels() : renderer.readPixels());
   },
   // Median milliseconds per frame (draw + wait for the GPU) over n frames.
   benchmark(n = 10) {
@@ -264,21 +261,9 @@ function drawCameras(view) {
 // ---------------------------------------------------------------- radiance probe
 function runProbe(origin, dir, size = 128) {
   if (!renderer || !renderer.tree) return null;
-  const l = Math.hypot(...dir) || 1;
-  let d = dir.map((v) => v / l);
-  let o = origin;
-  if (opts.ndc) {                         // the same world -> NDC ray map as the shader
-    if (!(d[2] < 0)) return null;
-    const n = opts.ndc, ax = -2 * n.fx / n.width, ay = -2 * n.fy / n.height;
-    const t = -(n.near + o[2]) / d[2];
-    const on = o.map((v, k) => v + t * d[k]);
-    const rx = on[0] / on[2], ry = on[1] / on[2];
-    o = [ax * rx, ay * ry, 1 + 2 * n.near / on[2]];
-    const d2 = [ax * (d[0] / d[2] - rx), ay * (d[1] / d[2] - ry), -2 * n.near / on[2]];
-    const l2 = Math.hypot(...d2);
-    d = d2.map((v) => v / l2);
-  }
-  const hit = probeRay(renderer.tree, o, d);
+  const ray = treeRay(origin, dir, opts.ndc);
+  if (!ray) return null;
+  const hit = probeRay(renderer.tree, ray[0], ray[1]);
   const info = $("probe_info");
   const cv = $("probe_canvas");
   const ctx = cv.getContext("2d");
@@ -291,10 +276,8 @@ function runProbe(origin, dir, size = 128) {
   info.textContent = `leaf ${hit.leaf} at (${hit.point.map((v) => v.toFixed(3)).join(", ")}), `
     + `sigma ${hit.sigma.toFixed(2)}, weight ${hit.weight.toFixed(2)}; the sphere shows the colour `
     + "seen from each direction (as oriented in the current view)";
-  let s = "";
-  for (let i = 0; i < img.length; i += 0x8000) s += String.fromCharCode.apply(null, img.subarray(i, i + 0x8000));
   return { leaf: hit.leaf, point: hit.point, sigma: hit.sigma, weight: hit.weight,
-    coeffs: hit.coeffs, image: btoa(s) };
+    coeffs: hit.coeffs, image: toBase64(img) };
 }
 
 function probePixel(x, y) {
@@ -554,33 +537,6 @@ function buildControls() {
 }
 
 // ---------------------------------------------------------------- loading
-async function fetchTree(url) {
-  let resp;
-  try {
-    resp = await fetch(url);
-  } catch (err) {
-    throw new FormatError(`${url}: cannot download (${err.message})`);
-  }
-  if (!resp.ok) throw new FormatError(`${url}: the server answered ${resp.status} ${resp.statusText}`);
-  const total = Number(resp.headers.get("Content-Length")) || 0;
-  if (!resp.body) return resp.arrayBuffer();
-  const reader = resp.body.getReader();
-  const chunks = [];
-  let got = 0;
-  for (;;) {
-    const { done, value } = await reader.read();
-    if (done) break;
-    chunks.push(value);
-    got += value.length;
-    setStatus(`Downloading ${(got / 1e6).toFixed(1)}${total ? " / " + (total / 1e6).toFixed(1) : ""} MB`);
-  }
-  if (total && got !== total) throw new FormatError(`${url}: download cut short (${got} of ${total} bytes)`);
-  const out = new Uint8Array(got);
-  let p = 0;
-  for (const c of chunks) { out.set(c, p); p += c.length; }
-  return out.buffer;
-}
-
 // bundled: the tree named by config.json (its "ndc" applies), not one opened from the disk.
 async function loadBuffer(buffer, name, bundled = true) {
   treeName = name;
@@ -633,18 +589,7 @@ function startCpuMode() {
   cpu.next = () => { if (api.state === "ready") cpu.pump(cpuView()); };
   rendererLabel = `CPU (numba, ${c.threads} thread${c.threads === 1 ? "" : "s"})`;
   $("fps").title = glInfo.webgl2 ? `this browser's WebGL: ${glInfo.renderer || "unknown"}` : "no WebGL2 in this browser";
-  const why = "WebGL only: the page is drawn by the CPU renderer on the server (open the page "
-    + "with ?render=webgl, or start plenoctree view --render webgl, to use it)";
-  for (const id of ["probe_mode", "mesh_file", "mesh_clear", "mesh_shading", "slice_reset", "file"]) {
-    $(id).disabled = true;
-    $(id).title = why;
-  }
-  for (const el of $("slices").querySelectorAll("input")) { el.disabled = true; el.title = why; }
-  for (const id of ["probe_box", "slices_box", "mesh_box", "file_box"]) {
-    const sum = $(id).querySelector("summary");
-    sum.title = why;
-    sum.insertAdjacentHTML("beforeend", ' <span class="small">(WebGL only)</span>');
-  }
+  markWebglOnly();
   frameInitialView(scene);
   opts.sh_min = 0;
   opts.sh_max = -1;
@@ -709,7 +654,7 @@ async function main() {
   const name = decodeURIComponent(treeUrl.split("/").pop());
   treeName = name;
   setStatus(`Downloading ${name}...`);
-  const buffer = await fetchTree(treeUrl);
+  const buffer = await fetchBuffer(treeUrl, setStatus);
   await loadBuffer(buffer, name);
 }
 
