@@ -173,6 +173,11 @@ def test_host_warning_and_host_check(proc, monkeypatch, capsys):
     assert main(["view", str(proc), "--port", "0", "--render", "webgl", "--host", "0.0.0.0"]) == 0
     err = capsys.readouterr().err
     assert "warning" in err and "anyone who can reach" in err and "ssh -L" in err
+    # CPU mode: the page holds no textures, so the texture budget does not apply
+    assert main(["view", str(proc), "--port", "0", "--render", "webgl", "--max-mb", "1e-6"]) == 1
+    assert "budget" in capsys.readouterr().err
+    assert main(["view", str(proc), "--port", "0", "--render", "cpu", "--max-mb", "1e-6"]) == 0
+    assert "drawn by the CPU renderer" in capsys.readouterr().out
     with ViewerServer(proc, port=0, host="0.0.0.0") as srv:       # every interface
         p = srv.port
         assert srv.httpd.server_address[0] == "0.0.0.0"

@@ -105,7 +105,8 @@ def _run_view(cfg: ViewConfig, args: argparse.Namespace) -> int:
 
     path = Path(cfg.tree)
     _check_tree(path)
-    need = check_texture_budget(path, cfg.max_mb)
+    # CPU mode: the page never holds the tree, so no texture budget applies
+    need = check_texture_budget(path, cfg.max_mb) if cfg.render != "cpu" else None
     extra = _cameras_extra(cfg)
     server = ViewerServer(path, port=cfg.port, max_mb=cfg.max_mb, verbose=cfg.verbose,
                           render=cfg.render, host=cfg.host)
@@ -116,7 +117,8 @@ def _run_view(cfg: ViewConfig, args: argparse.Namespace) -> int:
     _warn_if_exposed(cfg.host, server.port)
     how = {"webgl": "WebGL in the browser", "cpu": "the CPU renderer here",
            "auto": "WebGL, or the CPU renderer here when the browser's GL is software"}
-    print(f"Serving {path} ({need / 1e6:.0f} MB of textures) at {server.url}, drawn by "
+    size = "" if need is None else f" ({need / 1e6:.0f} MB of textures)"
+    print(f"Serving {path}{size} at {server.url}, drawn by "
           f"{how[cfg.render]}  (Ctrl-C to stop)", flush=True)
     if cfg.open:
         import webbrowser
