@@ -52,7 +52,7 @@ ALLOWED: dict[str, set[str]] = {
     "camera_path": _LEAF | {"_util", "datasets"},
     "export": _LEAF | {"_util", "octree", "render", "sh"},
     "process": _LEAF | {"_util", "datasets"},
-    "viewer": _LEAF | {"_util", "_npz", "datasets", "compression"},
+    "viewer": _LEAF | {"_util", "_npz", "datasets", "compression", "render"},
     "nerf": _LEAF | {"_lazy", "_util", "_triton", "backend", "runtime", "sh", "datasets",
                      "evaluation"},
     "video": _LEAF | {"_util", "device", "plots", "datasets", "render", "compression",
