@@ -353,3 +353,15 @@ def test_a_refused_run_leaves_no_out_folder_and_never_writes_into_its_dataset(ti
     _fails(capsys, ["train", "--data", tiny_scene / "data", "--out", tiny_scene / "data"],
            "is the dataset folder")
     assert sorted(p.name for p in (tiny_scene / "data").iterdir()) == before
+
+
+def test_an_orthonormal_rotation_is_kept_bit_for_bit():
+    """Valid rotations are not renormalised (a lego tree extracted before and after the bounds
+    policy is array-identical only so)."""
+    from plenoctree.datasets._files import rigid_rotation
+
+    rng = np.random.default_rng(0)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    r = (q * (1 + 1e-7)).astype(np.float64)           # orthonormal up to rounding
+    assert rigid_rotation(r, "x") is r
+    np.testing.assert_allclose(rigid_rotation(3 * q, "x"), q, atol=1e-12)

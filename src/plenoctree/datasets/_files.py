@@ -71,6 +71,8 @@ def rigid_rotation(r: np.ndarray, where: str) -> np.ndarray:
     within :data:`ROTATION_TOL` (``s``: the mean column length). A uniformly scaled rotation
     is valid input (ray directions do not depend on it) and is returned unscaled; a mirror is
     allowed; a non-uniform scale or a shear distorts the rays and is refused (DatasetError)."""
+    if float(np.abs(r.T @ r - np.eye(3)).max()) <= ROTATION_TOL:
+        return r                                  # orthonormal already: kept bit for bit
     s = float(np.linalg.norm(r, axis=0).mean())
     u = r / s
     err = float(np.abs(u.T @ u - np.eye(3)).max())
