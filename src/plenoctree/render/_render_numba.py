@@ -10,8 +10,8 @@ when T < stop_thresh. Rays of an image are processed in 24×24-pixel tiles (neig
 also those of the row above, share nodes and leaves in cache), handed to the threads one at a
 time from a shared counter (:mod:`._schedule_numba`): numba's ``prange`` gives each thread one
 contiguous run of tiles (also with ``numba.set_parallel_chunksize``, under the omp and workqueue
-threading layers), and the image's cost sits where the object is, so 16 threads were 1.27× as
-fast as 2 on lego (``benchmarks/render_scaling.py`` counts each thread's work).
+threading layers) and an image's cost sits where the object is: at 16 threads the busiest
+thread had twice the mean work on lego (``benchmarks/render_scaling.py`` counts it).
 """
 
 from __future__ import annotations
