@@ -2,9 +2,10 @@
 
 numba's ``prange`` gives each thread one contiguous run of the iteration space under the omp and
 workqueue threading layers, also with ``numba.set_parallel_chunksize`` (numba's docs: only the
-tbb layer schedules chunks dynamically); an image's cost sits in its middle (the object), so
-with 16 threads a few threads got nearly all of it. The kernels instead run one ``prange``
-iteration per thread, each taking the next item from a counter until none is left::
+tbb layer schedules chunks dynamically); an image's cost sits where the object is, so at 16
+threads the busiest thread had over twice the mean work on lego. The render kernel instead runs
+one ``prange`` iteration per thread, each taking the next item from a counter until none is
+left::
 
     counter = np.zeros(1, np.int64)
     for _ in prange(max(1, min(threads, n_items))):     # threads: numba.get_num_threads()
@@ -17,8 +18,8 @@ iteration per thread, each taking the next item from a counter until none is lef
 Which thread runs an item changes from run to run, what an item computes does not: a kernel
 whose items write disjoint outputs gives the same bits with any schedule. (``threads`` is an
 argument of the kernel: ``numba.get_num_threads()`` called inside a kernel keeps numba from
-caching it on disk.)
-``benchmarks/_balance.py`` counts the per-thread work of both schedules on real images.
+caching it on disk.) ``benchmarks/_balance.py`` counts the per-thread work of both schedules on
+real images.
 """
 
 from __future__ import annotations
