@@ -14,7 +14,7 @@ from ..errors import ConfigError
 from ..render._spec import TreeSpec, tree_spec
 from ..render.options import RenderOptions
 
-_CHUNK_TILES = 2     # dynamic-scheduling chunk of grad_kernel, in tiles of TILE rays
+_CHUNK_TILES = 2     # grad_kernel's prange chunk, in tiles of TILE rays (dynamic only under tbb)
 
 __all__ = ["SparseGrad", "kernel_args", "default_chunks", "forward_numba",
            "backward_numba", "fused_mse_numba"]

@@ -24,20 +24,28 @@ background ``c_N`` composited with the transmittance ``T_N`` left at the end):
   the tree is traversed once per ray; the record grows by doubling when a ray has more segments
   than its initial capacity.
 
-Race-free scatter into compact slabs: rays are processed in tiles of :data:`TILE` rays,
-scheduled dynamically over the threads; thread ``t`` owns slab ``t``. A slab holds rows only for
-the cells its thread touched in this batch, in touch order: ``slot[t, cell]`` is the cell's row
-(``-1`` untouched), ``touched[t, row]`` the row's cell, ``grad3[t, row]`` its gradient. (So the
+Race-free scatter into compact slabs: rays are processed in tiles of :data:`TILE` rays by a
+``prange``; thread ``t`` owns slab ``t``. A slab holds rows only for the cells its thread
+touched in this batch, in touch order: ``slot[t, cell]`` is the cell's row (``-1``
+untouched), ``touched[t, row]`` the row's cell, ``grad3[t, row]`` its gradient. (So the
 gradient memory is set by the cells one batch reaches, ~10⁵, not by the tree, ~10⁷ cells: a
 dense slab per thread was 1.6 GB on lego's 800² tree.) A cell that finds its slab full gets
 ``slot = -2``, is counted once in ``need[t]`` and gets no gradient; the caller then grows the
 slabs and runs the batch again (:mod:`._render_grad`). (Floating-point sums depend on which
-thread ran which tile: results are reproducible to rounding, not bit for bit, with more than
-one thread.) :func:`merge_chunks` adds every slab into a dense ``[n_cells, D]`` gradient (the
-autograd path needs one). The optimiser kernel :func:`step_touched` instead reads the slabs
-directly: it visits every touched cell once, sums its slabs, updates it (SGD, lazy Adam or
-lazy RMSprop), projects σ onto σ ≥ 0 and re-zeroes the slabs, slots and lists. No work is
-proportional to the tree size: one step costs O(touched cells).
+thread ran which tile: results are reproducible to rounding, not bit for bit, across thread
+counts or threading layers.) :func:`merge_chunks` adds every slab into a dense
+``[n_cells, D]`` gradient (the autograd path needs one). The optimiser kernel
+:func:`step_touched` instead reads the slabs directly: it visits every touched cell once, sums
+its slabs, updates it (SGD, lazy Adam or lazy RMSprop), projects σ onto σ ≥ 0 and re-zeroes
+the slabs, slots and lists. No work is proportional to the tree size: one step costs
+O(touched cells).
+
+The ``prange`` is static under numba's omp and workqueue threading layers, also with
+``set_parallel_chunksize``: each thread one contiguous run of tiles. Unlike an image's tiles
+(the renderer hands those out from a shared counter, :mod:`plenoctree.render._schedule_numba`)
+that run is balanced, because a batch's rays come in random order: 0.90 of linear at 16 threads
+on lego by ``benchmarks/render_scaling.py``'s count (0.98 with the counter, which would make
+the slab sums, and so the values, depend on timing from one run to the next).
 
 Arrays: ``child`` int32 ``[n_cells]`` (flat ``[n_nodes * 8]``), ``data`` float ``[n_cells, D]``
 (float32 for training; float64 works too, for ``gradcheck``; the march reads σ from the rows
@@ -228,7 +236,7 @@ def grad_kernel(child, skip, shift, data, offset, invr, origins, dirs, aux, mode
     larger slabs.
     ``rgb_out [N, 3]`` receives the rendered colour ``C`` (background included).
 
-    Work items are tiles of :data:`TILE` rays, scheduled dynamically; a tile runs on one thread
+    Work items are tiles of :data:`TILE` rays (``prange``); a tile runs on one thread
     ``t = numba.get_thread_id()`` and scatters into slab ``t``, so the caller must run at most
     ``n_chunks`` threads (:mod:`plenoctree.optim._render_grad` does).
     """

@@ -7,9 +7,11 @@ direction, its tree-space version, its reciprocal and the SH/SG basis are comput
 leaves with σ ≤ 0 are skipped without touching their colour coefficients (and, with a tree's
 empty-space skip tables, :mod:`.empty_skip`, whole empty regions in one segment); early termination
 when T < stop_thresh. Rays of an image are processed in 24×24-pixel tiles (neighbouring rays,
-also those of the row above, share nodes and leaves in cache) with dynamic scheduling over the
-tiles (``numba.set_parallel_chunksize``), so both cores stay busy when one half of the image is
-empty.
+also those of the row above, share nodes and leaves in cache), handed to the threads one at a
+time from a shared counter (:mod:`._schedule_numba`): numba's ``prange`` gives each thread one
+contiguous run of tiles (also with ``numba.set_parallel_chunksize``, under the omp and workqueue
+threading layers) and an image's cost sits where the object is: at 16 threads the busiest
+thread had twice the mean work on lego (``benchmarks/render_scaling.py`` counts it).
 """
 
 from __future__ import annotations
@@ -24,20 +26,20 @@ from numba import njit, prange
 
 from ._march_numba import (MARCH_MATH, MAX_LEVEL, MAX_STEPS, QUEUE, STACK_SIZE, basis_values,
                            leaf_logits, look_ahead, next_leaf, ray_octant, ray_start)
+from ._schedule_numba import next_item
 from ._spec import TreeSpec, tree_spec
 from .empty_skip import SkipTables
 from .options import FormatInfo, RenderOptions
 
 __all__ = ["render_rays_numba", "ray_stats_numba", "prepare", "render_prepared", "Launch",
            "pack_camera", "pack_cameras", "render_camera_prepared", "empty_outputs", "TILE",
-           "TILE_2D", "CHUNK_TILES", "STAT_NAMES"]
+           "TILE_2D", "STAT_NAMES"]
 
 TILE = 64          # rays per work item when the image width is unknown (one row of rays)
 #: Pixels per work item of an image. 8×8 was 1.2× faster than 64×1 rows on lego's 256³ tree;
 #: 24×24 is as fast there and 1.09–1.12× faster at 400² on the refined trees (1.5–2 GB of rows:
 #: a tile's next pixel row finds the leaves of the row above still in cache).
 TILE_2D = (24, 24)
-CHUNK_TILES = 4    # work items per dynamic-scheduling chunk
 
 _ONE32 = np.float32(1.0)
 _QMASK = QUEUE - 1
@@ -152,41 +154,48 @@ def _camera_ray(cam, u, v):
 @njit(parallel=True, cache=True, fastmath=MARCH_MATH)
 def _render_kernel(child, skip, shift, data, offset, invr, origins, dirs, cam, kind, n_b, sg, b_lo,
                    b_hi, bg, stop, eps, use_stack, max_level, max_steps, n, width, tile_w, tile_h,
-                   rgb, depth, alpha):
+                   threads, rgb, depth, alpha):
     """``n`` rays ``i = y * width + x`` in tiles of ``tile_w × tile_h`` pixels (one work item
-    each): read from ``origins, dirs [n, 3]`` (``cam[0] == CAM_ARRAYS``) or made for pixel
-    ``(x, y)`` of the camera ``cam`` (:func:`_camera_ray`; the arrays are then unused)."""
+    each, handed out one at a time by :func:`._schedule_numba.next_item` to ``threads``
+    workers, ``numba.get_num_threads()``): read from ``origins, dirs [n, 3]`` (``cam[0] ==
+    CAM_ARRAYS``) or made for pixel ``(x, y)`` of the camera ``cam`` (:func:`_camera_ray`; the
+    arrays are then unused)."""
     height = (n + width - 1) // width
     ntx = (width + tile_w - 1) // tile_w
-    nty = (height + tile_h - 1) // tile_h
+    n_tiles = ntx * ((height + tile_h - 1) // tile_h)
     from_cam = cam[0] != CAM_ARRAYS
-    for tile in prange(ntx * nty):
-        ty = tile // ntx
-        tx = tile - ty * ntx
+    counter = np.zeros(1, dtype=np.int64)
+    for _ in prange(max(1, min(threads, n_tiles))):
         basis = np.zeros(max(25, n_b), dtype=np.float32)
         st = np.zeros(4, dtype=np.int64)
         stack = np.zeros(STACK_SIZE, dtype=np.int64)
         acc = np.zeros(3, dtype=np.float64)
         qc = np.zeros(QUEUE, dtype=np.int64)
         qe = np.zeros(QUEUE, dtype=np.float64)
-        for y in range(ty * tile_h, min(height, (ty + 1) * tile_h)):
-            for x in range(tx * tile_w, min(width, (tx + 1) * tile_w)):
-                i = y * width + x
-                if i >= n:
-                    break
-                if from_cam:
-                    ox, oy, oz, dx, dy, dz = _camera_ray(cam, x, y)
-                else:
-                    ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
-                    dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
-                trans, w_sum, wt_sum = _render_one(
-                    child, skip, shift, data, offset, invr, ox, oy, oz, dx, dy, dz, kind, n_b,
-                    sg, b_lo, b_hi, stop, eps, use_stack, max_level, max_steps, basis, st, stack,
-                    qc, qe, acc)
-                for ch in range(3):
-                    rgb[i, ch] = acc[ch] + trans * bg[ch]
-                depth[i] = wt_sum / max(w_sum, 1e-10)
-                alpha[i] = 1.0 - trans
+        while True:
+            tile = next_item(counter)
+            if tile >= n_tiles:
+                break
+            ty = tile // ntx
+            tx = tile - ty * ntx
+            for y in range(ty * tile_h, min(height, (ty + 1) * tile_h)):
+                for x in range(tx * tile_w, min(width, (tx + 1) * tile_w)):
+                    i = y * width + x
+                    if i >= n:
+                        break
+                    if from_cam:
+                        ox, oy, oz, dx, dy, dz = _camera_ray(cam, x, y)
+                    else:
+                        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+                        dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+                    trans, w_sum, wt_sum = _render_one(
+                        child, skip, shift, data, offset, invr, ox, oy, oz, dx, dy, dz, kind,
+                        n_b, sg, b_lo, b_hi, stop, eps, use_stack, max_level, max_steps, basis,
+                        st, stack, qc, qe, acc)
+                    for ch in range(3):
+                        rgb[i, ch] = acc[ch] + trans * bg[ch]
+                    depth[i] = wt_sum / max(w_sum, 1e-10)
+                    alpha[i] = 1.0 - trans
 
 
 @njit(parallel=True, cache=True, fastmath=MARCH_MATH)
@@ -251,13 +260,11 @@ _NO_CAM = np.zeros(CAM_SIZE, dtype=np.float64)
 class Launch:
     """How :func:`_render_kernel` walks the rays: ``width > 0``: they are the pixels of an image
     ``width`` wide (row-major), marched in ``tile = (w, h)`` pixel tiles (default
-    :data:`TILE_2D`); ``width = 0``: rows of :data:`TILE` rays. ``chunk_tiles`` work items form
-    one dynamic-scheduling chunk; ``use_stack=False`` re-descends from the root at every step
-    (the reference the tests compare the ancestor stack against)."""
+    :data:`TILE_2D`); ``width = 0``: rows of :data:`TILE` rays. ``use_stack=False`` re-descends
+    from the root at every step (the reference the tests compare the ancestor stack against)."""
 
     width: int = 0
     tile: tuple[int, int] | None = None
-    chunk_tiles: int = CHUNK_TILES
     use_stack: bool = True
 
 
@@ -271,24 +278,19 @@ def _launch(p: TreeSpec, origins: np.ndarray, dirs: np.ndarray, cam: np.ndarray,
         width, tw, th = n, TILE, 1
     else:
         tw, th = how.tile if how.tile is not None else TILE_2D
-    old = numba.get_parallel_chunksize()
-    numba.set_parallel_chunksize(max(1, int(how.chunk_tiles)))
-    try:
-        p.launch(_render_kernel, None, (origins, dirs, cam),
-                 (bool(how.use_stack), MAX_LEVEL, MAX_STEPS, int(n), int(width), max(1, int(tw)),
-                  max(1, int(th)), rgb.reshape(n, 3), depth.reshape(n), alpha.reshape(n)))
-    finally:
-        numba.set_parallel_chunksize(old)
+    p.launch(_render_kernel, None, (origins, dirs, cam),
+             (bool(how.use_stack), MAX_LEVEL, MAX_STEPS, int(n), int(width), max(1, int(tw)),
+              max(1, int(th)), numba.get_num_threads(), rgb.reshape(n, 3), depth.reshape(n),
+              alpha.reshape(n)))
 
 
 def render_prepared(p: TreeSpec, origins: np.ndarray, dirs: np.ndarray,
                     out: tuple[np.ndarray, np.ndarray, np.ndarray], use_stack: bool = True,
-                    width: int = 0, tile: tuple[int, int] | None = None,
-                    chunk_tiles: int = CHUNK_TILES) -> None:
+                    width: int = 0, tile: tuple[int, int] | None = None) -> None:
     """Render float32 contiguous ``origins, dirs [N, 3]`` with the values of ``p``
     (:func:`prepare`) into ``out = (rgb, depth, alpha)``; the other arguments: :class:`Launch`."""
     _launch(p, origins, dirs, _NO_CAM, int(origins.shape[0]), out,
-            Launch(int(width), tile, chunk_tiles, use_stack))
+            Launch(int(width), tile, use_stack))
 
 
 def pack_camera(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float,
@@ -323,14 +325,13 @@ def pack_cameras(cameras: Any, indices: Any = None) -> np.ndarray:
 
 def render_camera_prepared(p: TreeSpec, cam: np.ndarray, width: int, height: int,
                            out: tuple[np.ndarray, np.ndarray, np.ndarray],
-                           tile: tuple[int, int] | None = None,
-                           chunk_tiles: int = CHUNK_TILES) -> None:
+                           tile: tuple[int, int] | None = None) -> None:
     """Render the ``width × height`` image of camera ``cam`` (:func:`pack_camera`) into
     ``out = (rgb, depth, alpha)`` (``[H * W, 3]``/``[H * W]`` or ``[H, W, ...]`` float32
     contiguous): the rays are made per pixel inside the kernel, equal to those of
     ``generate_rays`` (+ ``to_ndc_rays``), so no ray arrays are allocated."""
     _launch(p, _NO_RAYS, _NO_RAYS, np.ascontiguousarray(cam, dtype=np.float64),
-            int(width) * int(height), out, Launch(int(width), tile, chunk_tiles))
+            int(width) * int(height), out, Launch(int(width), tile))
 
 
 def _ray_arrays(origins: Any, dirs: Any) -> tuple[np.ndarray, np.ndarray]:
