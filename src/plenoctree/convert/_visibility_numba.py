@@ -9,7 +9,10 @@ consecutive boundary crossings has world length δ, weight ``w = T (1 - exp(-σ_
 
 Only *candidate* cells (``index[c] >= 0``) record weights, into row ``thread id`` of
 ``out [n_threads, M]`` — every thread owns its row, so the parallel loop has no races and the
-caller reduces ``out.max(0)``. Rays are split into tiles of ``TILE`` handed out dynamically.
+caller reduces ``out.max(0)``. Rays are split into tiles of ``TILE`` that the threads take one
+at a time from a shared counter (:mod:`plenoctree.render._schedule_numba`: numba's ``prange``
+alone is a static split, and a view's rays cost most where the object is); the maximum does not
+depend on which thread took a tile, so the result is the same with any schedule.
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ import math
 
 import numba
 import numpy as np
+
+from ..render._schedule_numba import next_item
 from numba import njit, prange
 
 __all__ = ["max_weights_numba", "TILE"]
@@ -119,16 +124,21 @@ def _march(sigma, index, lo, cell, ox, oy, oz, dx, dy, dz, min_weight, row):
 
 
 @njit(cache=True, parallel=True)
-def _kernel(sigma, index, lo, cell, origins, dirs, min_weight, out):
+def _kernel(sigma, index, lo, cell, origins, dirs, min_weight, out, threads):
     n = origins.shape[0]
     n_tiles = (n + TILE - 1) // TILE
-    for tile in prange(n_tiles):
+    counter = np.zeros(1, np.int64)
+    for _ in prange(max(1, min(threads, n_tiles))):
         row = out[numba.get_thread_id()]
-        for r in range(tile * TILE, min(n, (tile + 1) * TILE)):
-            _march(sigma, index, lo, cell,
-                   np.float64(origins[r, 0]), np.float64(origins[r, 1]), np.float64(origins[r, 2]),
-                   np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2]),
-                   min_weight, row)
+        while True:
+            tile = next_item(counter)
+            if tile >= n_tiles:
+                break
+            for r in range(tile * TILE, min(n, (tile + 1) * TILE)):
+                _march(sigma, index, lo, cell, np.float64(origins[r, 0]),
+                       np.float64(origins[r, 1]), np.float64(origins[r, 2]),
+                       np.float64(dirs[r, 0]), np.float64(dirs[r, 1]), np.float64(dirs[r, 2]),
+                       min_weight, row)
 
 
 def max_weights_numba(sigma: np.ndarray, index: np.ndarray, lo: np.ndarray, cell: np.ndarray,
@@ -146,10 +156,7 @@ def max_weights_numba(sigma: np.ndarray, index: np.ndarray, lo: np.ndarray, cell
     """
     if out.shape[0] < numba.get_num_threads():
         raise ValueError(f"out needs {numba.get_num_threads()} rows, got {out.shape[0]}")
-    old = numba.set_parallel_chunksize(1)
-    try:
-        _kernel(sigma, index, np.ascontiguousarray(lo, np.float64),
-                np.ascontiguousarray(cell, np.float64), np.ascontiguousarray(origins, np.float32),
-                np.ascontiguousarray(dirs, np.float32), float(min_weight), out)
-    finally:
-        numba.set_parallel_chunksize(old)
+    _kernel(sigma, index, np.ascontiguousarray(lo, np.float64),
+            np.ascontiguousarray(cell, np.float64), np.ascontiguousarray(origins, np.float32),
+            np.ascontiguousarray(dirs, np.float32), float(min_weight), out,
+            numba.get_num_threads())
