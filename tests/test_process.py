@@ -147,6 +147,41 @@ def test_sequential_pairs_and_min_inliers():
     assert min_inliers(100, 100) == 30 and min_inliers(5000, 50) == 50 and min_inliers(0, 20) == 20
 
 
+def test_matcher_choice_and_adaptive_chunks(monkeypatch):
+    from plenoctree.process import sfm
+
+    assert sfm.choose_matcher("auto", 34, False) == "exhaustive"      # flower: every pair
+    assert sfm.choose_matcher("auto", 67, True) == "sequential"       # fox's frames
+    assert sfm.choose_matcher("auto", 100, False) == "exhaustive"     # lego's random views
+    assert sfm.choose_matcher("auto", 301, False) == "sequential"
+    assert sfm.choose_matcher("exhaustive", 500, True) == "exhaustive"
+    clock = [0.0]
+    monkeypatch.setattr(sfm.time, "perf_counter", lambda: clock[0])
+    sizes, done = [], []
+
+    def run(part):                      # 0.1 s per item: parts of CHUNK_SECONDS = 20 items
+        sizes.append(len(part))
+        clock[0] += 0.1 * len(part)
+
+    sfm.in_chunks(list(range(100)), run, done.append, first=4)
+    assert sizes == [4, 16, 20, 20, 20, 20] and done == sizes       # growth capped at 4x
+
+
+def test_capture_order_from_thumbnails(tmp_path):
+    from plenoctree.process.frames import in_capture_order
+
+    yy, xx = np.mgrid[0:48, 0:64]
+    paths = []
+    for i in range(12):                 # a pattern panning slowly: a sequence
+        img = (127 + 100 * np.sin((xx + 3 * i) / 6.0) * np.cos(yy / 9.0)).astype(np.uint8)
+        paths.append(tmp_path / f"f{i:02d}.png")
+        Image.fromarray(img).save(paths[-1])
+    assert in_capture_order(paths)
+    order = np.random.default_rng(0).permutation(12)
+    assert not in_capture_order([paths[i] for i in order])
+    assert not in_capture_order(paths[:3])
+
+
 def test_video_sfm_failure_names_the_video(tmp_path):
     """SfM failing on a video's frames names the video, not the scratch folder of frames."""
     iio = pytest.importorskip("imageio.v2")

@@ -33,8 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from .frames import VIDEO_SUFFIXES, is_video, list_photos, require_video_reader, video_frames
-from .sfm import ProcessError, SfmOptions, require_pycolmap, run_sfm
+from .frames import (VIDEO_SUFFIXES, in_capture_order, is_video, list_photos,
+                     require_video_reader, video_frames)
+from .sfm import EXHAUSTIVE_MAX_IMAGES, ProcessError, SfmOptions, require_pycolmap, run_sfm
 
 __all__ = ["ProcessConfig", "process", "ProcessError", "SfmOptions", "DOWNSCALES"]
 
@@ -131,7 +132,8 @@ def process(cfg: ProcessConfig) -> dict:
         image_dir = photos[0].parent
         names = [p.name for p in photos]
         logger.info(f"process: {len(names)} images from {src}")
-        res = run_sfm(image_dir, work, names, cfg.sfm, sequential=video, label=src)
+        ordered = video or (len(names) > EXHAUSTIVE_MAX_IMAGES and in_capture_order(photos))
+        res = run_sfm(image_dir, work, names, cfg.sfm, sequential=ordered, label=src)
         summary = _write_dataset(res, image_dir, names, stage, work, cfg)
         summary.update(source=str(src), video=video, seconds_total=time.perf_counter() - t_start,
                        config={k: v for k, v in asdict(cfg).items()})
@@ -149,6 +151,9 @@ def process(cfg: ProcessConfig) -> dict:
         raise
     logger.info(f"process: wrote {summary['format']} dataset ({summary['kind']} capture, "
         f"{summary['n_registered']} of {summary['n_images']} images registered) to {out}")
+    logger.info("process: " + ", ".join(f"{k.replace('_', ' ')} {v:.0f} s"
+                                        for k, v in summary["seconds"].items())
+                + f" (total {summary['seconds_total']:.0f} s)")
     return summary
 
 

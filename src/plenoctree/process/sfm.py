@@ -36,7 +36,7 @@ from typing import Any, Sequence
 from ..errors import ConfigError, PlenOctreeError
 
 __all__ = ["SfmOptions", "SfmResult", "run_sfm", "require_pycolmap", "check_options",
-           "ProcessError", "sequential_pairs", "min_inliers"]
+           "ProcessError", "sequential_pairs", "min_inliers", "choose_matcher", "in_chunks"]
 
 logger = logging.getLogger(__name__)
 
@@ -78,15 +78,17 @@ class SfmOptions:
     single_camera: bool = True
     """one camera (intrinsics) shared by every image; off: one per image"""
     matcher: str = "auto"
-    """exhaustive, sequential (videos) or auto (sequential beyond 100 video frames / 300 photos)"""
+    """exhaustive, sequential or auto (every pair up to 50 images; beyond, sequential for
+    video frames and photos named in capture order, exhaustive for other photos up to 300)"""
     max_features: int = 8192
     """SIFT features per image"""
-    guided_matching: bool = True
-    """re-match along the estimated epipolar geometry (more, cleaner matches)"""
-    max_image_size: int = 1600
+    guided_matching: bool = False
+    """re-match along the estimated epipolar geometry (~10 % more inliers for ~3.5x the
+    matching time)"""
+    max_image_size: int = 1024
     """longest image side used for features (larger images are downscaled for SIFT only)"""
-    sequential_overlap: int = 20
-    """neighbours matched per frame by the sequential matcher"""
+    sequential_overlap: int = 10
+    """neighbours matched per frame by the sequential matcher (plus frames 2^k later)"""
     num_threads: int = -1
     """threads (-1: all cores)"""
     seed: int = 0
@@ -112,10 +114,6 @@ class SfmResult:
 def _disable(show_progress: bool | None) -> bool | None:
     """tqdm's ``disable`` for ``show_progress`` (None: only on a terminal)."""
     return None if show_progress is None else not show_progress
-
-
-def _chunks(seq: Sequence, n: int) -> list[Sequence]:
-    return [seq[i:i + n] for i in range(0, len(seq), n)]
 
 
 def check_options(opts: SfmOptions) -> None:
@@ -166,8 +164,9 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
         image_dir: folder of the images; ``names``: their file names in it (>= 2, in capture
             order for videos).
         work_dir: scratch folder for ``database.db`` (created; emptied of an old database).
-        sequential: the images are video frames in time order (``matcher="auto"`` then
-            matches neighbours in time, :func:`sequential_pairs`, beyond 100 frames).
+        sequential: the images are in capture order (video frames, or photos whose names
+            follow it; ``matcher="auto"`` then matches neighbours in time beyond
+            :data:`EXHAUSTIVE_MAX_IMAGES`, :func:`choose_matcher`).
         label: what the error messages name (default ``image_dir``; ``process``: the video).
 
     Returns:
@@ -195,7 +194,7 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     pycolmap.logging.minloglevel = 2          # COLMAP's own log: errors only
     times: dict[str, float] = {}
 
-    # 1. Features (in chunks, for a progress bar).
+    # 1. Features (in chunks of about CHUNK_SECONDS, for the progress line).
     t0 = time.perf_counter()
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = opts.camera_model
@@ -205,30 +204,31 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     ext.max_image_size = int(opts.max_image_size)
     ext.sift.max_num_features = int(opts.max_features)
     mode = pycolmap.CameraMode.SINGLE if opts.single_camera else pycolmap.CameraMode.PER_IMAGE
-    chunk = max(8, len(names) // 20)
+    def extract(part: Sequence[str]) -> None:
+        pycolmap.extract_features(db, image_dir, image_names=list(part), camera_mode=mode,
+                                  reader_options=reader, extraction_options=ext,
+                                  device=pycolmap.Device.cpu)
+        if opts.single_camera and reader.existing_camera_id < 0:   # later chunks share it
+            with pycolmap.Database.open(db) as d:
+                reader.existing_camera_id = int(d.read_all_cameras()[0].camera_id)
+
     with progress(total=len(names), desc="colmap features", unit="img",
                   disable=_disable(show_progress)) as bar:
-        for k, part in enumerate(_chunks(names, chunk)):
-            pycolmap.extract_features(db, image_dir, image_names=list(part), camera_mode=mode,
-                                      reader_options=reader, extraction_options=ext,
-                                      device=pycolmap.Device.cpu)
-            if k == 0 and opts.single_camera:     # later chunks share the first chunk's camera
-                with pycolmap.Database.open(db) as d:
-                    reader.existing_camera_id = int(d.read_all_cameras()[0].camera_id)
-            bar.update(len(part))
+        in_chunks(names, extract, bar.update, first=2)
     times["features"] = time.perf_counter() - t0
 
     # 2. Matching.
     t0 = time.perf_counter()
-    use_seq = opts.matcher == "sequential" or (
-        opts.matcher == "auto" and len(names) > (EXHAUSTIVE_MAX_FRAMES if sequential
-                                                 else EXHAUSTIVE_MAX_PHOTOS))
-    if use_seq:
+    matcher = choose_matcher(opts.matcher, len(names), sequential)
+    if matcher == "sequential":
         pairs = sequential_pairs(len(names), opts.sequential_overlap)
     else:
         pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
+    logger.info(f"colmap: {len(pairs)} image pairs to match ({matcher}, {len(names)} images"
+                + (f", {opts.sequential_overlap} neighbours and frames 2^k later each"
+                   if matcher == "sequential" else "") + ")")
     _match_pairs(pycolmap, db, work, names, pairs, opts, show_progress,
-                 "colmap matching (sequential)" if use_seq else "colmap matching")
+                 f"colmap matching ({matcher})")
     times["matching"] = time.perf_counter() - t0
 
     # 3. Incremental mapping (progress: one tick per registered image).
@@ -271,11 +271,45 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     return SfmResult(best, len(names), n_reg, len(models), times)
 
 
+EXHAUSTIVE_MAX_IMAGES = 50
+"""``matcher="auto"``: every pair is matched up to this many images (1,225 pairs, ~4 minutes
+at 0.2 s per pair on 2 cores), :func:`choose_matcher`."""
 EXHAUSTIVE_MAX_PHOTOS = 300
-"""``matcher="auto"``: photos are matched exhaustively up to this many, sequentially beyond."""
-EXHAUSTIVE_MAX_FRAMES = 100
-"""``matcher="auto"``: video frames are matched exhaustively up to this many (every pair:
-the loop closures of an orbit), sequentially beyond (:func:`sequential_pairs`)."""
+"""``matcher="auto"``: photos not in capture order are matched exhaustively up to this many
+(with no vocabulary tree, nothing else finds their overlapping pairs), sequentially beyond."""
+CHUNK_SECONDS = 2.0
+"""Target duration of one COLMAP call of the features and matching stages: their progress
+lines (per image, per pair) move at least this often (:func:`in_chunks`)."""
+
+
+def choose_matcher(matcher: str, n: int, ordered: bool) -> str:
+    """``"exhaustive"`` or ``"sequential"`` for ``n`` images (``ordered``: in capture order).
+
+    ``matcher="auto"``: every pair up to :data:`EXHAUSTIVE_MAX_IMAGES` images; beyond, the
+    sequential pairs (:func:`sequential_pairs`) for ordered images, every pair for others up
+    to :data:`EXHAUSTIVE_MAX_PHOTOS`. Measured (docs/capture.md): real/fox's 67 frames make
+    2,211 pairs exhaustively and 664 sequentially.
+    """
+    if matcher != "auto":
+        return matcher
+    if n <= EXHAUSTIVE_MAX_IMAGES:
+        return "exhaustive"
+    return "sequential" if ordered or n > EXHAUSTIVE_MAX_PHOTOS else "exhaustive"
+
+
+def in_chunks(items: Sequence, run: Any, advance: Any, first: int = 2) -> None:
+    """``run(part)`` on consecutive parts of ``items``, then ``advance(len(part))``: the first
+    part holds ``first`` items, each later one as many as took :data:`CHUNK_SECONDS` at the
+    rate measured on the previous part (at most 4x the previous size)."""
+    i, size = 0, max(1, int(first))
+    while i < len(items):
+        part = items[i:i + size]
+        t0 = time.perf_counter()
+        run(part)
+        dt = time.perf_counter() - t0
+        advance(len(part))
+        i += len(part)
+        size = max(1, min(4 * len(part), int(len(part) * CHUNK_SECONDS / max(dt, 1e-3))))
 MIN_INLIER_FRACTION = 0.1
 """An image is registered with at least this fraction of the median image's features as 2D-3D
 inliers (:func:`min_inliers`)."""
@@ -346,8 +380,9 @@ def drop_weak_images(rec: Any, fraction: float) -> list[str]:
 
 def _match_pairs(pycolmap: Any, db: Path, work: Path, names: list[str], pairs: list,
                  opts: SfmOptions, show_progress: bool | None, desc: str) -> None:
-    """Match image pairs ``(i, j)`` of ``names`` in chunks through a pairs file in ``work``
-    (one progress tick per pair), with ``opts``' threads, guided matching and RANSAC seed."""
+    """Match image pairs ``(i, j)`` of ``names`` in chunks (:func:`in_chunks`) through a pairs
+    file in ``work`` (one progress tick per pair), with ``opts``' threads, guided matching and
+    RANSAC seed."""
     from .._util import progress
 
     mopt = pycolmap.FeatureMatchingOptions()
@@ -357,14 +392,15 @@ def _match_pairs(pycolmap: Any, db: Path, work: Path, names: list[str], pairs: l
     ver.ransac.random_seed = int(opts.seed)
 
     pair_file = work / "pairs.txt"
-    chunk = max(200, len(pairs) // 25)
+
+    def match(part: Sequence[tuple[int, int]]) -> None:
+        pair_file.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in part))
+        popt = pycolmap.ImportedPairingOptions()
+        popt.match_list_path = pair_file
+        pycolmap.match_image_pairs(db, matching_options=mopt, pairing_options=popt,
+                                   verification_options=ver, device=pycolmap.Device.cpu)
+
     with progress(total=len(pairs), desc=desc, unit="pair",
                   disable=_disable(show_progress)) as bar:
-        for part in _chunks(pairs, chunk):
-            pair_file.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in part))
-            popt = pycolmap.ImportedPairingOptions()
-            popt.match_list_path = pair_file
-            pycolmap.match_image_pairs(db, matching_options=mopt, pairing_options=popt,
-                                       verification_options=ver, device=pycolmap.Device.cpu)
-            bar.update(len(part))
+        in_chunks(pairs, match, bar.update, first=4)
     pair_file.unlink(missing_ok=True)
