@@ -303,6 +303,27 @@ def test_run_images_passes_process_options(tmp_path, monkeypatch):
                                     process=ProcessConfig(frames=40)))
 
 
+def test_llff_bounds_from_the_points_each_image_observes():
+    """LLFF's rule: each image's near / far are the 0.1 / 99.9 percentiles of the depths of the
+    points it observes; points in front of a camera but outside its view (here: beside it,
+    at depth 0.5) do not pull its near plane in, as they do when every point counts."""
+    from plenoctree.datasets.colmap import depth_bounds
+
+    rng = np.random.default_rng(0)
+    c2w = np.tile(np.eye(4), (3, 1, 1))               # OpenGL: looking down -z
+    c2w[:, 0, 3] = [0.0, 1.0, 2.0]
+    seen = [np.column_stack([rng.uniform(-1, 1, (400, 2)) + [x, 0],
+                             -rng.uniform(2.0, 10.0, 400)]) for x in c2w[:, 0, 3]]
+    beside = np.column_stack([rng.uniform(20, 30, (50, 2)), -np.full(50, 0.5)])
+    own = depth_bounds(c2w, seen)
+    np.testing.assert_allclose(own, [np.percentile(-p[:, 2], [0.1, 99.9]) for p in seen])
+    assert np.all(own[:, 0] > 2.0) and np.all(own[:, 0] < 2.1) and np.all(own[:, 1] > 9.9)
+    every = depth_bounds(c2w, np.concatenate(seen + [beside]))
+    np.testing.assert_allclose(every[:, 0], 0.5)     # the old rule: near 4x too close
+    few = depth_bounds(c2w, [seen[0], seen[1][:5], seen[2]])      # < 10 points: the median
+    np.testing.assert_allclose(few[1], np.median(own[[0, 2]], axis=0))
+
+
 @pytest.mark.parametrize("scene", ["360", "forward"])
 def test_dataset_writing_from_a_reconstruction(tmp_path, scene):
     """The output half of `process` on a synthetic COLMAP model: the loaders read it back
@@ -337,6 +358,15 @@ def test_dataset_writing_from_a_reconstruction(tmp_path, scene):
     assert data.images.shape == (9, 64, 80, 3)
     half = load_dataset(stage, "all", downscale=2)
     assert half.images.shape == (9, 32, 40, 3)
+    if scene == "forward":   # bounds from the points each photo observes (LLFF's rule)
+        from plenoctree.datasets.llff import read_poses_bounds
+
+        bounds = read_poses_bounds(stage / "poses_bounds.npy")[1]
+        for j, n in enumerate(names):
+            im = next(i for i in rec.images.values() if i.name == n)
+            z = [(im.cam_from_world() * rec.points3D[p.point3D_id].xyz)[2]
+                 for p in im.points2D if p.has_point3D()]
+            np.testing.assert_allclose(bounds[j], np.percentile(z, [0.1, 99.9]), rtol=1e-6)
     if scene == "360":       # relative camera geometry preserved up to the similarity
         c = np.stack([rec.images[i].projection_center() for i in sorted(
             rec.images, key=lambda i: rec.images[i].name)])

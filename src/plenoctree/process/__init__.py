@@ -168,13 +168,26 @@ def _crop_box(w: int, h: int, cx: float, cy: float, centred: bool) -> tuple[int,
     return 0, 0, w // 8 * 8, h // 8 * 8
 
 
+def observed_points(rec, names: list[str]) -> list[np.ndarray]:
+    """The world points ``[P_i, 3]`` each image of ``names`` observes in the reconstruction
+    ``rec`` (a ``pycolmap.Reconstruction``): LLFF bounds each image's depths by these, not by
+    every point in front of it (points beside the view, closer than anything in it, put the
+    near plane of flower's photos ~4x too close; docs/capture.md)."""
+    by_name = {im.name: im for im in rec.images.values()}
+    out = []
+    for n in names:
+        ids = [p.point3D_id for p in by_name[n].points2D if p.has_point3D()]
+        out.append(np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3))
+    return out
+
+
 def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Path,
                    cfg: ProcessConfig) -> dict:
     """Undistort, normalise and write the dataset into ``stage``; returns the summary."""
     import pycolmap
     from PIL import Image
 
-    from ..datasets.colmap import capture_kind, normalize_scene
+    from ..datasets.colmap import capture_kind, depth_bounds, normalize_scene
     from ..datasets.colmap_model import colmap_c2w, read_colmap_model
     from ..datasets.llff import POSES_FILE
 
@@ -235,7 +248,7 @@ def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Pa
         m[:, :, 0], m[:, :, 1] = -raw_c2w[:, :3, 1], raw_c2w[:, :3, 0]
         m[:, :, 2], m[:, :, 3] = raw_c2w[:, :3, 2], raw_c2w[:, :3, 3]
         m[:, :, 4] = [h, w, k[0, 0]]
-        bounds = frame.bounds / frame.scale                  # in COLMAP's units, like LLFF
+        bounds = depth_bounds(raw_c2w, observed_points(res.reconstruction, reg))  # as LLFF
         np.save(stage / POSES_FILE, np.concatenate([m.reshape(len(reg), 15), bounds], 1))
         fmt_name = "llff"
     else:
