@@ -324,6 +324,29 @@ def test_llff_bounds_from_the_points_each_image_observes():
     np.testing.assert_allclose(few[1], np.median(own[[0, 2]], axis=0))
 
 
+def test_observed_points_leave_out_two_view_points():
+    """A photo's points seen by >= 3 photos bound it (two-view points: the spurious close ones
+    on flower); a photo with fewer than 10 such points keeps all it observes."""
+    from types import SimpleNamespace as NS
+
+    from plenoctree.process import observed_points
+
+    def point(i):                       # points 0-4: two-view, the others seen by 4 photos
+        return NS(xyz=np.array([0.0, 0.0, float(i)]), track=NS(length=lambda: 2 if i < 5 else 4))
+
+    def obs(ids):
+        return [NS(point3D_id=i, has_point3D=lambda: True) for i in ids] + [
+            NS(point3D_id=-1, has_point3D=lambda: False)]
+
+    pts = {i: point(i) for i in range(30)}
+    rec = NS(points3D=pts, images={1: NS(name="a.png", points2D=obs(range(30))),
+                                   2: NS(name="b.png", points2D=obs(range(12)))})
+    a, b = observed_points(rec, ["a.png", "b.png"])
+    assert sorted(a[:, 2]) == list(range(5, 30))          # 25 points seen by 4: two-view out
+    assert sorted(b[:, 2]) == list(range(12))             # only 7 seen by 4: all 12 kept
+    assert len(observed_points(rec, ["a.png"], min_track=1)[0]) == 30
+
+
 @pytest.mark.parametrize("scene", ["360", "forward"])
 def test_dataset_writing_from_a_reconstruction(tmp_path, scene):
     """The output half of `process` on a synthetic COLMAP model: the loaders read it back
@@ -358,14 +381,14 @@ def test_dataset_writing_from_a_reconstruction(tmp_path, scene):
     assert data.images.shape == (9, 64, 80, 3)
     half = load_dataset(stage, "all", downscale=2)
     assert half.images.shape == (9, 32, 40, 3)
-    if scene == "forward":   # bounds from the points each photo observes (LLFF's rule)
-        from plenoctree.datasets.llff import read_poses_bounds
+    if scene == "forward":   # bounds from the points each photo observes (LLFF's rule),
+        from plenoctree.datasets.llff import read_poses_bounds    # seen by >= 3 photos
 
         bounds = read_poses_bounds(stage / "poses_bounds.npy")[1]
         for j, n in enumerate(names):
             im = next(i for i in rec.images.values() if i.name == n)
-            z = [(im.cam_from_world() * rec.points3D[p.point3D_id].xyz)[2]
-                 for p in im.points2D if p.has_point3D()]
+            pts = [rec.points3D[p.point3D_id] for p in im.points2D if p.has_point3D()]
+            z = [(im.cam_from_world() * p.xyz)[2] for p in pts if p.track.length() >= 3]
             np.testing.assert_allclose(bounds[j], np.percentile(z, [0.1, 99.9]), rtol=1e-6)
     if scene == "360":       # relative camera geometry preserved up to the similarity
         c = np.stack([rec.images[i].projection_center() for i in sorted(
@@ -374,3 +397,62 @@ def test_dataset_writing_from_a_reconstruction(tmp_path, scene):
         d0 = np.linalg.norm(c[:, None] - c[None], axis=-1)
         d1 = np.linalg.norm(got[:, None] - got[None], axis=-1)
         np.testing.assert_allclose(d1 / d1.max(), d0 / d0.max(), atol=1e-4)
+
+
+def test_working_downscale_on_synthetic_sizes():
+    from plenoctree.pipeline_config import working_downscale
+
+    assert working_downscale(4032, 3024, forward=True, gpu=False) == 8      # LLFF's 504x378
+    assert working_downscale(4032, 3024, forward=True, gpu=True) == 4       # LLFF's 1008x756
+    assert working_downscale(800, 800, forward=False, gpu=False) == 2       # lego at 400²
+    assert working_downscale(800, 800, forward=False, gpu=True) == 1
+    assert working_downscale(1080, 1920, forward=False, gpu=False) == 3     # fox: 360x640
+    assert working_downscale(504, 378, forward=True, gpu=False) == 1        # already small
+    # a factor that the dataset cannot load is passed over
+    assert working_downscale(1080, 1920, False, False, loads=lambda f: f == 5) == 5
+
+
+def _llff_photos(root, n=3):
+    """An LLFF capture of 4032x3024 photos (poses_bounds.npy) with only images_8/ present."""
+    from plenoctree.datasets.forward_facing import forward_facing_cameras
+    from plenoctree.datasets.llff import write_llff
+
+    rng = np.random.default_rng(0)
+    write_llff(root, forward_facing_cameras(n), rng.integers(0, 255, (n, 378, 504, 3), np.uint8),
+               440.0, np.tile([2.0, 6.0], (n, 1)))
+    arr = np.load(root / "poses_bounds.npy")
+    arr[:, 4:15:5] = [3024, 4032, 3520]          # the hwf column: the full-size photos
+    np.save(root / "poses_bounds.npy", arr)
+    (root / "images").rename(root / "images_8")
+    return root
+
+
+def test_run_picks_the_working_resolution_and_downscale_overrides(tmp_path, monkeypatch,
+                                                                  caplog):
+    """`run` without --downscale trains on 4032x3024 LLFF photos at 504x378 (factor 8) and
+    says so; an explicit --downscale wins."""
+    import plenoctree.pipeline as pl
+    from plenoctree.errors import PlenOctreeError
+
+    data = _llff_photos(tmp_path / "ff")
+    seen = []
+
+    def train(tcfg):
+        seen.append(tcfg.downscale)
+        raise PlenOctreeError("stop here")
+
+    monkeypatch.setattr(pl, "_train", train)
+    caplog.set_level("INFO", logger="plenoctree")
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)       # the CPU's choice
+    with pytest.raises(pl.PipelineError, match="stop here"):
+        pl.run_pipeline(pl.PipelineConfig(data=str(data), out=str(tmp_path / "run")))
+    assert seen == [8]
+    assert ("working resolution 504x378 (downscale 8) for a forward-facing capture on the CPU; "
+            "--downscale overrides") in caplog.text
+    caplog.clear()
+    with pytest.raises(pl.PipelineError, match="stop here"):
+        pl.run_pipeline(pl.PipelineConfig(data=str(data), out=str(tmp_path / "run2"),
+                                          downscale=4, device="cpu"))
+    assert seen == [8, 4] and "working resolution" not in caplog.text

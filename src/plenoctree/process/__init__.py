@@ -168,15 +168,27 @@ def _crop_box(w: int, h: int, cx: float, cy: float, centred: bool) -> tuple[int,
     return 0, 0, w // 8 * 8, h // 8 * 8
 
 
-def observed_points(rec, names: list[str]) -> list[np.ndarray]:
+MIN_TRACK = 3
+"""Points seen by fewer images do not bound the depths (:func:`observed_points`)."""
+
+
+def observed_points(rec, names: list[str], min_track: int = MIN_TRACK) -> list[np.ndarray]:
     """The world points ``[P_i, 3]`` each image of ``names`` observes in the reconstruction
-    ``rec`` (a ``pycolmap.Reconstruction``): LLFF bounds each image's depths by these, not by
-    every point in front of it (points beside the view, closer than anything in it, put the
-    near plane of flower's photos ~4x too close; docs/capture.md)."""
+    ``rec`` (a ``pycolmap.Reconstruction``) that at least ``min_track`` images see (all it
+    observes when fewer than 10 are).
+
+    LLFF bounds each image's depths by the points it observes, not by every point in front of
+    it (points beside the view, closer than anything in it, put the near plane of flower's
+    photos ~4x too close); two-view points are left out as well: on flower the closest ones
+    are two-view triangulations with 3-4x the median reprojection error, 3-7x closer than
+    anything else in the photo (docs/capture.md).
+    """
     by_name = {im.name: im for im in rec.images.values()}
     out = []
     for n in names:
         ids = [p.point3D_id for p in by_name[n].points2D if p.has_point3D()]
+        kept = [i for i in ids if rec.points3D[i].track.length() >= min_track]
+        ids = kept if len(kept) >= 10 else ids
         out.append(np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3))
     return out
 
