@@ -176,7 +176,8 @@ def compare_bounds(est: dict, ref: dict, scale: float) -> dict:
     e = np.array([est[n] for n in names]) * scale
     r = np.array([ref[n] for n in names])
     return {"near_median": float(np.median(e[:, 0])), "far_median": float(np.median(e[:, 1])),
-            "ref_near_median": float(np.median(r[:, 0])), "ref_far_median": float(np.median(r[:, 1])),
+            "ref_near_median": float(np.median(r[:, 0])),
+            "ref_far_median": float(np.median(r[:, 1])),
             "ratio": float(e[:, 1].max() / e[:, 0].min()),
             "ref_ratio": float(r[:, 1].max() / r[:, 0].min())}
 

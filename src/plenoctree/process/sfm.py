@@ -7,20 +7,23 @@ can cause (too few images, too few matches, nothing registered) raises
 :class:`~plenoctree.errors.ProcessError` naming what to try.
 
 Defaults chosen by measurement on the lego training photos (``benchmarks/colmap_poses.py``):
-one camera shared by every image (``single_camera``), exhaustive matching with guided matching
-(re-matching along the epipolar geometry once the two-view geometry is known), and a stricter
-mapper (:data:`MAPPER_DEFAULTS`: an image is registered only with >= 100 inliers, >= 50 %
-inlier ratio and <= 4 px error; observations over 2 px are filtered; no structure-less
-fallback registration), then :func:`drop_weak_images`. With COLMAP's own mapper settings one
-lego photo was registered on the wrong side of the nearly symmetric object (165° off); the
-stricter ones alone still did so in one of two runs (multi-threaded matching is not
-deterministic), with ~5x fewer 3D points than the median photo, which the filter removes.
-A final global bundle adjustment refines the chosen model.
+one camera shared by every image (``single_camera``) and a stricter mapper
+(:data:`MAPPER_DEFAULTS`: an image is registered only with >= 100 inliers, >= 50 % inlier
+ratio and <= 4 px error; observations over 2 px are filtered; no structure-less fallback
+registration), then :func:`drop_weak_images`. With COLMAP's own mapper settings one lego photo
+was registered on the wrong side of the nearly symmetric object (165° off); the stricter ones
+alone still did so in one of two runs (multi-threaded matching is not deterministic), with
+~5x fewer 3D points than the median photo, which the filter removes. A final global bundle
+adjustment refines the chosen model.
 
-Video frames (``benchmarks/colmap_poses.py --video``, the lego test orbit): matched
-exhaustively up to :data:`EXHAUSTIVE_MAX_FRAMES` (with 20 neighbours only, the two turns of
-the orbit never met and the frames split into 3-5 models, 16 of 60 registered; at 800² one
-such model put half its frames on the wrong side of the object), and the inlier minimum
+Cost, measured on the real captures (``benchmarks/colmap_poses.py --real flower|fox``,
+docs/capture.md): guided matching took ~3.5x the matching time per pair for ~10 % more
+inliers and 0.1° on flower's rotations (0.34° against 0.44° median), so it is off by default;
+SIFT runs at <= 1024 px (fox's 1920-px frames: about half the features and matching time of
+1600 px; the feature cap does not bind at these sizes); every pair is matched only up to
+:data:`EXHAUSTIVE_MAX_IMAGES` images, and ordered images beyond (video frames, photos whose
+names follow the capture) with their neighbours and frames 2^k later (:func:`choose_matcher`;
+pycolmap's loop detection needs a vocabulary tree, a download, so none). The inlier minimum
 follows the features (:func:`min_inliers`).
 """
 
@@ -288,7 +291,7 @@ def choose_matcher(matcher: str, n: int, ordered: bool) -> str:
     ``matcher="auto"``: every pair up to :data:`EXHAUSTIVE_MAX_IMAGES` images; beyond, the
     sequential pairs (:func:`sequential_pairs`) for ordered images, every pair for others up
     to :data:`EXHAUSTIVE_MAX_PHOTOS`. Measured (docs/capture.md): real/fox's 67 frames make
-    2,211 pairs exhaustively and 664 sequentially.
+    2,211 pairs exhaustively and 704 sequentially.
     """
     if matcher != "auto":
         return matcher
