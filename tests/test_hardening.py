@@ -338,3 +338,18 @@ def test_resume_after_a_kill_in_the_first_checkpoint_write(tmp_path, capsys):
     with pytest.raises(CheckpointError, match="stopped while writing its first one"):
         read_checkpoint(run)
     assert not partial.exists()
+
+
+def test_a_refused_run_leaves_no_out_folder_and_never_writes_into_its_dataset(tiny_scene,
+                                                                               tmp_path, capsys):
+    out = tmp_path / "new" / "run"
+    _fails(capsys, ["run", "--data", tiny_scene / "data", "--out", out, "--train.steps", "-5"],
+           "--train.steps must be >= 0")
+    _fails(capsys, ["run", "--data", tmp_path / "missing", "--out", out], "does not exist")
+    assert not (tmp_path / "new").exists()
+    before = sorted(p.name for p in (tiny_scene / "data").iterdir())
+    _fails(capsys, ["run", "--data", tiny_scene / "data", "--out", tiny_scene / "data"],
+           "is the dataset folder")
+    _fails(capsys, ["train", "--data", tiny_scene / "data", "--out", tiny_scene / "data"],
+           "is the dataset folder")
+    assert sorted(p.name for p in (tiny_scene / "data").iterdir()) == before

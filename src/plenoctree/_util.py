@@ -59,7 +59,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[Any]:
 
 
 _TMP_RE = re.compile(r"\.tmp-(\d+)(\.[^.]*)?$")
-LOCK_NAME = _LOCK_NAME = ".plenoctree.lock"   # a run folder's lock file
+LOCK_NAME = ".plenoctree.lock"           # a run folder's lock file
 _held_locks: dict[str, list] = {}        # lock path -> [fd, depth] held by this process
 
 
@@ -117,7 +117,7 @@ def run_lock(target: str | os.PathLike, command: str = "", folder: bool = True) 
     from .errors import ConfigError
 
     target = Path(target)
-    path = target / _LOCK_NAME if folder else target.with_name(f".{target.name}.lock")
+    path = target / LOCK_NAME if folder else target.with_name(f".{target.name}.lock")
     key = str(path.resolve()) if path.parent.exists() else str(path.absolute())
     if key in _held_locks:
         _held_locks[key][1] += 1
@@ -225,6 +225,7 @@ def _is_json_file(path: Path) -> bool:
 
 
 def _starts_with(*magic: bytes, at: int = 0):
+    """A check that a file's bytes at offset ``at`` begin with one of ``magic``."""
     def check(path: Path) -> bool:
         try:
             with open(path, "rb") as f:
@@ -245,8 +246,6 @@ _OURS = {
     ".mp4": _starts_with(b"ftyp", at=4), ".mov": _starts_with(b"ftyp", at=4),
     ".mkv": _starts_with(b"\x1aE\xdf\xa3"), ".webm": _starts_with(b"\x1aE\xdf\xa3"),
 }
-
-
 _KINDS = {"tree": (_is_plenoctree_file, "a tree file"), "json": (_is_json_file, "a JSON file")}
 
 

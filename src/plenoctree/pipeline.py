@@ -257,14 +257,15 @@ def run_pipeline(cfg: PipelineConfig) -> dict:
         raise ConfigError("give either --data (a dataset) or --images (photos / a video), not both")
     out = check_output_dir(cfg.out)
     check_extras(cfg)
-    out.mkdir(parents=True, exist_ok=True)
+    if cfg.data and Path(cfg.data).resolve() == out.resolve():
+        raise ConfigError(f"--out {out} is the dataset folder; give the run its own folder")
+    # The lock creates OUT; a refused run (bad options, missing data) removes it again.
     with run_lock(out, "run"):      # a second run / resume into OUT fails naming the holder
         return _run(cfg, out)
 
 
 def _run(cfg: PipelineConfig, out: Path) -> dict:
     cfg = wired(cfg)
-    atomic_save_json(out / "config.json", config_dict(cfg))   # `run --config` reads it back
     if cfg.data and not Path(cfg.data).exists():
         raise ConfigError(f"{cfg.data}: dataset folder does not exist")
     lay = run_layout(out, cfg.nerf)
@@ -276,6 +277,7 @@ def _run(cfg: PipelineConfig, out: Path) -> dict:
     if not cfg.downscale:
         cfg = wired(_working_resolution(cfg))
         stages = plan_stages(cfg, lay)[1 if cfg.images else 0:]
+    atomic_save_json(out / "config.json", config_dict(cfg))   # `run --config` reads it back
     if cfg.nerf:          # a trained NeRF-SH: its training time is read from its summary
         logger.info(f"[train] using the trained NeRF-SH {lay.nerf} (not trained here)")
         r.given("train", _read_json(lay.nerf / "summary.json").get("train_time_s"))

@@ -32,6 +32,12 @@ class ViewConfig(PageConfig):
 
     port: int = 8000
     """TCP port (0 = any free)"""
+    host: str = "127.0.0.1"
+    """address to listen on; anything but loopback serves the tree to every machine that can
+    reach it (prefer an ssh tunnel: docs/viewer.md)"""
+    render: str = "auto"
+    """who draws: webgl (the browser's GPU), cpu (this machine's numba renderer streams JPEG
+    frames to the page) or auto (cpu when the browser has only software WebGL or none)"""
     open: bool = False
     """open the page in the default browser"""
     verbose: bool = False
@@ -80,21 +86,40 @@ def _cameras_extra(cfg: PageConfig) -> dict:
     return cameras_config(data.cameras, data.names)
 
 
+def _warn_if_exposed(host: str, port: int) -> None:
+    """Say on stderr that a non-loopback ``host`` serves the tree to the network."""
+    from ..viewer.server import is_loopback
+
+    if is_loopback(host):
+        return
+    print(f"warning: listening on {host}:{port}, not loopback: anyone who can reach this "
+          "address can download the tree (the viewer has no login). To view from another "
+          f"machine privately, keep the default host and tunnel instead:\n"
+          f"  ssh -L {port}:127.0.0.1:{port} THIS_HOST   then open http://127.0.0.1:{port}/",
+          file=sys.stderr, flush=True)
+
+
 def _run_view(cfg: ViewConfig, args: argparse.Namespace) -> int:
     from ..viewer import ViewerServer
     from ..viewer.budget import check_texture_budget
 
     path = Path(cfg.tree)
     _check_tree(path)
-    need = check_texture_budget(path, cfg.max_mb)
+    # CPU mode: the page never holds the tree, so no texture budget applies
+    need = check_texture_budget(path, cfg.max_mb) if cfg.render != "cpu" else None
     extra = _cameras_extra(cfg)
-    server = ViewerServer(path, port=cfg.port, max_mb=cfg.max_mb, verbose=cfg.verbose)
+    server = ViewerServer(path, port=cfg.port, max_mb=cfg.max_mb, verbose=cfg.verbose,
+                          render=cfg.render, host=cfg.host)
     if extra:
         from ..viewer.export import add_cameras_to_server
 
         add_cameras_to_server(server, extra)
-    print(f"Serving {path} ({need / 1e6:.0f} MB of textures) at {server.url}  (Ctrl-C to stop)",
-          flush=True)
+    _warn_if_exposed(cfg.host, server.port)
+    how = {"webgl": "WebGL in the browser", "cpu": "the CPU renderer here",
+           "auto": "WebGL, or the CPU renderer here when the browser's GL is software"}
+    size = "" if need is None else f" ({need / 1e6:.0f} MB of textures)"
+    print(f"Serving {path}{size} at {server.url}, drawn by "
+          f"{how[cfg.render]}  (Ctrl-C to stop)", flush=True)
     if cfg.open:
         import webbrowser
 
@@ -138,11 +163,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     :class:`ExportWebConfig`)."""
     from ._options import add_command
 
+    from ..viewer.frames import RENDER_MODES
+
     add_command(sub, "view", ViewConfig, _run_view,
                 help="view a tree in the browser (local server on 127.0.0.1)",
-                description="Start a local HTTP server bound to 127.0.0.1 that serves the "
-                "WebGL2 viewer page and TREE (raw .npz or compressed .plnz), and print its "
-                "URL. It serves nothing else.", positional=("tree",))
+                description="Start a local HTTP server bound to 127.0.0.1 (or --host) that "
+                "serves the WebGL2 viewer page and TREE (raw .npz or compressed .plnz), and "
+                "print its URL. It serves nothing else. Without a GPU (--render cpu, or auto "
+                "when the browser's WebGL is software) the server draws the frames with the "
+                "numba CPU renderer and streams them to the page.", positional=("tree",),
+                fields={"render": {"choices": RENDER_MODES}})
     add_command(sub, "export-web", ExportWebConfig, _run_export,
                 help="write a static viewer bundle (page + tree)",
                 description="Write the viewer page and TREE into a folder that any static web "

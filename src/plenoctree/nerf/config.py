@@ -309,7 +309,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
          "stop thresholds must be in [0, 1)")
     need(cfg.batch_rays >= 1 and cfg.target_samples >= 1 and cfg.max_rays >= 1,
          "batch_rays, target_samples and max_rays must be >= 1")
-    need(cfg.max_steps >= 0 and cfg.minutes >= 0, "max_steps and minutes must be >= 0")
+    need(cfg.max_steps >= 0, "max_steps must be >= 0")
+    need(cfg.minutes >= 0, "minutes must be >= 0")
     need(cfg.lr_init > 0 and cfg.lr_final > 0, "learning rates must be > 0")
     need(cfg.sparsity_weight >= 0 and cfg.sparsity_length > 0 and cfg.sparsity_points >= 0,
          "sparsity_weight >= 0, sparsity_length > 0 and sparsity_points >= 0 are required")

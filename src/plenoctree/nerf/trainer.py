@@ -246,6 +246,8 @@ def train(cfg: TrainConfig, resume: bool = False,
     if not cfg.data or not cfg.out:
         raise ConfigError("training needs a dataset folder (--data) and a run directory (--out)")
     check_output_dir(cfg.out)
+    if Path(cfg.out).resolve() == Path(cfg.data).resolve():
+        raise ConfigError(f"--out {cfg.out} is the dataset folder; give the run its own folder")
     # Under torchrun only rank 0 (the one that writes) holds the lock: the other ranks of the
     # same run would otherwise find the folder "in use" by rank 0.
     from .distributed import rank_from_env

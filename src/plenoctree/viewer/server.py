@@ -1,26 +1,34 @@
 """A local HTTP server for the web viewer: its own static files and one tree, nothing else.
 
-Bound to 127.0.0.1. The URL space is a fixed table built at start-up:
+Bound to 127.0.0.1 unless given another host (``--host``: then anyone who can reach that
+address can fetch the tree; see docs/viewer.md for an ``ssh -L`` tunnel instead). The URL
+space is a fixed table built at start-up:
 
 - ``/`` and ``/index.html``: the page; ``/<name>`` for each regular file of ``static/``;
 - ``/config.json``: ``{"tree": "data/<tree file name>", ...}`` (generated);
-- ``/data/<tree file name>``: the tree (raw ``.npz`` or compressed ``.plnz``), streamed.
+- ``/data/<tree file name>``: the tree (raw ``.npz`` or compressed ``.plnz``), streamed;
+- ``/frame?...``: with ``render`` ``"cpu"`` or ``"auto"`` only, a JPEG frame of the tree drawn
+  by the CPU renderer for the page's camera (:mod:`.frames`); bad parameters answer 400.
 
 Any other path, including every path with ``..``, a backslash, a NUL or an encoded slash, is
 answered 404 or 400 without touching the file system; there is no directory listing. Only GET
-and HEAD are allowed. Requests whose ``Host`` header is not this server's loopback address
-are refused (403: DNS rebinding); files are opened with ``O_NOFOLLOW`` (a tree swapped for a
-symlink is not followed). The listen backlog holds ``BACKLOG`` connections and an idle
-connection is closed after ``IDLE_TIMEOUT_S`` seconds. The tree is validated before serving
-(:func:`check_servable`): the page would refuse what the loaders refuse.
+and HEAD are allowed. Requests whose ``Host`` header is not this server's address (loopback,
+or the host it was started on) are refused (403: DNS rebinding); files are opened with
+``O_NOFOLLOW`` (a tree swapped for a symlink is not followed). The listen backlog holds
+``BACKLOG`` connections and an idle connection is closed after ``IDLE_TIMEOUT_S`` seconds. The
+tree is validated before serving (:func:`check_servable`): the page would refuse what the
+loaders refuse.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import json
+import logging
 import os
 import re
 import shutil
+import socket
 import stat
 import threading
 from http import HTTPStatus
@@ -31,9 +39,12 @@ from urllib.parse import unquote, urlsplit
 
 from ..errors import ConfigError
 from .budget import DEFAULT_MAX_MB
+from .frames import RENDER_MODES, FrameRenderer, parse_frame_query
 
 __all__ = ["ViewerServer", "static_dir", "static_files", "viewer_config", "check_servable",
-           "BACKLOG", "IDLE_TIMEOUT_S"]
+           "is_loopback", "BACKLOG", "IDLE_TIMEOUT_S"]
+
+logger = logging.getLogger(__name__)
 
 BACKLOG = 1024           # queued connections (the kernel caps it at net.core.somaxconn)
 IDLE_TIMEOUT_S = 20.0    # a connection silent this long (slow or idle client) is closed
@@ -77,13 +88,45 @@ def viewer_config(tree_name: str, title: str | None = None,
     }
 
 
-def check_servable(path: str | os.PathLike) -> None:
+def check_servable(path: str | os.PathLike) -> Any:
     """Raise :class:`~plenoctree.errors.TreeFormatError` (naming the file) unless the page can
     show the tree: the full loader checks (topology, ``MAX_DEPTH`` = the page's 22 levels,
-    finite values, codebook indices). Loads (and drops) the tree once."""
+    finite values, codebook indices). Loads the tree once and returns it (an ``Octree``)."""
     from ..compression.fileio import load_any_tree
 
-    load_any_tree(path)
+    return load_any_tree(path)
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (a name or an address) is this machine's loopback only."""
+    if host.strip().lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def _allowed_hosts(host: str, port: int) -> set[str]:
+    """``Host`` header values the server answers: loopback names, the host it listens on and,
+    for a wildcard address (0.0.0.0, ::), this machine's names and addresses."""
+    names = {"127.0.0.1", "localhost", host.strip("[]").lower()}
+    try:
+        wildcard = ipaddress.ip_address(host.strip("[]")).is_unspecified
+    except ValueError:
+        wildcard = False
+    if wildcard:
+        hostname = socket.gethostname()
+        names |= {hostname.lower(), socket.getfqdn().lower()}
+        try:
+            names |= {str(a[4][0]).lower() for a in socket.getaddrinfo(hostname, None)}
+        except OSError:
+            pass
+    out = set()
+    for n in names:
+        n = f"[{n}]" if ":" in n else n          # an IPv6 literal in a Host header
+        out |= {n, f"{n}:{port}"}
+    return out
 
 
 def _open_regular(path: Path) -> Any:
@@ -113,6 +156,9 @@ class _Handler(BaseHTTPRequestHandler):
     server: _Server
     protocol_version = "HTTP/1.1"
     timeout = IDLE_TIMEOUT_S     # socket timeout: idle keep-alive and slow clients are dropped
+    # headers and body are two writes: with Nagle's algorithm the body would wait for the
+    # client's delayed ACK of the headers (~40 ms per frame on Linux)
+    disable_nagle_algorithm = True
 
     def log_message(self, fmt: str, *args: Any) -> None:      # quiet unless asked
         if self.server.verbose:
@@ -149,11 +195,42 @@ class _Handler(BaseHTTPRequestHandler):
         if host is None or host.strip().lower() in self.server.hosts:
             return True
         self._error(HTTPStatus.FORBIDDEN, "unexpected Host header (this server answers only "
-                                          f"127.0.0.1:{self.server.server_address[1]})")
+                                          f"{self.server.host_label}:{self.server.server_address[1]})")
         return False
+
+    def _send_frame(self, query: str, head_only: bool) -> None:
+        """``/frame``: a JPEG of the CPU renderer (400 for bad parameters, never a traceback)."""
+        frames = self.server.frames
+        try:
+            req = parse_frame_query(query)
+            body, render_ms, encode_ms = frames.jpeg(req)
+        except ConfigError as e:
+            self._error(HTTPStatus.BAD_REQUEST, str(e))
+            return
+        except Exception as e:                  # a bug: say so, keep serving
+            logger.error("viewer: /frame failed: %s: %s", type(e).__name__, e)
+            self._error(HTTPStatus.INTERNAL_SERVER_ERROR, f"frame failed ({type(e).__name__})")
+            return
+        self.send_response(HTTPStatus.OK)
+        self.send_header("Content-Type", "image/jpeg")
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.send_header("X-Content-Type-Options", "nosniff")
+        self.send_header("X-Render-Ms", f"{render_ms:.2f}")
+        self.send_header("X-Encode-Ms", f"{encode_ms:.2f}")
+        self.end_headers()
+        if not head_only:
+            try:
+                self.wfile.write(body)
+            except (BrokenPipeError, ConnectionResetError):
+                pass
 
     def _send(self, head_only: bool) -> None:
         if not self._host_ok():
+            return
+        url = urlsplit(self.path)
+        if url.path == "/frame" and self.server.frames is not None:
+            self._send_frame(url.query, head_only)
             return
         entry = self._resolve()
         if entry is None:
@@ -203,6 +280,8 @@ class _Server(ThreadingHTTPServer):
     request_queue_size = BACKLOG
     routes: dict[str, tuple[bytes | Path, str]]
     hosts: set[str]
+    host_label: str
+    frames: FrameRenderer | None
     verbose: bool
 
     def handle_error(self, request: Any, client_address: Any) -> None:
@@ -210,8 +289,12 @@ class _Server(ThreadingHTTPServer):
             super().handle_error(request, client_address)
 
 
+class _Server6(_Server):
+    address_family = socket.AF_INET6
+
+
 class ViewerServer:
-    """Serve the viewer page and one tree on ``http://127.0.0.1:<port>/``.
+    """Serve the viewer page and one tree on ``http://<host>:<port>/``.
 
     Args:
         tree_path: the tree to show (``.npz`` or ``.plnz``); must exist.
@@ -220,6 +303,12 @@ class ViewerServer:
         max_mb: the page's texture budget in MB (it refuses larger trees with a hint).
         verbose: log every request to stderr.
         check: validate the tree first (:func:`check_servable`; ``TreeFormatError``).
+        render: who draws (:data:`~.frames.RENDER_MODES`): ``"webgl"`` (the page, on the
+            browser's GPU), ``"cpu"`` (this server, with the numba renderer: ``/frame``) or
+            ``"auto"`` (CPU when the page finds only a software WebGL or none). The tree is
+            loaded and kept in memory for ``cpu`` and ``auto``.
+        host: the address to listen on (default loopback; any other exposes the tree to every
+            machine that can reach it: :func:`is_loopback`).
 
     Use :meth:`start` (background thread) / :meth:`stop`, or :meth:`serve_forever`; or as a
     context manager. :attr:`url` is the page's address.
@@ -227,33 +316,43 @@ class ViewerServer:
 
     def __init__(self, tree_path: str | os.PathLike, port: int = 8000, title: str | None = None,
                  max_mb: float = DEFAULT_MAX_MB, verbose: bool = False,
-                 check: bool = True) -> None:
+                 check: bool = True, render: str = "webgl", host: str = "127.0.0.1") -> None:
         tree = Path(tree_path)
         if not tree.is_file():
             raise ConfigError(f"{tree}: no such tree file")
         if not 0 <= int(port) <= 65535:
             raise ConfigError(f"port must be in 0..65535, got {port}")
-        if check:
-            check_servable(tree)
+        if render not in RENDER_MODES:
+            raise ConfigError(f"render must be one of {', '.join(RENDER_MODES)}, got {render!r}")
+        loaded = check_servable(tree) if check or render != "webgl" else None
+        frames = None if render == "webgl" else FrameRenderer(loaded)
         self.tree_path = tree.resolve()
+        self.render = render
         self.tree_name = _tree_name(tree)
         routes: dict[str, tuple[bytes | Path, str]] = {}
         for name, p in static_files().items():
             routes["/" + name] = (p, _TYPES.get(p.suffix, "application/octet-stream"))
         routes["/"] = routes["/index.html"]
-        config = json.dumps(viewer_config(self.tree_name, title, max_mb), indent=1).encode()
-        routes["/config.json"] = (config, _TYPES[".json"])
+        config = viewer_config(self.tree_name, title, max_mb)
+        if frames is not None:
+            config.update(render=render, cpu=frames.info())
+        routes["/config.json"] = (json.dumps(config, indent=1).encode(), _TYPES[".json"])
         routes["/data/" + self.tree_name] = (self.tree_path, "application/octet-stream")
+        self.host = host.strip("[]")
+        server_class = _Server6 if ":" in self.host else _Server
         try:
-            self.httpd = _Server(("127.0.0.1", int(port)), _Handler)
-        except OSError as e:
-            raise ConfigError(f"cannot listen on 127.0.0.1:{port} ({e.strerror or e}); pass "
-                              "--port 0 to pick a free port") from None
+            self.httpd = server_class((self.host, int(port)), _Handler)
+        except (OSError, OverflowError) as e:
+            raise ConfigError(f"cannot listen on {host}:{port} ({getattr(e, 'strerror', None) or e});"
+                              " pass --port 0 to pick a free port") from None
         self.httpd.routes = routes
         self.httpd.verbose = verbose
-        p = self.port
-        self.httpd.hosts = {f"127.0.0.1:{p}", f"localhost:{p}", "127.0.0.1", "localhost"}
+        self.httpd.frames = frames
+        self.httpd.host_label = self.host
+        self.httpd.hosts = _allowed_hosts(self.host, self.port)
         self._thread: threading.Thread | None = None
+        if frames is not None:                   # load the compiled kernel before the page asks
+            threading.Thread(target=frames.warm_up, daemon=True, name="viewer-warm-up").start()
 
     @property
     def port(self) -> int:
@@ -261,7 +360,13 @@ class ViewerServer:
 
     @property
     def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}/"
+        """The page's address (loopback for a wildcard host)."""
+        try:
+            wildcard = ipaddress.ip_address(self.host).is_unspecified
+        except ValueError:
+            wildcard = False
+        host = "127.0.0.1" if wildcard else self.host
+        return f"http://{f'[{host}]' if ':' in host else host}:{self.port}/"
 
     def start(self) -> ViewerServer:
         """Serve in a daemon thread; returns self."""

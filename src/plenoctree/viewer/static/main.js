@@ -1,14 +1,20 @@
 // The PlenOctree viewer page: loads the tree named by ?tree= or config.json, packs it into
 // textures, renders on demand, wires the controls, and exposes `window.viewer` for scripts.
 // Every failure ends in a visible message (never a blank canvas).
+// Two ways to draw (frames.js): WebGL2 in the page, or, where the server offers it (config.json
+// "cpu": `plenoctree view --render cpu|auto`) and the browser has only software WebGL, frames
+// drawn by the server's CPU renderer. The frame loop never waits for the GPU: a fence tells
+// when a WebGL frame is done (no synchronous read-back).
 
-import { NpzArchive, FormatError } from "./npz.js";
+import { NpzArchive, FormatError, fetchBuffer, toBase64 } from "./npz.js";
 import { packTree, LimitError } from "./tree.js";
 import { Renderer, GLError } from "./renderer.js";
 import { OrbitCamera, UP, applyHeldKeys, isMoveKey } from "./camera.js";
 import { drawFrustums } from "./overlay.js";
-import { probeRay, lumisphere } from "./probe.js";
+import { probeRay, lumisphere, treeRay } from "./probe.js";
 import { MeshPass, parseObj, parseGlb, toSceneUp } from "./mesh.js";
+import { detectGL, glRendererName, FrameStats, CpuFrames, markWebglOnly } from "./frames.js";
+import { GlFrames } from "./glframes.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -22,15 +28,20 @@ let config = {};
 let renderer = null;
 let camera = new OrbitCamera();
 let fixedView = null;     // a camera set by a script (setView) replaces the orbit camera
-// Resolution scale: a number, or "auto": while the view changes, frames render at autoScale
-// (tuned so a frame takes ~TARGET_MS), and 300 ms after the last change once at full size.
+// Resolution scale: a number, or "auto": while the view changes, frames render at a scale
+// that keeps them fast (glframes.js, frames.js), then once at full size.
 let scaleMode = params.get("scale") || "auto";
-let autoScale = 1;
-const TARGET_MS = 60;
 let dirty = true;
 let lastChange = 0;
-let needFull = false;
-let lastFrameMs = null;
+// "webgl" or "cpu"; scene: what the camera and controls need of the tree (the packed tree in
+// WebGL mode, config.json's "cpu" description in CPU mode)
+let drawMode = "webgl";
+let scene = null;
+let cpu = null;
+let glf = null;              // WebGL mode: GlFrames
+let rendererLabel = "";
+let glInfo = null;           // detectGL(): {webgl2, renderer, software}
+const stats = new FrameStats();
 
 function invalidate() {
   dirty = true;
@@ -44,18 +55,17 @@ ready.catch(() => {});
 
 const api = {
   state: "loading", message: "", ready,
-  info: () => (renderer && renderer.tree ? describe(renderer.tree) : null),
+  info: () => (scene ? describe(scene) : null),
   limits: () => (renderer ? renderer.limits : null),
   setView(view) { fixedView = view; invalidate(); },
   clearView() { fixedView = null; invalidate(); },
   setOptions(o) { Object.assign(opts, o); syncControls(); invalidate(); },
   options: () => JSON.parse(JSON.stringify(opts)),
-  render() { return renderOnce(); },
+  // WebGL: draw now and wait for the GPU (ms). CPU mode: a Promise of the full-resolution
+  // frame of the current view on screen (ms from request to screen).
+  render() { return drawMode === "cpu" ? cpuDrawNow() : renderOnce(); },
   pixels() {
-    const px = renderer.readPixels();
-    let s = "";
-    for (let i = 0; i < px.length; i += 0x8000) s += String.fromCharCode.apply(null, px.subarray(i, i + 0x8000));
-    return btoa(s);
+    return toBase64(drawMode === "cpu" ? canvasPixels() : renderer.readPixels());
   },
   // Median milliseconds per frame (draw + wait for the GPU) over n frames.
   benchmark(n = 10) {
@@ -66,6 +76,11 @@ const api = {
     return times[Math.floor(times.length / 2)];
   },
   camera: () => camera,
+  // Who draws: {mode: "webgl"|"cpu", label, software (WebGL is a software renderer)}.
+  renderer: () => ({ mode: drawMode, label: rendererLabel, software: Boolean(glInfo && glInfo.software) }),
+  // Frames delivered in the last second, the last frame and a log of recent ones
+  // ({t: performance.now() on screen, width, height, full, ms: request to screen, ...}).
+  stats: () => ({ fps: stats.fps(), last: stats.last || null, log: stats.log }),
   // The interactive camera's view for a width x height target ({c2w row-major, fx, ...}).
   currentView: (w, h) => camera.view(w, h),
   resetView() { resetView(); },
@@ -119,7 +134,7 @@ function showError(err) {
   $("message-text").textContent = text;
   $("message-hint").textContent = hint;
   $("message").hidden = false;
-  $("message-close").hidden = !(renderer && renderer.tree);
+  $("message-close").hidden = !scene;
   setStatus("");
   api.state = "error";
   api.message = `${title}: ${text}${hint ? "\n" + hint : ""}`;
@@ -130,7 +145,7 @@ function showError(err) {
 // Close the message card; the page keeps working with the tree it had (if any).
 function dismissMessage() {
   $("message").hidden = true;
-  if (renderer && renderer.tree) {
+  if (scene) {
     api.state = "ready";
     api.message = "";
     invalidate();
@@ -222,12 +237,12 @@ function setFov(deg) {
 
 function jumpToCamera(i) {
   const cams = config.cameras;
-  if (!cams || !cams.c2w.length || !renderer || !renderer.tree) return;
+  if (!cams || !cams.c2w.length || !scene) return;
   const n = cams.c2w.length;
   i = ((Math.round(i) % n) + n) % n;
   // (NDC trees: orbit about a point 2 near-plane distances in front of the camera)
   const pivot = opts.ndc ? [cams.c2w[i][3] - 2 * cams.c2w[i][2], cams.c2w[i][7] - 2 * cams.c2w[i][6],
-    cams.c2w[i][11] - 2 * cams.c2w[i][10]] : sceneCenter(renderer.tree);
+    cams.c2w[i][11] - 2 * cams.c2w[i][10]] : sceneCenter(scene);
   camera.setPose(cams.c2w[i], cameraFovY(i), pivot);
   fixedView = null;
   $("camera_select").value = String(i);
@@ -246,21 +261,9 @@ function drawCameras(view) {
 // ---------------------------------------------------------------- radiance probe
 function runProbe(origin, dir, size = 128) {
   if (!renderer || !renderer.tree) return null;
-  const l = Math.hypot(...dir) || 1;
-  let d = dir.map((v) => v / l);
-  let o = origin;
-  if (opts.ndc) {                         // the same world -> NDC ray map as the shader
-    if (!(d[2] < 0)) return null;
-    const n = opts.ndc, ax = -2 * n.fx / n.width, ay = -2 * n.fy / n.height;
-    const t = -(n.near + o[2]) / d[2];
-    const on = o.map((v, k) => v + t * d[k]);
-    const rx = on[0] / on[2], ry = on[1] / on[2];
-    o = [ax * rx, ay * ry, 1 + 2 * n.near / on[2]];
-    const d2 = [ax * (d[0] / d[2] - rx), ay * (d[1] / d[2] - ry), -2 * n.near / on[2]];
-    const l2 = Math.hypot(...d2);
-    d = d2.map((v) => v / l2);
-  }
-  const hit = probeRay(renderer.tree, o, d);
+  const ray = treeRay(origin, dir, opts.ndc);
+  if (!ray) return null;
+  const hit = probeRay(renderer.tree, ray[0], ray[1]);
   const info = $("probe_info");
   const cv = $("probe_canvas");
   const ctx = cv.getContext("2d");
@@ -273,10 +276,8 @@ function runProbe(origin, dir, size = 128) {
   info.textContent = `leaf ${hit.leaf} at (${hit.point.map((v) => v.toFixed(3)).join(", ")}), `
     + `sigma ${hit.sigma.toFixed(2)}, weight ${hit.weight.toFixed(2)}; the sphere shows the colour `
     + "seen from each direction (as oriented in the current view)";
-  let s = "";
-  for (let i = 0; i < img.length; i += 0x8000) s += String.fromCharCode.apply(null, img.subarray(i, i + 0x8000));
   return { leaf: hit.leaf, point: hit.point, sigma: hit.sigma, weight: hit.weight,
-    coeffs: hit.coeffs, image: btoa(s) };
+    coeffs: hit.coeffs, image: toBase64(img) };
 }
 
 function probePixel(x, y) {
@@ -295,7 +296,7 @@ const held = new Set();
 let lastKeyTime = null;
 // Advance the held keys by dt seconds (camera.js: fly 0.5 scene radii per second, turn 60°/s).
 function applyKeys(dt) {
-  if (held.size && renderer && renderer.tree) applyHeldKeys(camera, held, dt, treeRadius());
+  if (held.size && scene) applyHeldKeys(camera, held, dt, treeRadius());
 }
 
 function onKey(e, down) {
@@ -315,6 +316,10 @@ function onKey(e, down) {
 }
 
 function describe(t) {
+  if (t.cpu) {
+    return { file: treeName, format: t.format.name, basis_dim: t.format.basisDim, n_leaves: t.nLeaves,
+      max_depth: t.maxDepth, renderer: "cpu" };
+  }
   return {
     file: t.fileName, format: t.format.name, basis_dim: t.format.basisDim, compressed: t.compressed,
     bits: t.bits, retain: t.retain, n_nodes: t.nNodes, n_leaves: t.nLeaves, max_depth: t.maxDepth,
@@ -332,10 +337,8 @@ function targetSize(scale) {
   return [w, h];
 }
 
-function renderOnce(scale = scaleMode === "auto" ? 1 : Number(scaleMode)) {
-  if (!renderer || !renderer.tree) throw new Error("no tree loaded");
-  const [w, h] = targetSize(scale);
-  const view = fixedView || camera.view(w, h);
+// Depth view: world distances around the scene (NDC lengths for NDC trees).
+function updateDepthRange() {
   if (opts.ndc) {
     opts.depth_range = [0, 2.5];          // NDC lengths (the cube is 2 deep)
   } else if (!fixedView) {
@@ -344,44 +347,69 @@ function renderOnce(scale = scaleMode === "auto" ? 1 : Number(scaleMode)) {
     const r = treeRadius() * Math.sqrt(3);
     opts.depth_range = [Math.max(0, dist - r), dist + r];
   }
-  const t0 = performance.now();
-  const meshTex = meshPass && meshPass.meshes.length ? meshPass.draw(view) : null;
-  renderer.draw(view, opts, meshTex);
-  renderer.finish();
-  drawCameras(view);
-  const ms = performance.now() - t0;
-  lastFrameMs = ms;
-  if (scaleMode === "auto" && !fixedView) {
-    const fullMs = ms / (scale * scale);
-    autoScale = Math.max(0.2, Math.min(1, Math.sqrt(TARGET_MS / Math.max(fullMs, 1e-3))));
-  }
-  $("fps").textContent = `${ms.toFixed(1)} ms/frame (${(1000 / ms).toFixed(1)} FPS) @ ${w}x${h}`;
+}
+
+// Draw and wait for the GPU (scripts: api.render / benchmark, Save PNG): ms.
+function renderOnce(scale = scaleMode === "auto" ? 1 : Number(scaleMode)) {
+  if (!renderer || !renderer.tree) throw new Error("no tree loaded");
+  const ms = glf.renderNow(scale, scaleMode);
+  showRate();
   return ms;
 }
 
 function treeRadius() {
-  const t = renderer.tree;
+  const t = scene;
   return Math.max(...t.invradius.map((v) => 0.5 / v));
+}
+
+// The corner label: who draws, delivered FPS and the resolution of the last frame.
+function showRate() {
+  const last = stats.last;
+  const text = last ? `${rendererLabel} · ${stats.fps()} FPS @ ${last.width}x${last.height}`
+    + ` · ${last.ms.toFixed(0)} ms/frame` : rendererLabel;
+  if ($("fps").textContent !== text) $("fps").textContent = text;
+}
+
+// ---------------------------------------------------------------- CPU mode
+// The current view for CpuFrames.pump (see frames.js).
+let overlayKey = "";
+function cpuView() {
+  const [W, H] = targetSize(1);
+  updateDepthRange();
+  const full = fixedView || camera.view(W, H);
+  const key = JSON.stringify([full, opts.background, opts.stop_thresh, opts.sh_min, opts.sh_max,
+    opts.mode, opts.depth_range]);
+  if (key !== overlayKey) { overlayKey = key; drawCameras(full); }
+  const fixedScale = scaleMode === "auto" ? null : Number(scaleMode);
+  const viewAt = (s) => {
+    if (fixedView) return fixedView;
+    const k = fixedScale || s;
+    return camera.view(Math.max(1, Math.round(W * k)), Math.max(1, Math.round(H * k)));
+  };
+  return { key, viewAt, opts, target: [W, H], fixed: Boolean(fixedView),
+    continuous: $("continuous").checked, changedAt: lastChange };
+}
+
+function cpuDrawNow() {
+  const v = cpuView();
+  return cpu.drawNow(v.key, v.viewAt(1), v.opts, v.fixed ? null : v.target);
+}
+
+// RGBA8 pixels of the 2D canvas (CPU mode), rows top to bottom.
+function canvasPixels() {
+  const ctx = canvas.getContext("2d");
+  return new Uint8Array(ctx.getImageData(0, 0, canvas.width, canvas.height).data.buffer);
 }
 
 function loop() {
   const now = performance.now();
   if (lastKeyTime !== null && api.state === "ready") applyKeys(Math.min((now - lastKeyTime) / 1000, 0.1));
   lastKeyTime = now;
-  const continuous = $("continuous").checked;
   try {
-    if (api.state === "ready" && (dirty || continuous)) {
-      dirty = false;
-      if (scaleMode === "auto") {
-        const moving = continuous || now - lastChange < 300;
-        renderOnce(moving ? autoScale : 1);
-        needFull = moving && autoScale < 1;
-      } else {
-        renderOnce();
-      }
-    } else if (api.state === "ready" && needFull && now - lastChange >= 300) {
-      needFull = false;
-      renderOnce(1);
+    if (api.state === "ready") {
+      if (drawMode === "cpu") cpu.pump(cpuView());
+      else dirty = glf.tick(now, dirty, lastChange, scaleMode, $("continuous").checked);
+      showRate();
     }
   } catch (err) { showError(err); }
   requestAnimationFrame(loop);
@@ -400,7 +428,7 @@ function syncControls() {
   $("background").value = rgbToHex(opts.background);
   $("stop_thresh").value = opts.stop_thresh;
   $("mode").value = opts.mode;
-  const B = renderer && renderer.tree ? renderer.tree.format.basisDim : 1;
+  const B = scene ? scene.format.basisDim : 1;
   $("sh_min").max = $("sh_max").max = String(B - 1);
   $("sh_min").value = opts.sh_min;
   $("sh_max").value = opts.sh_max < 0 ? B - 1 : opts.sh_max;
@@ -439,7 +467,7 @@ function buildControls() {
   $("continuous").addEventListener("change", () => { invalidate(); });
   const shChanged = () => {
     opts.sh_min = Number($("sh_min").value);
-    const B = renderer.tree.format.basisDim;
+    const B = scene.format.basisDim;
     const mx = Number($("sh_max").value);
     opts.sh_max = mx >= B - 1 ? -1 : mx;
     syncControls();
@@ -454,7 +482,7 @@ function buildControls() {
     invalidate();
   });
   $("screenshot").addEventListener("click", () => {
-    renderOnce();
+    if (drawMode === "webgl") renderOnce();
     canvas.toBlob((blob) => {
       const a = document.createElement("a");
       a.href = URL.createObjectURL(blob);
@@ -500,7 +528,7 @@ function buildControls() {
   $("mesh_clear").addEventListener("click", () => { api.clearMeshes(); $("mesh_info").textContent = ""; });
   $("mesh_shading").addEventListener("change", () => api.setMeshShading($("mesh_shading").checked));
   canvas.addEventListener("click", (e) => {
-    if (!(e.altKey || $("probe_mode").checked) || api.state !== "ready") return;
+    if (!(e.altKey || $("probe_mode").checked) || api.state !== "ready" || drawMode !== "webgl") return;
     const r = canvas.getBoundingClientRect();
     probePixel(e.clientX - r.left, e.clientY - r.top);
   });
@@ -509,33 +537,6 @@ function buildControls() {
 }
 
 // ---------------------------------------------------------------- loading
-async function fetchTree(url) {
-  let resp;
-  try {
-    resp = await fetch(url);
-  } catch (err) {
-    throw new FormatError(`${url}: cannot download (${err.message})`);
-  }
-  if (!resp.ok) throw new FormatError(`${url}: the server answered ${resp.status} ${resp.statusText}`);
-  const total = Number(resp.headers.get("Content-Length")) || 0;
-  if (!resp.body) return resp.arrayBuffer();
-  const reader = resp.body.getReader();
-  const chunks = [];
-  let got = 0;
-  for (;;) {
-    const { done, value } = await reader.read();
-    if (done) break;
-    chunks.push(value);
-    got += value.length;
-    setStatus(`Downloading ${(got / 1e6).toFixed(1)}${total ? " / " + (total / 1e6).toFixed(1) : ""} MB`);
-  }
-  if (total && got !== total) throw new FormatError(`${url}: download cut short (${got} of ${total} bytes)`);
-  const out = new Uint8Array(got);
-  let p = 0;
-  for (const c of chunks) { out.set(c, p); p += c.length; }
-  return out.buffer;
-}
-
 // bundled: the tree named by config.json (its "ndc" applies), not one opened from the disk.
 async function loadBuffer(buffer, name, bundled = true) {
   treeName = name;
@@ -545,6 +546,7 @@ async function loadBuffer(buffer, name, bundled = true) {
   const packed = await packTree(archive, limits, setStatus);
   setStatus("Uploading textures...");
   renderer.upload(packed);
+  scene = packed;
   opts.ndc = packed.ndc || (bundled && config.ndc) || null;   // the file's own, else the bundle's
   frameInitialView(packed);
   opts.sh_min = 0;
@@ -573,6 +575,34 @@ function fillCameraList() {
   }
 }
 
+// CPU mode: the server draws (config.json "cpu": box, basis count, NDC space, threads); the
+// page never downloads the tree. Tools that need the tree in the page are WebGL-only.
+function startCpuMode() {
+  const c = config.cpu;
+  drawMode = "cpu";
+  treeName = decodeURIComponent(config.tree.split("/").pop());
+  scene = { cpu: true, offset: c.offset, invradius: c.invradius, nLeaves: c.n_leaves,
+    maxDepth: c.max_depth, format: { name: c.format, basisDim: c.basis_dim } };
+  opts.ndc = c.ndc || null;
+  cpu = new CpuFrames(canvas, stats);
+  cpu.onError = showError;
+  cpu.next = () => { if (api.state === "ready") cpu.pump(cpuView()); };
+  rendererLabel = `CPU (numba, ${c.threads} thread${c.threads === 1 ? "" : "s"})`;
+  $("fps").title = glInfo.webgl2 ? `this browser's WebGL: ${glInfo.renderer || "unknown"}` : "no WebGL2 in this browser";
+  markWebglOnly();
+  frameInitialView(scene);
+  opts.sh_min = 0;
+  opts.sh_max = -1;
+  syncControls();
+  $("info").textContent = `${treeName}: ${c.format}, ${c.n_leaves.toLocaleString()} leaves, `
+    + `depth ${c.max_depth + 1}, drawn by the server's CPU renderer`;
+  setStatus("");
+  api.state = "ready";
+  invalidate();
+  requestAnimationFrame(loop);
+  resolveReady(describe(scene));
+}
+
 async function main() {
   buildControls();
   if (location.protocol === "file:" && !params.get("tree")) {
@@ -590,10 +620,33 @@ async function main() {
   if (config.title) document.title = config.title;
   fillCameraList();
   const treeUrl = params.get("tree") || config.tree;
+  const wanted = params.get("tree") ? "webgl" : params.get("render") || config.render || "webgl";
+  glInfo = detectGL();
+  if (wanted === "cpu" && !config.cpu) {
+    const err = new FormatError("this page's server does not draw frames; start it with\n"
+      + "  plenoctree view TREE --render cpu");
+    err.title = "CPU mode is not available here";
+    throw err;
+  }
+  if (config.cpu && (wanted === "cpu" || (wanted === "auto" && glInfo.software))) {
+    startCpuMode();
+    return;
+  }
   renderer = new Renderer(canvas, {
     maxTextureSize: Number(params.get("max_texture")) || undefined,
     maxLayers: Number(params.get("max_layers")) || undefined,
   });
+  const gpu = glRendererName(renderer.gl);
+  rendererLabel = `WebGL (${gpu.length > 60 ? gpu.slice(0, 57) + "..." : gpu})`
+    + (glInfo.software ? " - software GL: slow; plenoctree view --render cpu draws with the CPU" : "");
+  $("fps").title = gpu;
+  glf = new GlFrames(renderer, stats, {
+    view: (scale) => { const [w, h] = targetSize(scale); return fixedView || camera.view(w, h); },
+    fixed: () => Boolean(fixedView),
+    opts: () => { updateDepthRange(); return opts; },
+    meshes: (view) => (meshPass && meshPass.meshes.length ? meshPass.draw(view) : null),
+    overlay: drawCameras,
+  }, Number(params.get("band_ms")) || 40);
   requestAnimationFrame(loop);
   if (!treeUrl) {
     throw new FormatError("no tree given: open this page with ?tree=URL, or use 'Open another tree'");
@@ -601,7 +654,7 @@ async function main() {
   const name = decodeURIComponent(treeUrl.split("/").pop());
   treeName = name;
   setStatus(`Downloading ${name}...`);
-  const buffer = await fetchTree(treeUrl);
+  const buffer = await fetchBuffer(treeUrl, setStatus);
   await loadBuffer(buffer, name);
 }
 

@@ -204,3 +204,39 @@ export class NpzArchive {
     return parseNpy(bytes, `${this.fileName}: array '${key}'`);
   }
 }
+
+// Download url into an ArrayBuffer, reporting progress through onStatus(text); FormatError
+// (naming the URL) when it cannot be fetched or arrives cut short.
+export async function fetchBuffer(url, onStatus = () => {}) {
+  let resp;
+  try {
+    resp = await fetch(url);
+  } catch (err) {
+    throw new FormatError(`${url}: cannot download (${err.message})`);
+  }
+  if (!resp.ok) throw new FormatError(`${url}: the server answered ${resp.status} ${resp.statusText}`);
+  const total = Number(resp.headers.get("Content-Length")) || 0;
+  if (!resp.body) return resp.arrayBuffer();
+  const reader = resp.body.getReader();
+  const chunks = [];
+  let got = 0;
+  for (;;) {
+    const { done, value } = await reader.read();
+    if (done) break;
+    chunks.push(value);
+    got += value.length;
+    onStatus(`Downloading ${(got / 1e6).toFixed(1)}${total ? " / " + (total / 1e6).toFixed(1) : ""} MB`);
+  }
+  if (total && got !== total) throw new FormatError(`${url}: download cut short (${got} of ${total} bytes)`);
+  const out = new Uint8Array(got);
+  let p = 0;
+  for (const c of chunks) { out.set(c, p); p += c.length; }
+  return out.buffer;
+}
+
+// Bytes as base64 (for scripts reading pixels through window.viewer).
+export function toBase64(bytes) {
+  let s = "";
+  for (let i = 0; i < bytes.length; i += 0x8000) s += String.fromCharCode.apply(null, bytes.subarray(i, i + 0x8000));
+  return btoa(s);
+}

@@ -144,3 +144,21 @@ export function lumisphere(packed, coeffs, c2w, size) {
   }
   return img;
 }
+
+// The ray the tree sees for the world ray (origin, dir): unit direction; for an NDC tree
+// (ndc: {fx, fy, width, height, near}) the same world -> NDC map as the shader and
+// to_ndc_rays; null when an NDC ray never reaches the NDC cube (d_z >= 0). [origin, dir].
+export function treeRay(origin, dir, ndc = null) {
+  const l = Math.hypot(...dir) || 1;
+  const d = dir.map((v) => v / l);
+  if (!ndc) return [origin, d];
+  if (!(d[2] < 0)) return null;
+  const ax = -2 * ndc.fx / ndc.width, ay = -2 * ndc.fy / ndc.height;
+  const t = -(ndc.near + origin[2]) / d[2];
+  const on = origin.map((v, k) => v + t * d[k]);
+  const rx = on[0] / on[2], ry = on[1] / on[2];
+  const o = [ax * rx, ay * ry, 1 + 2 * ndc.near / on[2]];
+  const d2 = [ax * (d[0] / d[2] - rx), ay * (d[1] / d[2] - ry), -2 * ndc.near / on[2]];
+  const l2 = Math.hypot(...d2);
+  return [o, d2.map((v) => v / l2)];
+}

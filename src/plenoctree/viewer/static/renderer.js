@@ -344,12 +344,70 @@ export class Renderer {
   //        mode: "rgb"|"depth"|"alpha", depth_range[2]}
   // meshTex: [colour, distance] textures of MeshPass.draw for this camera, or null.
   draw(camera, opts, meshTex = null) {
-    const gl = this.gl, L = this.loc, t = this.tree;
-    if (!t) throw new GLError("no tree loaded");
+    if (!this.tree) throw new GLError("no tree loaded");
     if (this.canvas.width !== camera.width || this.canvas.height !== camera.height) {
       this.canvas.width = camera.width;
       this.canvas.height = camera.height;
     }
+    this._setup(camera, opts, meshTex);
+    this.gl.drawArrays(this.gl.TRIANGLES, 0, 3);
+  }
+
+  // Progressive full frames (a frame too slow to draw at once, e.g. on software GL, would stall
+  // the page for its whole length): beginBands(camera) allocates an offscreen RGBA8 target of
+  // the camera's size; drawBand(camera, opts, meshTex, y0, y1) draws its rows [y0, y1) (from
+  // the top) there, one band per animation frame; presentBands() copies the finished frame to
+  // the canvas. The pixels equal draw()'s (same fragment coordinates).
+  beginBands(camera) {
+    const gl = this.gl, w = camera.width, h = camera.height;
+    if (!this.band || this.band.w !== w || this.band.h !== h) {
+      this.endBands();
+      const tex = gl.createTexture();
+      gl.activeTexture(gl.TEXTURE7);        // a unit no sampler reads (no feedback loop)
+      gl.bindTexture(gl.TEXTURE_2D, tex);
+      gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, w, h);
+      gl.bindTexture(gl.TEXTURE_2D, null);
+      const fb = gl.createFramebuffer();
+      gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
+      gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+      this.band = { tex, fb, w, h };
+    }
+  }
+
+  drawBand(camera, opts, meshTex, y0, y1) {
+    const gl = this.gl, h = camera.height;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.band.fb);
+    this._setup(camera, opts, meshTex);
+    gl.enable(gl.SCISSOR_TEST);
+    gl.scissor(0, h - y1, camera.width, y1 - y0);      // GL rows count from the bottom
+    gl.drawArrays(gl.TRIANGLES, 0, 3);
+    gl.disable(gl.SCISSOR_TEST);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  }
+
+  presentBands() {
+    const gl = this.gl, { fb, w, h } = this.band;
+    if (this.canvas.width !== w || this.canvas.height !== h) {
+      this.canvas.width = w;
+      this.canvas.height = h;
+    }
+    gl.bindFramebuffer(gl.READ_FRAMEBUFFER, fb);
+    gl.bindFramebuffer(gl.DRAW_FRAMEBUFFER, null);
+    gl.blitFramebuffer(0, 0, w, h, 0, 0, w, h, gl.COLOR_BUFFER_BIT, gl.NEAREST);
+    gl.bindFramebuffer(gl.READ_FRAMEBUFFER, null);
+  }
+
+  endBands() {
+    if (!this.band) return;
+    this.gl.deleteFramebuffer(this.band.fb);
+    this.gl.deleteTexture(this.band.tex);
+    this.band = null;
+  }
+
+  // Program, textures and uniforms of a frame for `camera` (viewport: its full size).
+  _setup(camera, opts, meshTex) {
+    const gl = this.gl, L = this.loc, t = this.tree;
     gl.viewport(0, 0, camera.width, camera.height);
     gl.useProgram(this.prog);
     gl.bindVertexArray(this.vao);
@@ -403,7 +461,6 @@ export class Renderer {
     gl.uniform1i(L.u_ndc, ndc ? 1 : 0);
     gl.uniform4f(L.u_ndc_cam, ndc ? 2 * ndc.fx / ndc.width : 0, ndc ? 2 * ndc.fy / ndc.height : 0,
       ndc ? ndc.near : 1, 0);
-    gl.drawArrays(gl.TRIANGLES, 0, 3);
   }
 
   // Wait for the GPU (reads one pixel); returns nothing.
