@@ -17,8 +17,9 @@ alone still did so in one of two runs (multi-threaded matching is not determinis
 adjustment refines the chosen model.
 
 Cost, measured on the real captures (``benchmarks/colmap_poses.py --real flower|fox``,
-docs/capture.md): guided matching took ~3.5x the matching time per pair for ~10 % more
-inliers and 0.1° on flower's rotations (0.34° against 0.44° median), so it is off by default;
+docs/capture.md): guided matching took ~3.5x the matching time per pair for 10-30 % more
+inliers, and the earlier defaults with it (and SIFT at 1600 px) gained 0.1° on flower's
+rotations (0.34° against 0.44° median), so it is off by default;
 SIFT runs at <= 1024 px (fox's 1920-px frames: about half the features and matching time of
 1600 px; the feature cap does not bind at these sizes); every pair is matched only up to
 :data:`EXHAUSTIVE_MAX_IMAGES` images, and ordered images beyond (video frames, photos whose
@@ -86,7 +87,7 @@ class SfmOptions:
     max_features: int = 8192
     """SIFT features per image"""
     guided_matching: bool = False
-    """re-match along the estimated epipolar geometry (~10 % more inliers for ~3.5x the
+    """re-match along the estimated epipolar geometry (10-30 % more inliers for ~3.5x the
     matching time)"""
     max_image_size: int = 1024
     """longest image side used for features (larger images are downscaled for SIFT only)"""
@@ -207,6 +208,7 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     ext.max_image_size = int(opts.max_image_size)
     ext.sift.max_num_features = int(opts.max_features)
     mode = pycolmap.CameraMode.SINGLE if opts.single_camera else pycolmap.CameraMode.PER_IMAGE
+
     def extract(part: Sequence[str]) -> None:
         pycolmap.extract_features(db, image_dir, image_names=list(part), camera_mode=mode,
                                   reader_options=reader, extraction_options=ext,
