@@ -150,11 +150,18 @@ def test_sequential_pairs_and_min_inliers():
 def test_matcher_choice_and_adaptive_chunks(monkeypatch):
     from plenoctree.process import sfm
 
-    assert sfm.choose_matcher("auto", 34, False) == "exhaustive"      # flower: every pair
-    assert sfm.choose_matcher("auto", 67, True) == "sequential"       # fox's frames
-    assert sfm.choose_matcher("auto", 100, False) == "exhaustive"     # lego's random views
-    assert sfm.choose_matcher("auto", 301, False) == "sequential"
-    assert sfm.choose_matcher("exhaustive", 500, True) == "exhaustive"
+    assert sfm.choose_matcher("auto", 34, True, 3200) == "exhaustive"     # flower: ~86 s
+    assert sfm.choose_matcher("auto", 67, True, 4400) == "sequential"     # fox's frames: ~11 min
+    assert sfm.choose_matcher("auto", 60, True, 800) == "exhaustive"      # lego video: ~17 s
+    assert sfm.choose_matcher("auto", 100, False, 4400) == "exhaustive"   # random views
+    assert sfm.choose_matcher("auto", 301, False, 1000) == "sequential"
+    assert sfm.choose_matcher("exhaustive", 500, True, 4400) == "exhaustive"
+    opts = sfm.SfmOptions(sequential_overlap=3)
+    matcher, pairs, guided = sfm.plan_matching(opts, 67, True, 4400)
+    assert matcher == "sequential" and pairs == sfm.sequential_pairs(67, 3) and not guided
+    assert sfm.plan_matching(opts, 60, True, 800)[1:] == (
+        [(i, j) for i in range(60) for j in range(i + 1, 60)], True)   # few features: guided
+    assert sfm.plan_matching(sfm.SfmOptions(guided_matching=False), 10, False, 800)[2] is False
     clock = [0.0]
     monkeypatch.setattr(sfm.time, "perf_counter", lambda: clock[0])
     sizes, done = [], []

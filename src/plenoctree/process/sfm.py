@@ -19,12 +19,13 @@ adjustment refines the chosen model.
 Cost, measured on the real captures (``benchmarks/colmap_poses.py --real flower|fox``,
 docs/capture.md): guided matching took ~3.5x the matching time per pair for 10-30 % more
 inliers, and the earlier defaults with it (and SIFT at 1600 px) gained 0.1° on flower's
-rotations (0.34° against 0.44° median), so it is off by default;
-SIFT runs at <= 1024 px (fox's 1920-px frames: about half the features and matching time of
-1600 px; the feature cap does not bind at these sizes); every pair is matched only up to
-:data:`EXHAUSTIVE_MAX_IMAGES` images, and ordered images beyond (video frames, photos whose
-names follow the capture) with their neighbours and frames 2^k later (:func:`choose_matcher`;
-pycolmap's loop detection needs a vocabulary tree, a download, so none). The inlier minimum
+rotations (0.34° against 0.44° median), so it is on only where the images keep few features
+(:data:`GUIDED_MAX_FEATURES`: cheap there, and needed on the lego video); SIFT runs at <= 1024 px
+(fox's 1920-px frames: about half the features and matching time of 1600 px; the feature cap
+does not bind at these sizes); every pair is matched where that is estimated to take at most
+:data:`EXHAUSTIVE_SECONDS`, and ordered images beyond (video frames, photos whose names follow
+the capture) with their neighbours and frames 2^k later (:func:`choose_matcher`; pycolmap's
+loop detection needs a vocabulary tree, a download, so none). The inlier minimum
 follows the features (:func:`min_inliers`).
 """
 
@@ -33,14 +34,15 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
 from ..errors import ConfigError, PlenOctreeError
 
 __all__ = ["SfmOptions", "SfmResult", "run_sfm", "require_pycolmap", "check_options",
-           "ProcessError", "sequential_pairs", "min_inliers", "choose_matcher", "in_chunks"]
+           "ProcessError", "sequential_pairs", "min_inliers", "choose_matcher", "plan_matching",
+           "in_chunks"]
 
 logger = logging.getLogger(__name__)
 
@@ -82,13 +84,14 @@ class SfmOptions:
     single_camera: bool = True
     """one camera (intrinsics) shared by every image; off: one per image"""
     matcher: str = "auto"
-    """exhaustive, sequential or auto (every pair up to 50 images; beyond, sequential for
-    video frames and photos named in capture order, exhaustive for other photos up to 300)"""
+    """exhaustive, sequential or auto (every pair where that takes about 2 minutes at most;
+    beyond, sequential for video frames and photos named in capture order, exhaustive for
+    other photos up to 300)"""
     max_features: int = 8192
     """SIFT features per image"""
-    guided_matching: bool = False
+    guided_matching: bool | None = None
     """re-match along the estimated epipolar geometry (10-30 % more inliers for ~3.5x the
-    matching time)"""
+    matching time); default: where the median image keeps fewer than 2,000 features"""
     max_image_size: int = 1024
     """longest image side used for features (larger images are downscaled for SIFT only)"""
     sequential_overlap: int = 10
@@ -222,29 +225,23 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
         in_chunks(names, extract, bar.update, first=2)
     times["features"] = time.perf_counter() - t0
 
-    # 2. Matching.
+    # 2. Matching: the pairs and guided matching chosen from the set (:func:`plan_matching`).
     t0 = time.perf_counter()
-    matcher = choose_matcher(opts.matcher, len(names), sequential)
-    if matcher == "sequential":
-        pairs = sequential_pairs(len(names), opts.sequential_overlap)
-    else:
-        pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
-    logger.info(f"colmap: {len(pairs)} image pairs to match ({matcher}, {len(names)} images"
-                + (f", {opts.sequential_overlap} neighbours and frames 2^k later each"
-                   if matcher == "sequential" else "") + ")")
-    _match_pairs(pycolmap, db, work, names, pairs, opts, show_progress,
-                 f"colmap matching ({matcher})")
+    with pycolmap.Database.open(db) as d:
+        n_kp = sorted(d.num_keypoints_for_image(im.image_id) for im in d.read_all_images())
+    median_kp = n_kp[len(n_kp) // 2]
+    matcher, pairs, guided = plan_matching(opts, len(names), sequential, median_kp)
+    _match_pairs(pycolmap, db, work, names, pairs, replace(opts, guided_matching=guided),
+                 show_progress, f"colmap matching ({matcher})")
     times["matching"] = time.perf_counter() - t0
 
     # 3. Incremental mapping (progress: one tick per registered image).
     t0 = time.perf_counter()
     popt = _mapper_options(pycolmap, opts)
-    with pycolmap.Database.open(db) as d:
-        n_kp = sorted(d.num_keypoints_for_image(im.image_id) for im in d.read_all_images())
     cap = popt.mapper.abs_pose_min_num_inliers
-    popt.mapper.abs_pose_min_num_inliers = min_inliers(n_kp[len(n_kp) // 2], cap)
+    popt.mapper.abs_pose_min_num_inliers = min_inliers(median_kp, cap)
     if popt.mapper.abs_pose_min_num_inliers < cap:
-        logger.info(f"colmap: {n_kp[len(n_kp) // 2]} features in the median image: an image is "
+        logger.info(f"colmap: {median_kp} features in the median image: an image is "
             f"registered with >= {popt.mapper.abs_pose_min_num_inliers} inliers")
     sparse = work / "sparse"
     sparse.mkdir(exist_ok=True)
@@ -276,9 +273,19 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     return SfmResult(best, len(names), n_reg, len(models), times)
 
 
+MATCH_SECONDS = 0.015
+"""Seconds to match one pair of images of 1,000 SIFT features each on 2 busy cores (the cost
+grows with the square of the features): flower's 561 pairs of 3,200 were estimated at 86 s and
+took 94 s, fox's 704 of 4,400 at 205 s and took 155-212 s (docs/capture.md)."""
+EXHAUSTIVE_SECONDS = 120.0
+"""``matcher="auto"``: every pair is matched when that is estimated to take at most this long
+(:data:`MATCH_SECONDS`), :func:`choose_matcher`."""
+GUIDED_MAX_FEATURES = 2000
+"""``guided_matching=None``: guided matching where the median image keeps fewer features
+(cheap there, and the lego video's 800-feature frames need it: 2 of 60 registered without)."""
 EXHAUSTIVE_MAX_IMAGES = 50
-"""``matcher="auto"``: every pair is matched up to this many images (1,225 pairs, ~4 minutes
-at 0.2 s per pair on 2 cores), :func:`choose_matcher`."""
+"""Photo folders of more images are checked for capture order (``process``); smaller ones
+are matched exhaustively whatever the cost."""
 EXHAUSTIVE_MAX_PHOTOS = 300
 """``matcher="auto"``: photos not in capture order are matched exhaustively up to this many
 (with no vocabulary tree, nothing else finds their overlapping pairs), sequentially beyond."""
@@ -287,19 +294,41 @@ CHUNK_SECONDS = 2.0
 lines (per image, per pair) move at least this often (:func:`in_chunks`)."""
 
 
-def choose_matcher(matcher: str, n: int, ordered: bool) -> str:
-    """``"exhaustive"`` or ``"sequential"`` for ``n`` images (``ordered``: in capture order).
+def choose_matcher(matcher: str, n: int, ordered: bool, median_features: int) -> str:
+    """``"exhaustive"`` or ``"sequential"`` for ``n`` images (``ordered``: in capture order)
+    of ``median_features`` SIFT features.
 
-    ``matcher="auto"``: every pair up to :data:`EXHAUSTIVE_MAX_IMAGES` images; beyond, the
-    sequential pairs (:func:`sequential_pairs`) for ordered images, every pair for others up
-    to :data:`EXHAUSTIVE_MAX_PHOTOS`. Measured (docs/capture.md): real/fox's 67 frames make
-    2,211 pairs exhaustively and 704 sequentially.
+    ``matcher="auto"``: every pair where that is cheap (estimated at most
+    :data:`EXHAUSTIVE_SECONDS`); beyond, the sequential pairs (:func:`sequential_pairs`) for
+    ordered images, every pair for others up to :data:`EXHAUSTIVE_MAX_PHOTOS`. Measured
+    (docs/capture.md): flower's 34 photos, 561 pairs, exhaustive; real/fox's 67 frames make
+    2,211 pairs exhaustively (~11 minutes) and 704 sequentially.
     """
     if matcher != "auto":
         return matcher
-    if n <= EXHAUSTIVE_MAX_IMAGES:
+    cost = n * (n - 1) / 2 * MATCH_SECONDS * (median_features / 1000.0) ** 2
+    if cost <= EXHAUSTIVE_SECONDS:
         return "exhaustive"
     return "sequential" if ordered or n > EXHAUSTIVE_MAX_PHOTOS else "exhaustive"
+
+
+def plan_matching(opts: SfmOptions, n: int, ordered: bool, median_features: int
+                  ) -> tuple[str, list[tuple[int, int]], bool]:
+    """``(matcher, pairs (i, j), guided)`` for ``n`` images (:func:`choose_matcher`; guided
+    matching by :data:`GUIDED_MAX_FEATURES` unless ``opts`` says), said on the log."""
+    matcher = choose_matcher(opts.matcher, n, ordered, median_features)
+    if matcher == "sequential":
+        pairs = sequential_pairs(n, opts.sequential_overlap)
+    else:
+        pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    guided = (median_features < GUIDED_MAX_FEATURES if opts.guided_matching is None
+              else bool(opts.guided_matching))
+    logger.info(f"colmap: {len(pairs)} image pairs to match ({matcher}"
+                + (f": {opts.sequential_overlap} neighbours and frames 2^k later each"
+                   if matcher == "sequential" else "")
+                + f"{', guided' if guided else ''}; {n} images, {median_features} features "
+                  "in the median one)")
+    return matcher, pairs, guided
 
 
 def in_chunks(items: Sequence, run: Any, advance: Any, first: int = 2) -> None:
