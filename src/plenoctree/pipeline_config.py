@@ -44,18 +44,16 @@ def working_downscale(width: int, height: int, forward: bool, gpu: bool,
     """The downscale of ``run`` for ``width x height`` photos: the smallest factor bringing
     them to at most :data:`WORKING_PIXELS` for the capture kind (``forward``: NDC) and device
     with which the dataset ``loads`` (default: the factor divides both sides, as the loaders'
-    area downscale needs), searched up to twice that; else
-    :func:`~plenoctree.datasets.common_downscale`'s. 1 for small images. E.g. 4032x3024
-    forward-facing on a CPU: 8 (504x378); 1080x1920 360° on a CPU: 3 (360x640)."""
-    from .datasets import common_downscale
-
+    area downscale needs), searched up to twice that; else the largest factor below it that
+    divides both sides. 1 for small images. E.g. 4032x3024 forward-facing on a CPU: 8
+    (504x378); 1080x1920 360° on a CPU: 3 (360x640)."""
     target = WORKING_PIXELS["forward" if forward else "360", "gpu" if gpu else "cpu"]
     factor = max(1, math.ceil(math.sqrt(width * height / target) - 1e-9))
     if factor == 1:
         return 1
     loads = loads or (lambda f: width % f == 0 and height % f == 0)
     return next((f for f in range(factor, 2 * factor + 1) if loads(f)),
-                common_downscale(width, height, factor))
+                max(d for d in range(1, factor) if width % d == 0 and height % d == 0))
 
 
 def train_preset(name: str) -> TrainConfig:
