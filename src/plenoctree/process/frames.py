@@ -1,4 +1,5 @@
-"""Input images for ``process``: listing and checking photos, picking sharp frames of a video.
+"""Input images for ``process``: listing and checking photos, picking sharp frames of a video,
+telling whether a folder of photos is in capture order (:func:`in_capture_order`).
 
 :func:`list_photos` returns the image files of a folder after decoding each (one clear error
 for an empty folder, a folder of non-images, a corrupt file, mixed sizes under one camera).
