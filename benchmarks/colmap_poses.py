@@ -21,9 +21,19 @@ the true poses of the frames kept.
 
     python benchmarks/colmap_poses.py --video 100 --size 320 --out benchmarks/results/video.json
 
-The lego scene is ``nerf_synthetic/lego`` of the data root (``--data-root``); the photos and
-``process``'s outputs go under ``--work`` (default ``benchmarks/results/cache/colmap_poses``,
-kept: a second run reuses the photos).
+``--real flower|fox``: a real capture of the data root's ``real/`` (its README) instead:
+flower's 34 photos (``images_8``, 504x378) against LLFF's published ``poses_bounds.npy``, fox's
+67 video frames (1080x1920) against instant-ngp's ``transforms.json``. Besides the pose errors
+it reports what ``process`` wrote against the published file: the focal length (pixels of the
+input photos), the principal point's offset from the image centre, and the per-image near /
+far depth bounds (flower: in LLFF's units through the similarity's scale, and their ratio).
+
+    python benchmarks/colmap_poses.py --real flower --out benchmarks/results/colmap_flower.json
+
+``--matcher``, ``--max-image-size``, ``--guided``, ``--overlap`` set ``process``'s options
+(default: its own). The lego scene is ``nerf_synthetic/lego`` of the data root
+(``--data-root``); the photos and ``process``'s outputs go under ``--work`` (default
+``benchmarks/results/cache/colmap_poses``, kept: a second run reuses the photos).
 """
 
 from __future__ import annotations
@@ -122,6 +132,69 @@ def pose_errors(est: np.ndarray, ref: np.ndarray) -> dict:
             "outliers": int((rerr > OUTLIER_DEG).sum())}
 
 
+REAL = {"flower": "images_8", "fox": "images"}
+"""The real captures of ``real/`` and their photo folders."""
+
+
+def real_reference(root: Path) -> tuple[dict[str, np.ndarray], dict]:
+    """The published poses of a real capture ``root``: photo name -> OpenGL c2w, and
+    ``{"focal": pixels of the photos, "cx", "cy": principal point offset from the centre,
+    "bounds": name -> (near, far)}`` (bounds: LLFF files only)."""
+    from PIL import Image
+
+    from plenoctree.datasets.llff import read_poses_bounds
+
+    if (root / "poses_bounds.npy").is_file():
+        c2w, bounds, hwf = read_poses_bounds(root / "poses_bounds.npy")
+        names = sorted(p.name for p in (root / REAL["flower"]).iterdir())
+        w = Image.open(root / REAL["flower"] / names[0]).size[0]
+        return (dict(zip(names, c2w)), {"focal": float(hwf[0, 2] * w / hwf[0, 1]), "cx": 0.0,
+                "cy": 0.0, "bounds": dict(zip(names, bounds.tolist()))})
+    meta = json.loads((root / "transforms.json").read_text())
+    gt = {Path(f["file_path"]).name: np.array(f["transform_matrix"], dtype=np.float64)
+          for f in meta["frames"]}
+    return gt, {"focal": float(meta["fl_x"]), "cx": meta["cx"] - meta["w"] / 2,
+                "cy": meta["cy"] - meta["h"] / 2, "bounds": {}}
+
+
+def process_intrinsics(out: Path) -> dict:
+    """Focal length and principal-point offset (pixels) of ``process``'s undistorted camera
+    (``out/colmap/sparse/0``, before the crop), and the size it wrote."""
+    from plenoctree.datasets.colmap_model import read_colmap_model
+
+    cam = next(iter(read_colmap_model(out / "colmap" / "sparse" / "0").cameras.values()))
+    p = cam.params
+    f, cx, cy = (p[0], p[1], p[2]) if cam.model == "SIMPLE_PINHOLE" else (p[0], p[2], p[3])
+    return {"focal": float(f), "cx": float(cx - cam.width / 2), "cy": float(cy - cam.height / 2),
+            "undistorted_size": [cam.width, cam.height]}
+
+
+def compare_bounds(est: dict, ref: dict, scale: float) -> dict:
+    """Near / far of ``process`` (``est``: name -> (near, far), its units times ``scale``, the
+    similarity's) against the published ones: medians and the ratio far / near overall."""
+    names = sorted(set(est) & set(ref))
+    e = np.array([est[n] for n in names]) * scale
+    r = np.array([ref[n] for n in names])
+    return {"near_median": float(np.median(e[:, 0])), "far_median": float(np.median(e[:, 1])),
+            "ref_near_median": float(np.median(r[:, 0])),
+            "ref_far_median": float(np.median(r[:, 1])),
+            "ratio": float(e[:, 1].max() / e[:, 0].min()),
+            "ref_ratio": float(r[:, 1].max() / r[:, 0].min())}
+
+
+def read_output(out: Path) -> tuple[np.ndarray, list[str], dict]:
+    """OpenGL c2w, the photo names and (LLFF output) name -> bounds of a ``process`` output."""
+    from plenoctree.datasets.llff import read_poses_bounds
+
+    if (out / "poses_bounds.npy").is_file():
+        c2w, bounds, _ = read_poses_bounds(out / "poses_bounds.npy")
+        names = sorted(p.name for p in (out / "images").iterdir())
+        return c2w, names, dict(zip(names, bounds.tolist()))
+    tj = json.loads((out / "transforms.json").read_text())
+    return (np.array([f["transform_matrix"] for f in tj["frames"]]),
+            [f["colmap_name"] for f in tj["frames"]], {})
+
+
 def run_process(images: Path, out: Path, sfm, frames: int = 150
                 ) -> tuple[dict, np.ndarray, list[str], float]:
     from plenoctree.process import ProcessConfig, process
@@ -136,9 +209,9 @@ def run_process(images: Path, out: Path, sfm, frames: int = 150
     minutes = (time.perf_counter() - t0) / 60
     r1 = resource.getrusage(resource.RUSAGE_SELF)
     summary["cpu_minutes"] = (r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime) / 60
-    tj = json.loads((out / "transforms.json").read_text())
-    c2w = np.array([f["transform_matrix"] for f in tj["frames"]])
-    return summary, c2w, [f["colmap_name"] for f in tj["frames"]], minutes
+    summary["peak_rss_mb"] = r1.ru_maxrss / 1024
+    c2w, names, summary["bounds"] = read_output(out)
+    return summary, c2w, names, minutes
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -152,7 +225,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", default=str(CACHE / "colmap_poses"),
                     help="folder of the photos and process's outputs (kept)")
     ap.add_argument("--camera-model", default=None)
-    ap.add_argument("--no-guided", action="store_true")
+    ap.add_argument("--guided", choices=("on", "off"), default=None)
+    ap.add_argument("--matcher", default=None)
+    ap.add_argument("--max-image-size", type=int, default=None)
+    ap.add_argument("--overlap", type=int, default=None, help="sequential_overlap")
+    ap.add_argument("--real", choices=sorted(REAL), default=None,
+                    help="a real capture of the data root's real/ instead of lego")
     ap.add_argument("--baseline", action="store_true",
                     help="also run pycolmap's defaults on the same photos")
     ap.add_argument("--video", type=int, default=0, metavar="N",
@@ -161,11 +239,16 @@ def main(argv: list[str] | None = None) -> int:
     add_out(ap, "colmap_poses.json")
     args = ap.parse_args(argv)
     lego = data_path(args.data_root, "nerf_synthetic", "lego")
-    if not (lego / "transforms_train.json").is_file():
+    real = data_path(args.data_root, "real", args.real) if args.real else None
+    if not (lego / "transforms_train.json").is_file() and real is None:
         print(f"lego not found at {lego}", file=sys.stderr)
         return 2
     work = Path(args.work)
-    if args.video:
+    ref_info: dict = {}
+    if real is not None:
+        source = real / REAL[args.real]
+        gt, ref_info = real_reference(real)
+    elif args.video:
         source, orbit = prepare_video(lego, args.size, work)
         gt = {f"frame_{k:05d}.png": c for k, c in enumerate(orbit)}
     else:
@@ -175,8 +258,12 @@ def main(argv: list[str] | None = None) -> int:
     ours = SfmOptions()
     if args.camera_model:
         ours.camera_model = args.camera_model
-    if args.no_guided:
-        ours.guided_matching = False
+    for flag, name in (("matcher", "matcher"), ("max_image_size", "max_image_size"),
+                       ("overlap", "sequential_overlap")):
+        if getattr(args, flag) is not None:
+            setattr(ours, name, getattr(args, flag))
+    if args.guided:
+        ours.guided_matching = args.guided == "on"
     variants = [("process defaults", ours)]
     if args.baseline:
         variants.append(("pycolmap defaults", SfmOptions(
@@ -185,14 +272,22 @@ def main(argv: list[str] | None = None) -> int:
     load_before = os.getloadavg()
     for name, opts in variants:
         print(f"{name}: {opts}", flush=True)
-        summary, c2w, names, minutes = run_process(source, work / name.replace(" ", "_"), opts,
-                                                   frames=args.video or 150)
+        out = work / f"{args.real or 'lego'}_{name.replace(' ', '_')}"
+        summary, c2w, names, minutes = run_process(source, out, opts, frames=args.video or 150)
         ref = np.stack([gt[n] for n in names])
         row = {"registered": len(names), "images": summary["n_images"],
                "models": summary["n_models"],
                "minutes": minutes, "cpu_minutes": summary["cpu_minutes"],
-               "kind": summary["kind"], **pose_errors(c2w, ref),
-               "options": {k: v for k, v in vars(opts).items()}, "seconds": summary["seconds"]}
+               "peak_rss_mb": summary["peak_rss_mb"], "kind": summary["kind"],
+               **pose_errors(c2w, ref), "options": {k: v for k, v in vars(opts).items()},
+               "seconds": summary["seconds"], "image_size": summary["image_size"]}
+        if real is not None:
+            row["intrinsics"] = {"process": process_intrinsics(out),
+                                 "published": {k: ref_info[k] for k in ("focal", "cx", "cy")}}
+            if ref_info["bounds"] and summary["bounds"]:
+                s_est = umeyama(c2w[:, :3, 3], ref[:, :3, 3])[0]
+                row["bounds"] = compare_bounds(summary["bounds"],
+                                               ref_info["bounds"], s_est)
         runs[name] = row
     machine = machine_info(load_before)
     hdr = (f"{'run':<20} {'reg':>7} {'rot med':>8} {'rot max':>8} {'ctr med%':>9} "
@@ -206,8 +301,20 @@ def main(argv: list[str] | None = None) -> int:
           f"{machine['cpu_count']} cores")
     import pycolmap
 
+    for name, r in runs.items():
+        if "intrinsics" in r:
+            print(f"{name}: focal {r['intrinsics']['process']['focal']:.1f} px (published "
+                  f"{r['intrinsics']['published']['focal']:.1f}); seconds "
+                  + ", ".join(f"{k} {v:.0f}" for k, v in r["seconds"].items())
+                  + f"; peak RSS {r['peak_rss_mb']:.0f} MB")
+        if "bounds" in r:
+            b = r["bounds"]
+            print(f"{name}: near/far median {b['near_median']:.1f}/{b['far_median']:.1f} "
+                  f"(published {b['ref_near_median']:.1f}/{b['ref_far_median']:.1f}), far/near "
+                  f"ratio {b['ratio']:.1f} (published {b['ref_ratio']:.1f})")
     out = write_json(args.out, {
-        "benchmark": "colmap_poses", "size": args.size, "video_frames": args.video,
+        "benchmark": "colmap_poses", "real": args.real, "size": args.size,
+        "video_frames": args.video,
         "runs": runs, "pycolmap": pycolmap.__version__, "machine": machine,
         "goals": {"rot_median_deg": 0.5, "centre_pct": 1.0, "outliers": 0,
                   "registered_frac": 0.95, "minutes": 10}})

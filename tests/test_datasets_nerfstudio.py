@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 from plenoctree.datasets import detect_format, generate_rays, load_blender, load_dataset
-from plenoctree.datasets.nerfstudio import load_nerfstudio, write_nerfstudio
+from plenoctree.datasets.nerfstudio import load_nerfstudio, read_nerfstudio, write_nerfstudio
 from plenoctree.datasets.procedural import write_procedural_dataset
 from plenoctree.errors import ConfigError, DatasetError
 from nerf_fixtures import copy_dataset as _copy
@@ -114,6 +114,24 @@ def test_instant_ngp_keys(ns_root, tmp_path):
     _edit(root, lambda o: o.pop("aabb_scale"))
     box = load_nerfstudio(root, "all").scene_bbox     # cameras at radius 4 around the origin
     assert np.all(box[0] < -3.0) and np.all(box[1] > 3.0) and np.all(np.abs(box) < 5.0)
+
+
+def test_instant_ngp_distortion_without_camera_model_is_opencv(ns_root, tmp_path):
+    # instant-ngp's colmap2nerf.py writes k1 k2 p1 p2 and no camera_model (real/fox does)
+    root = _copy(ns_root, tmp_path)
+    coef = {"k1": 0.0578421, "k2": -0.0805099, "p1": -0.000980296, "p2": 0.00015575}
+    _edit(root, lambda o: (o.pop("camera_model"), o.update(coef)))
+    frames = read_nerfstudio(root / "transforms.json")[1]
+    assert frames[0]["raw"][8] == ("OPENCV", list(coef.values()))
+    pytest.importorskip("pycolmap")
+    data = load_nerfstudio(root, "all")
+    _edit(root, lambda o: o.update(camera_model="OPENCV"))
+    named = load_nerfstudio(root, "all")
+    np.testing.assert_array_equal(data.images, named.images)
+    np.testing.assert_allclose(data.cameras.all_rays()[1], named.cameras.all_rays()[1])
+    _edit(root, lambda o: (o.pop("camera_model"), o.update(k1=0.0, k2=0.0, p1=0.0, p2=0.0)))
+    plain = load_nerfstudio(root, "all")                 # zero coefficients: a pinhole camera
+    assert np.abs(plain.images - load_nerfstudio(ns_root, "all").images).max() == 0
 
 
 def test_masks(blender, tmp_path):

@@ -147,6 +147,48 @@ def test_sequential_pairs_and_min_inliers():
     assert min_inliers(100, 100) == 30 and min_inliers(5000, 50) == 50 and min_inliers(0, 20) == 20
 
 
+def test_matcher_choice_and_adaptive_chunks(monkeypatch):
+    from plenoctree.process import sfm
+
+    assert sfm.choose_matcher("auto", 34, True, 3200) == "exhaustive"     # flower: ~86 s
+    assert sfm.choose_matcher("auto", 67, True, 4400) == "sequential"     # fox's frames: ~11 min
+    assert sfm.choose_matcher("auto", 60, True, 800) == "exhaustive"      # lego video: ~17 s
+    assert sfm.choose_matcher("auto", 100, False, 4400) == "exhaustive"   # random views
+    assert sfm.choose_matcher("auto", 301, False, 1000) == "sequential"
+    assert sfm.choose_matcher("exhaustive", 500, True, 4400) == "exhaustive"
+    opts = sfm.SfmOptions(sequential_overlap=3)
+    matcher, pairs, guided = sfm.plan_matching(opts, 67, True, 4400)
+    assert matcher == "sequential" and pairs == sfm.sequential_pairs(67, 3) and not guided
+    assert sfm.plan_matching(opts, 60, True, 800)[1:] == (
+        [(i, j) for i in range(60) for j in range(i + 1, 60)], True)   # few features: guided
+    assert sfm.plan_matching(sfm.SfmOptions(guided_matching=False), 10, False, 800)[2] is False
+    clock = [0.0]
+    monkeypatch.setattr(sfm.time, "perf_counter", lambda: clock[0])
+    sizes, done = [], []
+
+    def run(part):                      # 0.1 s per item: parts of CHUNK_SECONDS = 20 items
+        sizes.append(len(part))
+        clock[0] += 0.1 * len(part)
+
+    sfm.in_chunks(list(range(100)), run, done.append, first=4)
+    assert sizes == [4, 16, 20, 20, 20, 20] and done == sizes       # growth capped at 4x
+
+
+def test_capture_order_from_thumbnails(tmp_path):
+    from plenoctree.process.frames import in_capture_order
+
+    yy, xx = np.mgrid[0:48, 0:64]
+    paths = []
+    for i in range(12):                 # a pattern panning slowly: a sequence
+        img = (127 + 100 * np.sin((xx + 3 * i) / 6.0) * np.cos(yy / 9.0)).astype(np.uint8)
+        paths.append(tmp_path / f"f{i:02d}.png")
+        Image.fromarray(img).save(paths[-1])
+    assert in_capture_order(paths)
+    order = np.random.default_rng(0).permutation(12)
+    assert not in_capture_order([paths[i] for i in order])
+    assert not in_capture_order(paths[:3])
+
+
 def test_video_sfm_failure_names_the_video(tmp_path):
     """SfM failing on a video's frames names the video, not the scratch folder of frames."""
     iio = pytest.importorskip("imageio.v2")
@@ -268,6 +310,50 @@ def test_run_images_passes_process_options(tmp_path, monkeypatch):
                                     process=ProcessConfig(frames=40)))
 
 
+def test_llff_bounds_from_the_points_each_image_observes():
+    """LLFF's rule: each image's near / far are the 0.1 / 99.9 percentiles of the depths of the
+    points it observes; points in front of a camera but outside its view (here: beside it,
+    at depth 0.5) do not pull its near plane in, as they do when every point counts."""
+    from plenoctree.datasets.colmap import depth_bounds
+
+    rng = np.random.default_rng(0)
+    c2w = np.tile(np.eye(4), (3, 1, 1))               # OpenGL: looking down -z
+    c2w[:, 0, 3] = [0.0, 1.0, 2.0]
+    seen = [np.column_stack([rng.uniform(-1, 1, (400, 2)) + [x, 0],
+                             -rng.uniform(2.0, 10.0, 400)]) for x in c2w[:, 0, 3]]
+    beside = np.column_stack([rng.uniform(20, 30, (50, 2)), -np.full(50, 0.5)])
+    own = depth_bounds(c2w, seen)
+    np.testing.assert_allclose(own, [np.percentile(-p[:, 2], [0.1, 99.9]) for p in seen])
+    assert np.all(own[:, 0] > 2.0) and np.all(own[:, 0] < 2.1) and np.all(own[:, 1] > 9.9)
+    every = depth_bounds(c2w, np.concatenate(seen + [beside]))
+    np.testing.assert_allclose(every[:, 0], 0.5)     # the old rule: near 4x too close
+    few = depth_bounds(c2w, [seen[0], seen[1][:5], seen[2]])      # < 10 points: the median
+    np.testing.assert_allclose(few[1], np.median(own[[0, 2]], axis=0))
+
+
+def test_observed_points_leave_out_two_view_points():
+    """A photo's points seen by >= 3 photos bound it (two-view points: the spurious close ones
+    on flower); a photo with fewer than 10 such points keeps all it observes."""
+    from types import SimpleNamespace as NS
+
+    from plenoctree.process import observed_points
+
+    def point(i):                       # points 0-4: two-view, the others seen by 4 photos
+        return NS(xyz=np.array([0.0, 0.0, float(i)]), track=NS(length=lambda: 2 if i < 5 else 4))
+
+    def obs(ids):
+        return [NS(point3D_id=i, has_point3D=lambda: True) for i in ids] + [
+            NS(point3D_id=-1, has_point3D=lambda: False)]
+
+    pts = {i: point(i) for i in range(30)}
+    rec = NS(points3D=pts, images={1: NS(name="a.png", points2D=obs(range(30))),
+                                   2: NS(name="b.png", points2D=obs(range(12)))})
+    a, b = observed_points(rec, ["a.png", "b.png"])
+    assert sorted(a[:, 2]) == list(range(5, 30))          # 25 points seen by 4: two-view out
+    assert sorted(b[:, 2]) == list(range(12))             # only 7 seen by 4: all 12 kept
+    assert len(observed_points(rec, ["a.png"], min_track=1)[0]) == 30
+
+
 @pytest.mark.parametrize("scene", ["360", "forward"])
 def test_dataset_writing_from_a_reconstruction(tmp_path, scene):
     """The output half of `process` on a synthetic COLMAP model: the loaders read it back
@@ -302,6 +388,15 @@ def test_dataset_writing_from_a_reconstruction(tmp_path, scene):
     assert data.images.shape == (9, 64, 80, 3)
     half = load_dataset(stage, "all", downscale=2)
     assert half.images.shape == (9, 32, 40, 3)
+    if scene == "forward":   # bounds from the points each photo observes (LLFF's rule),
+        from plenoctree.datasets.llff import read_poses_bounds    # seen by >= 3 photos
+
+        bounds = read_poses_bounds(stage / "poses_bounds.npy")[1]
+        for j, n in enumerate(names):
+            im = next(i for i in rec.images.values() if i.name == n)
+            pts = [rec.points3D[p.point3D_id] for p in im.points2D if p.has_point3D()]
+            z = [(im.cam_from_world() * p.xyz)[2] for p in pts if p.track.length() >= 3]
+            np.testing.assert_allclose(bounds[j], np.percentile(z, [0.1, 99.9]), rtol=1e-6)
     if scene == "360":       # relative camera geometry preserved up to the similarity
         c = np.stack([rec.images[i].projection_center() for i in sorted(
             rec.images, key=lambda i: rec.images[i].name)])
@@ -309,3 +404,62 @@ def test_dataset_writing_from_a_reconstruction(tmp_path, scene):
         d0 = np.linalg.norm(c[:, None] - c[None], axis=-1)
         d1 = np.linalg.norm(got[:, None] - got[None], axis=-1)
         np.testing.assert_allclose(d1 / d1.max(), d0 / d0.max(), atol=1e-4)
+
+
+def test_working_downscale_on_synthetic_sizes():
+    from plenoctree.pipeline_config import working_downscale
+
+    assert working_downscale(4032, 3024, forward=True, gpu=False) == 8      # LLFF's 504x378
+    assert working_downscale(4032, 3024, forward=True, gpu=True) == 4       # LLFF's 1008x756
+    assert working_downscale(800, 800, forward=False, gpu=False) == 2       # lego at 400²
+    assert working_downscale(800, 800, forward=False, gpu=True) == 1
+    assert working_downscale(1080, 1920, forward=False, gpu=False) == 3     # fox: 360x640
+    assert working_downscale(504, 378, forward=True, gpu=False) == 1        # already small
+    # a factor that the dataset cannot load is passed over
+    assert working_downscale(1080, 1920, False, False, loads=lambda f: f == 5) == 5
+
+
+def _llff_photos(root, n=3):
+    """An LLFF capture of 4032x3024 photos (poses_bounds.npy) with only images_8/ present."""
+    from plenoctree.datasets.forward_facing import forward_facing_cameras
+    from plenoctree.datasets.llff import write_llff
+
+    rng = np.random.default_rng(0)
+    write_llff(root, forward_facing_cameras(n), rng.integers(0, 255, (n, 378, 504, 3), np.uint8),
+               440.0, np.tile([2.0, 6.0], (n, 1)))
+    arr = np.load(root / "poses_bounds.npy")
+    arr[:, 4:15:5] = [3024, 4032, 3520]          # the hwf column: the full-size photos
+    np.save(root / "poses_bounds.npy", arr)
+    (root / "images").rename(root / "images_8")
+    return root
+
+
+def test_run_picks_the_working_resolution_and_downscale_overrides(tmp_path, monkeypatch,
+                                                                  caplog):
+    """`run` without --downscale trains on 4032x3024 LLFF photos at 504x378 (factor 8) and
+    says so; an explicit --downscale wins."""
+    import plenoctree.pipeline as pl
+    from plenoctree.errors import PlenOctreeError
+
+    data = _llff_photos(tmp_path / "ff")
+    seen = []
+
+    def train(tcfg):
+        seen.append(tcfg.downscale)
+        raise PlenOctreeError("stop here")
+
+    monkeypatch.setattr(pl, "_train", train)
+    caplog.set_level("INFO", logger="plenoctree")
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)       # the CPU's choice
+    with pytest.raises(pl.PipelineError, match="stop here"):
+        pl.run_pipeline(pl.PipelineConfig(data=str(data), out=str(tmp_path / "run")))
+    assert seen == [8]
+    assert ("working resolution 504x378 (downscale 8) for a forward-facing capture on the CPU; "
+            "--downscale overrides") in caplog.text
+    caplog.clear()
+    with pytest.raises(pl.PipelineError, match="stop here"):
+        pl.run_pipeline(pl.PipelineConfig(data=str(data), out=str(tmp_path / "run2"),
+                                          downscale=4, device="cpu"))
+    assert seen == [8, 4] and "working resolution" not in caplog.text

@@ -16,6 +16,7 @@ stage (``train: TrainConfig``, ``extract: ExtractConfig``...); each setting has 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -26,11 +27,11 @@ from typing import Any, Callable
 from ._config import config_dict
 from ._util import atomic_save_json, atomic_write, check_output_dir, run_lock
 from .compression.codec import CompressOptions
-from .errors import ConfigError, PlenOctreeError
+from .errors import ConfigError, DatasetError, PlenOctreeError
 from .nerf.config import TrainConfig
 from .pipeline_config import (PRESETS, STAGE_OPTIONS, PipelineConfig, layer_settings,
                               name_the_flags, nerf_run_dir, pipeline_preset, train_preset,
-                              wired)
+                              wired, working_downscale)
 from .pipeline_summary import finetune_outcome, pipeline_summary, summary_markdown
 
 __all__ = ["PipelineConfig", "PipelineError", "Stage", "run_pipeline", "plan_stages",
@@ -106,6 +107,11 @@ def _validate(cfg: PipelineConfig) -> None:
     from .convert.extraction import _validate as validate_extract
     from .nerf.config import validate
 
+    if isinstance(cfg.downscale, bool) or not isinstance(cfg.downscale, int) or cfg.downscale < 0:
+        raise ConfigError(f"--downscale must be an integer >= 1 (0 = the working resolution), "
+                          f"got {cfg.downscale!r}")
+    if not cfg.downscale:           # the stages' own checks, at any resolution
+        cfg = wired(dataclasses.replace(cfg, downscale=1))
     if cfg.images:
         _checked("process", cfg.process.validated)
     elif config_dict(cfg.process) != config_dict(wired(PipelineConfig(out=cfg.out)).process):
@@ -266,6 +272,11 @@ def _run(cfg: PipelineConfig, out: Path) -> dict:
     _validate(cfg)
     r = _Runner(out)
     stages = plan_stages(cfg, lay)
+    if cfg.images:                # its dataset decides the working resolution
+        r.run(stages.pop(0))
+    if not cfg.downscale:
+        cfg = wired(_working_resolution(cfg))
+        stages = plan_stages(cfg, lay)[1 if cfg.images else 0:]
     atomic_save_json(out / "config.json", config_dict(cfg))   # `run --config` reads it back
     if cfg.nerf:          # a trained NeRF-SH: its training time is read from its summary
         logger.info(f"[train] using the trained NeRF-SH {lay.nerf} (not trained here)")
@@ -334,6 +345,39 @@ def _call(module: str, name: str, stage_cfg: Any) -> Any:
     import importlib
 
     return getattr(importlib.import_module(f"{__package__}.{module}"), name)(stage_cfg)
+
+
+def _working_resolution(cfg: PipelineConfig) -> PipelineConfig:
+    """``cfg`` with ``downscale`` 0 replaced by :func:`working_downscale` of its dataset's
+    full-size images (LLFF: the size in ``poses_bounds.npy``, whose ``images/`` may be absent),
+    said on the log."""
+    import torch
+
+    from .datasets import detect_format, load_dataset
+    from .datasets.llff import POSES_FILE, read_poses_bounds
+
+    data = cfg.train.data
+    fmt = cfg.format or detect_format(data)
+    if fmt == "llff":
+        h, w = (int(v) for v in read_poses_bounds(Path(data) / POSES_FILE)[2][0, :2])
+        forward = True
+    else:
+        probe = load_dataset(data, "train", format=fmt, limit=1)
+        w, h, forward = probe.cameras.width, probe.cameras.height, probe.cameras.ndc
+
+    def loads(f: int) -> bool:           # (undistorted images: the files' size must divide)
+        try:
+            load_dataset(data, "train", format=fmt, limit=1, downscale=f)
+        except (ConfigError, DatasetError):
+            return False
+        return True
+
+    gpu = cfg.device.startswith("cuda") or (cfg.device == "auto" and torch.cuda.is_available())
+    f = working_downscale(w, h, forward, gpu, loads)
+    logger.info(f"working resolution {w // f}x{h // f} (downscale {f}) for a "
+                f"{'forward-facing' if forward else '360°'} capture on the "
+                f"{'GPU' if gpu else 'CPU'}; --downscale overrides")
+    return dataclasses.replace(cfg, downscale=f)
 
 
 def _process_stage(cfg: PipelineConfig) -> Stage:

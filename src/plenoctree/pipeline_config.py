@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -24,10 +25,35 @@ from .process import ProcessConfig
 
 __all__ = ["PipelineConfig", "StageOptions", "STAGE_OPTIONS", "PRESETS", "UNLIMITED_STEPS",
            "pipeline_preset", "train_preset", "time_budget", "layer_settings", "wired",
-           "stage_flags", "name_the_flags", "nerf_run_dir"]
+           "stage_flags", "name_the_flags", "nerf_run_dir", "working_downscale",
+           "WORKING_PIXELS"]
 
 UNLIMITED_STEPS = 10**9
 """``train.max_steps`` when the time budget (``train.minutes``) decides."""
+WORKING_PIXELS = {("forward", "cpu"): 200_000, ("360", "cpu"): 250_000,
+                  ("forward", "gpu"): 800_000, ("360", "gpu"): 1_000_000}
+"""Pixels per image that ``run`` works at when ``--downscale`` is not given, by capture kind
+and device: on a CPU, LLFF's forward-facing convention (504x378, NeRF's flower) and about
+lego's 400² for 360° captures, which keep a 30-minute training, fine-tuning epochs and the
+evaluation frames within the CPU budget; on a GPU LLFF's factor 4 (1008x756) and lego's
+800²."""
+
+
+def working_downscale(width: int, height: int, forward: bool, gpu: bool,
+                      loads: Callable[[int], bool] | None = None) -> int:
+    """The downscale of ``run`` for ``width x height`` photos: the smallest factor bringing
+    them to at most :data:`WORKING_PIXELS` for the capture kind (``forward``: NDC) and device
+    with which the dataset ``loads`` (default: the factor divides both sides, as the loaders'
+    area downscale needs), searched up to twice that; else the largest factor below it that
+    divides both sides. 1 for small images. E.g. 4032x3024 forward-facing on a CPU: 8
+    (504x378); 1080x1920 360° on a CPU: 3 (360x640)."""
+    target = WORKING_PIXELS["forward" if forward else "360", "gpu" if gpu else "cpu"]
+    factor = max(1, math.ceil(math.sqrt(width * height / target) - 1e-9))
+    if factor == 1:
+        return 1
+    loads = loads or (lambda f: width % f == 0 and height % f == 0)
+    return next((f for f in range(factor, 2 * factor + 1) if loads(f)),
+                max(d for d in range(1, factor) if width % d == 0 and height % d == 0))
 
 
 def train_preset(name: str) -> TrainConfig:
@@ -69,8 +95,10 @@ class PipelineConfig:
     nerf: str = ""
     """a trained NeRF-SH (run folder holding checkpoint.pt, or the checkpoint) to start from:
     the train stage is skipped and the folder is only read"""
-    downscale: int = 1
-    """integer area downscale of the images for every stage (2 = lego at 400²)"""
+    downscale: int = 0
+    """integer area downscale of the images for every stage (2 = lego at 400²); 0 = the
+    working resolution for the capture kind and device (forward-facing ~0.2 MP, 360° ~0.25 MP
+    on a CPU; 4x that on a GPU)"""
     backend: str = "auto"
     """renderer backend: auto, numba, triton or torch"""
     device: str = "auto"

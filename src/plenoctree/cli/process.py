@@ -11,11 +11,15 @@ import argparse
 
 
 def _run(cfg, args: argparse.Namespace) -> int:
+    from ..pipeline_config import working_downscale
     from ..process import process
 
     summary = process(cfg)
+    w, h = summary["image_size"]
+    f = working_downscale(w, h, summary["kind"] == "forward", gpu=False)
     print(f"next: plenoctree run --data {cfg.out} --out <run folder> "
-          f"({summary['kind']} capture, {summary['format']} format)")
+          f"({summary['kind']} capture, {summary['format']} format; on a CPU it works at "
+          f"{w // f}x{h // f}, downscale {f}; --downscale overrides)")
     return 0
 
 

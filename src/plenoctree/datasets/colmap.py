@@ -87,12 +87,16 @@ def _apply(transform: np.ndarray, c2w: np.ndarray) -> np.ndarray:
     return out
 
 
-def depth_bounds(c2w: np.ndarray, points: np.ndarray) -> np.ndarray:
+def depth_bounds(c2w: np.ndarray, points: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
     """LLFF per-image near / far depths ``[N, 2]``: 0.1 / 99.9 % percentiles of the depths of
-    the ``points [P, 3]`` in front of each camera (all cameras' median when a camera sees none)."""
+    the points in front of each camera (all cameras' median when a camera sees fewer than
+    10). ``points``: ``[P, 3]`` shared by every camera, or one ``[P_i, 3]`` array per camera,
+    the points it observes (LLFF's ``imgs2poses`` rule, which ``process`` follows)."""
     out = np.full((len(c2w), 2), np.nan)
+    shared = isinstance(points, np.ndarray)
     for i, m in enumerate(np.asarray(c2w, dtype=np.float64)):
-        z = (points - m[:3, 3]) @ (-m[:3, 2])
+        pts = points if shared else np.asarray(points[i], dtype=np.float64).reshape(-1, 3)
+        z = (pts - m[:3, 3]) @ (-m[:3, 2])
         z = z[z > 1e-9]
         if len(z) >= 10:
             out[i] = np.percentile(z, 0.1), np.percentile(z, 99.9)

@@ -13,7 +13,9 @@ top-level ones; ``camera_angle_x``/``camera_angle_y`` (instant-ngp) stand in for
 ``fl_x``/``fl_y``, ``fl_y`` defaults to ``fl_x`` and the principal point to the image centre.
 Camera models: PINHOLE / SIMPLE_PINHOLE, and the distorting OPENCV (``k1, k2, p1, p2``, and
 ``k3`` through COLMAP's FULL_OPENCV), OPENCV_FISHEYE (``k1..k4``; also instant-ngp's
-``is_fisheye``), RADIAL (``k1, k2``) and SIMPLE_RADIAL (``k1``): images with non-zero
+``is_fisheye``), RADIAL (``k1, k2``) and SIMPLE_RADIAL (``k1``); a file with no
+``camera_model`` is OPENCV, as instant-ngp's ``colmap2nerf.py`` writes ``k1 k2 p1 p2`` without
+one (with every coefficient zero that is a pinhole camera): images with non-zero
 coefficients are undistorted on load by COLMAP's undistorter
 (:mod:`plenoctree.datasets.undistort`, needs ``plenoctree[colmap]``) into the pinhole camera
 COLMAP chooses; other models (equirectangular, ...) are refused.
@@ -55,13 +57,16 @@ PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIA
                   "OPENCV_FISHEYE")
 """Camera models accepted (the distorting ones are undistorted on load)."""
 TRAIN_FRACTION = 0.9
+NO_MODEL = "OPENCV"
+"""The camera model of a file without ``camera_model`` (instant-ngp's files: ``k1 k2 p1 p2``
+with no model named; OPENCV holds PINHOLE's files too, their coefficients being zero)."""
 _DISTORTION = ("k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2")
 _INTR_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
 
 
 def _frame_camera(where: str, glob: dict, fr: dict) -> tuple[float | None, ...]:
     """Validate the camera model / distortion of one frame; return its raw intrinsics."""
-    model = fr.get("camera_model", glob.get("camera_model", "PINHOLE"))
+    model = fr.get("camera_model", glob.get("camera_model", NO_MODEL))
     if not isinstance(model, str):
         raise DatasetError(f"{where}: camera_model must be a string, got {model!r}")
     model = model.upper()

@@ -33,8 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from .frames import VIDEO_SUFFIXES, is_video, list_photos, require_video_reader, video_frames
-from .sfm import ProcessError, SfmOptions, require_pycolmap, run_sfm
+from .frames import (VIDEO_SUFFIXES, in_capture_order, is_video, list_photos,
+                     require_video_reader, video_frames)
+from .sfm import EXHAUSTIVE_MAX_IMAGES, ProcessError, SfmOptions, require_pycolmap, run_sfm
 
 __all__ = ["ProcessConfig", "process", "ProcessError", "SfmOptions", "DOWNSCALES"]
 
@@ -131,7 +132,8 @@ def process(cfg: ProcessConfig) -> dict:
         image_dir = photos[0].parent
         names = [p.name for p in photos]
         logger.info(f"process: {len(names)} images from {src}")
-        res = run_sfm(image_dir, work, names, cfg.sfm, sequential=video, label=src)
+        ordered = video or (len(names) > EXHAUSTIVE_MAX_IMAGES and in_capture_order(photos))
+        res = run_sfm(image_dir, work, names, cfg.sfm, sequential=ordered, label=src)
         summary = _write_dataset(res, image_dir, names, stage, work, cfg)
         summary.update(source=str(src), video=video, seconds_total=time.perf_counter() - t_start,
                        config={k: v for k, v in asdict(cfg).items()})
@@ -149,6 +151,9 @@ def process(cfg: ProcessConfig) -> dict:
         raise
     logger.info(f"process: wrote {summary['format']} dataset ({summary['kind']} capture, "
         f"{summary['n_registered']} of {summary['n_images']} images registered) to {out}")
+    logger.info("process: " + ", ".join(f"{k.replace('_', ' ')} {v:.0f} s"
+                                        for k, v in summary["seconds"].items())
+                + f" (total {summary['seconds_total']:.0f} s)")
     return summary
 
 
@@ -163,13 +168,38 @@ def _crop_box(w: int, h: int, cx: float, cy: float, centred: bool) -> tuple[int,
     return 0, 0, w // 8 * 8, h // 8 * 8
 
 
+MIN_TRACK = 3
+"""Points seen by fewer images do not bound the depths (:func:`observed_points`)."""
+
+
+def observed_points(rec, names: list[str], min_track: int = MIN_TRACK) -> list[np.ndarray]:
+    """The world points ``[P_i, 3]`` each image of ``names`` observes in the reconstruction
+    ``rec`` (a ``pycolmap.Reconstruction``) that at least ``min_track`` images see (all it
+    observes when fewer than 10 are).
+
+    LLFF bounds each image's depths by the points it observes, not by every point in front of
+    it (points beside the view, closer than anything in it, put the near plane of flower's
+    photos ~4x too close); two-view points are left out as well: on flower the closest ones
+    are two-view triangulations with 3-4x the median reprojection error, 3-7x closer than
+    anything else in the photo (docs/capture.md).
+    """
+    by_name = {im.name: im for im in rec.images.values()}
+    out = []
+    for n in names:
+        ids = [p.point3D_id for p in by_name[n].points2D if p.has_point3D()]
+        kept = [i for i in ids if rec.points3D[i].track.length() >= min_track]
+        ids = kept if len(kept) >= 10 else ids
+        out.append(np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3))
+    return out
+
+
 def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Path,
                    cfg: ProcessConfig) -> dict:
     """Undistort, normalise and write the dataset into ``stage``; returns the summary."""
     import pycolmap
     from PIL import Image
 
-    from ..datasets.colmap import capture_kind, normalize_scene
+    from ..datasets.colmap import capture_kind, depth_bounds, normalize_scene
     from ..datasets.colmap_model import colmap_c2w, read_colmap_model
     from ..datasets.llff import POSES_FILE
 
@@ -230,7 +260,7 @@ def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Pa
         m[:, :, 0], m[:, :, 1] = -raw_c2w[:, :3, 1], raw_c2w[:, :3, 0]
         m[:, :, 2], m[:, :, 3] = raw_c2w[:, :3, 2], raw_c2w[:, :3, 3]
         m[:, :, 4] = [h, w, k[0, 0]]
-        bounds = frame.bounds / frame.scale                  # in COLMAP's units, like LLFF
+        bounds = depth_bounds(raw_c2w, observed_points(res.reconstruction, reg))  # as LLFF
         np.save(stage / POSES_FILE, np.concatenate([m.reshape(len(reg), 15), bounds], 1))
         fmt_name = "llff"
     else:

@@ -7,20 +7,25 @@ can cause (too few images, too few matches, nothing registered) raises
 :class:`~plenoctree.errors.ProcessError` naming what to try.
 
 Defaults chosen by measurement on the lego training photos (``benchmarks/colmap_poses.py``):
-one camera shared by every image (``single_camera``), exhaustive matching with guided matching
-(re-matching along the epipolar geometry once the two-view geometry is known), and a stricter
-mapper (:data:`MAPPER_DEFAULTS`: an image is registered only with >= 100 inliers, >= 50 %
-inlier ratio and <= 4 px error; observations over 2 px are filtered; no structure-less
-fallback registration), then :func:`drop_weak_images`. With COLMAP's own mapper settings one
-lego photo was registered on the wrong side of the nearly symmetric object (165° off); the
-stricter ones alone still did so in one of two runs (multi-threaded matching is not
-deterministic), with ~5x fewer 3D points than the median photo, which the filter removes.
-A final global bundle adjustment refines the chosen model.
+one camera shared by every image (``single_camera``) and a stricter mapper
+(:data:`MAPPER_DEFAULTS`: an image is registered only with >= 100 inliers, >= 50 % inlier
+ratio and <= 4 px error; observations over 2 px are filtered; no structure-less fallback
+registration), then :func:`drop_weak_images`. With COLMAP's own mapper settings one lego photo
+was registered on the wrong side of the nearly symmetric object (165° off); the stricter ones
+alone still did so in one of two runs (multi-threaded matching is not deterministic), with
+~5x fewer 3D points than the median photo, which the filter removes. A final global bundle
+adjustment refines the chosen model.
 
-Video frames (``benchmarks/colmap_poses.py --video``, the lego test orbit): matched
-exhaustively up to :data:`EXHAUSTIVE_MAX_FRAMES` (with 20 neighbours only, the two turns of
-the orbit never met and the frames split into 3-5 models, 16 of 60 registered; at 800² one
-such model put half its frames on the wrong side of the object), and the inlier minimum
+Cost, measured on the real captures (``benchmarks/colmap_poses.py --real flower|fox``,
+docs/capture.md): guided matching took ~3.5x the matching time per pair for 10-30 % more
+inliers, and the earlier defaults with it (and SIFT at 1600 px) gained 0.1° on flower's
+rotations (0.34° against 0.44° median), so it is on only where the images keep few features
+(:data:`GUIDED_MAX_FEATURES`: cheap there, and needed on the lego video); SIFT runs at <= 1024 px
+(fox's 1920-px frames: about half the features and matching time of 1600 px; the feature cap
+does not bind at these sizes); every pair is matched where that is estimated to take at most
+:data:`EXHAUSTIVE_SECONDS`, and ordered images beyond (video frames, photos whose names follow
+the capture) with their neighbours and frames 2^k later (:func:`choose_matcher`; pycolmap's
+loop detection needs a vocabulary tree, a download, so none). The inlier minimum
 follows the features (:func:`min_inliers`).
 """
 
@@ -29,14 +34,15 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
 from ..errors import ConfigError, PlenOctreeError
 
 __all__ = ["SfmOptions", "SfmResult", "run_sfm", "require_pycolmap", "check_options",
-           "ProcessError", "sequential_pairs", "min_inliers"]
+           "ProcessError", "sequential_pairs", "min_inliers", "choose_matcher", "plan_matching",
+           "in_chunks"]
 
 logger = logging.getLogger(__name__)
 
@@ -78,15 +84,18 @@ class SfmOptions:
     single_camera: bool = True
     """one camera (intrinsics) shared by every image; off: one per image"""
     matcher: str = "auto"
-    """exhaustive, sequential (videos) or auto (sequential beyond 100 video frames / 300 photos)"""
+    """exhaustive, sequential or auto (every pair where that takes about 2 minutes at most;
+    beyond, sequential for video frames and photos named in capture order, exhaustive for
+    other photos up to 300)"""
     max_features: int = 8192
     """SIFT features per image"""
-    guided_matching: bool = True
-    """re-match along the estimated epipolar geometry (more, cleaner matches)"""
-    max_image_size: int = 1600
+    guided_matching: bool | None = None
+    """re-match along the estimated epipolar geometry (10-30 % more inliers for ~3.5x the
+    matching time); default: where the median image keeps fewer than 2,000 features"""
+    max_image_size: int = 1024
     """longest image side used for features (larger images are downscaled for SIFT only)"""
-    sequential_overlap: int = 20
-    """neighbours matched per frame by the sequential matcher"""
+    sequential_overlap: int = 10
+    """neighbours matched per frame by the sequential matcher (plus frames 2^k later)"""
     num_threads: int = -1
     """threads (-1: all cores)"""
     seed: int = 0
@@ -112,10 +121,6 @@ class SfmResult:
 def _disable(show_progress: bool | None) -> bool | None:
     """tqdm's ``disable`` for ``show_progress`` (None: only on a terminal)."""
     return None if show_progress is None else not show_progress
-
-
-def _chunks(seq: Sequence, n: int) -> list[Sequence]:
-    return [seq[i:i + n] for i in range(0, len(seq), n)]
 
 
 def check_options(opts: SfmOptions) -> None:
@@ -166,8 +171,9 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
         image_dir: folder of the images; ``names``: their file names in it (>= 2, in capture
             order for videos).
         work_dir: scratch folder for ``database.db`` (created; emptied of an old database).
-        sequential: the images are video frames in time order (``matcher="auto"`` then
-            matches neighbours in time, :func:`sequential_pairs`, beyond 100 frames).
+        sequential: the images are in capture order (video frames, or photos whose names
+            follow it; ``matcher="auto"`` then matches neighbours in time beyond
+            :data:`EXHAUSTIVE_MAX_IMAGES`, :func:`choose_matcher`).
         label: what the error messages name (default ``image_dir``; ``process``: the video).
 
     Returns:
@@ -195,7 +201,7 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     pycolmap.logging.minloglevel = 2          # COLMAP's own log: errors only
     times: dict[str, float] = {}
 
-    # 1. Features (in chunks, for a progress bar).
+    # 1. Features (in chunks of about CHUNK_SECONDS, for the progress line).
     t0 = time.perf_counter()
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = opts.camera_model
@@ -205,41 +211,37 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     ext.max_image_size = int(opts.max_image_size)
     ext.sift.max_num_features = int(opts.max_features)
     mode = pycolmap.CameraMode.SINGLE if opts.single_camera else pycolmap.CameraMode.PER_IMAGE
-    chunk = max(8, len(names) // 20)
+
+    def extract(part: Sequence[str]) -> None:
+        pycolmap.extract_features(db, image_dir, image_names=list(part), camera_mode=mode,
+                                  reader_options=reader, extraction_options=ext,
+                                  device=pycolmap.Device.cpu)
+        if opts.single_camera and reader.existing_camera_id < 0:   # later chunks share it
+            with pycolmap.Database.open(db) as d:
+                reader.existing_camera_id = int(d.read_all_cameras()[0].camera_id)
+
     with progress(total=len(names), desc="colmap features", unit="img",
                   disable=_disable(show_progress)) as bar:
-        for k, part in enumerate(_chunks(names, chunk)):
-            pycolmap.extract_features(db, image_dir, image_names=list(part), camera_mode=mode,
-                                      reader_options=reader, extraction_options=ext,
-                                      device=pycolmap.Device.cpu)
-            if k == 0 and opts.single_camera:     # later chunks share the first chunk's camera
-                with pycolmap.Database.open(db) as d:
-                    reader.existing_camera_id = int(d.read_all_cameras()[0].camera_id)
-            bar.update(len(part))
+        in_chunks(names, extract, bar.update, first=2)
     times["features"] = time.perf_counter() - t0
 
-    # 2. Matching.
+    # 2. Matching: the pairs and guided matching chosen from the set (:func:`plan_matching`).
     t0 = time.perf_counter()
-    use_seq = opts.matcher == "sequential" or (
-        opts.matcher == "auto" and len(names) > (EXHAUSTIVE_MAX_FRAMES if sequential
-                                                 else EXHAUSTIVE_MAX_PHOTOS))
-    if use_seq:
-        pairs = sequential_pairs(len(names), opts.sequential_overlap)
-    else:
-        pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))]
-    _match_pairs(pycolmap, db, work, names, pairs, opts, show_progress,
-                 "colmap matching (sequential)" if use_seq else "colmap matching")
+    with pycolmap.Database.open(db) as d:
+        n_kp = sorted(d.num_keypoints_for_image(im.image_id) for im in d.read_all_images())
+    median_kp = n_kp[len(n_kp) // 2]
+    matcher, pairs, guided = plan_matching(opts, len(names), sequential, median_kp)
+    _match_pairs(pycolmap, db, work, names, pairs, replace(opts, guided_matching=guided),
+                 show_progress, f"colmap matching ({matcher})")
     times["matching"] = time.perf_counter() - t0
 
     # 3. Incremental mapping (progress: one tick per registered image).
     t0 = time.perf_counter()
     popt = _mapper_options(pycolmap, opts)
-    with pycolmap.Database.open(db) as d:
-        n_kp = sorted(d.num_keypoints_for_image(im.image_id) for im in d.read_all_images())
     cap = popt.mapper.abs_pose_min_num_inliers
-    popt.mapper.abs_pose_min_num_inliers = min_inliers(n_kp[len(n_kp) // 2], cap)
+    popt.mapper.abs_pose_min_num_inliers = min_inliers(median_kp, cap)
     if popt.mapper.abs_pose_min_num_inliers < cap:
-        logger.info(f"colmap: {n_kp[len(n_kp) // 2]} features in the median image: an image is "
+        logger.info(f"colmap: {median_kp} features in the median image: an image is "
             f"registered with >= {popt.mapper.abs_pose_min_num_inliers} inliers")
     sparse = work / "sparse"
     sparse.mkdir(exist_ok=True)
@@ -271,11 +273,77 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     return SfmResult(best, len(names), n_reg, len(models), times)
 
 
+MATCH_SECONDS = 0.015
+"""Seconds to match one pair of images of 1,000 SIFT features each on 2 busy cores (the cost
+grows with the square of the features): flower's 561 pairs of 3,200 were estimated at 86 s and
+took 94 s, fox's 704 of 4,400 at 205 s and took 155-212 s (docs/capture.md)."""
+EXHAUSTIVE_SECONDS = 120.0
+"""``matcher="auto"``: every pair is matched when that is estimated to take at most this long
+(:data:`MATCH_SECONDS`), :func:`choose_matcher`."""
+GUIDED_MAX_FEATURES = 2000
+"""``guided_matching=None``: guided matching where the median image keeps fewer features
+(cheap there, and the lego video's 800-feature frames need it: 2 of 60 registered without)."""
+EXHAUSTIVE_MAX_IMAGES = 50
+"""Photo folders of more images are checked for capture order (``process``); smaller ones
+are matched exhaustively whatever the cost."""
 EXHAUSTIVE_MAX_PHOTOS = 300
-"""``matcher="auto"``: photos are matched exhaustively up to this many, sequentially beyond."""
-EXHAUSTIVE_MAX_FRAMES = 100
-"""``matcher="auto"``: video frames are matched exhaustively up to this many (every pair:
-the loop closures of an orbit), sequentially beyond (:func:`sequential_pairs`)."""
+"""``matcher="auto"``: photos not in capture order are matched exhaustively up to this many
+(with no vocabulary tree, nothing else finds their overlapping pairs), sequentially beyond."""
+CHUNK_SECONDS = 2.0
+"""Target duration of one COLMAP call of the features and matching stages: their progress
+lines (per image, per pair) move at least this often (:func:`in_chunks`)."""
+
+
+def choose_matcher(matcher: str, n: int, ordered: bool, median_features: int) -> str:
+    """``"exhaustive"`` or ``"sequential"`` for ``n`` images (``ordered``: in capture order)
+    of ``median_features`` SIFT features.
+
+    ``matcher="auto"``: every pair where that is cheap (estimated at most
+    :data:`EXHAUSTIVE_SECONDS`); beyond, the sequential pairs (:func:`sequential_pairs`) for
+    ordered images, every pair for others up to :data:`EXHAUSTIVE_MAX_PHOTOS`. Measured
+    (docs/capture.md): flower's 34 photos, 561 pairs, exhaustive; real/fox's 67 frames make
+    2,211 pairs exhaustively (~11 minutes) and 704 sequentially.
+    """
+    if matcher != "auto":
+        return matcher
+    cost = n * (n - 1) / 2 * MATCH_SECONDS * (median_features / 1000.0) ** 2
+    if cost <= EXHAUSTIVE_SECONDS:
+        return "exhaustive"
+    return "sequential" if ordered or n > EXHAUSTIVE_MAX_PHOTOS else "exhaustive"
+
+
+def plan_matching(opts: SfmOptions, n: int, ordered: bool, median_features: int
+                  ) -> tuple[str, list[tuple[int, int]], bool]:
+    """``(matcher, pairs (i, j), guided)`` for ``n`` images (:func:`choose_matcher`; guided
+    matching by :data:`GUIDED_MAX_FEATURES` unless ``opts`` says), said on the log."""
+    matcher = choose_matcher(opts.matcher, n, ordered, median_features)
+    if matcher == "sequential":
+        pairs = sequential_pairs(n, opts.sequential_overlap)
+    else:
+        pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    guided = (median_features < GUIDED_MAX_FEATURES if opts.guided_matching is None
+              else bool(opts.guided_matching))
+    logger.info(f"colmap: {len(pairs)} image pairs to match ({matcher}"
+                + (f": {opts.sequential_overlap} neighbours and frames 2^k later each"
+                   if matcher == "sequential" else "")
+                + f"{', guided' if guided else ''}; {n} images, {median_features} features "
+                  "in the median one)")
+    return matcher, pairs, guided
+
+
+def in_chunks(items: Sequence, run: Any, advance: Any, first: int = 2) -> None:
+    """``run(part)`` on consecutive parts of ``items``, then ``advance(len(part))``: the first
+    part holds ``first`` items, each later one as many as took :data:`CHUNK_SECONDS` at the
+    rate measured on the previous part (at most 4x the previous size)."""
+    i, size = 0, max(1, int(first))
+    while i < len(items):
+        part = items[i:i + size]
+        t0 = time.perf_counter()
+        run(part)
+        dt = time.perf_counter() - t0
+        advance(len(part))
+        i += len(part)
+        size = max(1, min(4 * len(part), int(len(part) * CHUNK_SECONDS / max(dt, 1e-3))))
 MIN_INLIER_FRACTION = 0.1
 """An image is registered with at least this fraction of the median image's features as 2D-3D
 inliers (:func:`min_inliers`)."""
@@ -346,8 +414,9 @@ def drop_weak_images(rec: Any, fraction: float) -> list[str]:
 
 def _match_pairs(pycolmap: Any, db: Path, work: Path, names: list[str], pairs: list,
                  opts: SfmOptions, show_progress: bool | None, desc: str) -> None:
-    """Match image pairs ``(i, j)`` of ``names`` in chunks through a pairs file in ``work``
-    (one progress tick per pair), with ``opts``' threads, guided matching and RANSAC seed."""
+    """Match image pairs ``(i, j)`` of ``names`` in chunks (:func:`in_chunks`) through a pairs
+    file in ``work`` (one progress tick per pair), with ``opts``' threads, guided matching and
+    RANSAC seed."""
     from .._util import progress
 
     mopt = pycolmap.FeatureMatchingOptions()
@@ -357,14 +426,15 @@ def _match_pairs(pycolmap: Any, db: Path, work: Path, names: list[str], pairs: l
     ver.ransac.random_seed = int(opts.seed)
 
     pair_file = work / "pairs.txt"
-    chunk = max(200, len(pairs) // 25)
+
+    def match(part: Sequence[tuple[int, int]]) -> None:
+        pair_file.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in part))
+        popt = pycolmap.ImportedPairingOptions()
+        popt.match_list_path = pair_file
+        pycolmap.match_image_pairs(db, matching_options=mopt, pairing_options=popt,
+                                   verification_options=ver, device=pycolmap.Device.cpu)
+
     with progress(total=len(pairs), desc=desc, unit="pair",
                   disable=_disable(show_progress)) as bar:
-        for part in _chunks(pairs, chunk):
-            pair_file.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in part))
-            popt = pycolmap.ImportedPairingOptions()
-            popt.match_list_path = pair_file
-            pycolmap.match_image_pairs(db, matching_options=mopt, pairing_options=popt,
-                                       verification_options=ver, device=pycolmap.Device.cpu)
-            bar.update(len(part))
+        in_chunks(pairs, match, bar.update, first=4)
     pair_file.unlink(missing_ok=True)
