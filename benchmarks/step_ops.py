@@ -207,8 +207,7 @@ class Recorder:
             def launch(ex, *a, **k):
                 if me.counts is not None:
                     me.counts.triton += 1
-                fast = _STAND_INS.get((ex.fn.__module__, ex.fn.__name__))
-                return me._suspended(fast or orig)(ex, *a, **k)
+                return me._suspended(orig)(ex, *a, **k)
             out.append((interpreter.GridExecutor, "__call__", launch))
         return out
 
@@ -298,10 +297,22 @@ def backends_of(path: str) -> Iterator[None]:
         return names[0] if names[0] != "triton" or _triton_interpreted() else names[-1]
 
     backend.resolve = resolve
+    launch = None
+    if _triton_interpreted():
+        from triton.runtime import interpreter
+
+        launch = interpreter.GridExecutor.__call__
+
+        def fast(ex: Any, *a: Any, **k: Any) -> Any:
+            stand_in = _STAND_INS.get((ex.fn.__module__, ex.fn.__name__))
+            return (stand_in or launch)(ex, *a, **k)
+        interpreter.GridExecutor.__call__ = fast
     try:
         yield
     finally:
         backend.resolve = orig
+        if launch is not None:
+            interpreter.GridExecutor.__call__ = launch
 
 
 def describe_path(path: str) -> dict:
