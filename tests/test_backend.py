@@ -6,30 +6,41 @@ import numpy as np
 import pytest
 import torch
 
-from plenoctree import backend
+from plenoctree import _triton, backend
 from plenoctree.errors import BackendError
 
 BUILTIN_OPS = ["finetune", "hashgrid", "march", "render", "render_grad", "sh_colors",
                "visibility"]
+TRITON_OPS = {op for op, _ in _triton.TRITON_IMPLS}
+
+
+def _triton_if_usable(op: str) -> list[str]:
+    """``["triton"]`` where op ``op`` has a Triton kernel that can run in this process (CUDA
+    with the triton package, or Triton's interpreter), else ``[]``: the registry lists it
+    between numba and the torch twin, and ``auto`` takes it for CUDA tensors."""
+    return ["triton"] if op in TRITON_OPS and _triton.usable_anywhere() else []
 
 
 def test_every_op_has_numba_and_torch_and_auto_follows_the_device():
     assert backend.ops() == BUILTIN_OPS
     for op in BUILTIN_OPS:
-        assert backend.backends(op) == ["numba", "torch"]
+        assert backend.backends(op) == ["numba", *_triton_if_usable(op), "torch"]
         assert backend.resolve(op, "auto", "cpu") == "numba"
-        assert backend.resolve(op, "AUTO", torch.device("cuda", 0)) == "torch"
+        on_cuda = [*_triton_if_usable(op), "torch"][0]
+        assert backend.resolve(op, "AUTO", torch.device("cuda", 0)) == on_cuda
         assert backend.resolve(op, "torch", "cuda:1") == "torch"
         for name in ("numba", "torch"):
             assert callable(backend.implementation(op, name)), (op, name)
 
 
 def test_misspelled_or_wrong_device_names_raise_listing_what_is_available():
-    with pytest.raises(BackendError, match=r"march: unknown backend 'nmuba'; available: "
-                                           r"auto, numba, torch"):
+    listed = ", ".join(["auto", "numba", *_triton_if_usable("march"), "torch"])
+    with pytest.raises(BackendError, match=rf"march: unknown backend 'nmuba'; available: "
+                                           rf"{listed}$"):
         backend.resolve("march", "nmuba")
-    with pytest.raises(BackendError, match=r"backend 'numba' runs on cpu inputs, got cuda; "
-                                           r"available on cuda: torch"):
+    on_cuda = ", ".join([*_triton_if_usable("render"), "torch"])
+    with pytest.raises(BackendError, match=rf"backend 'numba' runs on cpu inputs, got cuda; "
+                                           rf"available on cuda: {on_cuda}$"):
         backend.resolve("render", "numba", "cuda:0")
     with pytest.raises(BackendError, match="unknown op"):
         backend.resolve("nope", "auto")

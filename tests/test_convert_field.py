@@ -75,7 +75,12 @@ def test_nerf_field_applies_the_occupancy_grid():
     on = NeRFField(m).density(x)
     off = NeRFField(m, use_occupancy=False).density(x)
     assert np.all(on[x[:, 0] > 0] == 0) and (off[x[:, 0] > 0] > 0).any()
-    np.testing.assert_array_equal(on[x[:, 0] < 0], off[x[:, 0] < 0])
+    # Elsewhere the same σ: compared on the same batch of points the network saw with the grid
+    # (the points x < 0, in order), since a different number of rows may take another BLAS
+    # kernel and round a dot product differently (1.2e-7 on the 16-core machine of issue 38).
+    left = x[:, 0] < 0
+    off_left = NeRFField(m, use_occupancy=False).density(x[left])
+    np.testing.assert_array_equal(on[left], off_left)
 
 
 def test_plain_nerf_shared_direction_path_equals_query():

@@ -82,10 +82,21 @@ def _hashgrid_kernel(x_ptr, table_ptr, res_ptr, off_ptr, hashed_ptr, out_ptr, gr
             tl.store(out_ptr + r64[:, None] * lf + lev * F + fi[None, :], acc, mask=m2)
 
 
+_LAYOUTS: dict = {}
+
+
 def _layout(res: np.ndarray, offsets: np.ndarray, hashed: np.ndarray, device: torch.device):
-    return (torch.as_tensor(np.asarray(res, np.int64), device=device),
-            torch.as_tensor(np.asarray(offsets, np.int64), device=device),
-            torch.as_tensor(np.asarray(hashed, np.int32), device=device))
+    """The level layout as device tensors, uploaded once per layout and device (each upload
+    is a host round trip; the trainer encodes ~10 times a step). Keyed by the arrays' contents
+    (a few dozen integers)."""
+    key = (np.asarray(res).tobytes(), np.asarray(offsets).tobytes(),
+           np.asarray(hashed).tobytes(), str(device))
+    out = _LAYOUTS.get(key)
+    if out is None:
+        out = _LAYOUTS[key] = (torch.as_tensor(np.asarray(res, np.int64), device=device),
+                               torch.as_tensor(np.asarray(offsets, np.int64), device=device),
+                               torch.as_tensor(np.asarray(hashed, np.int32), device=device))
+    return out
 
 
 def _launch(x, table, layout, n_feat, grad=None, gtable=None, out=None):

@@ -201,9 +201,14 @@ def _march_waves(field: RadianceField, rays: MarchRays, grid: MarchGrid, mode: R
     Without ``mode.train`` everything runs without gradients and is composited on the fly:
     returns ``rgb [R, 3], acc [R], dsum [R] (Σ w t), n_samples``. With ``mode.train`` the
     network runs with gradients and the kept samples are composited at the end (eq. 1–2 over
-    each ray's whole sequence): returns ``rgb, acc, dsum, n_samples, complete [R] bool`` where
-    ``complete`` is False for rays cut off because more than ``mode.max_samples`` (> 0)
-    samples were evaluated.
+    each ray's whole sequence): returns ``rgb, acc, dsum, n_samples, complete [R] bool,
+    capped`` where ``complete`` is False for rays cut off because more than
+    ``mode.max_samples`` (> 0) samples were evaluated, and ``capped`` (a Python bool) says
+    whether that happened (else ``complete`` is all True).
+
+    Host round trips (issue 38): one per wave (the rays still marching, a data-dependent
+    shape) and the marching kernel's own; in training the kept samples of all waves are
+    selected once at the end (one ``nonzero``), not wave by wave.
     """
     origins, dirs, step = rays.origins, rays.dirs, grid.step
     train, amp, max_samples, stop_thresh = mode.train, mode.amp, mode.max_samples, \
@@ -219,11 +224,13 @@ def _march_waves(field: RadianceField, rays: MarchRays, grid: MarchGrid, mode: R
     parts: list[tuple] = []
     active = torch.arange(n, device=dev)
     evaluated = n_waves = 0
+    capped = False
     log_thresh = -np.log(stop_thresh) if stop_thresh > 0 else np.inf
     grad_ctx = torch.enable_grad() if train else torch.no_grad()
     while active.numel():
         if max_samples and evaluated >= max_samples:
             complete[active] = False
+            capped = True
             break
         # about `budget` samples per wave, but short first waves: most rays end early
         wave = int(min(512, 32 << n_waves, max(16, budget // active.numel())))
@@ -246,7 +253,7 @@ def _march_waves(field: RadianceField, rays: MarchRays, grid: MarchGrid, mode: R
                 opt.index_add_(0, gidx, tau * keep)
                 finished |= first_term < len(s)
             if train:
-                parts.append((gidx[keep], s.t[keep], sigma[keep], color[keep]))
+                parts.append((gidx, s.t, sigma, color, keep))
             else:
                 w = (torch.exp(-before) * (1.0 - torch.exp(-tau))).float() * keep
                 acc.index_add_(0, gidx, w)
@@ -257,18 +264,21 @@ def _march_waves(field: RadianceField, rays: MarchRays, grid: MarchGrid, mode: R
     if not train:
         return {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": evaluated}
     if not parts:
-        return {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": 0, "complete": complete}
-    gidx, t, sigma, color = (torch.cat(x) for x in zip(*parts))
-    order = torch.sort(gidx, stable=True).indices          # ray-major; waves keep k order
-    gidx, t, sigma, color = gidx[order], t[order], sigma[order], color[order]
-    counts = torch.bincount(gidx, minlength=n)
-    offsets = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])
+        return {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": 0, "complete": complete,
+                "capped": capped}
+    gidx, t, sigma, color, keep = (torch.cat(x) for x in zip(*parts))
+    kept = keep.nonzero()[:, 0]                             # the waves' kept samples, in order
+    order = kept[torch.sort(gidx[kept], stable=True).indices]   # ray-major; waves keep k order
+    gidx, t = gidx[order], t[order]
+    sigma, color = sigma.index_select(0, order), color.index_select(0, order)
+    # offsets of the sorted rays without a host round trip (bincount reads its size back)
+    offsets = torch.searchsorted(gidx, torch.arange(n + 1, device=dev))
     w, _ = render_weights_packed(sigma, step, gidx, offsets)
     rgb = composite_packed(w, color, gidx, n)
     acc = composite_packed(w, torch.ones_like(w)[:, None], gidx, n)[:, 0]
     dsum = composite_packed(w, t[:, None], gidx, n)[:, 0]
     return {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": evaluated,
-            "complete": complete}
+            "complete": complete, "capped": capped}
 
 
 def render_rays_occupancy(model: NeRFModel, rays: RayBatch, cfg: TrainConfig,
@@ -281,7 +291,8 @@ def render_rays_occupancy(model: NeRFModel, rays: RayBatch, cfg: TrainConfig,
 
     Returns:
         ``rgb [R, 3], acc [R], depth [R]``, ``n_samples`` (network evaluations) and, in
-        training, ``complete [R]`` (rays whose colour is final; use only those in a loss).
+        training, ``complete [R]`` (rays whose colour is final; use only those in a loss) and
+        ``capped`` (a Python bool: some ray is not complete).
     """
     n = len(rays)
     dev = rays.origins.device
@@ -300,7 +311,7 @@ def render_rays_occupancy(model: NeRFModel, rays: RayBatch, cfg: TrainConfig,
     out = {"rgb": r["rgb"] + (1.0 - acc)[:, None] * rays.bg(), "acc": acc,
            "depth": r["dsum"] / acc.clamp(min=1e-10), "n_samples": r["n_samples"]}
     if mode.train:
-        out["complete"] = r["complete"]
+        out["complete"], out["capped"] = r["complete"], r["capped"]
     return out
 
 

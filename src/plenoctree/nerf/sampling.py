@@ -175,10 +175,23 @@ def march_backends() -> list[str]:
     return _backend.backends("march")
 
 
+_CONSTS_CACHE: dict = {}
+
+
 def _grid_consts(mask: torch.Tensor, bbox: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo [3], inv [3])`` float32 on the host: the box's low corner and cells per world unit.
+
+    Read from ``bbox`` once per box content, not once per march: on a GPU each read is a host
+    round trip, and the trainer marches in several waves a step. Like :func:`_empty_levels`
+    the cache holds the last ``bbox`` itself and its in-place version counter."""
+    g = int(mask.shape[0])
+    c = _CONSTS_CACHE
+    if c.get("bbox") is bbox and c.get("version") == bbox._version and c.get("g") == g:
+        return c["consts"]
     b = bbox.detach().cpu().numpy().astype(np.float32)
-    g = np.float32(mask.shape[0])
-    return b[0].copy(), (g / (b[1] - b[0])).astype(np.float32)
+    consts = (b[0].copy(), (np.float32(g) / (b[1] - b[0])).astype(np.float32))
+    c.update(bbox=bbox, version=bbox._version, g=g, consts=consts)
+    return consts
 
 
 def _march_torch(rays: MarchRays, grid: MarchGrid, max_per_ray: int) -> PackedSamples:

@@ -198,11 +198,15 @@ class TrainerState:
 
 @dataclass
 class StepFigures:
-    """What one training step measured (global figures under torchrun)."""
+    """What one training step measured (global figures under torchrun).
+
+    ``loss`` and ``mse`` are Python floats under torchrun; in one process they stay detached
+    0-d tensors on the device until :meth:`Trainer.read_losses` reads a window of them back
+    at once (a host round trip each step would stall a GPU)."""
 
     lr: float
-    loss: float
-    mse: float
+    loss: float | torch.Tensor
+    mse: float | torch.Tensor
     rays: int          # rays whose colour entered the loss
     samples: int       # network evaluations of the rendering
     occupancy_s: float  # seconds spent updating the occupancy grid
@@ -284,6 +288,7 @@ class Trainer:
         self.val_psnr = float("nan")
         self.lr = cfg.lr_init
         self.ready = False
+        self._pending: list[tuple] = []     # (step, loss, mse) not yet read back
 
     # ------------------------------------------------------------- set-up
     def setup(self) -> None:
@@ -423,10 +428,15 @@ class Trainer:
             mode = RenderMode(train=True, generator=self.rgen, amp=self.amp,
                               max_samples=2 * cfg.target_samples // dctx.world)
             r = render_rays_occupancy(self.model, batch, cfg, mode)
-            ok = r["complete"]
-            used = int(ok.sum())
+            rgb = r["rgb"]
+            if r["capped"]:         # only the complete rays (one host round trip)
+                ok = r["complete"].nonzero()[:, 0]
+                used = int(ok.shape[0])
+                rgb, target = rgb.index_select(0, ok), target.index_select(0, ok)
+            else:
+                used = int(rgb.shape[0])
             # (used == 0 only if the sample cap cut off every ray: skip the photometric term)
-            mse = torch.mean((r["rgb"][ok] - target[ok]) ** 2) if used else r["rgb"].sum() * 0
+            mse = torch.mean((rgb - target) ** 2) if used else r["rgb"].sum() * 0
             loss = mse
         else:
             mode = RenderMode(train=True, generator=self.rgen, amp=self.amp)
@@ -443,14 +453,33 @@ class Trainer:
             loss = loss + cfg.sparsity_weight * sparsity_loss(sig, cfg.sparsity_length)
         return loss, mse, used, int(r["n_samples"])
 
-    def _check_finite(self, loss: float) -> None:
+    def _check_finite(self, loss: float, step: int) -> None:
         if math.isfinite(loss):
             return
         kept = (f"the last good checkpoint ({self.ckpt_file}, step "
                 f"{self.state.last_ckpt_step}) is kept" if self.ckpt_file.exists()
                 else "no checkpoint had been written yet")
-        raise TrainingError(f"loss became {loss} at step {self.step}; training stopped, "
+        raise TrainingError(f"loss became {loss} at step {step}; training stopped, "
                             f"{kept}. Try a lower learning rate (--lr-init).")
+
+    def read_losses(self) -> None:
+        """Read the losses of the steps since the last call back from the device (one host
+        round trip), add them to the log window in step order and stop on a non-finite one
+        (:class:`TrainingError` naming its step).
+
+        Called before anything is written (log row, validation, checkpoint), so a non-finite
+        loss still stops the run before it writes; the steps after it until then run on
+        (with non-finite weights, which :meth:`checkpoint` refuses anyway)."""
+        pending, self._pending = self._pending, []
+        dev = [x for _, loss, mse in pending for x in (loss, mse) if isinstance(x, torch.Tensor)]
+        values = iter(torch.stack(dev).tolist() if dev else [])
+        win = self.state.win
+        for step, loss, mse in pending:
+            loss_v = next(values) if isinstance(loss, torch.Tensor) else loss
+            mse_v = next(values) if isinstance(mse, torch.Tensor) else mse
+            self._check_finite(loss_v, step)
+            win.loss += loss_v
+            win.mse += mse_v
 
     def train_step(self) -> StepFigures:
         """One optimisation step: learning rate, occupancy update, render, loss, Adam step,
@@ -466,17 +495,15 @@ class Trainer:
                 [float(loss.detach()), float(mse.detach()), used, n_samples])
             loss_v, mse_v = g_loss / dctx.world, g_mse / dctx.world
             used, n_samples = int(g_used), int(g_samples)
-            self._check_finite(loss_v)
-        else:
-            self._check_finite(float(loss.detach()))
+            self._check_finite(loss_v, self.step)
+        else:                 # read back with the next log row (read_losses)
+            loss_v, mse_v = loss.detach(), mse.detach()
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         dctx.average_gradients(self.model.parameters())
         self.opt.step()
         if self.step % 100 == 99:
             flush_tiny_moments(self.opt)
-        if not dctx.active:
-            loss_v, mse_v = float(loss.detach()), float(mse.detach())
         if self.occ:
             st = self.state
             spr = max(n_samples, 1) / max(used, 1)
@@ -502,8 +529,7 @@ class Trainer:
         win.t += dt
         win.rays += fig.rays
         win.samples += fig.samples
-        win.loss += fig.loss
-        win.mse += fig.mse
+        self._pending.append((self.step - 1, fig.loss, fig.mse))    # summed by read_losses
         win.n += 1
         bar.update(dt if self.budget_s > 0 else 1)
         if self.step % self.cfg.log_every == 0 or self.finished():
@@ -515,6 +541,7 @@ class Trainer:
 
     def log_row(self, fig: StepFigures, bar) -> None:
         """Append the averages since the last row to ``log.csv`` and start a new window."""
+        self.read_losses()
         win = self.state.win
         m = win.mse / win.n
         row = {"step": self.step, "train_s": round(self.train_s, 3),
@@ -551,6 +578,7 @@ class Trainer:
 
     def validate(self) -> None:
         """Render and score the validation views (rank 0); appends a ``val.csv`` row."""
+        self.read_losses()
         if self.val is None or not self.dctx.is_main:
             return
         r = evaluate_views(self.model, self.val, self.cfg, out_dir=self.out / "val",
@@ -565,6 +593,7 @@ class Trainer:
     def checkpoint(self) -> None:
         """Write ``checkpoint.pt`` (rank 0); refuses non-finite weights (the last good file
         stays)."""
+        self.read_losses()
         if not self.dctx.is_main:
             return
         if not all(bool(torch.isfinite(p).all()) for p in self.model.parameters()):

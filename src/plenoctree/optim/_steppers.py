@@ -220,11 +220,15 @@ class TorchStepper:
                     m2 = self.m2[rows].mul_(_RMS_ALPHA).add_((1 - _RMS_ALPHA) * gr * gr)
                     self.m2[rows] = m2
                     p[rows] -= lr * gr / (m2.sqrt() + _RMS_EPS)
-            self.last_touched = int((g != 0).any(dim=1).sum()) if rows is None else int(rows.numel())
-            bad = int((~torch.isfinite(p)).sum())
+            # the step's figures read back together: one host round trip, not three
+            figures = [sse_t.detach().double(), (~torch.isfinite(p)).sum().double()]
+            if rows is None:
+                figures.append((g != 0).any(dim=1).sum().double())
             p[:, -1].clamp_(min=0.0)
+            read = torch.stack(figures).tolist()
         self.data.grad = None
-        return float(sse_t.detach()), bad
+        self.last_touched = int(read[2]) if rows is None else int(rows.numel())
+        return read[0], int(read[1])
 
     def render(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         from ..render._torch_impl import render_rays_torch
