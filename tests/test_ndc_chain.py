@@ -14,7 +14,7 @@ import torch
 from nerf_fixtures import tiny_cpu_config
 from plenoctree.datasets import Cameras, Dataset, load_dataset
 from plenoctree.datasets.forward_facing import write_forward_facing_dataset
-from plenoctree.nerf.trainer import RaySource
+from plenoctree.nerf.training import RaySource
 from plenoctree.optim._loop import ViewSet
 
 W, H = 32, 24

@@ -10,7 +10,7 @@ from plenoctree.errors import ConfigError
 from plenoctree.nerf.config import ModelConfig
 from plenoctree.nerf.model import NeRFModel, RadianceField, _bucket, sh_colors
 from plenoctree.nerf.occupancy import OccupancyGrid
-from plenoctree.nerf.trainer import flush_tiny_moments, learning_rate, sparsity_loss
+from plenoctree.nerf.training import flush_tiny_moments, learning_rate, sparsity_loss
 from plenoctree.nerf.config import preset
 from plenoctree.sh import eval_sg_bases, eval_sh_bases
 

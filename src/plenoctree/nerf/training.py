@@ -1,0 +1,115 @@
+"""The parts of a NeRF-SH training step (§3, §4.1) that :class:`~.trainer.Trainer` composes:
+the learning-rate schedule, the sparsity prior, the source of ray batches, the validation
+views, and the error a diverging run raises."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..datasets import Dataset, load_dataset
+from ..errors import PlenOctreeError
+from .config import TrainConfig
+
+__all__ = ["TrainingError", "learning_rate", "flush_tiny_moments", "sparsity_loss", "RaySource",
+           "load_val_views"]
+
+
+class TrainingError(PlenOctreeError, RuntimeError):
+    """Training cannot continue (non-finite loss); the last good checkpoint is kept."""
+
+
+def learning_rate(cfg: TrainConfig, step: int, progress_frac: float) -> float:
+    """jaxnerf's schedule: log-linear ``lr_init -> lr_final`` over ``progress_frac`` in [0, 1],
+    times a sine warm-up from ``lr_delay_mult`` over the first ``lr_delay_steps`` steps."""
+    p = min(max(progress_frac, 0.0), 1.0)
+    lr = math.exp(math.log(cfg.lr_init) * (1 - p) + math.log(cfg.lr_final) * p)
+    if cfg.lr_delay_steps > 0:
+        s = min(max(step / cfg.lr_delay_steps, 0.0), 1.0)
+        lr *= cfg.lr_delay_mult + (1 - cfg.lr_delay_mult) * math.sin(0.5 * math.pi * s)
+    return lr
+
+
+@torch.no_grad()
+def flush_tiny_moments(optimizer: torch.optim.Optimizer, tiny: float = 1e-30) -> int:
+    """Zero Adam moments that decayed towards denormal floats; returns how many entries.
+
+    Rarely-touched hash-table rows have moments that shrink geometrically; once denormal,
+    every Adam step on them is ~3x slower on x86 (and ``torch.set_flush_denormal`` does not
+    reach the worker threads). ``exp_avg`` below ``tiny`` is set to 0, then ``exp_avg_sq``
+    below ``tiny`` where ``exp_avg`` is 0 — the update of such entries is 0 either way.
+    """
+    n = 0
+    for st in optimizer.state.values():
+        m, v = st.get("exp_avg"), st.get("exp_avg_sq")
+        if m is None or v is None:
+            continue
+        small_m = m.abs() < tiny
+        m.masked_fill_(small_m, 0.0)
+        small_v = (v < tiny) & small_m
+        n += int(small_v.sum())
+        v.masked_fill_(small_v, 0.0)
+    return n
+
+
+def sparsity_loss(sigma: torch.Tensor, length: float) -> torch.Tensor:
+    """Eq. (6): ``mean_k |1 - exp(-λ σ_k)|`` with ``λ = length``.
+
+    Densities are non-negative, so the absolute value is the identity and is left out (its
+    zero subgradient at σ = 0 would otherwise stop the prior exactly where it starts).
+    """
+    return (1.0 - torch.exp(-length * sigma)).mean()
+
+
+# ------------------------------------------------------------------ data
+class RaySource:
+    """Random rays over all pixels of all training images, with their target colours.
+
+    Rays are made on the fly by :meth:`plenoctree.datasets.Cameras.pixel_rays` (so per-camera
+    intrinsics and NDC rays of forward-facing scenes are honoured, identical to
+    ``cameras.rays(i)``); only the images are held in memory.
+    """
+
+    def __init__(self, data: Dataset, device: torch.device, random_background: bool):
+        cams = data.cameras
+        n, h, w = len(cams), cams.height, cams.width
+        self.n, self.h, self.w = n, h, w
+        self.device = device
+        self.cameras = cams
+        self.images = torch.from_numpy(np.ascontiguousarray(data.images)).reshape(-1, 3).to(device)
+        self.bg = torch.tensor(data.background, dtype=torch.float32, device=device)
+        self.alphas = None
+        if random_background and data.alphas is not None:
+            self.alphas = torch.from_numpy(np.ascontiguousarray(data.alphas)).reshape(-1).to(device)
+
+    def rays_of(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(origins [B, 3], unit dirs [B, 3])`` float32 of flat pixel indices ``idx [B]``
+        (``img * H * W + row * W + col``), equal to ``cameras.rays(img)[row, col]``."""
+        img = idx // (self.h * self.w)
+        pix = idx % (self.h * self.w)
+        return self.cameras.pixel_rays(img, pix % self.w, pix // self.w)
+
+    def sample(self, n: int, generator: torch.Generator):
+        """``(origins, dirs, target [n, 3], background [n, 3])`` of ``n`` random pixels."""
+        idx = torch.randint(self.n * self.h * self.w, (n,), generator=generator,
+                            device=self.device)
+        o, d = self.rays_of(idx)
+        rgb = self.images[idx]
+        if self.alphas is None:
+            return o, d, rgb, self.bg.expand(n, 3)
+        a = self.alphas[idx][:, None]
+        bg = torch.rand((n, 3), generator=generator, device=self.device)
+        return o, d, rgb - (1.0 - a) * self.bg + (1.0 - a) * bg, bg
+
+
+def load_val_views(cfg: TrainConfig) -> Dataset | None:
+    """The ``val_views`` evenly spaced views of split ``val_split`` (None when 0 views)."""
+    if cfg.val_views <= 0:
+        return None
+    return load_dataset(cfg.data, cfg.val_split, format=cfg.format, downscale=cfg.downscale,
+                        background=cfg.background, limit=cfg.val_views, spread=True)
+
+
+# ------------------------------------------------------------------ training
