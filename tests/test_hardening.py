@@ -364,3 +364,20 @@ def test_an_orthonormal_rotation_is_kept_bit_for_bit():
     r = (q * (1 + 1e-7)).astype(np.float64)           # orthonormal up to rounding
     assert rigid_rotation(r, "x") is r
     np.testing.assert_allclose(rigid_rotation(3 * q, "x"), q, atol=1e-12)
+
+
+@pytest.mark.parametrize("exc, needle", [
+    (PermissionError(13, "Permission denied", "/x/out.npz"), "/x/out.npz: Permission denied"),
+    (MemoryError(), "out of memory"),
+])
+def test_unforeseen_os_and_memory_errors_are_one_line(tiny_scene, monkeypatch, capsys, exc,
+                                                       needle):
+    """The last net in ``cli.main``: what the up-front checks could not foresee (a disk that
+    fills, a permission changed mid-run, an allocation that fails) is one line, exit 1."""
+    import plenoctree.cli.info as info
+
+    def boom(path):
+        raise exc
+
+    monkeypatch.setattr(info, "tree_info", boom)
+    _fails(capsys, ["info", tiny_scene / "tree.npz"], "plenoctree info: error:", needle)
