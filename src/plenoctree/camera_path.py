@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from .datasets import Cameras
-from .errors import ConfigError
+from .errors import ConfigError, DatasetError
 
 __all__ = ["load_camera_path", "load_dataparser_transform", "CameraPath"]
 
@@ -111,15 +111,13 @@ def load_camera_path(path: str | os.PathLike, width: int | None = None,
     except (KeyError, TypeError, ValueError):
         raise _fail(path, "needs render_width and render_height (or give --width/--height)"
                     ) from None
-    from .datasets._files import MAX_FRAMES
-    from .datasets.cameras import check_image_size
+    from .datasets import check_frame_count, check_image_size
 
     try:
         check_image_size(w, h, "render size" if width is None else "--width/--height")
-    except ConfigError as e:
+        check_frame_count(len(frames), "camera_path")
+    except (ConfigError, DatasetError) as e:
         raise _fail(path, str(e)) from None
-    if len(frames) > MAX_FRAMES:
-        raise _fail(path, f"{len(frames)} frames; at most {MAX_FRAMES} are supported")
     c2w = np.empty((len(frames), 4, 4), dtype=np.float64)
     focal = np.empty(len(frames), dtype=np.float64)
     for i, fr in enumerate(frames):

@@ -87,7 +87,7 @@ def _render_options(cfg: RenderConfig, data_background):
 
 def _check_size(cfg: RenderConfig) -> None:
     """--width/--height: both or neither, positive, at most ``MAX_IMAGE_PIXELS`` together."""
-    from ..datasets.cameras import check_image_size
+    from ..datasets import check_image_size
 
     if (cfg.width is None) != (cfg.height is None):
         raise ConfigError("--width and --height must be given together")

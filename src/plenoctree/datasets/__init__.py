@@ -10,9 +10,9 @@ variant in :mod:`plenoctree.datasets.forward_facing`.
 
 from __future__ import annotations
 
-from ._files import take_views
+from ._files import check_frame_count, take_views
 from .blender import load_blender
-from .cameras import Cameras, generate_rays
+from .cameras import MAX_IMAGE_PIXELS, Cameras, check_image_size, generate_rays
 from .colmap import ColmapOptions, load_colmap
 from .dataset import (FORMATS, Dataset, common_downscale, detect_format, evenly_spaced,
                       load_cameras, load_dataset)
@@ -25,4 +25,4 @@ __all__ = ["Cameras", "generate_rays", "Dataset", "load_blender", "load_dataset"
            "common_downscale", "detect_format",
            "evenly_spaced", "FORMATS", "load_colmap", "load_llff", "load_nsvf", "load_nerfstudio",
            "llff_render_cameras", "LLFFOptions", "ColmapOptions", "take_views",
-           "to_ndc_rays"]
+           "to_ndc_rays", "check_image_size", "check_frame_count", "MAX_IMAGE_PIXELS"]

@@ -106,7 +106,7 @@ def parse_frame_query(query: str) -> FrameRequest:
     quality). Raises :class:`ConfigError` (the server answers 400) for anything else: missing,
     non-numeric or non-finite values, a singular pose, implausible intrinsics, a bad size.
     """
-    from ..datasets.cameras import check_image_size
+    from ..datasets import check_image_size
 
     if len(query) > _MAX_QUERY:
         raise ConfigError(f"query too long ({len(query)} characters)")
