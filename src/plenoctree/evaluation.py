@@ -28,7 +28,7 @@ from .octree import Octree
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["EvalConfig", "EvalResult", "depth_to_image", "eval_markdown", "eval_tree_file",
+__all__ = ["EvalConfig", "EvalResult", "eval_markdown", "eval_tree_file",
            "evaluate_tree", "metrics_markdown", "score_views"]
 
 
@@ -105,17 +105,6 @@ def _nan_to_none(obj):
     if isinstance(obj, float) and obj != obj:
         return None
     return obj
-
-
-def depth_to_image(depth: np.ndarray, alpha: np.ndarray, near: float, far: float) -> np.ndarray:
-    """Map depth [H, W] (world units) to a grey image in [0, 1]: near → white, far → black.
-
-    Pixels with no content (alpha < 0.05) are black.
-    """
-    d = np.clip((np.asarray(depth) - near) / max(far - near, 1e-8), 0.0, 1.0)
-    img = 1.0 - d
-    img[np.asarray(alpha) < 0.05] = 0.0
-    return img
 
 
 def save_view_images(out: Path, name: str, rgb: np.ndarray, gt: np.ndarray, depth: np.ndarray,
