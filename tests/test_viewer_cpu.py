@@ -131,8 +131,9 @@ BAD = {
 }
 
 
-#: refused by the camera or the renderer after parsing (the rest by parse_frame_query itself)
-_LATER = {"singular pose", "implausible focal", "camera far outside"}
+#: refused by the renderer after parsing (the rest, the camera's checks included, by
+#: parse_frame_query itself)
+_LATER = {"camera far outside"}
 
 
 @pytest.mark.parametrize("case", sorted(BAD))
