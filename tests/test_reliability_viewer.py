@@ -3,7 +3,6 @@ trees the page refuses."""
 
 from __future__ import annotations
 
-import http.client
 import os
 import selectors
 import socket
@@ -17,6 +16,7 @@ from plenoctree.octree import Octree
 from plenoctree.octree.io import save_tree
 from plenoctree.viewer import ViewerServer, export_web
 from plenoctree.viewer import server as server_mod
+from viewer_http import get
 
 
 @pytest.fixture()
@@ -27,14 +27,8 @@ def tree_file(tmp_path):
 
 
 def _get(port, path, host=None):
-    c = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
-    c.putrequest("GET", path, skip_host=True)
-    c.putheader("Host", host if host is not None else f"127.0.0.1:{port}")
-    c.endheaders()
-    r = c.getresponse()
-    body = r.read()
-    c.close()
-    return r.status, body
+    status, _, body = get(port, path, host)
+    return status, body
 
 
 def test_host_header_check_against_dns_rebinding(tree_file):

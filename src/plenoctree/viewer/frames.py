@@ -19,12 +19,16 @@ import math
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qs
 
 import numpy as np
 
 from ..errors import ConfigError
+
+if TYPE_CHECKING:
+    from ..datasets import Cameras
+    from ..render import RenderOptions
 
 __all__ = ["RENDER_MODES", "JPEG_QUALITY", "FrameRequest", "FrameRenderer", "parse_frame_query"]
 
@@ -45,25 +49,17 @@ class FrameRequest:
     """One frame the page asks for (the page's camera and the options of its controls).
 
     Attributes:
-        c2w: float64 ``[4, 4]`` camera-to-world (OpenGL: x right, y up, looks down -z).
-        fx, fy, cx, cy: intrinsics, pixels of this ``width`` x ``height`` frame.
-        background: RGB in [0, 1]. stop_thresh, sh_min, sh_max: :class:`RenderOptions`.
+        camera: one :class:`~plenoctree.datasets.Cameras` (OpenGL pose: x right, y up, looks
+            down -z; intrinsics in pixels of its ``width`` x ``height``).
+        options: the validated :class:`~plenoctree.render.RenderOptions` (background,
+            stop_thresh, sh_min, sh_max).
         mode: ``rgb``, ``depth`` (grey: white at ``depth_range[0]``, black at ``[1]``, world
             units; NDC lengths for NDC trees) or ``alpha`` (opacity, ink on the background).
         quality: JPEG quality 1..95 (from 90 on without chroma subsampling).
     """
 
-    c2w: np.ndarray
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    stop_thresh: float = 0.01
-    sh_min: int = 0
-    sh_max: int = -1
+    camera: Cameras
+    options: RenderOptions
     mode: str = "rgb"
     depth_range: tuple[float, float] = (0.0, 1.0)
     quality: int = JPEG_QUALITY
@@ -123,21 +119,22 @@ def parse_frame_query(query: str) -> FrameRequest:
     quality = _int(q, "q", JPEG_QUALITY)
     if not 1 <= quality <= 95:
         raise ConfigError(f"parameter 'q' (JPEG quality) must be in 1..95, got {quality}")
+    from ..datasets import Cameras
     from ..render.options import RenderOptions
 
     bg = tuple(_floats(q, "bg", 3, (1.0, 1.0, 1.0)))
     dr = tuple(_floats(q, "dr", 2, (0.0, 1.0)))
     stop, sh_min, sh_max = _floats(q, "stop", 1, (0.01,))[0], _int(q, "sh_min", 0), _int(q, "sh_max", -1)
-    RenderOptions(stop_thresh=stop, background=bg, sh_min=sh_min, sh_max=sh_max).validated()
-    return FrameRequest(c2w, fx, fy, cx, cy, w, h, background=bg,  # type: ignore[arg-type]
-                        stop_thresh=stop, sh_min=sh_min, sh_max=sh_max, mode=mode,
-                        depth_range=dr, quality=quality)  # type: ignore[arg-type]
+    opts = RenderOptions(stop_thresh=stop, background=bg, sh_min=sh_min, sh_max=sh_max).validated()
+    camera = Cameras(c2w[None], fx, fy, cx, cy, w, h)
+    return FrameRequest(camera, opts, mode=mode, depth_range=dr,  # type: ignore[arg-type]
+                        quality=quality)
 
 
 def _shade(out: Any, req: FrameRequest) -> np.ndarray:
     """uint8 ``[H, W, 3]`` of a render for the request's view mode (the page's shader's
     depth and opacity mappings)."""
-    bg = np.asarray(req.background, dtype=np.float32)
+    bg = np.asarray(req.options.background, dtype=np.float32)
     if req.mode == "rgb":
         img = out.rgb.numpy()
     else:
@@ -191,17 +188,12 @@ class FrameRenderer:
 
     def render(self, req: FrameRequest) -> np.ndarray:
         """uint8 ``[H, W, 3]`` image of ``req``; ConfigError for a camera the renderer refuses
-        (implausible intrinsics, a ray origin too far from the tree)."""
-        from ..datasets import Cameras
-        from ..render import RenderOptions, render_image
+        (a ray origin too far from the tree)."""
+        from ..render import render_image
 
-        cams = Cameras(req.c2w[None], req.fx, req.fy, req.cx, req.cy, req.width, req.height)
-        if self.ndc is not None:
-            cams = self.ndc.apply(cams)
-        opts = RenderOptions(stop_thresh=req.stop_thresh, background=req.background,
-                             sh_min=req.sh_min, sh_max=req.sh_max)
+        cams = req.camera if self.ndc is None else self.ndc.apply(req.camera)
         with self._lock:
-            out = render_image(self.tree, cams, 0, opts, backend="numba")
+            out = render_image(self.tree, cams, 0, req.options, backend="numba")
         return _shade(out, req)
 
     def jpeg(self, req: FrameRequest) -> tuple[bytes, float, float]:
@@ -224,6 +216,9 @@ class FrameRenderer:
             c2w = np.eye(4)             # NDC trees: the reference camera; else the centre
             if self.ndc is None:
                 c2w[:3, 3] = (0.5 - self.tree.offset) / self.tree.invradius
-            self.render(FrameRequest(c2w, 8.0, 8.0, 4.0, 4.0, 8, 8))
+            from ..datasets import Cameras
+            from ..render import RenderOptions
+
+            self.render(FrameRequest(Cameras(c2w[None], 8.0, 8.0, 4.0, 4.0, 8, 8), RenderOptions()))
         except Exception as e:        # only a warm-up: the page's own frames report errors
             logger.debug("viewer: CPU warm-up frame failed (%s)", e)

@@ -107,15 +107,19 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def _is_wildcard(host: str) -> bool:
+    """Whether ``host`` is the any-interface address (0.0.0.0, ::)."""
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_unspecified
+    except ValueError:
+        return False
+
+
 def _allowed_hosts(host: str, port: int) -> set[str]:
     """``Host`` header values the server answers: loopback names, the host it listens on and,
     for a wildcard address (0.0.0.0, ::), this machine's names and addresses."""
     names = {"127.0.0.1", "localhost", host.strip("[]").lower()}
-    try:
-        wildcard = ipaddress.ip_address(host.strip("[]")).is_unspecified
-    except ValueError:
-        wildcard = False
-    if wildcard:
+    if _is_wildcard(host):
         hostname = socket.gethostname()
         names |= {hostname.lower(), socket.getfqdn().lower()}
         try:
@@ -361,11 +365,7 @@ class ViewerServer:
     @property
     def url(self) -> str:
         """The page's address (loopback for a wildcard host)."""
-        try:
-            wildcard = ipaddress.ip_address(self.host).is_unspecified
-        except ValueError:
-            wildcard = False
-        host = "127.0.0.1" if wildcard else self.host
+        host = "127.0.0.1" if _is_wildcard(self.host) else self.host
         return f"http://{f'[{host}]' if ':' in host else host}:{self.port}/"
 
     def start(self) -> ViewerServer:
