@@ -271,12 +271,11 @@ def _run(cfg: PipelineConfig, out: Path) -> dict:
     lay = run_layout(out, cfg.nerf)
     _validate(cfg)
     r = _Runner(out)
-    stages = plan_stages(cfg, lay)
     if cfg.images:                # its dataset decides the working resolution
-        r.run(stages.pop(0))
+        r.run(_process_stage(cfg))
     if not cfg.downscale:
         cfg = wired(_working_resolution(cfg))
-        stages = plan_stages(cfg, lay)[1 if cfg.images else 0:]
+    stages = plan_stages(cfg, lay)[1 if cfg.images else 0:]
     atomic_save_json(out / "config.json", config_dict(cfg))   # `run --config` reads it back
     if cfg.nerf:          # a trained NeRF-SH: its training time is read from its summary
         logger.info(f"[train] using the trained NeRF-SH {lay.nerf} (not trained here)")
@@ -316,7 +315,7 @@ def plan_stages(cfg: PipelineConfig, lay: RunLayout) -> list[Stage]:
         stages.append(Stage("train", {**common, "train": config_dict(cfg.train)}, [], [ckpt],
                             lambda: _train(cfg.train), "check the dataset and training options"))
     if cfg.nerf_eval_views >= 0:
-        stages.append(_nerf_eval_stage(cfg, lay, common))
+        stages.append(_nerf_eval_stage(cfg, lay, ckpt, common))
     stages.append(Stage("extract", _settings(cfg.extract), [ckpt], [lay.tree],
                         lambda: _call("convert.extraction", "extract", cfg.extract),
                         "change the extraction options (--extract.grid, "
@@ -402,7 +401,7 @@ def _train(tcfg: TrainConfig) -> None:
     train(tcfg, resume=resume)
 
 
-def _nerf_eval_stage(cfg: PipelineConfig, lay: RunLayout, common: dict) -> Stage:
+def _nerf_eval_stage(cfg: PipelineConfig, lay: RunLayout, ckpt: Path, common: dict) -> Stage:
     """The NeRF-SH baseline on a few test views: PSNR and seconds per frame."""
     out = Path(cfg.out)
 
@@ -414,10 +413,8 @@ def _nerf_eval_stage(cfg: PipelineConfig, lay: RunLayout, common: dict) -> Stage
                                 out=out / "nerf_eval")
         atomic_save_json(out / "nerf_eval.json", res)
 
-    from .nerf.checkpoint import CHECKPOINT_NAME
-
     return Stage("nerf_eval", {"views": cfg.nerf_eval_views, **common},
-                 [lay.nerf / CHECKPOINT_NAME], [out / "nerf_eval.json"], run,
+                 [ckpt], [out / "nerf_eval.json"], run,
                  "check the training run")
 
 

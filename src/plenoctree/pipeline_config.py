@@ -231,7 +231,6 @@ def wired(cfg: PipelineConfig) -> PipelineConfig:
     tree, refined = str(out / "tree.npz"), str(out / "tree_refined.npz")
     shared = {"seed": c.seed, "device": c.device, "backend": c.backend, "threads": c.threads,
               "downscale": c.downscale, "format": c.format}
-    refine_progress = bool(c.show_progress)     # refinement shows bars only when asked
     paths = {
         "process": {"images": c.images, "out": str(out / "data"), "overwrite": True},
         "train": {"data": data, "out": run_dir},
@@ -239,7 +238,7 @@ def wired(cfg: PipelineConfig) -> PipelineConfig:
                     "show_progress": c.show_progress},
         "refine": {"tree": tree, "run_dir": run_dir, "out": refined, "data": data,
                    "averaging": c.extract.averaging, "eval_views": 0,
-                   "show_progress": refine_progress},
+                   "show_progress": bool(c.show_progress)},   # bars only when asked
         "finetune": {"tree": refined if c.refine.passes > 0 else tree, "data": data,
                      "out": str(out / "tree_ft.npz"), "test_views": -1, "resume": True,
                      "verbose": False, "show_progress": c.show_progress, "checkpoint": None,
