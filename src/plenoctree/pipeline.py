@@ -29,9 +29,9 @@ from ._util import atomic_save_json, atomic_write, check_output_dir, run_lock
 from .compression.codec import CompressOptions
 from .errors import ConfigError, DatasetError, PlenOctreeError
 from .nerf.config import TrainConfig
-from .pipeline_config import (PRESETS, STAGE_OPTIONS, PipelineConfig, layer_settings,
-                              name_the_flags, nerf_run_dir, pipeline_preset, train_preset,
-                              wired, working_downscale)
+from .pipeline_config import (PRESETS, STAGE_OPTIONS, PipelineConfig, RunLayout,
+                              artefact_layout, layer_settings, name_the_flags, nerf_run_dir,
+                              pipeline_preset, train_preset, wired, working_downscale)
 from .pipeline_summary import finetune_outcome, pipeline_summary, summary_markdown
 
 __all__ = ["PipelineConfig", "PipelineError", "Stage", "run_pipeline", "plan_stages",
@@ -61,18 +61,6 @@ def check_extras(cfg: PipelineConfig) -> None:
                               "pip install 'plenoctree[video]', or pass --video-frames 0")
 
 
-@dataclass(frozen=True)
-class RunLayout:
-    """Where :func:`run_pipeline` writes (and a reader of its output finds) each artefact."""
-
-    nerf: Path          # the NeRF-SH run folder (``OUT/nerf``, or the ``--nerf`` given)
-    tree: Path          # extracted octree
-    refined: Path       # adaptively refined octree (when ``refine.passes``)
-    ft: Path            # fine-tuned octree
-    compressed: Path    # its ``.plnz``
-    summary: Path       # ``summary.json``
-
-
 def _given_nerf(path: str) -> Path:
     """:func:`nerf_run_dir`, checked to hold a checkpoint."""
     from .nerf.checkpoint import CHECKPOINT_NAME
@@ -87,10 +75,9 @@ def _given_nerf(path: str) -> Path:
 def run_layout(out: Any, nerf: str = "") -> RunLayout:
     """The artefact paths of a run into ``out`` (``nerf``: the ``--nerf`` it was given, checked
     to hold a checkpoint)."""
-    out = Path(out)
-    return RunLayout(_given_nerf(nerf) if nerf else out / "nerf", out / "tree.npz",
-                     out / "tree_refined.npz", out / "tree_ft.npz", out / "tree_ft.plnz",
-                     out / "summary.json")
+    if nerf:
+        _given_nerf(nerf)
+    return artefact_layout(out, nerf)
 
 
 def _checked(opt_name: str, check: Callable[[], Any]) -> None:

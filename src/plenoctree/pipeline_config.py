@@ -12,7 +12,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from ._config import apply, flag_name, spell_flags
 from .compression.codec import CompressOptions
@@ -26,7 +26,7 @@ from .process import ProcessConfig
 __all__ = ["PipelineConfig", "StageOptions", "STAGE_OPTIONS", "PRESETS", "UNLIMITED_STEPS",
            "pipeline_preset", "train_preset", "time_budget", "layer_settings", "wired",
            "stage_flags", "name_the_flags", "nerf_run_dir", "working_downscale",
-           "WORKING_PIXELS"]
+           "WORKING_PIXELS", "RunLayout", "artefact_layout"]
 
 UNLIMITED_STEPS = 10**9
 """``train.max_steps`` when the time budget (``train.minutes``) decides."""
@@ -221,14 +221,36 @@ def nerf_run_dir(nerf: str) -> Path:
     return p.parent if p.name == CHECKPOINT_NAME and p.is_file() else p
 
 
+@dataclass(frozen=True)
+class RunLayout:
+    """Where :func:`~plenoctree.pipeline.run_pipeline` writes (and a reader of its output finds)
+    each artefact: the one place for these file names."""
+
+    nerf: Path          # the NeRF-SH run folder (``OUT/nerf``, or the ``--nerf`` given)
+    tree: Path          # extracted octree
+    refined: Path       # adaptively refined octree (when ``refine.passes``)
+    ft: Path            # fine-tuned octree
+    compressed: Path    # its ``.plnz``
+    summary: Path       # ``summary.json``
+
+
+def artefact_layout(out: Any, nerf: str = "") -> RunLayout:
+    """The artefact paths of a run into ``out`` (``nerf``: the ``--nerf`` it was given; not
+    checked here, :func:`~plenoctree.pipeline.run_layout` checks it)."""
+    out = Path(out)
+    return RunLayout(nerf_run_dir(nerf) if nerf else out / "nerf", out / "tree.npz",
+                     out / "tree_refined.npz", out / "tree_ft.npz", out / "tree_ft.plnz",
+                     out / "summary.json")
+
+
 def wired(cfg: PipelineConfig) -> PipelineConfig:
     """A copy of ``cfg`` whose stage configs hold what each stage runs with: the paths between
     the stages and the pipeline-wide settings (the :data:`STAGE_OPTIONS` ``wired`` fields)."""
     c = copy.deepcopy(cfg)
     out = Path(c.out)
     data = str(out / "data") if c.images else c.data
-    run_dir = str(nerf_run_dir(c.nerf) if c.nerf else out / "nerf")
-    tree, refined = str(out / "tree.npz"), str(out / "tree_refined.npz")
+    lay = artefact_layout(out, c.nerf)
+    run_dir, tree, refined = str(lay.nerf), str(lay.tree), str(lay.refined)
     shared = {"seed": c.seed, "device": c.device, "backend": c.backend, "threads": c.threads,
               "downscale": c.downscale, "format": c.format}
     paths = {
@@ -240,7 +262,7 @@ def wired(cfg: PipelineConfig) -> PipelineConfig:
                    "averaging": c.extract.averaging, "eval_views": 0,
                    "show_progress": bool(c.show_progress)},   # bars only when asked
         "finetune": {"tree": refined if c.refine.passes > 0 else tree, "data": data,
-                     "out": str(out / "tree_ft.npz"), "test_views": -1, "resume": True,
+                     "out": str(lay.ft), "test_views": -1, "resume": True,
                      "verbose": False, "show_progress": c.show_progress, "checkpoint": None,
                      "log": None},
     }
