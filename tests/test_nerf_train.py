@@ -11,7 +11,7 @@ import torch
 
 from nerf_fixtures import tiny_cpu_config, tiny_dataset, tiny_paper_config
 from plenoctree.errors import ConfigError
-from plenoctree.nerf import CheckpointError, TrainingError, load_nerf, train
+from plenoctree.nerf import CheckpointError, TrainingError, load_nerf, load_run, train
 from plenoctree.nerf.checkpoint import read_checkpoint
 
 
@@ -48,6 +48,9 @@ def test_tiny_model_learns_the_scene(data, tmp_path):
     sigma, coeffs = model.query(torch.zeros(4, 3))
     assert sigma.shape == (4,) and coeffs.shape == (4, 48) and model.basis == "sh"
     assert model.occupancy is not None and model.occupancy.occupancy() == pytest.approx(occ)
+    run = load_run(tmp_path / "run")                     # the model with its config and step
+    assert run.step == 150 and run.config.model == cfg.model and not run.model.training
+    assert torch.equal(run.model.query(torch.zeros(4, 3))[0], sigma)
 
 
 def test_resume_after_interrupt_equals_uninterrupted_run(data, tmp_path):

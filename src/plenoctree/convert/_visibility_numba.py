@@ -21,9 +21,9 @@ import math
 
 import numba
 import numpy as np
+from numba import njit, prange
 
 from ..render._schedule_numba import next_item
-from numba import njit, prange
 
 __all__ = ["max_weights_numba", "TILE"]
 

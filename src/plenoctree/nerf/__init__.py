@@ -34,7 +34,7 @@ _LAZY = {
     'OccupancyGrid': '.occupancy',
     'render_image': '.renderer',
     'render_rays': '.renderer',
-    'TrainingError': '.trainer',
+    'TrainingError': '.training',
     'TrainResult': '.trainer',
     'train': '.trainer',
 }

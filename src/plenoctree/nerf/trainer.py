@@ -151,9 +151,7 @@ def train(cfg: TrainConfig, resume: bool = False,
     """
     from .._util import check_output_dir, run_lock
 
-    validate(cfg)
-    if not cfg.data or not cfg.out:
-        raise ConfigError("training needs a dataset folder (--data) and a run directory (--out)")
+    trainer = Trainer(cfg, resume, on_step, quiet)     # validates cfg (--data, --out given)
     check_output_dir(cfg.out)
     if Path(cfg.out).resolve() == Path(cfg.data).resolve():
         raise ConfigError(f"--out {cfg.out} is the dataset folder; give the run its own folder")
@@ -162,9 +160,9 @@ def train(cfg: TrainConfig, resume: bool = False,
     from .distributed import rank_from_env
 
     if rank_from_env() != 0:
-        return Trainer(cfg, resume, on_step, quiet).run()
+        return trainer.run()
     with run_lock(cfg.out, "train --resume" if resume else "train"):
-        return Trainer(cfg, resume, on_step, quiet).run()
+        return trainer.run()
 
 
 class Trainer:

@@ -3,7 +3,7 @@
 - :func:`render_rays_differentiable` / :class:`OctreeRenderFunction` (``autograd.py``):
   rendering differentiable w.r.t. the cell data; numba forward + analytic backward on CPU,
   the torch twin with autograd as the oracle and on CUDA.
-- :class:`FinetuneConfig` / :func:`finetune` (``finetune.py``): the optimisation loop.
+- :class:`FinetuneConfig` / :func:`finetune` (``finetuning.py``): the optimisation loop.
 
 Importing this package compiles nothing; the numba kernels (``_render_grad_numba.py``) compile on
 first use and are cached on disk.
