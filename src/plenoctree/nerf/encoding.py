@@ -28,7 +28,6 @@ __all__ = [
     "HashGridEncoding",
     "HashGridLayout",
     "hashgrid_levels",
-    "hashgrid_backends",
 ]
 
 _P1 = 2654435761
@@ -168,11 +167,6 @@ class _HashGridNumba(torch.autograd.Function):
         grad_table = torch.zeros(tshape, dtype=torch.float32)
         K.hashgrid_backward(x.numpy(), g.numpy(), res, offsets, hashed, grad_table.numpy())
         return None, grad_table, None, None, None, None
-
-
-def hashgrid_backends() -> list[str]:
-    """Backends of the grid encoding usable here, fastest first (``["numba", "torch"]``)."""
-    return _backend.backends("hashgrid")
 
 
 def _hashgrid_numba_run(enc: "HashGridEncoding", x: torch.Tensor) -> torch.Tensor:

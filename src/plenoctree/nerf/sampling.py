@@ -21,7 +21,7 @@ import torch
 
 
 __all__ = ["ray_aabb", "stratified_samples", "pdf_samples", "PackedSamples", "MarchRays",
-           "MarchGrid", "march_rays", "march_backends"]
+           "MarchGrid", "march_rays"]
 
 
 def ray_aabb(origins: torch.Tensor, dirs: torch.Tensor, bbox: torch.Tensor
@@ -166,13 +166,6 @@ class MarchGrid:
     step: float
     mask: torch.Tensor
     bbox: torch.Tensor
-
-
-def march_backends() -> list[str]:
-    """Marching backends usable here, fastest first (``["numba", "torch"]``)."""
-    from .. import backend as _backend
-
-    return _backend.backends("march")
 
 
 _CONSTS_CACHE: dict = {}

@@ -35,7 +35,7 @@ import logging
 import math
 import os
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +43,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 
-__all__ = ["FinetuneConfig", "FinetuneResult", "finetune", "config_help"]
+__all__ = ["FinetuneConfig", "FinetuneResult", "finetune"]
 
 _PRECISIONS = ("auto", "fp16", "fp32")
 
@@ -147,11 +147,6 @@ class FinetuneConfig:
         if not 0.0 <= float(self.stop_thresh) < 1.0:
             raise ConfigError(f"finetune: stop_thresh must be in [0, 1), got {self.stop_thresh!r}")
         return self
-
-
-def config_help(name: str) -> str:
-    """The ``--help`` text of field ``name`` of :class:`FinetuneConfig`."""
-    return next(f.metadata["help"] for f in fields(FinetuneConfig) if f.name == name)
 
 
 @dataclass
