@@ -211,3 +211,36 @@ def test_other_bases_train_and_load(data, tmp_path, basis):
     else:
         sigma, coeffs = model.query(pts, dirs)
         assert coeffs.shape == (3, 3) and model.data_format == "RGBA"
+
+
+def test_slow_validations_are_spaced_out(data, tmp_path, monkeypatch):
+    """A validation that takes t seconds pushes the next one at least 9 t training seconds
+    away (VAL_SHARE = 0.1); quick ones keep the val_every_s interval."""
+    from plenoctree.nerf import trainer as tr
+
+    cfg = tiny_cpu_config(data, tmp_path / "run")
+    cfg.val_every_s = 120.0
+    t = tr.Trainer(cfg)
+    t.state = tr.TrainerState(n_rays=256.0, next_val_s=cfg.val_every_s)
+    clock = {"now": 0.0, "calls": 0}
+    cost = {"s": 40.0}
+
+    def fake_validate():
+        clock["calls"] += 1
+        clock["now"] += cost["s"]
+
+    monkeypatch.setattr(t, "validate", fake_validate)
+    monkeypatch.setattr(t, "finished", lambda: False)
+    monkeypatch.setattr(tr.time, "perf_counter", lambda: clock["now"])
+    t.train_s = 121.0
+    t.maybe_validate()
+    assert clock["calls"] == 1
+    assert t.state.next_val_s == pytest.approx(121.0 + 40.0 * 9)
+    t.train_s = 400.0
+    t.maybe_validate()                      # not yet due: 481 s
+    assert clock["calls"] == 1
+    cost["s"] = 1.0
+    t.train_s = 482.0
+    t.maybe_validate()
+    assert clock["calls"] == 2
+    assert t.state.next_val_s == pytest.approx(481.0 + 120.0)    # every 120 s again

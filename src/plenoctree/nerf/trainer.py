@@ -40,8 +40,8 @@ from .model import NeRFModel
 from .renderer import ImageOptions, RayBatch, RenderMode, autocast, render_rays_hierarchical, \
     render_rays_occupancy
 from .runlog import RunLog
-from .training import (RaySource, TrainingError, flush_tiny_moments, learning_rate,
-                       load_val_views, sparsity_loss)
+from .training import (VAL_SHARE, RaySource, TrainingError, flush_tiny_moments,
+                       learning_rate, load_val_views, sparsity_loss)
 
 # Runtime set-up (threads, malloc, device, AMP) is plenoctree.runtime's, not re-exported here.
 __all__ = ["TrainResult", "Trainer", "TrainerState", "train"]
@@ -470,7 +470,13 @@ class Trainer:
         if due and not self.finished():
             while st.next_val_s <= self.train_s and cfg.val_every_s > 0:
                 st.next_val_s += cfg.val_every_s
+            t0 = time.perf_counter()
             self.validate()
+            # large validation images must not eat the time budget: at most VAL_SHARE of
+            # the wall time goes to timed validations
+            gap = (time.perf_counter() - t0) * (1.0 - VAL_SHARE) / VAL_SHARE
+            if cfg.val_every_s > 0:
+                st.next_val_s = max(st.next_val_s, self.train_s + gap)
 
     def maybe_checkpoint(self) -> None:
         """Checkpoint when due by wall seconds (``ckpt_every_s``) or steps."""

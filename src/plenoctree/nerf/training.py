@@ -14,7 +14,12 @@ from ..errors import PlenOctreeError
 from .config import TrainConfig
 
 __all__ = ["TrainingError", "learning_rate", "flush_tiny_moments", "sparsity_loss", "RaySource",
-           "load_val_views"]
+           "load_val_views", "VAL_SHARE"]
+
+VAL_SHARE = 0.1
+"""Timed validations take at most this share of the wall time: after a validation that took
+``t`` seconds the next waits at least ``t (1 - VAL_SHARE) / VAL_SHARE`` training seconds
+(5 views of 504x378 take ~40 s on 2 cores, so they come every ~6 minutes, not every 2)."""
 
 
 class TrainingError(PlenOctreeError, RuntimeError):
