@@ -56,11 +56,11 @@ def test_round_trip_gives_blender_rays(blender, ns_root):
 
 
 def test_nerfstudio_split_rule(ns_root):
-    # ceil(0.9 * 10) = 9 evenly spaced training frames: 0..7 and 9; frame 8 is held out
+    # every 8th frame by name is held out (LLFF's rule): frames 0 and 8 of 10
     assert load_nerfstudio(ns_root, "train").names == [f"frame_{i + 1:05d}" for i in
-                                                        (0, 1, 2, 3, 4, 5, 6, 7, 9)]
-    assert load_nerfstudio(ns_root, "val").names == ["frame_00009"]
-    assert load_nerfstudio(ns_root, "test").names == ["frame_00009"]
+                                                        (1, 2, 3, 4, 5, 6, 7, 9)]
+    assert load_nerfstudio(ns_root, "val").names == ["frame_00001", "frame_00009"]
+    assert load_nerfstudio(ns_root, "test").names == ["frame_00001", "frame_00009"]
     with pytest.raises(ConfigError, match="split"):
         load_nerfstudio(ns_root, "holdout")
 

@@ -463,3 +463,18 @@ def test_run_picks_the_working_resolution_and_downscale_overrides(tmp_path, monk
         pl.run_pipeline(pl.PipelineConfig(data=str(data), out=str(tmp_path / "run2"),
                                           downscale=4, device="cpu"))
     assert seen == [8, 4] and "working resolution" not in caplog.text
+
+
+def test_held_out_photos_are_every_8th_input_photo():
+    """process names the held-out photos by the input order, so an unregistered photo does not
+    shift the test set against a chain on the capture's published poses."""
+    from plenoctree.process import _holdout_lists
+
+    names = [f"{i:04d}.jpg" for i in range(1, 21)]          # 0001 .. 0020
+    reg = [n for n in names if n not in ("0002.jpg", "0009.jpg")]   # 0009 was held out
+    paths = [f"images/{n}" for n in reg]
+    lists = _holdout_lists(list(reversed(names)), reg, paths)
+    assert lists["test_filenames"] == ["images/0001.jpg", "images/0017.jpg"]
+    assert lists["val_filenames"] == lists["test_filenames"]
+    assert len(lists["train_filenames"]) == len(reg) - 2
+    assert _holdout_lists(names, ["0002.jpg", "0003.jpg"], ["a", "b"]) == {}

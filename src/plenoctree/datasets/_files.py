@@ -238,6 +238,32 @@ def composite_into(arr: np.ndarray, factor: int, bg: np.ndarray,
     out_alpha[...] = a[..., 0]
 
 
+HOLDOUT = 8
+"""Captures without a split of their own hold out every ``HOLDOUT``-th image (0, 8, 16, ... of
+the images sorted by name) for testing, the rest train: LLFF's rule, which NeRF, mip-NeRF 360
+and most real-capture results use (LLFF, COLMAP folders, nerfstudio / instant-ngp files
+without ``*_filenames`` lists)."""
+
+
+def holdout_split(n: int, split: str, where: Any, every: int = HOLDOUT) -> list[int]:
+    """Indices of ``split`` ("train", "val", "test" or "all") among ``n`` images sorted by
+    name: every ``every``-th is test (and val), the others train (``every`` 0: none held out).
+    An empty split raises :class:`DatasetError` naming ``where``."""
+    if split not in ("train", "val", "test", "all"):
+        raise ConfigError(f"split must be train, val, test or all, got {split!r}")
+    if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 0:
+        raise ConfigError(f"the hold-out interval must be a non-negative integer, got {every!r}")
+    idx = np.arange(n)
+    if split == "all":
+        return idx.tolist()
+    test = idx[::every] if every > 0 and n > 1 else idx[:0]
+    out = test if split in ("val", "test") else np.setdiff1d(idx, test)
+    if not len(out):
+        raise DatasetError(f"{where}: split {split!r} is empty ({n} images, every {every}th "
+                           "held out)")
+    return out.tolist()
+
+
 def evenly_spaced(n_total: int, n: int) -> list[int]:
     """``n`` indices evenly spaced over ``range(n_total)`` starting at 0 (5 of 200: 0, 40, …)."""
     if n <= 0 or n_total <= 0:

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, near_far_from_box
-from ._files import check_inside_dataset, check_load_options, confined, take_views
+from ._files import check_inside_dataset, check_load_options, confined, holdout_split, take_views
 from .base import Dataset, DatasetFormat
 from .cameras import Cameras
 from .colmap_model import colmap_c2w, find_colmap_model, read_colmap_model
@@ -55,7 +55,6 @@ FORWARD_THRESHOLD = 0.9
 """``|mean optical axis|`` at or above which a capture counts as forward-facing."""
 MIN_POINTS = 50
 KINDS = ("auto", "360", "forward")
-LLFF_HOLD = 8
 
 
 @dataclass
@@ -154,16 +153,7 @@ def normalize_scene(c2w: np.ndarray, points: np.ndarray | None = None, kind: str
 
 
 def _split(n: int, split: str, where: Path) -> list[int]:
-    if split not in ("train", "val", "test", "all"):
-        raise ConfigError(f"colmap split must be train, val, test or all, got {split!r}")
-    idx = np.arange(n)
-    if split == "all":
-        return idx.tolist()
-    test = idx[::LLFF_HOLD] if n > 1 else idx[:0]
-    out = test if split in ("val", "test") else np.setdiff1d(idx, test)
-    if not len(out):
-        raise DatasetError(f"{where}: split {split!r} is empty ({n} images)")
-    return out.tolist()
+    return holdout_split(n, split, where)
 
 
 @dataclass(frozen=True)

@@ -108,8 +108,8 @@ def has_split(root: str | os.PathLike, split: str, format: str | None = None) ->
     """Whether the dataset at ``root`` has a non-empty split ``split``, by its loader's rules:
     Blender ``transforms_<split>.json``; LLFF ``train`` and ``test`` (every ``llffhold``-th
     image; its ``val`` is the test set, so not a separate split); NSVF images named ``0_`` /
-    ``1_`` / ``2_`` (test falls back to ``1_``); nerfstudio ``<split>_filenames`` or the 90 %
-    rule; COLMAP the held-out views. A broken dataset still raises its ``DatasetError``."""
+    ``1_`` / ``2_`` (test falls back to ``1_``); nerfstudio ``<split>_filenames`` or every
+    8th frame; COLMAP the held-out views. A broken dataset still raises its ``DatasetError``."""
     root = Path(root)
     fmt = _format(format) if format else REGISTRY[detect_format(root)]
     if fmt.has_split is not None:

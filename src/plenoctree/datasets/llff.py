@@ -39,7 +39,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import image_files, load_images, probe_size
-from ._files import check_load_options, take_views
+from ._files import HOLDOUT, check_load_options, take_views
 from .base import Dataset, DatasetFormat
 from .cameras import Cameras
 from .ndc import ndc_bounds
@@ -47,8 +47,8 @@ from .ndc import ndc_bounds
 __all__ = ["load_llff", "LLFFOptions", "read_llff", "LLFFScene", "llff_render_cameras",
            "spiral_path", "average_pose", "write_llff", "LLFF_HOLD", "BD_FACTOR"]
 
-LLFF_HOLD = 8
-"""Every ``LLFF_HOLD``-th image (0, 8, 16, ...) is held out for testing."""
+LLFF_HOLD = HOLDOUT
+"""Every ``LLFF_HOLD``-th image (0, 8, 16, ...) is held out for testing (``_files.HOLDOUT``)."""
 BD_FACTOR = 0.75
 """The smallest near bound is scaled to ``1 / BD_FACTOR``."""
 POSES_FILE = "poses_bounds.npy"

@@ -27,8 +27,9 @@ coordinates (ngp axes x, y, z are the file's y, z, x; ``p_ngp = scale p + offset
 every optical axis and holds every camera centre (a conservative box for 360° captures).
 
 Splits: the file's ``train_filenames`` / ``val_filenames`` / ``test_filenames`` lists when
-present; otherwise nerfstudio's rule: frames sorted by file name, ``ceil(0.9 N)`` evenly
-spaced ones train, the others are both val and test. ``"all"`` takes every frame.
+present; otherwise every 8th frame sorted by file name (0, 8, ...) is both val and test, the
+others train (``_files.HOLDOUT``: LLFF's rule, as the LLFF and COLMAP formats; nerfstudio's
+own default is a 90 % / 10 % split). ``"all"`` takes every frame.
 Optional ``mask_path`` images become ``Dataset.masks`` (non-zero = pixel valid). Every
 problem raises :class:`~plenoctree.errors.DatasetError` naming the file.
 """
@@ -46,17 +47,16 @@ import numpy as np
 from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, load_masks, near_far_from_box
 from ._files import (check_frame_count, check_inside_dataset, check_load_options, finite_number,
-                     frame_file_path, image_path, parse_matrix, read_json_object, take_views)
+                     frame_file_path, holdout_split, image_path, parse_matrix,
+                     read_json_object, take_views)
 from .base import Dataset, DatasetFormat
 from .cameras import Cameras
 
-__all__ = ["load_nerfstudio", "read_nerfstudio", "write_nerfstudio", "PINHOLE_MODELS",
-           "TRAIN_FRACTION"]
+__all__ = ["load_nerfstudio", "read_nerfstudio", "write_nerfstudio", "PINHOLE_MODELS"]
 
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIAL",
                   "OPENCV_FISHEYE")
 """Camera models accepted (the distorting ones are undistorted on load)."""
-TRAIN_FRACTION = 0.9
 NO_MODEL = "OPENCV"
 """The camera model of a file without ``camera_model`` (instant-ngp's files: ``k1 k2 p1 p2``
 with no model named; OPENCV holds PINHOLE's files too, their coefficients being zero)."""
@@ -172,9 +172,7 @@ def _split(obj: dict, frames: list[dict], split: str, path: Path) -> list[int]:
             raise DatasetError(f"{path}: {key} lists {len(wanted)} files but only {len(idx)} "
                                "match frames' file_path")
     else:
-        n_train = math.ceil(n * TRAIN_FRACTION)
-        train = np.unique(np.linspace(0, n - 1, n_train).astype(np.int64))
-        idx = (train if split == "train" else np.setdiff1d(np.arange(n), train)).tolist()
+        idx = holdout_split(n, split, path)
     if not idx:
         raise DatasetError(f"{path}: split {split!r} is empty ({n} frames)")
     return idx

@@ -193,6 +193,22 @@ def observed_points(rec, names: list[str], min_track: int = MIN_TRACK) -> list[n
     return out
 
 
+def _holdout_lists(names: list[str], reg: list[str], paths: list[str]) -> dict:
+    """``train/val/test_filenames`` of a written capture: the photos held out are every
+    ``HOLDOUT``-th of the *input* photos sorted by name (``names``), so a chain on these poses
+    is scored on the same photos as one on the capture's published poses, whichever photos
+    failed to register. ``reg``: registered input names, ``paths``: their written file paths.
+    Empty (the loader's own rule) when no held-out photo registered."""
+    from ..datasets._files import HOLDOUT
+
+    held = {n for i, n in enumerate(sorted(names)) if i % HOLDOUT == 0}
+    test = [p for n, p in zip(reg, paths) if n in held]
+    train = [p for n, p in zip(reg, paths) if n not in held]
+    if not test or not train:
+        return {}
+    return {"train_filenames": train, "val_filenames": test, "test_filenames": test}
+
+
 def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Path,
                    cfg: ProcessConfig) -> dict:
     """Undistort, normalise and write the dataset into ``stage``; returns the summary."""
@@ -278,6 +294,7 @@ def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Pa
                 fr.update(fl_x=k[j, 0], fl_y=k[j, 1], cx=k[j, 2], cy=k[j, 3])
             frames.append(fr)
         top["frames"] = frames
+        top.update(_holdout_lists(names, reg, [f["file_path"] for f in frames]))
         top["plenoctree_transform"] = frame.transform.tolist()
         (stage / "transforms.json").write_text(json.dumps(top, indent=1))
         fmt_name = "nerfstudio"
