@@ -9,7 +9,8 @@ the true focal length (of the source photos' size; the principal point of the un
 images) and the Blender scene box [-1.5, 1.5]³. Both go through
 ``run_pipeline`` with one small budget (``--steps`` of NeRF-SH training, ``--grid``,
 ``--epochs`` of fine-tuning, at ``--downscale``); the table gives the test PSNR of every stage
-(the 10 held-out photos of nerfstudio's 90 % rule) and the difference.
+(the photos `process` held out: every 8th; the lego rows of docs/capture.md were measured
+with the earlier 90 % rule, 10 photos) and the difference.
 
     python benchmarks/colmap_chain.py \\
         --data benchmarks/results/cache/colmap_poses/process_defaults \\

@@ -133,3 +133,39 @@ def test_data_root_flag_env_and_error(bench, tmp_path, monkeypatch):
         _bench.data_path(None, "nerf_synthetic", "lego")
     (tmp_path / "shared" / "data").mkdir(parents=True)
     assert _bench.data_root() == tmp_path / "shared" / "data"
+
+
+def _summary(psnrs: dict, process_s: float | None) -> dict:
+    rows = [{"stage": k, "psnr": v, "ssim": 0.8, "fps": 20.0, "leaves": 1000, "seconds": 60.0}
+            for k, v in psnrs.items()]
+    times = {"train": 1800.0, **({"process": process_s} if process_s else {})}
+    return {"rows": rows, "times_s": times, "total_s": 2400.0 + (process_s or 0),
+            "peak_rss_mb": {"train": 900.0, "process": 400.0 if process_s else None},
+            "config": {}}
+
+
+def test_capture_chain_tabulates_finished_chains(monkeypatch, tmp_path, capsys):
+    """capture_chain.py: finished chains (summary.json present) are not run again; the table
+    puts both side by side with the PSNR difference, the process stage first."""
+    monkeypatch.syspath_prepend(str(_BENCH))
+    import capture_chain
+
+    work = tmp_path / "work"
+    for kind, ps, proc in (("published", {"NeRF-SH": 27.0, "PlenOctree fine-tuned": 27.5}, None),
+                           ("process", {"NeRF-SH": 26.8, "PlenOctree fine-tuned": 27.1}, 70.0)):
+        (work / f"flower_{kind}").mkdir(parents=True)
+        (work / f"flower_{kind}" / "summary.json").write_text(json.dumps(_summary(ps, proc)))
+    monkeypatch.setattr(capture_chain, "subprocess", None)      # no chain may run
+    out = tmp_path / "r.json"
+    assert capture_chain.main(["--real", "flower", "--work", str(work), "--data-root",
+                               str(tmp_path), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    lines = [ln for ln in text.splitlines() if ln.startswith("| ")]
+    assert lines[1].startswith("| process (COLMAP) |")
+    assert "| PlenOctree fine-tuned | 27.50 |" in text and "| -0.40 |" in text
+    res = json.loads(out.read_text())
+    assert res["chains"]["process"]["peak_rss_mb"] == 900.0
+    cmd = capture_chain.chain_command(tmp_path / "real" / "fox", "images", "process",
+                                      tmp_path / "o", ["--train.minutes", "15"])
+    assert cmd[3:5] == ["run", "--images"] and cmd[5].endswith("fox/images")
+    assert cmd[-2:] == ["--train.minutes", "15"]
