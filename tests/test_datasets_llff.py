@@ -160,6 +160,26 @@ def test_prescaled_folder_and_on_the_fly_downscale(ff_root, tmp_path):
         load_llff(root, "train", downscale=3)
 
 
+def test_cameras_of_a_folder_with_only_downscaled_images(ff_root, tmp_path):
+    """LLFF's flower ships only images_8/: the viewer's and the web stage's camera loading
+    (load_cameras) must not need images/ (the flower chain's web stage failed on it)."""
+    from plenoctree.datasets import load_cameras
+
+    root = _copy(ff_root, tmp_path)
+    (root / "images_2").mkdir()
+    for p in sorted((root / "images").iterdir()):
+        with Image.open(p) as im:
+            im.resize((8, 6), Image.BOX).save(root / "images_2" / p.name)
+        p.unlink()
+    (root / "images").rmdir()
+    with pytest.raises(DatasetError, match="image folder not found"):
+        load_llff(root, "train")
+    cams = load_cameras(root, "train")
+    assert (cams.cameras.width, cams.cameras.height) == (8, 6)
+    ref = load_llff(ff_root, "train", downscale=2).cameras
+    np.testing.assert_allclose(cams.cameras.all_rays()[1], ref.all_rays()[1], atol=1e-6)
+
+
 def test_bad_inputs_name_the_file(ff_root, tmp_path):
     root = _copy(ff_root, tmp_path)
     pb = root / "poses_bounds.npy"

@@ -113,9 +113,9 @@ class PipelineConfig:
     is a terminal)"""
     eval_views: int = 0
     """test views scored per octree stage, evenly spaced over the split (0 = all)"""
-    nerf_eval_views: int = 2
+    nerf_eval_views: int = 5
     """test views rendered with the NeRF-SH for its PSNR and speed baseline, evenly spaced
-    (0 = all, -1 = skip)"""
+    (0 = all, -1 = skip; 5 = all of an LLFF capture's held-out photos)"""
     video_frames: int = 60
     """frames of the orbit video (0 = no video)"""
     video_size: int = 0

@@ -97,9 +97,19 @@ def load_cameras(root: str | os.PathLike, split: str = "train", format: str | No
                  ) -> Dataset:
     """Split ``split`` loaded only for its cameras and names, cheaply: the images at a
     downscale near 4 that divides their size (:func:`common_downscale`; one image is read at
-    full size first to learn it). The poses and the field of view (fx, fy relative to width,
-    height) are those of any downscale; ``images`` are small and not meant to be used."""
-    probe = load_dataset(root, split=split, format=format, limit=1)
+    full size first to learn it), or at the first of 2, 4, 8, 16 that loads when the full size
+    cannot (an LLFF folder may hold only ``images_8/``, as LLFF's flower). The poses and the
+    field of view (fx, fy relative to width, height) are those of any downscale; ``images``
+    are small and not meant to be used."""
+    try:
+        probe = load_dataset(root, split=split, format=format, limit=1)
+    except DatasetError as first:
+        for f in (2, 4, 8, 16):
+            try:
+                return load_dataset(root, split=split, format=format, downscale=f)
+            except (ConfigError, DatasetError):
+                continue
+        raise first from None
     factor = common_downscale(probe.cameras.width, probe.cameras.height, 4)
     return load_dataset(root, split=split, format=format, downscale=factor)
 
