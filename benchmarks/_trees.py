@@ -145,9 +145,16 @@ def orbit_cameras(n_views: int, size: int) -> Any:
 def data_cameras(root: str, n_views: int, split: str = "test") -> tuple[Any, list[int]]:
     """The ``split`` cameras of the dataset at ``root`` (any format; NDC ones for a
     forward-facing capture) and up to ``n_views`` indices evenly spread over them: a tree timed
-    from the views it was made for."""
+    from the views it was made for, at the images' full size, or at the size of the first
+    pre-downscaled folder when there is no full-size one (LLFF's flower: images_8/, 504x378)."""
     from plenoctree.datasets import load_dataset
+    from plenoctree.errors import DatasetError
 
-    cams = load_dataset(root, split=split).cameras
+    try:
+        cams = load_dataset(root, split=split).cameras
+    except DatasetError:
+        from plenoctree.datasets import load_cameras
+
+        cams = load_cameras(root, split=split).cameras
     idx = np.linspace(0, len(cams) - 1, min(n_views, len(cams))).round().astype(int)
     return cams, sorted({int(i) for i in idx})
