@@ -52,7 +52,8 @@ def run_chain(cmd: list[str], out: Path) -> dict:
     summary = out / "summary.json"
     if not summary.is_file():
         print("$ " + " ".join(cmd), flush=True)
-        subprocess.run(cmd, check=True)
+        if subprocess.run(cmd).returncode != 0:
+            raise SystemExit(f"the chain failed (its message is above): {' '.join(cmd)}")
     return json.loads(summary.read_text())
 
 
