@@ -130,6 +130,15 @@ def machine_info(loadavg_before: Sequence[float] | None = None) -> dict[str, Any
     return info
 
 
+def machine_line(m: dict[str, Any]) -> str:
+    """One line for the end of a benchmark's table: CPU, cores, numba and its threads, and the
+    load average before and after the run (``m``: :func:`machine_info` given the start's)."""
+    before = m.get("loadavg_before", m["loadavg"])
+    return (f"machine: {m['cpu_model']}, {m['cpu_count']} cores, numba {m['numba']} "
+            f"({m['numba_threading_layer']}, {m['numba_threads']} threads); load average "
+            f"before {before[0]:.2f}, after {m['loadavg'][0]:.2f}")
+
+
 # --- timing --------------------------------------------------------------------------------
 @dataclass
 class Timing:

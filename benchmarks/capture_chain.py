@@ -30,8 +30,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from _bench import CACHE, add_data_root, add_out, data_path, fmt, machine_info, markdown_table, \
-    write_json
+from _bench import (CACHE, add_data_root, add_out, data_path, fmt, machine_info, machine_line,
+                    markdown_table, write_json)
 
 CAPTURES = {"flower": "images_8", "fox": "images"}
 """Capture name -> the folder of its photos (the input of ``process``)."""
@@ -115,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         res[kind] = run_chain(chain_command(capture, CAPTURES[args.real], kind, out, extra), out)
     print(table(res))
     machine = machine_info(load_before)
+    print(machine_line(machine) + " (the chains' own times: each run's summary.json)")
     path = write_json(args.out.format(real=args.real), {
         "benchmark": "capture_chain", "capture": args.real, "extra_flags": extra,
         "chains": {k: {"rows": stage_rows(v), "total_s": v["total_s"],

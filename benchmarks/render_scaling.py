@@ -39,7 +39,8 @@ from typing import Any
 import numpy as np
 
 from _balance import balance, per_thread_work, tile_costs
-from _bench import RESULTS, child_json, machine_info, markdown_table, timed, write_json
+from _bench import (RESULTS, child_json, machine_info, machine_line, markdown_table, timed,
+                    write_json)
 from _trees import add_tree_args, orbit_cameras, tree_from_args
 
 #: ``(label, schedule, chunksize)`` of the render kernel's balance table; "static" is the
@@ -175,10 +176,7 @@ def print_report(report: dict) -> None:
     print()
     print(markdown_table(["threads", "size", "FPS (median)", "ms/frame min–max", "vs 1 thread"],
                          rows))
-    m = report["machine"]
-    print(f"\nmachine: {m['cpu_model']}, {m['cpu_count']} cores, numba {m['numba']} "
-          f"({m['numba_threading_layer']}); load average before {m['loadavg_before'][0]:.2f}, "
-          f"after {m['loadavg'][0]:.2f}")
+    print("\n" + machine_line(report["machine"]))
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

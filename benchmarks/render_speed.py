@@ -56,7 +56,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from _bench import RESULTS, Timing, interleaved, machine_info, markdown_table, write_json
+from _bench import (RESULTS, Timing, interleaved, machine_info, machine_line, markdown_table,
+                    write_json)
 from _trees import add_tree_args, data_cameras, orbit_cameras, tree_from_args
 
 PATHS = ("numba", "noskip", "rays", "kernel")
@@ -202,10 +203,7 @@ def print_report(report: dict, tree: Any) -> None:
               f"{report['speedup_numba_over_twin'][k]:.0f}x the torch twin; "
               f"{report['speedup_skip_over_noskip'][k]:.2f}x without empty-space skipping; "
               f"max |Δ rgb| numba/rays vs twin = {report['max_abs_diff_rgb_numba_vs_torch'][k]:.2e}")
-    m = report["machine"]
-    print(f"\nmachine: {m['cpu_model']}, {m['cpu_count']} cores, numba {m['numba']} "
-          f"({m['numba_threading_layer']}, {m['numba_threads']} threads); load average before "
-          f"{m['loadavg_before'][0]:.2f}, after {m['loadavg'][0]:.2f}")
+    print("\n" + machine_line(report["machine"]))
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
