@@ -252,7 +252,8 @@ def holdout_split(n: int, split: str, where: Any, every: int = HOLDOUT) -> list[
     if split not in ("train", "val", "test", "all"):
         raise ConfigError(f"split must be train, val, test or all, got {split!r}")
     if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 0:
-        raise ConfigError(f"the hold-out interval must be a non-negative integer, got {every!r}")
+        raise ConfigError(f"the hold-out interval (llffhold) must be a non-negative integer, "
+                          f"got {every!r}")
     idx = np.arange(n)
     if split == "all":
         return idx.tolist()

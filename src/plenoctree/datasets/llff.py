@@ -39,7 +39,7 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ._images import image_files, load_images, probe_size
-from ._files import HOLDOUT, check_load_options, take_views
+from ._files import HOLDOUT, check_load_options, holdout_split, take_views
 from .base import Dataset, DatasetFormat
 from .cameras import Cameras
 from .ndc import ndc_bounds
@@ -52,7 +52,6 @@ LLFF_HOLD = HOLDOUT
 BD_FACTOR = 0.75
 """The smallest near bound is scaled to ``1 / BD_FACTOR``."""
 POSES_FILE = "poses_bounds.npy"
-_SPLITS = ("train", "val", "test", "all")
 
 
 def _normalize(v: np.ndarray) -> np.ndarray:
@@ -253,21 +252,6 @@ def _intrinsics(hwf: np.ndarray, size: tuple[int, int], where: Path) -> tuple[np
     return hwf[:, 2] * sx, hwf[:, 2] * sy, w / 2.0, h / 2.0
 
 
-def _split_indices(n: int, split: str, llffhold: int, path: Path) -> np.ndarray:
-    if split not in _SPLITS:
-        raise ConfigError(f"LLFF split must be one of {', '.join(_SPLITS)}, got {split!r}")
-    if isinstance(llffhold, bool) or not isinstance(llffhold, (int, np.integer)) or llffhold < 0:
-        raise ConfigError(f"llffhold must be a non-negative integer, got {llffhold!r}")
-    idx = np.arange(n)
-    if split == "all":
-        return idx
-    test = idx[::llffhold] if llffhold > 0 else idx[:0]
-    sel = np.setdiff1d(idx, test) if split == "train" else test
-    if sel.size == 0:
-        raise DatasetError(f"{path}: split {split!r} is empty ({n} images, llffhold {llffhold})")
-    return sel
-
-
 def _frustum_box(c2w: np.ndarray, k: np.ndarray, w: int, h: int, near: float,
                  far: float) -> np.ndarray:
     """Box around every camera's viewing frustum between depths ``near`` and ``far``."""
@@ -340,7 +324,7 @@ def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
     scene = read_llff(root, recenter=opt.recenter, bd_factor=opt.bd_factor, spherify=spherify)
     n = len(scene.c2w)
     folder, files, factor = _images_for(root, n, int(downscale))
-    sel = _split_indices(n, split, opt.llffhold, root / POSES_FILE)
+    sel = holdout_split(n, split, root / POSES_FILE, opt.llffhold)
     sel = take_views(sel, limit, spread)
     size = probe_size(files[sel[0]])
     fx, fy, cx, cy = _intrinsics(scene.hwf, size, folder)
