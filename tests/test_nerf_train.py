@@ -244,3 +244,36 @@ def test_slow_validations_are_spaced_out(data, tmp_path, monkeypatch):
     t.maybe_validate()
     assert clock["calls"] == 2
     assert t.state.next_val_s == pytest.approx(481.0 + 120.0)    # every 120 s again
+
+
+def _mean_distortion(run_dir: Path, data: Path) -> float:
+    """Mean distortion loss of the trained model on 2,000 training rays (fixed samples)."""
+    from plenoctree.datasets import load_dataset
+    from plenoctree.nerf.renderer import RayBatch, RenderMode, render_rays_occupancy
+    from plenoctree.nerf.training import RaySource
+
+    run = load_run(run_dir)
+    ds = load_dataset(data, "train")
+    o, d, _, bg = RaySource(ds, torch.device("cpu"), False).sample(
+        2000, torch.Generator().manual_seed(0))
+    mode = RenderMode(train=True, generator=torch.Generator().manual_seed(1), distortion=True)
+    with torch.no_grad():
+        r = render_rays_occupancy(run.model, RayBatch(o, d, ds.near, ds.far, bg), run.config,
+                                  mode)
+    return float(r["distortion"].mean())
+
+
+def test_distortion_loss_gathers_the_weight_along_rays(data, tmp_path):
+    runs = {}
+    for weight in (0.0, 0.2):
+        cfg = tiny_cpu_config(data, tmp_path / f"d{weight}", steps=150)
+        cfg.distortion_weight, cfg.val_views, cfg.lr_final = weight, 1, 5e-3
+        res = train(cfg, quiet=True)
+        runs[weight] = (res.val_psnr, _mean_distortion(tmp_path / f"d{weight}", data))
+    (psnr0, dist0), (psnr1, dist1) = runs[0.0], runs[0.2]
+    assert dist1 < 0.7 * dist0, runs                    # the weight sits in fewer places
+    assert psnr1 > psnr0 - 1.5, runs                    # at little cost to the colours
+    with pytest.raises(ConfigError, match="distortion_weight"):
+        bad = tiny_paper_config(data, tmp_path / "bad")
+        bad.distortion_weight = 0.01
+        train(bad, quiet=True)

@@ -6,8 +6,8 @@ import math
 
 import torch
 
-from plenoctree.nerf.volrend import (composite, composite_packed, deltas_from_t,
-                                     render_weights, render_weights_packed)
+from plenoctree.nerf.volrend import (composite, composite_packed, deltas_from_t, distortion,
+                                     distortion_packed, render_weights, render_weights_packed)
 
 
 def test_constant_density_closed_form():
@@ -85,3 +85,31 @@ def test_dense_gradients_flow():
     c, acc, _ = composite(w, rgb, None, torch.ones(3))
     c.sum().backward()
     assert sigma.grad.abs().sum() > 0 and rgb.grad.abs().sum() > 0
+
+
+def test_distortion_golden_values():
+    # one sample holding all the weight: only the interval term, δ/3
+    d = distortion(torch.tensor([[0.0, 1.0, 0.0]]), torch.tensor([[0.0, 1.0, 2.0]]), 0.3)
+    torch.testing.assert_close(d, torch.tensor([0.1]))
+    # two halves 2 apart: 2 · ¼ · 2 + δ/3 · (¼ + ¼)
+    d = distortion(torch.tensor([[0.5, 0.0, 0.5]]), torch.tensor([[0.0, 1.0, 2.0]]), 0.3)
+    torch.testing.assert_close(d, torch.tensor([1.0 + 0.05]))
+
+
+def test_distortion_packed_matches_dense_and_gradchecks():
+    counts, ray_idx, offsets, _ = _packed_case(3)
+    g = torch.Generator().manual_seed(4)
+    m = int(counts.sum())
+    w = torch.rand(m, generator=g, dtype=torch.float64, requires_grad=True)
+    t = torch.cat([torch.sort(torch.rand(int(c), generator=g, dtype=torch.float64) * 3).values
+                   for c in counts])
+    packed = distortion_packed(w, t, 0.05, ray_idx, offsets, len(counts))
+    for r, c in enumerate(counts.tolist()):
+        sl = slice(int(offsets[r]), int(offsets[r + 1]))
+        dense = distortion(w[sl][None], t[sl][None], 0.05)[0] if c else torch.zeros((), dtype=w.dtype)
+        torch.testing.assert_close(packed[r], dense)
+    assert torch.autograd.gradcheck(
+        lambda x: distortion_packed(x, t, 0.05, ray_idx, offsets, len(counts)), (w,))
+    empty = distortion_packed(torch.zeros(0), torch.zeros(0), 0.1,
+                              torch.zeros(0, dtype=torch.int64), torch.zeros(3, dtype=torch.int64), 2)
+    assert empty.tolist() == [0.0, 0.0]

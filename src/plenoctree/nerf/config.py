@@ -151,6 +151,10 @@ class TrainConfig:
     """λ of the sparsity prior (the original code's sparsity_length; paper: 0.05)."""
     sparsity_points: int = 10000
     """K, uniform random points in the scene box per step for the sparsity prior (paper: 10000)."""
+    distortion_weight: float = 0.0
+    """Weight of mip-NeRF 360's distortion loss (occupancy sampler; 0 = off), with distances
+    measured in units of the scene box's longest side: it gathers each ray's weight into one
+    place, against fog and floaters (mip-NeRF 360: 0.01)."""
     amp: str = "auto"
     """Mixed precision of the MLP: "bf16", "off", or "auto" (bf16 on CPUs that support it)."""
     device: str = "auto"
@@ -315,6 +319,9 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.lr_init > 0 and cfg.lr_final > 0, "learning rates must be > 0")
     need(cfg.sparsity_weight >= 0 and cfg.sparsity_length > 0 and cfg.sparsity_points >= 0,
          "sparsity_weight >= 0, sparsity_length > 0 and sparsity_points >= 0 are required")
+    need(cfg.distortion_weight >= 0, f"distortion_weight must be >= 0, got {cfg.distortion_weight}")
+    need(cfg.distortion_weight == 0 or cfg.sampler == "occupancy",
+         "distortion_weight needs the occupancy sampler (set it to 0 with sampler=hierarchical)")
     need(cfg.amp in ("auto", "bf16", "off"), f"amp must be auto, bf16 or off, got {cfg.amp!r}")
     need(cfg.device == "auto" or cfg.device == "cpu" or str(cfg.device).startswith("cuda"),
          f"device must be auto, cpu, cuda or cuda:N, got {cfg.device!r}")

@@ -33,8 +33,8 @@ from .model import NeRFModel, RadianceField
 from .occupancy import OccupancyGrid
 from .sampling import MarchGrid, MarchRays, march_rays, pdf_samples, ray_aabb, \
     stratified_samples
-from .volrend import composite, composite_packed, deltas_from_t, render_weights, \
-    render_weights_packed
+from .volrend import composite, composite_packed, deltas_from_t, distortion_packed, \
+    render_weights, render_weights_packed
 
 __all__ = ["RayBatch", "RenderMode", "ImageOptions", "autocast", "render_rays",
            "render_rays_hierarchical", "render_rays_occupancy", "render_image", "ray_bounds"]
@@ -78,6 +78,8 @@ class RenderMode:
             config's ``train_stop_thresh`` / ``eval_stop_thresh``; 0 = march to the box's end).
         max_samples: occupancy sampler, training only: stop marching once this many samples
             were evaluated; rays not finished by then are marked incomplete (0 = no limit).
+        distortion: occupancy sampler, training only: also return each ray's distortion loss
+            (:func:`~plenoctree.nerf.volrend.distortion_packed`, in world units).
     """
 
     train: bool = False
@@ -85,6 +87,7 @@ class RenderMode:
     amp: bool = False
     stop_thresh: float | None = None
     max_samples: int = 0
+    distortion: bool = False
 
 
 @dataclass(frozen=True)
@@ -204,7 +207,8 @@ def _march_waves(field: RadianceField, rays: MarchRays, grid: MarchGrid, mode: R
     each ray's whole sequence): returns ``rgb, acc, dsum, n_samples, complete [R] bool,
     capped`` where ``complete`` is False for rays cut off because more than
     ``mode.max_samples`` (> 0) samples were evaluated, and ``capped`` (a Python bool) says
-    whether that happened (else ``complete`` is all True).
+    whether that happened (else ``complete`` is all True); with ``mode.distortion`` also
+    ``distortion [R]``.
 
     Host round trips (issue 38): one per wave (the rays still marching, a data-dependent
     shape) and the marching kernel's own; in training the kept samples of all waves are
@@ -265,7 +269,7 @@ def _march_waves(field: RadianceField, rays: MarchRays, grid: MarchGrid, mode: R
         return {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": evaluated}
     if not parts:
         return {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": 0, "complete": complete,
-                "capped": capped}
+                "capped": capped, "distortion": acc}
     gidx, t, sigma, color, keep = (torch.cat(x) for x in zip(*parts))
     kept = keep.nonzero()[:, 0]                             # the waves' kept samples, in order
     order = kept[torch.sort(gidx[kept], stable=True).indices]   # ray-major; waves keep k order
@@ -277,8 +281,11 @@ def _march_waves(field: RadianceField, rays: MarchRays, grid: MarchGrid, mode: R
     rgb = composite_packed(w, color, gidx, n)
     acc = composite_packed(w, torch.ones_like(w)[:, None], gidx, n)[:, 0]
     dsum = composite_packed(w, t[:, None], gidx, n)[:, 0]
-    return {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": evaluated,
-            "complete": complete, "capped": capped}
+    out = {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": evaluated,
+           "complete": complete, "capped": capped}
+    if mode.distortion:
+        out["distortion"] = distortion_packed(w, t, step, gidx, offsets, n)
+    return out
 
 
 def render_rays_occupancy(model: NeRFModel, rays: RayBatch, cfg: TrainConfig,
@@ -291,8 +298,9 @@ def render_rays_occupancy(model: NeRFModel, rays: RayBatch, cfg: TrainConfig,
 
     Returns:
         ``rgb [R, 3], acc [R], depth [R]``, ``n_samples`` (network evaluations) and, in
-        training, ``complete [R]`` (rays whose colour is final; use only those in a loss) and
-        ``capped`` (a Python bool: some ray is not complete).
+        training, ``complete [R]`` (rays whose colour is final; use only those in a loss),
+        ``capped`` (a Python bool: some ray is not complete) and, with ``mode.distortion``,
+        ``distortion [R]``.
     """
     n = len(rays)
     dev = rays.origins.device
@@ -312,6 +320,8 @@ def render_rays_occupancy(model: NeRFModel, rays: RayBatch, cfg: TrainConfig,
            "depth": r["dsum"] / acc.clamp(min=1e-10), "n_samples": r["n_samples"]}
     if mode.train:
         out["complete"], out["capped"] = r["complete"], r["capped"]
+        if mode.distortion:
+            out["distortion"] = r["distortion"]
     return out
 
 

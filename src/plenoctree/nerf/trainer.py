@@ -256,6 +256,8 @@ class Trainer:
         self.gen = torch.Generator(device=device)
         self.gen.manual_seed(cfg.seed + 1)
         self.model = model
+        box = np.asarray(self.data.scene_bbox, dtype=np.float64).reshape(2, 3)
+        self.extent = float((box[1] - box[0]).max())      # distortion loss's unit of length
         self.state = TrainerState(n_rays=float(cfg.batch_rays), next_val_s=cfg.val_every_s)
 
     def _fresh_state(self) -> float:
@@ -329,18 +331,22 @@ class Trainer:
         batch = RayBatch(o, d, data.near, data.far, bg)
         if self.occ:
             mode = RenderMode(train=True, generator=self.rgen, amp=self.amp,
-                              max_samples=2 * cfg.target_samples // dctx.world)
+                              max_samples=2 * cfg.target_samples // dctx.world,
+                              distortion=cfg.distortion_weight > 0)
             r = render_rays_occupancy(self.model, batch, cfg, mode)
-            rgb = r["rgb"]
+            rgb, dist = r["rgb"], r.get("distortion")
             if r["capped"]:         # only the complete rays (one host round trip)
                 ok = r["complete"].nonzero()[:, 0]
                 used = int(ok.shape[0])
                 rgb, target = rgb.index_select(0, ok), target.index_select(0, ok)
+                dist = None if dist is None else dist.index_select(0, ok)
             else:
                 used = int(rgb.shape[0])
             # (used == 0 only if the sample cap cut off every ray: skip the photometric term)
             mse = torch.mean((rgb - target) ** 2) if used else r["rgb"].sum() * 0
             loss = mse
+            if dist is not None and used:
+                loss = loss + cfg.distortion_weight / self.extent * dist.mean()
         else:
             mode = RenderMode(train=True, generator=self.rgen, amp=self.amp)
             r = render_rays_hierarchical(self.model, batch, cfg, mode)
