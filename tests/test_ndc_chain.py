@@ -94,6 +94,7 @@ def test_ndc_scene_trains_extracts_and_finetunes(scene, tmp_path):
 
     cfg = tiny_cpu_config(scene, tmp_path / "run", steps=300)
     cfg.val_split, cfg.val_views = "test", 1
+    cfg.photo_background = "fixed"     # renders of an object on a white backdrop, not photos
     res = train(cfg, quiet=True)
     assert math.isfinite(res.val_psnr) and res.val_psnr > empty_psnr + 3.0, \
         (res.val_psnr, empty_psnr)
@@ -122,3 +123,36 @@ def test_ndc_scene_trains_extracts_and_finetunes(scene, tmp_path):
     assert ft.epochs_run == 2 and ft.stop_reason.startswith("finished"), ft.stop_reason
     assert load_tree(tmp_path / "tree_ft.npz").ndc == ndc            # kept by fine-tuning
     assert math.isfinite(ft.test_psnr_after) and ft.test_psnr_after > ft.test_psnr_before + 1.0
+
+
+def test_photos_train_opaque_over_random_backgrounds(scene, tmp_path):
+    from plenoctree.datasets.dataset import holds_photos
+    from plenoctree.nerf import load_run, train
+    from plenoctree.nerf.renderer import RayBatch, render_rays
+    from plenoctree.nerf.trainer import opaque_photos
+
+    data = load_dataset(scene, "train")
+    assert holds_photos(scene) and data.alphas is None
+    src = RaySource(data, torch.device("cpu"), random_background=True, opaque_photos=True)
+    idx_gen = torch.Generator().manual_seed(5)
+    o, d, target, bg = src.sample(4000, idx_gen)
+    assert bg.std(0).min() > 0.2                         # a colour per ray, not the white one
+    ref = RaySource(data, torch.device("cpu"), random_background=True)
+    o2, d2, target2, bg2 = ref.sample(4000, torch.Generator().manual_seed(5))
+    assert torch.equal(target, target2) and torch.equal(o, o2)     # the photo is the target
+    assert torch.equal(bg2, torch.ones_like(bg2))
+
+    accs = {}
+    for mode in ("fixed", "random"):
+        cfg = tiny_cpu_config(scene, tmp_path / mode, steps=150)
+        cfg.photo_background, cfg.val_views = mode, 0
+        assert opaque_photos(cfg) == (mode == "random")
+        train(cfg, quiet=True)
+        run = load_run(tmp_path / mode)
+        with torch.no_grad():
+            r = render_rays(run.model, RayBatch(o, d, data.near, data.far, torch.ones(3)),
+                            run.config)
+        accs[mode] = float(r["acc"].mean())
+    assert accs["random"] > 0.9 and 1 - accs["random"] < 0.5 * (1 - accs["fixed"]), accs
+    cfg.photo_background = "auto"
+    assert opaque_photos(cfg)

@@ -86,6 +86,8 @@ class DatasetFormat:
         has_split: ``has_split(root, split) -> bool`` from the files alone, or ``None`` when
             only loading one view of the split tells (the split then exists unless the loader
             says it is empty).
+        photos: the format holds photographs of the real world (nothing in them is see-through
+            to a backdrop), not renders with a backdrop baked in.
     """
 
     name: str
@@ -93,4 +95,5 @@ class DatasetFormat:
     detect: Callable[[Path], bool]
     load: Callable[..., Dataset]
     has_split: Callable[[Path, str], bool] | None = None
+    photos: bool = False
 

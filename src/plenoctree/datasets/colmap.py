@@ -264,6 +264,6 @@ def load_colmap(root: str | os.PathLike, split: str = "train", downscale: int = 
 
 FORMAT = DatasetFormat("colmap", "sparse/0/cameras.bin|txt",
                        detect=lambda root: find_colmap_model(root) is not None,
-                       load=load_colmap)
+                       load=load_colmap, photos=True)
 """COLMAP in the registry of :mod:`plenoctree.datasets.dataset` (a split exists when loading
 one of its views does not find it empty)."""

@@ -17,7 +17,7 @@ from ._files import evenly_spaced
 from .base import Dataset, DatasetFormat
 
 __all__ = ["Dataset", "DatasetFormat", "REGISTRY", "FORMATS", "load_dataset", "load_cameras",
-           "common_downscale", "detect_format", "has_split", "evenly_spaced"]
+           "common_downscale", "detect_format", "has_split", "evenly_spaced", "holds_photos"]
 
 REGISTRY: dict[str, DatasetFormat] = {
     f.name: f for f in (blender.FORMAT, nerfstudio.FORMAT, llff.FORMAT, nsvf.FORMAT,
@@ -55,6 +55,12 @@ def detect_format(root: str | os.PathLike) -> str:
         raise DatasetError(f"{root}: unknown dataset format (expected one of {expected})")
     raise DatasetError(f"{root}: ambiguous dataset format, the folder looks like "
                        f"{' and '.join(found)}; choose one with format= (--format)")
+
+
+def holds_photos(root: str | os.PathLike, format: str | None = None) -> bool:
+    """Whether dataset folder ``root`` (of ``format``, default detected) holds real photographs
+    (:attr:`DatasetFormat.photos`: LLFF, COLMAP, nerfstudio) rather than renders."""
+    return _format(format if format is not None else detect_format(root)).photos
 
 
 def load_dataset(root: str | os.PathLike, split: str = "train", format: str | None = None,

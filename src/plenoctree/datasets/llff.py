@@ -431,6 +431,7 @@ def write_llff(out_dir: str | os.PathLike, c2w: np.ndarray, images: np.ndarray, 
 
 FORMAT = DatasetFormat("llff", "poses_bounds.npy",
                        detect=lambda root: (root / "poses_bounds.npy").is_file(),
-                       load=load_llff, has_split=lambda root, split: split in ("train", "test"))
+                       load=load_llff, has_split=lambda root, split: split in ("train", "test"),
+                       photos=True)
 """LLFF in the registry of :mod:`plenoctree.datasets.dataset`: ``train`` and ``test`` (every
 ``llffhold``-th image; its ``val`` is the test set, so not a separate split)."""

@@ -370,6 +370,6 @@ def write_nerfstudio(out_dir: str | os.PathLike, c2w: np.ndarray, images: np.nda
 
 FORMAT = DatasetFormat("nerfstudio", "transforms.json",
                        detect=lambda root: (root / "transforms.json").is_file(),
-                       load=load_nerfstudio)
+                       load=load_nerfstudio, photos=True)
 """nerfstudio / instant-ngp in the registry of :mod:`plenoctree.datasets.dataset` (a split
 exists when loading one of its views does not find it empty)."""

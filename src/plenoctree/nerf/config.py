@@ -98,6 +98,12 @@ class TrainConfig:
     random_background: bool = True
     """Train on random background colours when the dataset keeps alpha (stops the model from
     explaining the background with white matter); evaluation always uses ``background``."""
+    photo_background: str = "auto"
+    """Photos without alpha: "random" trains them on random background colours too, so every
+    ray must end opaque inside the scene box (nothing in a photo is see-through to a white
+    backdrop; unbounded content settles on the box's far walls); "fixed" composites them with
+    ``background``; "auto": random for real photos (LLFF, COLMAP, nerfstudio formats), fixed
+    for Blender and NSVF (renders with a white backdrop baked in)."""
     sampler: str = "occupancy"
     """Ray sampling: "occupancy" (fixed step through an occupancy grid, one network) or
     "hierarchical" (stratified coarse + importance fine samples, the paper's)."""
@@ -319,6 +325,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.lr_init > 0 and cfg.lr_final > 0, "learning rates must be > 0")
     need(cfg.sparsity_weight >= 0 and cfg.sparsity_length > 0 and cfg.sparsity_points >= 0,
          "sparsity_weight >= 0, sparsity_length > 0 and sparsity_points >= 0 are required")
+    need(cfg.photo_background in ("auto", "random", "fixed"),
+         f"photo_background must be auto, random or fixed, got {cfg.photo_background!r}")
     need(cfg.distortion_weight >= 0, f"distortion_weight must be >= 0, got {cfg.distortion_weight}")
     need(cfg.distortion_weight == 0 or cfg.sampler == "occupancy",
          "distortion_weight needs the occupancy sampler (set it to 0 with sampler=hierarchical)")

@@ -29,6 +29,7 @@ import torch
 
 from .._util import atomic_save_json, atomic_write, progress
 from ..datasets import load_dataset
+from ..datasets.dataset import holds_photos
 from ..errors import ConfigError
 from ..runtime import ThreadTuner, resolve_amp, resolve_device, setup_threads
 from .checkpoint import CHECKPOINT_NAME, CheckpointError, TrainProgress, \
@@ -115,6 +116,14 @@ class StepFigures:
     rays: int          # rays whose colour entered the loss
     samples: int       # network evaluations of the rendering
     occupancy_s: float  # seconds spent updating the occupancy grid
+
+
+def opaque_photos(cfg: TrainConfig) -> bool:
+    """Whether images without alpha are trained over random colours (``cfg.photo_background``;
+    "auto": when the dataset holds real photos)."""
+    if cfg.photo_background != "auto":
+        return cfg.photo_background == "random"
+    return holds_photos(cfg.data, cfg.format)
 
 
 def _prepare_run_dir(cfg: TrainConfig, resume: bool):
@@ -218,7 +227,8 @@ class Trainer:
         # the rendering noise: the shared generator in one process, one per rank under torchrun
         self.rgen = self.gen if not self.dctx.active else render_generator(
             cfg.seed, self.dctx.rank, self.step, self.device)
-        self.rays = RaySource(self.data, self.device, cfg.random_background)
+        self.rays = RaySource(self.data, self.device, cfg.random_background,
+                              opaque_photos=opaque_photos(cfg))
         self.occ_thresh = -math.log(1.0 - cfg.occ_threshold) / cfg.render_step
         self.wall0 = time.perf_counter() - wall_before
         self.last_ckpt_wall = time.perf_counter()

@@ -77,7 +77,11 @@ class RaySource:
     ``cameras.rays(i)``); only the images are held in memory.
     """
 
-    def __init__(self, data: Dataset, device: torch.device, random_background: bool):
+    def __init__(self, data: Dataset, device: torch.device, random_background: bool,
+                 opaque_photos: bool = False):
+        """``random_background``: composite the pixels with alpha onto random colours;
+        ``opaque_photos``: images without alpha are predicted over random colours too (their
+        targets stay as they are), so a ray that stays see-through is penalised."""
         cams = data.cameras
         n, h, w = len(cams), cams.height, cams.width
         self.n, self.h, self.w = n, h, w
@@ -86,6 +90,7 @@ class RaySource:
         self.images = torch.from_numpy(np.ascontiguousarray(data.images)).reshape(-1, 3).to(device)
         self.bg = torch.tensor(data.background, dtype=torch.float32, device=device)
         self.alphas = None
+        self.opaque_photos = opaque_photos and data.alphas is None
         if random_background and data.alphas is not None:
             self.alphas = torch.from_numpy(np.ascontiguousarray(data.alphas)).reshape(-1).to(device)
 
@@ -102,6 +107,8 @@ class RaySource:
                             device=self.device)
         o, d = self.rays_of(idx)
         rgb = self.images[idx]
+        if self.opaque_photos:
+            return o, d, rgb, torch.rand((n, 3), generator=generator, device=self.device)
         if self.alphas is None:
             return o, d, rgb, self.bg.expand(n, 3)
         a = self.alphas[idx][:, None]
