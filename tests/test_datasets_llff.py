@@ -230,3 +230,16 @@ def test_bad_inputs_name_the_file(ff_root, tmp_path):
     with pytest.raises(ConfigError, match="downscale"):
         load_llff(ff_root, downscale=0)
     assert math.isfinite(load_llff(ff_root).far)          # the source is intact
+
+
+def test_photo_formats_default_to_a_black_background(blender, llff_root, tmp_path):
+    from plenoctree.datasets.dataset import default_background, holds_photos
+
+    bl_root = write_procedural_dataset(tmp_path / "bl", 2, 1, 1, width=8, height=8,
+                                       n_samples=8)
+    assert holds_photos(llff_root) and not holds_photos(bl_root)
+    assert default_background(llff_root) == (0.0, 0.0, 0.0)
+    assert load_dataset(llff_root, "train", limit=1).background == (0.0, 0.0, 0.0)
+    assert load_dataset(bl_root, "train", limit=1).background == (1.0, 1.0, 1.0)
+    asked = load_dataset(llff_root, "train", limit=1, background=(0.2, 0.4, 0.6))
+    assert asked.background == (0.2, 0.4, 0.6)

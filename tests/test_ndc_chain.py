@@ -87,14 +87,15 @@ def test_ndc_scene_trains_extracts_and_finetunes(scene, tmp_path):
     from plenoctree.nerf import train
     from plenoctree.optim.finetuning import FinetuneConfig, finetune
 
-    data = load_dataset(scene, "train")
-    test = load_dataset(scene, "test")
+    data = load_dataset(scene, "train", background=(1.0, 1.0, 1.0))
+    test = load_dataset(scene, "test", background=(1.0, 1.0, 1.0))
     # a tree that holds nothing renders the background everywhere
     empty_psnr = float(np.mean([psnr(np.ones_like(im), im) for im in test.images]))
 
     cfg = tiny_cpu_config(scene, tmp_path / "run", steps=300)
     cfg.val_split, cfg.val_views = "test", 1
-    cfg.photo_background = "fixed"     # renders of an object on a white backdrop, not photos
+    # renders of an object on a white backdrop, in a photo format: say so
+    cfg.photo_background, cfg.background = "fixed", (1.0, 1.0, 1.0)
     res = train(cfg, quiet=True)
     assert math.isfinite(res.val_psnr) and res.val_psnr > empty_psnr + 3.0, \
         (res.val_psnr, empty_psnr)
@@ -116,7 +117,7 @@ def test_ndc_scene_trains_extracts_and_finetunes(scene, tmp_path):
 
     ft = finetune(FinetuneConfig(tree=str(tmp_path / "tree.npz"), data=str(scene),
                                  out=str(tmp_path / "tree_ft.npz"), epochs=2, batch_rays=1024,
-                                 optimizer="sgd", lr=1e5,
+                                 optimizer="sgd", lr=1e5, background=(1.0, 1.0, 1.0),
                                  val_every=1, show_progress=False, verbose=False))
     assert ft.test_psnr_before == pytest.approx(ex.psnr, abs=0.05)
     # measured: 19.5 -> 22.1 dB (sgd 1e5; with 1024-ray batches the default 1e7 diverged)
@@ -129,7 +130,8 @@ def test_photos_train_opaque_over_random_backgrounds(scene, tmp_path):
     from plenoctree.datasets.dataset import holds_photos
     from plenoctree.nerf import load_run, train
     from plenoctree.nerf.renderer import RayBatch, render_rays
-    from plenoctree.nerf.trainer import opaque_photos
+    from plenoctree.nerf.config import PHOTO_DISTORTION
+    from plenoctree.nerf.trainer import distortion_weight, opaque_photos
 
     data = load_dataset(scene, "train")
     assert holds_photos(scene) and data.alphas is None
@@ -140,7 +142,7 @@ def test_photos_train_opaque_over_random_backgrounds(scene, tmp_path):
     ref = RaySource(data, torch.device("cpu"), random_background=True)
     o2, d2, target2, bg2 = ref.sample(4000, torch.Generator().manual_seed(5))
     assert torch.equal(target, target2) and torch.equal(o, o2)     # the photo is the target
-    assert torch.equal(bg2, torch.ones_like(bg2))
+    assert torch.equal(bg2, torch.zeros_like(bg2))     # a photo format's background: black
 
     accs = {}
     for mode in ("fixed", "random"):
@@ -156,3 +158,7 @@ def test_photos_train_opaque_over_random_backgrounds(scene, tmp_path):
     assert accs["random"] > 0.9 and 1 - accs["random"] < 0.5 * (1 - accs["fixed"]), accs
     cfg.photo_background = "auto"
     assert opaque_photos(cfg)
+    cfg.distortion_weight = None                         # real photos: PHOTO_DISTORTION
+    assert distortion_weight(cfg) == PHOTO_DISTORTION > 0
+    cfg.sampler = "hierarchical"
+    assert distortion_weight(cfg) == 0.0

@@ -297,7 +297,8 @@ class EvalConfig:
     stop_thresh: float = 0.01
     """Early ray termination when transmittance < this; 0 disables."""
     background: tuple[float, float, float] | None = None
-    """Background RGB in [0, 1] the images are composited on; None = white."""
+    """Background RGB in [0, 1] the images are composited on; None = the dataset's (black for
+    real photos, white for renders: ``datasets.default_background``)."""
     lpips_net: str = "vgg"
     """LPIPS backbone; LPIPS is skipped (and reported so) unless it can run offline."""
     show_progress: bool | None = None
@@ -349,7 +350,7 @@ def eval_tree_file(cfg: EvalConfig) -> dict:
     device = resolve_device(cfg.device)
     backend = _resolved_backend(cfg.backend, device)
     tree = load_any_tree(tree_path)
-    bg = tuple(float(b) for b in cfg.background) if cfg.background is not None else (1.0, 1.0, 1.0)
+    bg = tuple(float(b) for b in cfg.background) if cfg.background is not None else None
     data = load_dataset(cfg.data, split=cfg.split, format=cfg.format, downscale=cfg.downscale,
                         background=bg, limit=cfg.limit, spread=cfg.spread)
     if len(data.cameras) == 0:
@@ -362,7 +363,7 @@ def eval_tree_file(cfg: EvalConfig) -> dict:
         logger.info(f"LPIPS skipped: {problem}")
     from .render import RenderOptions
 
-    options = RenderOptions(stop_thresh=float(cfg.stop_thresh), background=bg)
+    options = RenderOptions(stop_thresh=float(cfg.stop_thresh), background=data.background)
     res = evaluate_tree(tree, data, out / "renders" if cfg.save_images else None, options,
                         backend, show_progress=cfg.show_progress, device=device,
                         lpips_net=None if problem is not None else cfg.lpips_net)
@@ -386,7 +387,7 @@ def eval_tree_file(cfg: EvalConfig) -> dict:
                     "width": data.cameras.width, "height": data.cameras.height,
                     "downscale": cfg.downscale},
         "render": {"backend": backend, "stop_thresh": float(cfg.stop_thresh),
-                   "background": list(bg)},
+                   "background": list(data.background)},
         "device": device_report(device),
         "lpips": {"net": cfg.lpips_net,
                   "status": "computed" if problem is None else f"skipped: {problem}"},

@@ -248,7 +248,8 @@ class VideoConfig:
     stop_thresh: float = 0.01
     """Early ray termination when transmittance < this; 0 disables."""
     background: tuple[float, float, float] | None = None
-    """Background RGB in [0, 1]; None = white."""
+    """Background RGB in [0, 1]; None = the dataset's with ``data`` (black for real photos,
+    white for renders), else white."""
     quality: float = 8.0
     """H.264 quality on imageio's 0-10 scale."""
     show_progress: bool | None = None
@@ -288,7 +289,7 @@ class VideoResult:
 def _load_data(cfg: VideoConfig):
     from .datasets import load_dataset
 
-    bg = tuple(cfg.background) if cfg.background is not None else (1.0, 1.0, 1.0)
+    bg = tuple(cfg.background) if cfg.background is not None else None   # the dataset's
     return load_dataset(cfg.data, split=cfg.split, format=cfg.format, downscale=cfg.downscale,
                         background=bg)
 
@@ -426,7 +427,12 @@ def make_video(cfg: VideoConfig) -> VideoResult:
     check_output_file(out, "--out", cfg.overwrite, kind=None)
     near, far = (tuple(float(v) for v in cfg.depth_range) if cfg.depth_range is not None
                  else depth_bounds(tree, cams))
-    bg = tuple(float(b) for b in cfg.background) if cfg.background is not None else (1.0,) * 3
+    if cfg.background is not None:
+        bg = tuple(float(b) for b in cfg.background)
+    else:
+        from .datasets.dataset import RENDER_BACKGROUND, default_background
+
+        bg = default_background(cfg.data, cfg.format) if cfg.data else RENDER_BACKGROUND
     options = RenderOptions(stop_thresh=float(cfg.stop_thresh), background=bg)
     ms: list[float] = []
     dev_tree = tree_to_device(tree, device)

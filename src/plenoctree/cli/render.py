@@ -122,7 +122,7 @@ def _run_dataset(cfg: RenderConfig, out: Path) -> int:
 
         cfg.data = data_from_provenance(cfg.tree, "render")
     tree = load_any_tree(cfg.tree)
-    bg = tuple(cfg.background) if cfg.background else (1.0, 1.0, 1.0)
+    bg = tuple(cfg.background) if cfg.background else None       # None: the dataset's
     data = load_dataset(cfg.data, split=cfg.split, format=cfg.format,
                         downscale=cfg.downscale, background=bg, limit=views_or_all(cfg.limit))
     if cfg.width is not None:

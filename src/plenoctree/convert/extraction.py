@@ -323,7 +323,7 @@ def _load_inputs(cfg: ExtractConfig, field: Any) -> _Inputs:
         field = as_field(field, device=cfg.device, amp=cfg.amp)
     data_root = cfg.data or (train_cfg.data if train_cfg is not None else "")
     run_down = int(train_cfg.downscale) if train_cfg is not None else 1
-    background = tuple(train_cfg.background) if train_cfg is not None else (1.0, 1.0, 1.0)
+    background = getattr(train_cfg, "background", None)      # None: the dataset's default
     need_train = cfg.masking == "weight"
     if (need_train or cfg.eval) and not data_root:
         raise ConfigError("no dataset: pass --data (the training views are needed by "

@@ -568,7 +568,7 @@ def refine(cfg: RefineConfig) -> RefineResult:
                           f"{field_.data_format}: not the run this tree was extracted from")
     root = cfg.data or (train_cfg.data if train_cfg is not None else "")
     down = int(getattr(train_cfg, "downscale", 1) or 1)
-    bg = tuple(getattr(train_cfg, "background", (1.0, 1.0, 1.0)))
+    bg = getattr(train_cfg, "background", None)               # None: the dataset's default
     if cfg.eval_views and not Path(root).is_dir():
         raise ConfigError(f"{root}: dataset folder not found; pass --data")
     before = _eval_psnr(tree, root, down, bg, cfg.eval_views) if cfg.eval_views else None

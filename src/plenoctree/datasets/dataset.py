@@ -17,7 +17,8 @@ from ._files import evenly_spaced
 from .base import Dataset, DatasetFormat
 
 __all__ = ["Dataset", "DatasetFormat", "REGISTRY", "FORMATS", "load_dataset", "load_cameras",
-           "common_downscale", "detect_format", "has_split", "evenly_spaced", "holds_photos"]
+           "common_downscale", "detect_format", "has_split", "evenly_spaced", "holds_photos",
+           "default_background", "PHOTO_BACKGROUND", "RENDER_BACKGROUND"]
 
 REGISTRY: dict[str, DatasetFormat] = {
     f.name: f for f in (blender.FORMAT, nerfstudio.FORMAT, llff.FORMAT, nsvf.FORMAT,
@@ -57,6 +58,23 @@ def detect_format(root: str | os.PathLike) -> str:
                        f"{' and '.join(found)}; choose one with format= (--format)")
 
 
+PHOTO_BACKGROUND = (0.0, 0.0, 0.0)
+"""Default background of real photos (:attr:`DatasetFormat.photos`): black, NeRF's LLFF
+convention. Photos have no transparent pixels; the background only shows where a ray ends
+see-through, i.e. where no training view looked (the edges of outlying views), and black costs
+less there than white (flower's fine-tuned tree: 27.79 against 26.31 dB, docs/capture.md)."""
+
+RENDER_BACKGROUND = (1.0, 1.0, 1.0)
+"""Default background of renders with alpha or a baked backdrop (Blender, NSVF): white."""
+
+
+def default_background(root: str | os.PathLike, format: str | None = None
+                       ) -> tuple[float, float, float]:
+    """The background of dataset ``root`` when none is asked for: :data:`PHOTO_BACKGROUND`
+    for real photos, :data:`RENDER_BACKGROUND` otherwise."""
+    return PHOTO_BACKGROUND if holds_photos(root, format) else RENDER_BACKGROUND
+
+
 def holds_photos(root: str | os.PathLike, format: str | None = None) -> bool:
     """Whether dataset folder ``root`` (of ``format``, default detected) holds real photographs
     (:attr:`DatasetFormat.photos`: LLFF, COLMAP, nerfstudio) rather than renders."""
@@ -71,7 +89,8 @@ def load_dataset(root: str | os.PathLike, split: str = "train", format: str | No
         root: dataset folder. split: "train", "val", "test" (LLFF / NSVF / nerfstudio also
             "all").
         format: one of :data:`FORMATS` to skip detection (:func:`detect_format`).
-        **kw: options of the format's loader; all take ``downscale``, ``background``,
+        **kw: options of the format's loader; all take ``downscale``, ``background`` (None or
+            absent: :func:`default_background`),
             ``limit``, ``spread`` and ``num_threads`` (see
             :func:`~plenoctree.datasets.blender.load_blender`,
             :func:`~plenoctree.datasets.llff.load_llff` (``llffhold``, ``ndc``, ``spherify``,
@@ -81,6 +100,8 @@ def load_dataset(root: str | os.PathLike, split: str = "train", format: str | No
     """
     fmt = detect_format(root) if format is None else _format(format).name
     loader = REGISTRY[fmt].load
+    if kw.get("background") is None:
+        kw["background"] = default_background(root, fmt)
     try:
         return loader(root, split, **kw)
     except TypeError as e:

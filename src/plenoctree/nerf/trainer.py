@@ -34,7 +34,7 @@ from ..errors import ConfigError
 from ..runtime import ThreadTuner, resolve_amp, resolve_device, setup_threads
 from .checkpoint import CHECKPOINT_NAME, CheckpointError, TrainProgress, \
     model_from_checkpoint, read_checkpoint, save_checkpoint
-from .config import TrainConfig, config_json, validate
+from .config import PHOTO_DISTORTION, TrainConfig, config_json, validate
 from .encoding import HashGridEncoding
 from .evaluate import evaluate_views
 from .model import NeRFModel
@@ -124,6 +124,16 @@ def opaque_photos(cfg: TrainConfig) -> bool:
     if cfg.photo_background != "auto":
         return cfg.photo_background == "random"
     return holds_photos(cfg.data, cfg.format)
+
+
+def distortion_weight(cfg: TrainConfig) -> float:
+    """The distortion loss's weight: ``cfg.distortion_weight``, or when None
+    :data:`~plenoctree.nerf.config.PHOTO_DISTORTION` for real photos with the occupancy sampler
+    and 0 otherwise."""
+    if cfg.distortion_weight is not None:
+        return float(cfg.distortion_weight)
+    photos = cfg.sampler == "occupancy" and holds_photos(cfg.data, cfg.format)
+    return PHOTO_DISTORTION if photos else 0.0
 
 
 def _prepare_run_dir(cfg: TrainConfig, resume: bool):
@@ -229,6 +239,7 @@ class Trainer:
             cfg.seed, self.dctx.rank, self.step, self.device)
         self.rays = RaySource(self.data, self.device, cfg.random_background,
                               opaque_photos=opaque_photos(cfg))
+        self.dist_weight = distortion_weight(cfg)
         self.occ_thresh = -math.log(1.0 - cfg.occ_threshold) / cfg.render_step
         self.wall0 = time.perf_counter() - wall_before
         self.last_ckpt_wall = time.perf_counter()
@@ -342,7 +353,7 @@ class Trainer:
         if self.occ:
             mode = RenderMode(train=True, generator=self.rgen, amp=self.amp,
                               max_samples=2 * cfg.target_samples // dctx.world,
-                              distortion=cfg.distortion_weight > 0)
+                              distortion=self.dist_weight > 0)
             r = render_rays_occupancy(self.model, batch, cfg, mode)
             rgb, dist = r["rgb"], r.get("distortion")
             if r["capped"]:         # only the complete rays (one host round trip)
@@ -356,7 +367,7 @@ class Trainer:
             mse = torch.mean((rgb - target) ** 2) if used else r["rgb"].sum() * 0
             loss = mse
             if dist is not None and used:
-                loss = loss + cfg.distortion_weight / self.extent * dist.mean()
+                loss = loss + self.dist_weight / self.extent * dist.mean()
         else:
             mode = RenderMode(train=True, generator=self.rgen, amp=self.amp)
             r = render_rays_hierarchical(self.model, batch, cfg, mode)
