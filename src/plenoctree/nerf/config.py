@@ -216,7 +216,8 @@ PRESETS = {"cpu": _cpu, "paper": _paper}
 PHOTO_DISTORTION = 0.01
 """The distortion weight real photos train with by default (``distortion_weight=None``); with
 the random backgrounds of ``photo_background`` it turned flower's NeRF-SH fog into surfaces:
-20 samples per ray instead of 56, fine-tuned tree 7.4 FPS instead of 3.4 (docs/capture.md)."""
+17 samples per training ray instead of 51, fine-tuned tree 7.5 FPS instead of 3.4
+(docs/capture.md)."""
 
 
 def preset(name: str) -> TrainConfig:
