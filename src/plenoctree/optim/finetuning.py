@@ -94,7 +94,8 @@ class FinetuneConfig:
     precision: str = _f("auto", "saved precision: fp16, fp32 or auto (that of the input file)")
     stop_thresh: float = _f(0.01, "early ray termination when transmittance < this (0 = off)")
     background: tuple[float, float, float] | None = _f(
-        None, "background colour R,G,B in [0,1] (default: the dataset loader's, white)")
+        None, "background colour R,G,B in [0,1] (default: the dataset's: black for real photos, "
+              "white for renders)")
     backend: str = _f("auto", "auto (numba on the CPU, the Triton kernel on CUDA), numba, "
                               "triton or torch (the twin)")
     device: str = _f("auto", "auto (CUDA when a GPU is present, else cpu), cpu, cuda or cuda:N")
