@@ -265,11 +265,14 @@ def _march_waves(field: RadianceField, rays: MarchRays, grid: MarchGrid, mode: R
                 rgb.index_add_(0, gidx, w[:, None] * color)
         k[active] = s.k_next
         active = active[~finished]
+    out = {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": evaluated}
     if not train:
-        return {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": evaluated}
-    if not parts:
-        return {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": 0, "complete": complete,
-                "capped": capped, "distortion": acc}
+        return out
+    out.update(complete=complete, capped=capped)
+    if not parts:                   # nothing evaluated: the zeros above, no distortion
+        if mode.distortion:
+            out["distortion"] = torch.zeros_like(acc)
+        return out
     gidx, t, sigma, color, keep = (torch.cat(x) for x in zip(*parts))
     kept = keep.nonzero()[:, 0]                             # the waves' kept samples, in order
     order = kept[torch.sort(gidx[kept], stable=True).indices]   # ray-major; waves keep k order
@@ -278,11 +281,9 @@ def _march_waves(field: RadianceField, rays: MarchRays, grid: MarchGrid, mode: R
     # offsets of the sorted rays without a host round trip (bincount reads its size back)
     offsets = torch.searchsorted(gidx, torch.arange(n + 1, device=dev))
     w, _ = render_weights_packed(sigma, step, gidx, offsets)
-    rgb = composite_packed(w, color, gidx, n)
-    acc = composite_packed(w, torch.ones_like(w)[:, None], gidx, n)[:, 0]
-    dsum = composite_packed(w, t[:, None], gidx, n)[:, 0]
-    out = {"rgb": rgb, "acc": acc, "dsum": dsum, "n_samples": evaluated,
-           "complete": complete, "capped": capped}
+    out.update(rgb=composite_packed(w, color, gidx, n),
+               acc=composite_packed(w, torch.ones_like(w)[:, None], gidx, n)[:, 0],
+               dsum=composite_packed(w, t[:, None], gidx, n)[:, 0])
     if mode.distortion:
         out["distortion"] = distortion_packed(w, t, step, gidx, offsets, n)
     return out
@@ -318,10 +319,9 @@ def render_rays_occupancy(model: NeRFModel, rays: RayBatch, cfg: TrainConfig,
     acc = r["acc"]
     out = {"rgb": r["rgb"] + (1.0 - acc)[:, None] * rays.bg(), "acc": acc,
            "depth": r["dsum"] / acc.clamp(min=1e-10), "n_samples": r["n_samples"]}
-    if mode.train:
-        out["complete"], out["capped"] = r["complete"], r["capped"]
-        if mode.distortion:
-            out["distortion"] = r["distortion"]
+    for key in ("complete", "capped", "distortion"):    # training only (see _march_waves)
+        if key in r:
+            out[key] = r[key]
     return out
 
 
