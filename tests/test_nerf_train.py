@@ -273,6 +273,10 @@ def test_distortion_loss_gathers_the_weight_along_rays(data, tmp_path):
     (psnr0, dist0), (psnr1, dist1) = runs[0.0], runs[0.2]
     assert dist1 < 0.7 * dist0, runs                    # the weight sits in fewer places
     assert psnr1 > psnr0 - 1.5, runs                    # at little cost to the colours
+    from plenoctree.nerf.trainer import distortion_weight
+
+    auto = tiny_cpu_config(data, tmp_path / "auto")
+    assert auto.distortion_weight is None and distortion_weight(auto) == 0.0   # renders: off
     with pytest.raises(ConfigError, match="distortion_weight"):
         bad = tiny_paper_config(data, tmp_path / "bad")
         bad.distortion_weight = 0.01
