@@ -358,6 +358,8 @@ def make_trainer(scene: str, root: Path, args: argparse.Namespace) -> Any:
         cfg.data = str(write_procedural_dataset(root / "data", n_train=20, n_val=0, n_test=1,
                                                 width=64, height=64, n_samples=256))
     cfg.out = str(root / f"run_{scene}")
+    if args.distortion_weight is not None:      # the distortion loss (on by default for photos)
+        cfg.distortion_weight = args.distortion_weight
     cfg.device, cfg.minutes, cfg.max_steps, cfg.threads = "cpu", 0.0, 10**9, args.threads
     cfg.val_views, cfg.val_every_s, cfg.val_every_steps = 0, 0.0, 0
     cfg.ckpt_every_s, cfg.ckpt_every_steps = 0.0, 0
@@ -541,6 +543,8 @@ def main(argv: list[str] | None = None) -> int:
                          "settles)")
     ap.add_argument("--downscale", type=int, default=8, help="lego photos' downscale")
     ap.add_argument("--threads", type=int, default=0)
+    ap.add_argument("--distortion-weight", type=float, default=None,
+                    help="train steps with this distortion-loss weight (default: the run's)")
     add_data_root(ap)
     add_out(ap, "step_ops.json")
     args = ap.parse_args(argv)
