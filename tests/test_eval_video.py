@@ -378,3 +378,27 @@ def test_video_bad_inputs(scene, tmp_path, capsys, monkeypatch):
                         lambda name, *a: None if name == "imageio_ffmpeg" else real(name, *a))
     with pytest.raises(BackendError, match=r"plenoctree\[video\]"):
         write_video(tmp_path / "e.mp4", [np.zeros((4, 4, 3))])
+
+
+def test_eval_and_video_default_to_the_datasets_background(scene, tmp_path):
+    from plenoctree.datasets.forward_facing import forward_facing_tree, write_forward_facing_dataset
+
+    root = write_forward_facing_dataset(tmp_path / "ff", n_images=9, width=12, height=8,
+                                        n_samples=16)
+    save_tree(forward_facing_tree(root, 16), tmp_path / "ff.npz")
+    common = dict(backend="torch", limit=1, save_images=False, show_progress=False)
+    photos = eval_tree_file(EvalConfig(tmp_path / "ff.npz", data=str(root),
+                                       out=str(tmp_path / "e_ff"), **common))
+    assert photos["render"]["background"] == [0.0, 0.0, 0.0]          # an LLFF folder: black
+    renders = eval_tree_file(EvalConfig(scene / "tree.npz", data=str(scene / "data"),
+                                        out=str(tmp_path / "e_bl"), **common))
+    assert renders["render"]["background"] == [1.0, 1.0, 1.0]         # Blender: white
+    # the video's empty pixels: black on the LLFF folder unless asked otherwise
+    empty = tmp_path / "empty.npz"
+    tree = load_tree(tmp_path / "ff.npz")
+    tree.data[..., -1] = 0.0                                          # σ = 0 everywhere
+    save_tree(tree, empty)
+    dark = make_video(VideoConfig(empty, data=root, frames=2, out=tmp_path / "d.mp4"))
+    light = make_video(VideoConfig(empty, data=root, frames=2, out=tmp_path / "l.mp4",
+                                   background=(1.0, 1.0, 1.0)))
+    assert _read(dark.out).mean() < 20 and _read(light.out).mean() > 235
