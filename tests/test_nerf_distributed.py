@@ -70,3 +70,37 @@ def test_two_gloo_processes_match_one_process(tmp_path):
         assert abs(a - b) <= 0.25 * a, (one, two)
     mean1, mean2 = sum(one) / len(one), sum(two) / len(two)
     assert abs(mean1 - mean2) <= 0.08 * mean1, (one, two)
+
+
+_CLOSE_SCRIPT = """
+import os, torch
+from plenoctree.nerf.distributed import setup_distributed
+threads = lambda: len(os.listdir("/proc/self/task"))
+torch.ones(4).sum()                              # torch's own threads, if any, start here
+before = threads()
+ctx = setup_distributed(torch.device("cpu"))
+p = torch.nn.Parameter(torch.ones(3))
+opt = torch.optim.Adam([p], lr=0.1)              # the first optimiser imports torch._dynamo
+p.grad = torch.ones(3)
+ctx.average_gradients([p])
+ctx.sum([1.0]); ctx.barrier()
+ctx.close()
+open(f"threads_{ctx.rank}.txt", "w").write(f"{before} {threads()}")
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="counts threads in /proc")
+def test_close_joins_the_process_groups_threads(tmp_path):
+    """close() frees the gloo group: its worker threads are gone, so none can still be
+    releasing a collective's tensors when the interpreter shuts down (that aborted a rank at
+    exit, under load, when torch._dynamo held the group)."""
+    (tmp_path / "close.py").write_text(_CLOSE_SCRIPT)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env.pop("WORLD_SIZE", None)
+    p = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone",
+                        "--nproc_per_node", "2", "close.py"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    for rank in (0, 1):
+        before, after = (tmp_path / f"threads_{rank}.txt").read_text().split()
+        assert int(after) == int(before), f"rank {rank}: {before} threads before, {after} after"

@@ -148,6 +148,14 @@ def setup_distributed(device: torch.device) -> DistContext:
         torch.cuda.set_device(device)
     owns = False
     if not dist.is_initialized():
+        # torch._dynamo, imported lazily by the first optimiser, keeps ~10 references to the
+        # default process group when it is imported after the group exists: then
+        # destroy_process_group() does not free the group, its gloo worker threads outlive
+        # close(), and one still releasing a collective's tensors when the interpreter shuts
+        # down aborts the process ("terminate called without an active exception", SIGABRT
+        # or SIGSEGV at exit, seen under load). Imported first, it holds none.
+        import torch._dynamo  # noqa: F401
+
         dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
         owns = True
     return DistContext(rank=dist.get_rank(), world=dist.get_world_size(), device=device,
