@@ -267,6 +267,7 @@ def test_run_images_stage_reports_bad_photos(tmp_path):
     (["--process.frames", "2"], "--process.frames must be an integer >= 3"),
     (["--process.camera-model", "FISH"], "camera model must be one of"),
     (["--process.mapper", '{"no_such_option": 1}'], "unknown COLMAP mapper option"),
+    (["--process.refine-principal-point", "yes"], "--process.refine-principal-point must be auto, on or off"),
 ])
 def test_run_images_checks_every_option_before_process(tmp_path, monkeypatch, capsys, flags,
                                                        message):
@@ -478,3 +479,38 @@ def test_held_out_photos_are_every_8th_input_photo():
     assert lists["val_filenames"] == lists["test_filenames"]
     assert len(lists["train_filenames"]) == len(reg) - 2
     assert _holdout_lists(names, ["0002.jpg", "0003.jpg"], ["a", "b"]) == {}
+
+
+def test_final_bundle_adjustment_refines_the_principal_point_of_360_captures():
+    """A synthetic 360° capture whose camera's principal point sits 4 px right of the image
+    centre, the model started at the centre (as COLMAP's mapper keeps it): the final bundle
+    adjustment finds it again (``auto`` on a 360° capture, ``on``) and leaves it alone when
+    off; ``auto`` is off for forward-facing cameras."""
+    import pycolmap
+
+    from plenoctree.process.sfm import _global_ba, refines_principal_point
+
+    def capture(forward: bool = False):
+        o = pycolmap.SyntheticDatasetOptions()
+        o.num_rigs, o.num_cameras_per_rig, o.num_frames_per_rig, o.num_points3D = 1, 1, 12, 200
+        o.camera_model_id = pycolmap.CameraModelId.SIMPLE_RADIAL
+        o.camera_params, o.camera_width, o.camera_height = [80.0, 44.0, 32.0, 0.0], 80, 64
+        rec = pycolmap.synthesize_dataset(o)
+        if forward:
+            for k, fid in enumerate(sorted(rec.frames)):
+                c = np.array([0.3 * (k % 4 - 1.5), 0.3 * (k // 4 - 1), -6.0])
+                rec.frames[fid].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(), -c)
+        return rec
+
+    rec = capture()
+    assert refines_principal_point("auto", "auto", rec)
+    assert refines_principal_point("auto", "360", rec) and refines_principal_point("on", "forward", rec)
+    assert not refines_principal_point("off", "360", rec)
+    assert not refines_principal_point("auto", "forward", rec)
+    assert not refines_principal_point("auto", "auto", capture(forward=True))
+    for refine, want in ((True, 44.0), (False, 40.0)):
+        rec = capture()
+        cam = next(iter(rec.cameras.values()))
+        cam.principal_point_x = 40.0               # the centre, where the mapper keeps it
+        _global_ba(pycolmap, rec, refine)
+        assert abs(next(iter(rec.cameras.values())).principal_point_x - want) < 0.05, refine

@@ -133,7 +133,8 @@ def process(cfg: ProcessConfig) -> dict:
         names = [p.name for p in photos]
         logger.info(f"process: {len(names)} images from {src}")
         ordered = video or (len(names) > EXHAUSTIVE_MAX_IMAGES and in_capture_order(photos))
-        res = run_sfm(image_dir, work, names, cfg.sfm, sequential=ordered, label=src)
+        res = run_sfm(image_dir, work, names, cfg.sfm, sequential=ordered, label=src,
+                      scene=cfg.scene)
         summary = _write_dataset(res, image_dir, names, stage, work, cfg)
         summary.update(source=str(src), video=video, seconds_total=time.perf_counter() - t_start,
                        config={k: v for k, v in asdict(cfg).items()})

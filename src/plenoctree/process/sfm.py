@@ -38,6 +38,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
+
 from ..errors import ConfigError, PlenOctreeError
 
 __all__ = ["SfmOptions", "SfmResult", "run_sfm", "require_pycolmap", "check_options",
@@ -104,6 +106,9 @@ class SfmOptions:
     """initial focal length / longest side when the images carry no EXIF focal length"""
     mapper: dict = field(default_factory=lambda: dict(MAPPER_DEFAULTS))
     """IncrementalPipelineOptions fields ("mapper.<name>" for its mapper's), on top of COLMAP's"""
+    refine_principal_point: str = "auto"
+    """the final bundle adjustment also refines the principal point: on, off, or auto (360°
+    captures only: forward-facing photos constrain it poorly, and LLFF assumes it centred)"""
 
 
 @dataclass
@@ -128,6 +133,9 @@ def check_options(opts: SfmOptions) -> None:
     if opts.camera_model not in CAMERA_MODELS:
         raise ConfigError(f"camera model must be one of {', '.join(CAMERA_MODELS)}, got "
                           f"{opts.camera_model!r}")
+    if opts.refine_principal_point not in ("auto", "on", "off"):
+        raise ConfigError("refine_principal_point must be auto, on or off, got "
+                          f"{opts.refine_principal_point!r}")
     if opts.matcher not in ("auto", "exhaustive", "sequential"):
         raise ConfigError(f"matcher must be auto, exhaustive or sequential, got {opts.matcher!r}")
     if opts.max_features < 100 or opts.max_image_size < 64:
@@ -164,7 +172,7 @@ def _mapper_options(pycolmap: Any, opts: SfmOptions) -> Any:
 def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Sequence[str],
             opts: SfmOptions | None = None, sequential: bool = False,
             show_progress: bool | None = None,
-            label: str | os.PathLike | None = None) -> SfmResult:
+            label: str | os.PathLike | None = None, scene: str = "auto") -> SfmResult:
     """Features, matches and an incremental reconstruction of ``names`` in ``image_dir``.
 
     Args:
@@ -175,6 +183,9 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
             follow it; ``matcher="auto"`` then matches neighbours in time beyond
             :data:`EXHAUSTIVE_MAX_IMAGES`, :func:`choose_matcher`).
         label: what the error messages name (default ``image_dir``; ``process``: the video).
+        scene: "auto", "360" or "forward" (``process --scene``): with
+            ``refine_principal_point="auto"`` the final bundle adjustment refines the principal
+            point of 360° captures (:func:`refines_principal_point`).
 
     Returns:
         :class:`SfmResult` with the model holding the most registered images.
@@ -262,8 +273,13 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     # A final global bundle adjustment of the chosen model.
     pycolmap.logging.minloglevel = 2          # (the mapper resets COLMAP's log level)
     t0 = time.perf_counter()
-    _global_ba(pycolmap, best)
+    refine_pp = refines_principal_point(opts.refine_principal_point, scene, best)
+    _global_ba(pycolmap, best, refine_pp)
     times["final_ba"] = time.perf_counter() - t0
+    if refine_pp:
+        pp = [f"({c.principal_point_x:.1f}, {c.principal_point_y:.1f})"
+              for c in best.cameras.values()][:3]
+        logger.info(f"colmap: principal point refined: {', '.join(pp)} px")
     n_reg = best.num_reg_images()
     logger.info(f"colmap: {n_reg} of {len(names)} images registered"
         + (f" (largest of {len(models)} models)" if len(models) > 1 else ""))
@@ -375,16 +391,40 @@ def sequential_pairs(n: int, overlap: int) -> list[tuple[int, int]]:
     return sorted(pairs)
 
 
-def _global_ba(pycolmap: Any, rec: Any) -> None:
+def refines_principal_point(option: str, scene: str, rec: Any) -> bool:
+    """Whether the final bundle adjustment refines the principal point (``option``: on, off,
+    auto = for 360° captures: ``scene`` "360", or "auto" and the registered cameras' optical
+    axes spread, :func:`plenoctree.datasets.colmap.capture_kind`).
+
+    COLMAP's mapper keeps the principal point at the image centre; a phone's may sit pixels
+    off it (instant-ngp's OPENCV camera of real/fox: 14.6 px right, 5.3 px below), which the
+    poses then absorb as a rotation of each camera about its own centre, different for every
+    camera. instant-ngp's ``colmap2nerf`` refines it in a last bundle adjustment too.
+    """
+    if option != "auto":
+        return option == "on"
+    if scene != "auto":
+        return scene == "360"
+    from ..datasets.colmap import capture_kind
+
+    c2w = np.zeros((rec.num_reg_images(), 4, 4))
+    for k, image_id in enumerate(rec.reg_image_ids()):
+        r = np.asarray(rec.images[image_id].cam_from_world().rotation.matrix())
+        c2w[k, :3, :3] = r.T @ np.diag([1.0, -1.0, -1.0])      # OpenGL axes, as capture_kind
+    return capture_kind(c2w) == "360"
+
+
+def _global_ba(pycolmap: Any, rec: Any, refine_principal_point: bool = False) -> None:
     """Bundle adjustment of every registered image and point of ``rec`` (in place; through
     the adjuster object, which, unlike ``pycolmap.bundle_adjustment``, keeps COLMAP's log
-    level: no INFO lines on the terminal)."""
+    level: no INFO lines on the terminal), the principal point too when asked."""
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in rec.reg_image_ids():
         config.add_image(image_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     ba = pycolmap.BundleAdjustmentOptions()
     ba.print_summary = False
+    ba.refine_principal_point = bool(refine_principal_point)
     pycolmap.create_default_bundle_adjuster(ba, config, rec).solve()
 
 
