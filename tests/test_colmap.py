@@ -272,3 +272,36 @@ def test_weakly_supported_images_are_dropped():
         rec.delete_observation(victim, i)
     assert drop_weak_images(rec, 0.35) == [rec.images[victim].name]
     assert not rec.images[victim].has_pose and rec.num_reg_images() == 7
+
+
+def _ring_cameras(n: int = 16, radius: float = 3.0) -> np.ndarray:
+    """OpenGL c2w ``[n, 4, 4]`` on a horizontal ring, each looking at the origin (z up)."""
+    out = np.zeros((n, 4, 4))
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        c = radius * np.array([np.cos(a), np.sin(a), 0.3])
+        back = c / np.linalg.norm(c)                       # OpenGL: the camera looks along -z
+        right = np.cross([0.0, 0.0, 1.0], back)
+        right /= np.linalg.norm(right)
+        out[k, :3, :3] = np.stack([right, np.cross(back, right), back], axis=1)
+        out[k, :3, 3], out[k, 3, 3] = c, 1.0
+    return out
+
+
+def test_box_of_an_object_and_of_a_room_around_the_cameras():
+    """An object in the middle keeps the box of its points (well inside the cameras); points
+    all around and beyond the cameras (a room, as real/fox) give a box holding every camera
+    with a 10 % margin (before: the cube was cut at the camera distance and a third of fox's
+    cameras sat outside it)."""
+    c2w = _ring_cameras()
+    rng = np.random.default_rng(0)
+    obj = rng.uniform(-0.6, 0.6, (500, 3))
+    frame = normalize_scene(c2w, obj)
+    assert frame.kind == "360" and frame.bbox[1, 0] < 0.6 * CAMERA_RADIUS
+    d = rng.normal(size=(3000, 3))
+    room = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(1.0, 6.0, (3000, 1))
+    frame = normalize_scene(c2w, room)
+    cams = frame.c2w[:, :3, 3]
+    half = frame.bbox[1, 0]
+    np.testing.assert_allclose(half, 1.1 * np.abs(cams).max(), rtol=1e-9)
+    assert half > CAMERA_RADIUS and np.all(np.abs(cams) < half)
