@@ -253,7 +253,7 @@ def test_bad_files_show_message(browser, trees, tmp_path):
 
 
 def test_exported_bundle_works_on_a_plain_static_server(browser, trees, tmp_path):
-    out = export_web(trees["plnz"], tmp_path / "site")
+    out = export_web(trees["plnz"], tmp_path / "site", background=(0.0, 0.0, 0.0))
     handler = functools.partial(SimpleHTTPRequestHandler, directory=str(out))
     httpd = ThreadingHTTPServer(("127.0.0.1", 0), handler)
     thread = threading.Thread(target=httpd.serve_forever, daemon=True)
@@ -261,6 +261,8 @@ def test_exported_bundle_works_on_a_plain_static_server(browser, trees, tmp_path
     try:
         page = _open(browser, f"http://127.0.0.1:{httpd.server_address[1]}/")
         assert page.evaluate("window.viewer.info()")["compressed"] is True
+        # the page starts on config.json's background (run gives black for real photos)
+        assert page.evaluate("document.getElementById('background').value") == "#000000"
         page.close()
     finally:
         httpd.shutdown()

@@ -71,3 +71,18 @@ def test_server_serves_the_cameras(scene):
         add_cameras_to_server(srv, cameras_config(data.cameras, data.names))
         cfg = json.loads(urllib.request.urlopen(srv.url + "config.json").read())
     assert cfg["tree"] == "data/t.npz" and len(cfg["cameras"]["c2w"]) == 5
+
+
+def test_bundle_starts_on_the_datasets_background(scene, tmp_path):
+    """export-web --data writes the dataset's background into config.json: white for renders,
+    black for real photos (an LLFF folder), the colour eval and video use (that the page starts
+    on it: test_viewer_browser's bundle test)."""
+    from plenoctree.datasets.forward_facing import write_forward_facing_dataset
+
+    ff = write_forward_facing_dataset(tmp_path / "ff", n_images=5, width=16, height=12,
+                                      n_samples=8)
+    for data, want in ((scene / "data", [1.0, 1.0, 1.0]), (ff, [0.0, 0.0, 0.0])):
+        out = tmp_path / f"site_{want[0]:.0f}"
+        assert main(["export-web", str(scene / "t.npz"), "--out", str(out), "--data",
+                     str(data)]) == 0
+        assert json.loads((out / "config.json").read_text())["background"] == want

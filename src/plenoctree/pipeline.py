@@ -430,11 +430,13 @@ def _eval_stage(cfg: PipelineConfig, key: str, tree: Path, common: dict) -> Stag
 def _web(cfg: PipelineConfig, lay: RunLayout) -> None:
     """The static web-viewer bundle, with the training cameras (NDC scenes: + the NDC one)."""
     from .datasets import load_cameras
+    from .datasets.dataset import default_background
     from .viewer.export import export_web
 
     train = load_cameras(cfg.train.data, split="train", format=cfg.format)
     export_web(lay.compressed, Path(cfg.out) / "web", overwrite=True, cameras=train.cameras,
-               camera_names=train.names)
+               camera_names=train.names,
+               background=default_background(cfg.train.data, cfg.format))
 
 
 def _video_stage(cfg: PipelineConfig, lay: RunLayout, common: dict) -> Stage:

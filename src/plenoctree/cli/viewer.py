@@ -71,7 +71,8 @@ def _check_tree(path: Path) -> None:
 
 
 def _cameras_extra(cfg: PageConfig) -> dict:
-    """config.json entries for --data: the split's cameras (first view, list, jumps).
+    """config.json entries for --data: the split's cameras (first view, list, jumps) and the
+    dataset's background (black for real photos: :func:`~plenoctree.datasets.default_background`).
 
     The images are loaded small (:func:`~plenoctree.datasets.load_cameras`) only to read the
     poses cheaply: the page uses the poses and the field of view (fx, fy relative to width,
@@ -80,10 +81,12 @@ def _cameras_extra(cfg: PageConfig) -> dict:
     if not cfg.data:
         return {}
     from ..datasets import load_cameras
+    from ..datasets.dataset import default_background
     from ..viewer.export import cameras_config
 
     data = load_cameras(cfg.data, split=cfg.split)
-    return cameras_config(data.cameras, data.names)
+    return {**cameras_config(data.cameras, data.names),
+            "background": list(default_background(cfg.data))}
 
 
 def _warn_if_exposed(host: str, port: int) -> None:

@@ -18,7 +18,7 @@ import json
 import os
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -95,7 +95,8 @@ does not work: browsers do not let such a page fetch files.
 def export_web(tree_path: str | os.PathLike, out_dir: str | os.PathLike,
                title: str | None = None, overwrite: bool = False,
                max_mb: float = DEFAULT_MAX_MB, cameras: Any = None,
-               camera_names: list[str] | None = None) -> Path:
+               camera_names: list[str] | None = None,
+               background: Sequence[float] | None = None) -> Path:
     """Write the viewer page and ``tree_path`` into ``out_dir``; returns ``out_dir``.
 
     Args:
@@ -106,6 +107,8 @@ def export_web(tree_path: str | os.PathLike, out_dir: str | os.PathLike,
         max_mb: the page's texture budget in MB.
         cameras: the training :class:`Cameras` (optional): the first view is framed like them
             and the page lists them (see :func:`cameras_config`); ``camera_names`` labels them.
+        background: the page's first background colour (RGB in [0, 1]; the page's own white
+            when None); ``run`` gives the dataset's (black for real photos).
     Raises:
         ConfigError: missing tree, ``out_dir`` is a file or a non-empty folder without
         ``overwrite``. TreeFormatError: a tree the page would refuse (see
@@ -131,6 +134,8 @@ def export_web(tree_path: str | os.PathLike, out_dir: str | os.PathLike,
     config = viewer_config(name, title, max_mb)
     if cameras is not None:
         config.update(cameras_config(cameras, camera_names))
+    if background is not None:
+        config["background"] = [float(v) for v in background]
     with atomic_write(out / "config.json", "w") as f:
         json.dump(config, f, indent=1)
     with atomic_write(out / "data" / name, "wb") as f, open(tree, "rb") as src_f:

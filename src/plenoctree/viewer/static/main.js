@@ -618,6 +618,12 @@ async function main() {
     if (cfg.ok) config = await cfg.json();
   } catch (err) { /* no config: ?tree= or the file picker */ }
   if (config.title) document.title = config.title;
+  // the dataset's background (black for real photos), until the user picks another
+  if (Array.isArray(config.background) && config.background.length === 3
+      && config.background.every((v) => Number.isFinite(v) && v >= 0 && v <= 1)) {
+    opts.background = config.background.slice();
+    syncControls();
+  }
   fillCameraList();
   const treeUrl = params.get("tree") || config.tree;
   const wanted = params.get("tree") ? "webgl" : params.get("render") || config.render || "webgl";
