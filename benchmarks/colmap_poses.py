@@ -225,6 +225,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", default=str(CACHE / "colmap_poses"),
                     help="folder of the photos and process's outputs (kept)")
     ap.add_argument("--camera-model", default=None)
+    ap.add_argument("--refine-principal-point", choices=("auto", "on", "off"), default=None,
+                    help="process's final bundle adjustment (default: process's auto)")
     ap.add_argument("--guided", choices=("on", "off"), default=None)
     ap.add_argument("--matcher", default=None)
     ap.add_argument("--max-image-size", type=int, default=None)
@@ -258,6 +260,8 @@ def main(argv: list[str] | None = None) -> int:
     ours = SfmOptions()
     if args.camera_model:
         ours.camera_model = args.camera_model
+    if args.refine_principal_point:
+        ours.refine_principal_point = args.refine_principal_point
     for flag, name in (("matcher", "matcher"), ("max_image_size", "max_image_size"),
                        ("overlap", "sequential_overlap")):
         if getattr(args, flag) is not None:

@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import DatasetError
 
 __all__ = ["ColmapCamera", "ColmapModel", "read_colmap_model", "find_colmap_model",
-           "colmap_c2w", "CAMERA_MODELS"]
+           "colmap_c2w", "rotation_c2w", "CAMERA_MODELS"]
 
 # model id -> (name, number of parameters), as in COLMAP's sensor/models.h
 CAMERA_MODELS = {
@@ -256,9 +256,15 @@ def _quat_to_rot(q: np.ndarray) -> np.ndarray:
 
 def colmap_c2w(qvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     """OpenGL camera-to-world float64 ``[4, 4]`` of a COLMAP pose (``cam_from_world`` as the
-    unit quaternion ``qvec`` (w, x, y, z) and translation ``tvec``): ``R^T``, centre
-    ``-R^T t``, then the y and z axes flipped (OpenCV → OpenGL)."""
-    r = _quat_to_rot(np.asarray(qvec, dtype=np.float64))
+    unit quaternion ``qvec`` (w, x, y, z) and translation ``tvec``): :func:`rotation_c2w`."""
+    return rotation_c2w(_quat_to_rot(np.asarray(qvec, dtype=np.float64)), tvec)
+
+
+def rotation_c2w(r: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """OpenGL camera-to-world float64 ``[4, 4]`` of ``cam_from_world`` = rotation matrix ``r``
+    ``[3, 3]`` and translation ``tvec``: ``R^T``, centre ``-R^T t``, then the y and z axes
+    flipped (OpenCV → OpenGL)."""
+    r = np.asarray(r, dtype=np.float64)
     m = np.eye(4)
     m[:3, :3] = r.T
     m[:3, 3] = -r.T @ np.asarray(tvec, dtype=np.float64)

@@ -106,9 +106,11 @@ class SfmOptions:
     """initial focal length / longest side when the images carry no EXIF focal length"""
     mapper: dict = field(default_factory=lambda: dict(MAPPER_DEFAULTS))
     """IncrementalPipelineOptions fields ("mapper.<name>" for its mapper's), on top of COLMAP's"""
-    refine_principal_point: str = "auto"
+    refine_principal_point: str = "off"
     """the final bundle adjustment also refines the principal point: on, off, or auto (360°
-    captures only: forward-facing photos constrain it poorly, and LLFF assumes it centred)"""
+    captures only: forward-facing photos constrain it poorly, and LLFF assumes it centred).
+    Off by default: on lego's photos (centred) it cost 0.07° of median rotation error, and on
+    fox it matched instant-ngp's poses better (0.27° against 0.53°) without a better tree"""
 
 
 @dataclass
@@ -406,12 +408,11 @@ def refines_principal_point(option: str, scene: str, rec: Any) -> bool:
     if scene != "auto":
         return scene == "360"
     from ..datasets.colmap import capture_kind
+    from ..datasets.colmap_model import rotation_c2w
 
-    c2w = np.zeros((rec.num_reg_images(), 4, 4))
-    for k, image_id in enumerate(rec.reg_image_ids()):
-        r = np.asarray(rec.images[image_id].cam_from_world().rotation.matrix())
-        c2w[k, :3, :3] = r.T @ np.diag([1.0, -1.0, -1.0])      # OpenGL axes, as capture_kind
-    return capture_kind(c2w) == "360"
+    poses = [rec.images[i].cam_from_world() for i in rec.reg_image_ids()]
+    return capture_kind(np.stack([rotation_c2w(p.rotation.matrix(), p.translation)
+                                  for p in poses])) == "360"
 
 
 def _global_ba(pycolmap: Any, rec: Any, refine_principal_point: bool = False) -> None:
