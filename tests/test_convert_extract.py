@@ -201,6 +201,25 @@ def test_fixed_box_from_user(scene):
     res = extract(cfg, field=AnalyticField())
     assert res.box.source == "user"
     np.testing.assert_allclose(res.tree.bbox, [[-1.1, -1.2, -1.2], [1.3, 1.2, 1.2]])
+    assert res.box.depth_stretch == 1       # --ndc-depth-stretch is for NDC scenes only
+
+
+def test_automatic_grid_and_depth_stretch():
+    """``--grid 0``: 256 for a 360° scene, 512 for a forward-facing one (whose box is also
+    stretched along depth: its cells come out deeper than wide, x and y untouched)."""
+    from plenoctree.convert.bbox import BoxResult, stretch_depth
+    from plenoctree.convert.extraction import extraction_grid
+
+    assert ExtractConfig().grid == 0
+    assert (extraction_grid(0, ndc=False), extraction_grid(0, ndc=True)) == (256, 512)
+    assert extraction_grid(128, ndc=True) == 128
+    box = BoxResult(np.array([0.1, 0.0, 0.03]), np.array([1.45, 1.26, 0.97]), "auto")
+    s = stretch_depth(box, 4.0)
+    np.testing.assert_allclose(s.center, box.center)
+    np.testing.assert_allclose(s.radius, [1.45, 1.26, 3.88])
+    assert s.depth_stretch == 4.0 and box.depth_stretch == 1.0 and s.source == "auto"
+    with pytest.raises(ConfigError, match="stretch"):
+        stretch_depth(box, 0.5)
 
 
 # ------------------------------------------------------------------------------ bad input
@@ -232,7 +251,7 @@ def test_too_large_grid_is_a_clear_error(scene):
     (dict(masking="alpha"), "--masking"), (dict(bbox="tight"), "--bbox"),
     (dict(weight_thresh=0.0), "--weight-thresh"), (dict(precision="fp8"), "--precision"),
     (dict(radius=(1.0, 2.0)), "--radius"), (dict(center=(0.0, 0.0, 0.0)), "--radius"),
-    (dict(averaging="median"), "--averaging"),
+    (dict(averaging="median"), "--averaging"), (dict(ndc_depth_stretch=0.5), "--ndc-depth"),
 ])
 def test_bad_options(scene, kw, match):
     with pytest.raises(ConfigError, match=match):

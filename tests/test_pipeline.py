@@ -176,7 +176,9 @@ def test_demo_on_a_user_dataset(scene, tmp_path, capsys):
 
 def test_pipeline_on_llff_capture_whose_size_4_does_not_divide(tmp_path):
     """A forward-facing LLFF capture 18×12 px (like LLFF's 504×378: 4 divides neither 18 nor
-    378): every stage runs, the web bundle's training cameras load at a dividing downscale."""
+    378): every stage runs, the web bundle's training cameras load at a dividing downscale;
+    no refinement pass (``--refine.passes`` -1 decides by capture: the 360° scene of the
+    test above gets one), and the extraction box is stretched along NDC depth."""
     from plenoctree.datasets.forward_facing import write_forward_facing_dataset
 
     data = write_forward_facing_dataset(tmp_path / "ff", n_images=9, width=18, height=12,
@@ -186,3 +188,19 @@ def test_pipeline_on_llff_capture_whose_size_4_does_not_divide(tmp_path):
     cfg = json.loads((out / "web" / "config.json").read_text())
     assert cfg["cameras"]["width"] == 3 and cfg["ndc"]["width"] == 3
     assert (out / "summary.md").exists()
+    assert not (out / "tree_refined.npz").exists()
+    assert json.loads((out / "config.json").read_text())["refine"]["passes"] == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert [r["stage"] for r in summary["rows"] if "refined" in r["stage"]] == []
+    assert json.loads((out / "tree.extract.json").read_text())["box"]["depth_stretch"] == 4
+
+
+def test_refinement_passes_by_capture():
+    """``run``'s ``--refine.passes`` default (-1) is one pass for a 360° capture and none for a
+    forward-facing one; a number given is kept."""
+    from plenoctree.pipeline_config import AUTO_PASSES, scene_refine_passes
+
+    assert PipelineConfig().refine.passes == AUTO_PASSES
+    assert scene_refine_passes(AUTO_PASSES, forward=False) == 1
+    assert scene_refine_passes(AUTO_PASSES, forward=True) == 0
+    assert scene_refine_passes(2, forward=True) == 2 and scene_refine_passes(0, False) == 0

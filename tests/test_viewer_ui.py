@@ -320,8 +320,23 @@ def ff(tmp_path_factory):
     save_tree(tree, d / "ff.npz", precision="fp16")
     data = load_dataset(root, "train")
     assert data.cameras.ndc and tree.ndc is not None
+    # the same scene in a box 4x deeper (extraction's --ndc-depth-stretch): every 4th depth
+    # cell of the 32³ grid, centred in 32 cells along the stretched depth
+    from plenoctree.datasets.forward_facing import forward_facing_grid
+    from plenoctree.octree import Octree
+
+    values, mask, center, radius = forward_facing_grid(root, 32)
+    full = np.zeros(mask.shape + (4,), np.float32)
+    full[mask] = values
+    s_mask = np.zeros_like(mask)
+    s_vals = np.zeros_like(full)
+    s_mask[..., 12:20], s_vals[..., 12:20, :] = mask[..., 2::4], full[..., 2::4, :]
+    stretched = Octree.from_grid(s_vals[s_mask], s_mask, center, radius * [1, 1, 4],
+                                 data_format="RGBA")
+    stretched.ndc = tree.ndc
+    save_tree(stretched, d / "ff_stretched.npz", precision="fp16")
     return {"dir": d, "tree": tree.astype(np.float16).astype(np.float32), "path": d / "ff.npz",
-            "cams": data.cameras}
+            "cams": data.cameras, "stretched": stretched.astype(np.float16).astype(np.float32)}
 
 
 def _open_bundle(browser, out):
@@ -333,11 +348,13 @@ def _open_bundle(browser, out):
     return srv, page
 
 
-@pytest.mark.parametrize("source", ["bundle_cameras", "tree_file", "svox_file", "plnz_file"])
+@pytest.mark.parametrize("source", ["bundle_cameras", "tree_file", "svox_file", "plnz_file",
+                                    "stretched_file"])
 def test_ndc_forward_facing_tree_matches_cpu(browser, ff, source):
     """An LLFF (NDC) tree: the page maps world rays to NDC like Cameras(ndc=True).rays(), with
     the NDC space from the bundle's cameras or, without them, from the tree file itself
-    (native header, svox ndc_config, .plnz header)."""
+    (native header, svox ndc_config, .plnz header); also a box stretched 4x along depth (what
+    extraction makes of a forward-facing scene: the rays start inside the box)."""
     from plenoctree.compression import compress, decompress, save_compressed
     from plenoctree.octree.io import export_svox
 
@@ -350,6 +367,9 @@ def test_ndc_forward_facing_tree_matches_cpu(browser, ff, source):
         ctree = compress(tree)
         save_compressed(ctree, path)
         tree = decompress(ctree)
+    elif source == "stretched_file":
+        tree, path = ff["stretched"], ff["dir"] / "ff_stretched.npz"
+        assert tree.bbox[0, 2] < -1 and tree.bbox[1, 2] > 1     # NDC's [-1, 1] inside the box
     out = export_web(path, ff["dir"] / f"site_{source}", overwrite=True,
                      cameras=ff["cams"] if source == "bundle_cameras" else None)
     assert ("ndc" in (out / "config.json").read_text()) == (source == "bundle_cameras")

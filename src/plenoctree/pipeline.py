@@ -29,9 +29,10 @@ from ._util import atomic_save_json, atomic_write, check_output_dir, run_lock
 from .compression.codec import CompressOptions
 from .errors import ConfigError, DatasetError, PlenOctreeError
 from .nerf.config import TrainConfig
-from .pipeline_config import (PRESETS, STAGE_OPTIONS, PipelineConfig, RunLayout,
+from .pipeline_config import (AUTO_PASSES, PRESETS, STAGE_OPTIONS, PipelineConfig, RunLayout,
                               artefact_layout, layer_settings, name_the_flags, nerf_run_dir,
-                              pipeline_preset, train_preset, wired, working_downscale)
+                              pipeline_preset, scene_refine_passes, train_preset, wired,
+                              working_downscale)
 from .pipeline_summary import finetune_outcome, pipeline_summary, summary_markdown
 
 __all__ = ["PipelineConfig", "PipelineError", "Stage", "run_pipeline", "plan_stages",
@@ -105,7 +106,7 @@ def _validate(cfg: PipelineConfig) -> None:
         raise ConfigError("--process.* options apply to --images (photos or a video), not --data")
     _checked("train", lambda: validate(cfg.train))
     _checked("extract", lambda: validate_extract(cfg.extract))
-    if cfg.refine.passes > 0:
+    if cfg.refine.passes not in (0, AUTO_PASSES):     # (AUTO: checked once decided)
         _checked("refine", cfg.refine.validated)
     _checked("finetune", cfg.finetune.validated)
     _checked("compress", cfg.compress.validated)
@@ -260,8 +261,7 @@ def _run(cfg: PipelineConfig, out: Path) -> dict:
     r = _Runner(out)
     if cfg.images:                # its dataset decides the working resolution
         r.run(_process_stage(cfg))
-    if not cfg.downscale:
-        cfg = wired(_working_resolution(cfg))
+    cfg = _scene_settings(cfg)
     stages = plan_stages(cfg, lay)[1 if cfg.images else 0:]
     atomic_save_json(out / "config.json", config_dict(cfg))   # `run --config` reads it back
     if cfg.nerf:          # a trained NeRF-SH: its training time is read from its summary
@@ -333,12 +333,9 @@ def _call(module: str, name: str, stage_cfg: Any) -> Any:
     return getattr(importlib.import_module(f"{__package__}.{module}"), name)(stage_cfg)
 
 
-def _working_resolution(cfg: PipelineConfig) -> PipelineConfig:
-    """``cfg`` with ``downscale`` 0 replaced by :func:`working_downscale` of its dataset's
-    full-size images (LLFF: the size in ``poses_bounds.npy``, whose ``images/`` may be absent),
-    said on the log."""
-    import torch
-
+def _capture(cfg: PipelineConfig) -> tuple[int, int, bool]:
+    """``(width, height, forward)`` of the dataset's full-size images (LLFF: the size in
+    ``poses_bounds.npy``, whose ``images/`` may be absent); ``forward``: NDC (forward-facing)."""
     from .datasets import detect_format, load_dataset
     from .datasets.llff import POSES_FILE, read_poses_bounds
 
@@ -346,10 +343,20 @@ def _working_resolution(cfg: PipelineConfig) -> PipelineConfig:
     fmt = cfg.format or detect_format(data)
     if fmt == "llff":
         h, w = (int(v) for v in read_poses_bounds(Path(data) / POSES_FILE)[2][0, :2])
-        forward = True
-    else:
-        probe = load_dataset(data, "train", format=fmt, limit=1)
-        w, h, forward = probe.cameras.width, probe.cameras.height, probe.cameras.ndc
+        return w, h, True
+    probe = load_dataset(data, "train", format=fmt, limit=1)
+    return probe.cameras.width, probe.cameras.height, bool(probe.cameras.ndc)
+
+
+def _working_resolution(cfg: PipelineConfig, w: int, h: int, forward: bool) -> PipelineConfig:
+    """``cfg`` with ``downscale`` 0 replaced by :func:`working_downscale` of its dataset's
+    ``w x h`` full-size images, said on the log."""
+    import torch
+
+    from .datasets import detect_format, load_dataset
+
+    data = cfg.train.data
+    fmt = cfg.format or detect_format(data)
 
     def loads(f: int) -> bool:           # (undistorted images: the files' size must divide)
         try:
@@ -364,6 +371,24 @@ def _working_resolution(cfg: PipelineConfig) -> PipelineConfig:
                 f"{'forward-facing' if forward else '360°'} capture on the "
                 f"{'GPU' if gpu else 'CPU'}; --downscale overrides")
     return dataclasses.replace(cfg, downscale=f)
+
+
+def _scene_settings(cfg: PipelineConfig) -> PipelineConfig:
+    """``cfg`` with what depends on the capture decided: the working resolution (``downscale``
+    0) and the refinement passes (:data:`AUTO_PASSES`); wired and checked."""
+    w, h, forward = _capture(cfg)
+    if not cfg.downscale:
+        cfg = _working_resolution(cfg, w, h, forward)
+    passes = scene_refine_passes(cfg.refine.passes, forward)
+    if passes != cfg.refine.passes:
+        cfg = dataclasses.replace(cfg, refine=dataclasses.replace(cfg.refine, passes=passes))
+        logger.info(f"refinement passes: {passes} for a "
+                    f"{'forward-facing' if forward else '360°'} capture; --refine.passes "
+                    f"overrides")
+    cfg = wired(cfg)
+    if cfg.refine.passes > 0:
+        _checked("refine", cfg.refine.validated)
+    return cfg
 
 
 def _process_stage(cfg: PipelineConfig) -> Stage:

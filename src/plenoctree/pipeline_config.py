@@ -26,7 +26,8 @@ from .process import ProcessConfig
 __all__ = ["PipelineConfig", "StageOptions", "STAGE_OPTIONS", "PRESETS", "UNLIMITED_STEPS",
            "pipeline_preset", "train_preset", "time_budget", "layer_settings", "wired",
            "stage_flags", "name_the_flags", "nerf_run_dir", "working_downscale",
-           "WORKING_PIXELS", "RunLayout", "artefact_layout"]
+           "WORKING_PIXELS", "RunLayout", "artefact_layout", "AUTO_PASSES",
+           "scene_refine_passes"]
 
 UNLIMITED_STEPS = 10**9
 """``train.max_steps`` when the time budget (``train.minutes``) decides."""
@@ -37,6 +38,18 @@ and device: on a CPU, LLFF's forward-facing convention (504x378, NeRF's flower) 
 lego's 400² for 360° captures, which keep a 30-minute training, fine-tuning epochs and the
 evaluation frames within the CPU budget; on a GPU LLFF's factor 4 (1008x756) and lego's
 800²."""
+
+
+#: ``run``'s ``--refine.passes`` default: decided by the capture (:func:`scene_refine_passes`).
+AUTO_PASSES = -1
+
+
+def scene_refine_passes(passes: int, forward: bool) -> int:
+    """``run``'s refinement passes: ``passes``, or for :data:`AUTO_PASSES` one pass for a 360°
+    capture and none for a forward-facing one, whose extraction grid is already finer across
+    the image than one pass makes 256³ (``convert.extraction.NDC_GRID``; flower: 29.56 dB with
+    2.55 M leaves against 29.34 with 3.45 M, docs/capture.md)."""
+    return int(passes) if passes != AUTO_PASSES else (0 if forward else 1)
 
 
 def working_downscale(width: int, height: int, forward: bool, gpu: bool,
@@ -128,8 +141,9 @@ class PipelineConfig:
     """NeRF-SH training (`plenoctree train`)"""
     extract: ExtractConfig = field(default_factory=lambda: ExtractConfig(eval=False))
     """octree extraction (`plenoctree extract`)"""
-    refine: RefineConfig = field(default_factory=RefineConfig)
-    """adaptive refinement (`plenoctree refine`; --refine.passes 0 = off)"""
+    refine: RefineConfig = field(default_factory=lambda: RefineConfig(passes=AUTO_PASSES))
+    """adaptive refinement (`plenoctree refine`; --refine.passes 0 = off, -1 = by capture:
+    :func:`scene_refine_passes`)"""
     finetune: FinetuneConfig = field(default_factory=lambda: FinetuneConfig(
         precision="fp32", test_views=-1, resume=True, verbose=False))
     """fine-tuning (`plenoctree finetune`)"""

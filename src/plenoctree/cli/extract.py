@@ -30,7 +30,9 @@ def report(res) -> str:
     lines.append(f"{'total':<9}{total:>9.2f}")
     b = res.box
     lines.append(f"box ({b.source}): center {[round(float(x), 4) for x in b.center]} "
-                 f"radius {[round(float(x), 4) for x in b.radius]}")
+                 f"radius {[round(float(x), 4) for x in b.radius]}"
+                 + (f" (depth stretched {b.depth_stretch:g}x: forward-facing)"
+                    if b.depth_stretch != 1 else ""))
     t = res.tree
     lines.append(f"grid {res.grid}^3: {res.n_candidates} candidate voxels, {res.n_kept} kept "
                  f"-> {t.n_leaves} leaves ({t.n_nodes} nodes, {t.data_format})")

@@ -10,6 +10,7 @@ what lets a 512³ grid resolve the object instead of the empty space around it (
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,7 +19,8 @@ import numpy as np
 from ..errors import ConfigError
 from .grid import GridSpec, evaluate_density_grid
 
-__all__ = ["BoxResult", "AutoBoxOptions", "auto_bbox", "fixed_bbox", "scale_box"]
+__all__ = ["BoxResult", "AutoBoxOptions", "auto_bbox", "fixed_bbox", "scale_box",
+           "stretch_depth"]
 
 
 @dataclass
@@ -27,6 +29,7 @@ class BoxResult:
 
     ``source`` is "user", "model", "dataset" or "auto"; for "auto" ``kept_cells`` is the
     number of coarse cells at or above the alpha threshold and ``max_alpha`` the largest alpha.
+    ``depth_stretch``: the z radius is that many times the one found (:func:`stretch_depth`).
     """
 
     center: np.ndarray
@@ -34,6 +37,7 @@ class BoxResult:
     source: str
     kept_cells: int = 0
     max_alpha: float = float("nan")
+    depth_stretch: float = 1.0
 
     @property
     def bbox(self) -> np.ndarray:
@@ -43,7 +47,8 @@ class BoxResult:
     def to_json(self) -> dict:
         return {"center": self.center.tolist(), "radius": self.radius.tolist(),
                 "source": self.source, "kept_cells": int(self.kept_cells),
-                "max_alpha": None if np.isnan(self.max_alpha) else float(self.max_alpha)}
+                "max_alpha": None if np.isnan(self.max_alpha) else float(self.max_alpha),
+                "depth_stretch": float(self.depth_stretch)}
 
 
 def scale_box(center: Any, radius: Any, scale: float = 1.0, cube: bool = False
@@ -56,6 +61,18 @@ def scale_box(center: Any, radius: Any, scale: float = 1.0, cube: bool = False
     if cube:
         r[:] = r.max()
     return c, r
+
+
+def stretch_depth(box: BoxResult, stretch: float) -> BoxResult:
+    """``box`` with its z radius (NDC depth of a forward-facing scene) times ``stretch`` ≥ 1
+    about the same centre: a grid over it has cells ``stretch`` times deeper than the x/y
+    ratio of the box gives them; what it adds lies outside the content (or outside NDC's
+    ``[-1, 1]``, where no ray goes) and is never kept."""
+    if not (np.isfinite(stretch) and stretch >= 1.0):
+        raise ConfigError(f"depth stretch must be >= 1, got {stretch}")
+    r = box.radius.copy()
+    r[2] *= float(stretch)
+    return dataclasses.replace(box, radius=r, depth_stretch=box.depth_stretch * float(stretch))
 
 
 def fixed_bbox(center: Any, radius: Any, source: str = "user", scale: float = 1.0,

@@ -446,7 +446,8 @@ class RefineConfig:
     out: str = ""
     """Output tree (.npz); default: <tree stem>_refined.npz."""
     passes: int = 1
-    """Subdivision rounds (each can go one level deeper where the field still varies)."""
+    """Subdivision rounds (each can go one level deeper where the field still varies); `run`'s
+    default -1: 1 for a 360° capture, 0 for a forward-facing one."""
     threshold: float = 0.1
     """Subdivide leaves whose sample spread is at least this (pixel units, 0-1; lego 256³:
     0.1 refines 36% of the leaves, +2.0 dB at 2.9x the leaves)."""
