@@ -65,9 +65,9 @@ def scale_box(center: Any, radius: Any, scale: float = 1.0, cube: bool = False
 
 def stretch_depth(box: BoxResult, stretch: float) -> BoxResult:
     """``box`` with its z radius (NDC depth of a forward-facing scene) times ``stretch`` ≥ 1
-    about the same centre: a grid over it has cells ``stretch`` times deeper than the x/y
-    ratio of the box gives them; what it adds lies outside the content (or outside NDC's
-    ``[-1, 1]``, where no ray goes) and is never kept."""
+    about the same centre: each cell of a grid over it is ``stretch`` times as deep as over
+    ``box``, as wide; what it adds lies outside the content (or outside NDC's ``[-1, 1]``,
+    where no ray goes) and is never kept."""
     if not (np.isfinite(stretch) and stretch >= 1.0):
         raise ConfigError(f"depth stretch must be >= 1, got {stretch}")
     r = box.radius.copy()

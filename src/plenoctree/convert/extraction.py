@@ -5,7 +5,8 @@ Stages (each timed, with its peak RSS):
 1. ``load`` — the trained model (``load_nerf``) and the dataset's training cameras;
 2. ``bbox`` — the extraction box: fitted to the content on a coarse grid (``--bbox auto``) or
    fixed (``--center/--radius``, else the model's training box, else the dataset's box);
-   (a forward-facing scene's box is then stretched along NDC depth: :data:`NDC_GRID`);
+   a forward-facing scene's box is then stretched along NDC depth (``--ndc-depth-stretch``,
+   :func:`~.bbox.stretch_depth`; its grid: :data:`NDC_GRID`);
 3. ``grid`` — σ at the centres of the ``grid³`` cells of the box;
 4. ``filter`` — keep cells whose maximum ray weight over all training views is ``≥ τ_w``
    (``--masking weight``), or whose alpha is ``≥ --mask-alpha-thresh`` (``--masking sigma``);
