@@ -226,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="folder of the photos and process's outputs (kept)")
     ap.add_argument("--camera-model", default=None)
     ap.add_argument("--refine-principal-point", choices=("auto", "on", "off"), default=None,
-                    help="process's final bundle adjustment (default: process's auto)")
+                    help="process's final bundle adjustment (default: process's off)")
     ap.add_argument("--guided", choices=("on", "off"), default=None)
     ap.add_argument("--matcher", default=None)
     ap.add_argument("--max-image-size", type=int, default=None)

@@ -333,8 +333,8 @@ def _call(module: str, name: str, stage_cfg: Any) -> Any:
     return getattr(importlib.import_module(f"{__package__}.{module}"), name)(stage_cfg)
 
 
-def _capture(cfg: PipelineConfig) -> tuple[int, int, bool]:
-    """``(width, height, forward)`` of the dataset's full-size images (LLFF: the size in
+def _capture(cfg: PipelineConfig) -> tuple[str, int, int, bool]:
+    """``(format, width, height, forward)`` of the dataset's full-size images (LLFF: the size in
     ``poses_bounds.npy``, whose ``images/`` may be absent); ``forward``: NDC (forward-facing)."""
     from .datasets import detect_format, load_dataset
     from .datasets.llff import POSES_FILE, read_poses_bounds
@@ -343,24 +343,22 @@ def _capture(cfg: PipelineConfig) -> tuple[int, int, bool]:
     fmt = cfg.format or detect_format(data)
     if fmt == "llff":
         h, w = (int(v) for v in read_poses_bounds(Path(data) / POSES_FILE)[2][0, :2])
-        return w, h, True
+        return fmt, w, h, True
     probe = load_dataset(data, "train", format=fmt, limit=1)
-    return probe.cameras.width, probe.cameras.height, bool(probe.cameras.ndc)
+    return fmt, probe.cameras.width, probe.cameras.height, bool(probe.cameras.ndc)
 
 
-def _working_resolution(cfg: PipelineConfig, w: int, h: int, forward: bool) -> PipelineConfig:
+def _working_resolution(cfg: PipelineConfig, fmt: str, w: int, h: int, forward: bool
+                        ) -> PipelineConfig:
     """``cfg`` with ``downscale`` 0 replaced by :func:`working_downscale` of its dataset's
-    ``w x h`` full-size images, said on the log."""
+    (format ``fmt``) ``w x h`` full-size images, said on the log."""
     import torch
 
-    from .datasets import detect_format, load_dataset
-
-    data = cfg.train.data
-    fmt = cfg.format or detect_format(data)
+    from .datasets import load_dataset
 
     def loads(f: int) -> bool:           # (undistorted images: the files' size must divide)
         try:
-            load_dataset(data, "train", format=fmt, limit=1, downscale=f)
+            load_dataset(cfg.train.data, "train", format=fmt, limit=1, downscale=f)
         except (ConfigError, DatasetError):
             return False
         return True
@@ -376,9 +374,9 @@ def _working_resolution(cfg: PipelineConfig, w: int, h: int, forward: bool) -> P
 def _scene_settings(cfg: PipelineConfig) -> PipelineConfig:
     """``cfg`` with what depends on the capture decided: the working resolution (``downscale``
     0) and the refinement passes (:data:`AUTO_PASSES`); wired and checked."""
-    w, h, forward = _capture(cfg)
+    fmt, w, h, forward = _capture(cfg)
     if not cfg.downscale:
-        cfg = _working_resolution(cfg, w, h, forward)
+        cfg = _working_resolution(cfg, fmt, w, h, forward)
     passes = scene_refine_passes(cfg.refine.passes, forward)
     if passes != cfg.refine.passes:
         cfg = dataclasses.replace(cfg, refine=dataclasses.replace(cfg.refine, passes=passes))
@@ -455,13 +453,11 @@ def _eval_stage(cfg: PipelineConfig, key: str, tree: Path, common: dict) -> Stag
 def _web(cfg: PipelineConfig, lay: RunLayout) -> None:
     """The static web-viewer bundle, with the training cameras (NDC scenes: + the NDC one)."""
     from .datasets import load_cameras
-    from .datasets.dataset import default_background
     from .viewer.export import export_web
 
     train = load_cameras(cfg.train.data, split="train", format=cfg.format)
     export_web(lay.compressed, Path(cfg.out) / "web", overwrite=True, cameras=train.cameras,
-               camera_names=train.names,
-               background=default_background(cfg.train.data, cfg.format))
+               camera_names=train.names, background=train.background)
 
 
 def _video_stage(cfg: PipelineConfig, lay: RunLayout, common: dict) -> Stage:

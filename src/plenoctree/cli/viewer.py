@@ -81,12 +81,11 @@ def _cameras_extra(cfg: PageConfig) -> dict:
     if not cfg.data:
         return {}
     from ..datasets import load_cameras
-    from ..datasets.dataset import default_background
     from ..viewer.export import cameras_config
 
-    data = load_cameras(cfg.data, split=cfg.split)
+    data = load_cameras(cfg.data, split=cfg.split)       # (its background: the default's)
     return {**cameras_config(data.cameras, data.names),
-            "background": list(default_background(cfg.data))}
+            "background": [float(v) for v in data.background]}
 
 
 def _warn_if_exposed(host: str, port: int) -> None:
