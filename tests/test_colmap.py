@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from plenoctree.datasets import detect_format, load_blender, load_dataset
+from plenoctree.datasets.dataset import has_split
 from plenoctree.datasets.colmap import (CAMERA_RADIUS, ColmapOptions, capture_kind, load_colmap,
                                        normalize_scene)
 from plenoctree.datasets.colmap_model import colmap_c2w, read_colmap_model
@@ -191,6 +192,9 @@ def test_colmap_dataset_is_the_blender_scene_up_to_a_similarity(blender_scene, t
     # splits: every 8th image is a test image
     assert load_colmap(root, "test").names == ["im_00", "im_08"]
     assert len(load_colmap(root, "train")) == 10
+    # ... and of val too, so val is not a split of its own (the fine-tuner validates elsewhere)
+    assert load_colmap(root, "val").names == ["im_00", "im_08"]
+    assert [has_split(root, s) for s in ("train", "val", "test")] == [True, False, True]
 
 
 def test_forward_facing_model_gets_ndc(tmp_path):

@@ -30,9 +30,14 @@ def test_blender_and_nsvf_splits(tmp_path):
     (root / "transforms_val.json").unlink()
     assert not has_split(root, "val")
     full = write_nsvf(tmp_path / "n", {"train": (_poses(3), _imgs(3)),
-                                       "val": (_poses(2), _imgs(2))}, 8, 8, 4, 4)
+                                       "val": (_poses(2), _imgs(2)),
+                                       "test": (_poses(2), _imgs(2))}, 8, 8, 4, 4)
     assert [has_split(full, s) for s in ("train", "val", "test")] == [True, True, True]
-    assert len(load_dataset(full, "test")) == 2             # the loader's fallback to 1_
+    # without 2_ images the test split falls back to the val ones: val is then not its own
+    shared = write_nsvf(tmp_path / "s", {"train": (_poses(3), _imgs(3)),
+                                         "val": (_poses(2), _imgs(2))}, 8, 8, 4, 4)
+    assert [has_split(shared, s) for s in ("train", "val", "test")] == [True, False, True]
+    assert len(load_dataset(shared, "test")) == 2           # the loader's fallback to 1_
     only = write_nsvf(tmp_path / "o", {"train": (_poses(3), _imgs(3))}, 8, 8, 4, 4)
     assert [has_split(only, s) for s in ("train", "val", "test")] == [True, False, False]
 
@@ -52,6 +57,16 @@ def test_nerfstudio_splits_follow_its_filenames_lists(tmp_path):
     (ns / "transforms.json").write_text(json.dumps(obj))
     assert has_split(ns, "train", "nerfstudio") and has_split(ns, "test", "nerfstudio")
     assert not has_split(ns, "val", "nerfstudio")
+    # val is a split of its own only when its frames are not the test ones: not without a
+    # list (every 8th frame is both, as instant-ngp's files), nor with the test's list (as
+    # `process` writes it), only with a list of other frames
+    bare = {k: v for k, v in obj.items() if not k.endswith("_filenames")}
+    for listed, own in ((None, False), ([frames[2]["file_path"]], False),
+                        ([frames[1]["file_path"]], True)):
+        (ns / "transforms.json").write_text(json.dumps(
+            bare if listed is None else {**obj, "val_filenames": listed}))
+        assert has_split(ns, "val", "nerfstudio") == own, listed
+        assert len(load_dataset(ns, "val", "nerfstudio")) == 1
     (ns / "transforms.json").write_text("{not json")
     with pytest.raises(DatasetError):
         has_split(ns, "val", "nerfstudio")

@@ -287,15 +287,26 @@ def test_resume_continues_exactly(scene, tmp_path):
                                load_tree(tmp_path / "a.npz").data, rtol=1e-4, atol=1e-4)
 
 
-def test_holdout_validation_and_fp16_precision(scene, tmp_path):
+def test_validation_without_a_val_split_and_fp16_precision(scene, tmp_path):
+    """Without a val split of its own, fine-tuning trains on every training view and validates
+    on 8 of them (a divergence guard); ``val_fraction`` holds a share out instead."""
     data = tmp_path / "data"
     shutil.copytree(scene / "data", data)
     (data / "transforms_val.json").unlink()
     t = load_tree(scene / "noisy.npz")
     save_tree(t, tmp_path / "half.npz", precision="fp16")
-    res = finetune(cfg(scene, tmp_path / "h.npz", tree=tmp_path / "half.npz", data=data,
-                       epochs=2, optimizer="adam", lr=1e-2, test_views=2))
+    with log_lines() as lines:
+        res = finetune(cfg(scene, tmp_path / "h.npz", tree=tmp_path / "half.npz", data=data,
+                           epochs=2, optimizer="adam", lr=1e-2, test_views=2, verbose=True))
+    assert any("[40 train / 8 val views" in line for line in lines), lines[:2]
     assert len(res.history) >= 2                       # epoch 0 and epoch 2 validations
+    with log_lines() as lines:
+        finetune(cfg(scene, tmp_path / "p.npz", data=data, epochs=1, val_every=1,
+                     val_fraction=0.2, test_views=-1, verbose=True))
+    assert any("[32 train / 8 val views" in line for line in lines), lines[:2]
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ConfigError, match="val_fraction"):
+            finetune(cfg(scene, tmp_path / "x.npz", data=data, val_fraction=bad))
     assert load_tree(tmp_path / "h.npz", keep_dtype=True).data.dtype == np.float16
     finetune(cfg(scene, tmp_path / "f.npz", tree=tmp_path / "half.npz", epochs=0,
                  precision="fp32", test_views=-1))

@@ -143,11 +143,13 @@ def load_cameras(root: str | os.PathLike, split: str = "train", format: str | No
 
 
 def has_split(root: str | os.PathLike, split: str, format: str | None = None) -> bool:
-    """Whether the dataset at ``root`` has a non-empty split ``split``, by its loader's rules:
-    Blender ``transforms_<split>.json``; LLFF ``train`` and ``test`` (every ``llffhold``-th
-    image; its ``val`` is the test set, so not a separate split); NSVF images named ``0_`` /
-    ``1_`` / ``2_`` (test falls back to ``1_``); nerfstudio ``<split>_filenames`` or every
-    8th frame; COLMAP the held-out views. A broken dataset still raises its ``DatasetError``."""
+    """Whether the dataset at ``root`` has a non-empty split ``split`` of its own, by its
+    loader's rules: Blender ``transforms_<split>.json``; LLFF ``train`` and ``test`` (every
+    ``llffhold``-th image); NSVF images named ``0_`` / ``1_`` / ``2_`` (test falls back to
+    ``1_``); nerfstudio ``<split>_filenames`` or every 8th frame; COLMAP every 8th view held
+    out. A ``val`` that loads the test views (LLFF, COLMAP, nerfstudio without a list of its
+    own, NSVF without ``2_``) is not a split of its own: False. A broken dataset still raises
+    its ``DatasetError``."""
     root = Path(root)
     fmt = _format(format) if format else REGISTRY[detect_format(root)]
     if fmt.has_split is not None:

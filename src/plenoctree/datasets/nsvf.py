@@ -238,6 +238,8 @@ def _has_split(root: Path, split: str) -> bool:
     prefixes = [NSVF_SPLIT_PREFIX[split]] if split in NSVF_SPLIT_PREFIX else []
     if split == "test":
         prefixes.append(NSVF_SPLIT_PREFIX["val"])
+    elif split == "val" and not any(n.startswith(NSVF_SPLIT_PREFIX["test"]) for n in names):
+        return False                     # test falls back to the val images: not its own
     return any(n.startswith(p) for n in names for p in prefixes)
 
 
@@ -246,4 +248,4 @@ FORMAT = DatasetFormat(
     detect=lambda root: (root / "intrinsics.txt").is_file() and (root / "pose").is_dir(),
     load=load_nsvf, has_split=_has_split)
 """NSVF in the registry of :mod:`plenoctree.datasets.dataset`: images named ``0_`` / ``1_`` /
-``2_`` (test falls back to ``1_``)."""
+``2_`` (test falls back to ``1_``, and ``val`` is then not a split of its own)."""

@@ -52,6 +52,10 @@ DEFAULT_EPOCHS = 12
 Adam 2e-2 has 99 % of its validation gain by epoch 12 (32.06 → 33.955 dB; best 33.971 at epoch
 18). A validation drop backs the learning rate off (``backoffs``), then stops."""
 
+#: Training views validated on when the dataset has no val split of its own and no share is
+#: held out (``val_fraction`` 0): a guard against divergence, not a measure of generalisation.
+TRAIN_VAL_VIEWS = 8
+
 
 def _f(default: Any, help: str, **kw: Any) -> Any:
     return field(default=default, metadata={"help": help}, **kw)
@@ -84,9 +88,13 @@ class FinetuneConfig:
                           "every pixel is still used once per epoch, and tiles run 2-3x faster")
     downscale: int = _f(1, "downscale the images by this integer factor (area averaging)")
     val_every: int = _f(2, "validate every this many epochs (0 = never: keep the last values)")
-    val_fraction: float = _f(0.2, "share of training images held out for validation when the "
-                                  "dataset has no val split")
-    val_views: int = _f(0, "validate on this many evenly spaced views (0 = all)")
+    val_fraction: float = _f(0.0, "when the dataset has no val split of its own (none, or its "
+                                  "val views are the test views: LLFF, COLMAP, instant-ngp): 0 "
+                                  "validates on training views, which stay in training (a guard "
+                                  "against divergence); a share in (0, 1) holds that share of "
+                                  "the training images out for validation instead")
+    val_views: int = _f(0, "validate on this many evenly spaced views (0 = all of a val split or "
+                           "of the held-out share; training views: 8)")
     test_views: int = _f(0, "measure test PSNR on this many evenly spaced views (0 = all; "
                             "-1 = skip the test split)")
     continue_on_decrease: bool = _f(False, "keep going when the validation PSNR drops (the best "
@@ -140,8 +148,8 @@ class FinetuneConfig:
                 and math.isfinite(self.checkpoint_minutes) and self.checkpoint_minutes >= 0):
             raise ConfigError(f"finetune: checkpoint_minutes must be a number >= 0, got "
                               f"{self.checkpoint_minutes!r}")
-        if not 0.0 < float(self.val_fraction) < 1.0:
-            raise ConfigError(f"finetune: val_fraction must be in (0, 1), got {self.val_fraction!r}")
+        if not 0.0 <= float(self.val_fraction) < 1.0:
+            raise ConfigError(f"finetune: val_fraction must be in [0, 1), got {self.val_fraction!r}")
         if self.precision not in _PRECISIONS:
             raise ConfigError(f"finetune: precision must be one of {_PRECISIONS}, got "
                               f"{self.precision!r}")
@@ -259,9 +267,12 @@ def _load_tree(cfg: FinetuneConfig) -> tuple[Any, str]:
 
 def _view_sets(cfg: FinetuneConfig, tree: Any
                ) -> tuple[Any, Any, tuple[float, float, float]]:
-    """``(train, val or None, background)``: the training views, and the validation views
-    (the val split, else ``val_fraction`` of the training views held out; none when
-    ``val_every`` is 0)."""
+    """``(train, val or None, background)``: the training views, and the validation views:
+    the dataset's val split when it has one of its own (``has_split``: not when its val views
+    are its test views, as LLFF's, COLMAP's and instant-ngp's are: the best epoch would be
+    chosen on the photos the test PSNR is measured on), else ``TRAIN_VAL_VIEWS`` (or
+    ``val_views``) evenly spaced training views that stay in training (``val_fraction`` 0),
+    or ``val_fraction`` of the training views held out; none when ``val_every`` is 0."""
     from ..datasets import take_views
     from ..datasets.dataset import has_split
     from ._loop import ViewSet
@@ -276,6 +287,11 @@ def _view_sets(cfg: FinetuneConfig, tree: Any
         val_data = _load_split(cfg.data, "val", cfg, cfg.val_views)
         val_set = ViewSet.from_dataset(val_data)
         del val_data                   # the view set holds its own copy of the images
+        return ViewSet.from_dataset(train), val_set, bg
+    if float(cfg.val_fraction) == 0.0:
+        every = np.arange(len(train))
+        val_set = ViewSet.from_dataset(train, take_views(every, cfg.val_views or TRAIN_VAL_VIEWS,
+                                                         spread=True))
         return ViewSet.from_dataset(train), val_set, bg
     if len(train) < 2:
         raise DatasetError(f"{cfg.data}: no val split and a single training image: cannot "
