@@ -94,7 +94,7 @@ class FinetuneConfig:
                                   "against divergence); a share in (0, 1) holds that share of "
                                   "the training images out for validation instead")
     val_views: int = _f(0, "validate on this many evenly spaced views (0 = all of a val split or "
-                           "of the held-out share; training views: 8)")
+                           f"of the held-out share, {TRAIN_VAL_VIEWS} training views)")
     test_views: int = _f(0, "measure test PSNR on this many evenly spaced views (0 = all; "
                             "-1 = skip the test split)")
     continue_on_decrease: bool = _f(False, "keep going when the validation PSNR drops (the best "
