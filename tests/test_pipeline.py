@@ -204,3 +204,24 @@ def test_refinement_passes_by_capture():
     assert scene_refine_passes(AUTO_PASSES, forward=False) == 1
     assert scene_refine_passes(AUTO_PASSES, forward=True) == 0
     assert scene_refine_passes(2, forward=True) == 2 and scene_refine_passes(0, False) == 0
+
+
+def test_scene_settings_read_the_capture_only_when_left_to_it(monkeypatch):
+    """With ``--downscale`` and ``--refine.passes`` both given nothing is decided by the
+    capture, so no image is read to probe it; with either left open the probe runs."""
+    import dataclasses
+
+    import plenoctree.pipeline as pl
+
+    probes = []
+
+    def probe(cfg):
+        probes.append(cfg.train.data)
+        return "blender", 800, 800, False
+
+    monkeypatch.setattr(pl, "_capture", probe)
+    given = PipelineConfig(data="scene", out="o", downscale=2)
+    given = dataclasses.replace(given, refine=dataclasses.replace(given.refine, passes=1))
+    assert pl._scene_settings(pl.wired(given)).refine.passes == 1 and probes == []
+    auto = pl._scene_settings(pl.wired(PipelineConfig(data="scene", out="o", downscale=2)))
+    assert auto.refine.passes == 1 and len(probes) == 1

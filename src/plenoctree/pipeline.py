@@ -374,6 +374,8 @@ def _working_resolution(cfg: PipelineConfig, fmt: str, w: int, h: int, forward: 
 def _scene_settings(cfg: PipelineConfig) -> PipelineConfig:
     """``cfg`` with what depends on the capture decided: the working resolution (``downscale``
     0) and the refinement passes (:data:`AUTO_PASSES`); wired and checked."""
+    if cfg.downscale and cfg.refine.passes != AUTO_PASSES:
+        return cfg                       # nothing left to the capture (no probe read)
     fmt, w, h, forward = _capture(cfg)
     if not cfg.downscale:
         cfg = _working_resolution(cfg, fmt, w, h, forward)

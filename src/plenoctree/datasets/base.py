@@ -88,6 +88,8 @@ class DatasetFormat:
             says it is empty).
         photos: the format holds photographs of the real world (nothing in them is see-through
             to a backdrop), not renders with a backdrop baked in.
+        own_val: ``own_val(root) -> bool``: whether the ``val`` split is not the test split
+            (several formats hold every 8th image out as both), or ``None``: it never is.
     """
 
     name: str
@@ -96,4 +98,5 @@ class DatasetFormat:
     load: Callable[..., Dataset]
     has_split: Callable[[Path, str], bool] | None = None
     photos: bool = False
+    own_val: Callable[[Path], bool] | None = None
 

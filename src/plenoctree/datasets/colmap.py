@@ -274,21 +274,9 @@ def load_colmap(root: str | os.PathLike, split: str = "train", downscale: int = 
                    names=[Path(names[i]).stem for i in sel], alphas=alphas)
 
 
-def _has_split(root: Path, split: str) -> bool:
-    if split == "val":                   # every 8th view is both val and test
-        return False
-    try:
-        load_colmap(root, split, limit=1)
-    except DatasetError as e:
-        if f"split {split!r} is empty" in str(e):
-            return False
-        raise
-    return True
-
-
 FORMAT = DatasetFormat("colmap", "sparse/0/cameras.bin|txt",
                        detect=lambda root: find_colmap_model(root) is not None,
-                       load=load_colmap, has_split=_has_split, photos=True)
-"""COLMAP in the registry of :mod:`plenoctree.datasets.dataset`: ``train`` and ``test`` exist
-when loading one of their views does not find them empty; ``val`` (the test views) is not a
-split of its own."""
+                       load=load_colmap, photos=True, own_val=lambda root: False)
+"""COLMAP in the registry of :mod:`plenoctree.datasets.dataset` (a split exists when loading
+one of its views does not find it empty; ``val``, every 8th view as ``test``, is not one of
+its own)."""

@@ -148,10 +148,12 @@ def has_split(root: str | os.PathLike, split: str, format: str | None = None) ->
     ``llffhold``-th image); NSVF images named ``0_`` / ``1_`` / ``2_`` (test falls back to
     ``1_``); nerfstudio ``<split>_filenames`` or every 8th frame; COLMAP every 8th view held
     out. A ``val`` that loads the test views (LLFF, COLMAP, nerfstudio without a list of its
-    own, NSVF without ``2_``) is not a split of its own: False. A broken dataset still raises
+    own, NSVF without ``2_``: the formats' ``own_val``) is not a split of its own: False. A broken dataset still raises
     its ``DatasetError``."""
     root = Path(root)
     fmt = _format(format) if format else REGISTRY[detect_format(root)]
+    if split == "val" and fmt.own_val is not None and not fmt.own_val(root):
+        return False
     if fmt.has_split is not None:
         return fmt.has_split(root, split)
     try:

@@ -368,27 +368,21 @@ def write_nerfstudio(out_dir: str | os.PathLike, c2w: np.ndarray, images: np.nda
     return out
 
 
-def _split_or_none(obj: dict, frames: list[dict], split: str, path: Path) -> set[int] | None:
-    try:
-        return set(_split(obj, frames, split, path))
-    except DatasetError as e:
-        if f"split {split!r} is empty" in str(e):
-            return None
-        raise
-
-
-def _has_split(root: Path, split: str) -> bool:
+def _own_val(root: Path) -> bool:
+    """Whether ``val_filenames`` lists frames other than the test split's (without a list, every
+    8th frame is both; ``process`` writes the test's list twice)."""
     path = root / "transforms.json"
     obj, frames = read_nerfstudio(path)
-    idx = _split_or_none(obj, frames, split, path)
-    if idx is None or split != "val":
-        return idx is not None
-    return idx != _split_or_none(obj, frames, "test", path)
+    if not obj.get("val_filenames"):
+        return False
+    if "test_filenames" in obj and not obj["test_filenames"]:
+        return True
+    return set(_split(obj, frames, "val", path)) != set(_split(obj, frames, "test", path))
 
 
 FORMAT = DatasetFormat("nerfstudio", "transforms.json",
                        detect=lambda root: (root / "transforms.json").is_file(),
-                       load=load_nerfstudio, has_split=_has_split, photos=True)
-"""nerfstudio / instant-ngp in the registry of :mod:`plenoctree.datasets.dataset`: a split
-exists when its frames are not empty; ``val`` only when it is not the test split (without
-``val_filenames``, or with the test's list as ``process`` writes, every 8th frame is both)."""
+                       load=load_nerfstudio, photos=True, own_val=_own_val)
+"""nerfstudio / instant-ngp in the registry of :mod:`plenoctree.datasets.dataset` (a split
+exists when loading one of its views does not find it empty; ``val`` is one of its own only
+with a list of frames other than the test ones)."""

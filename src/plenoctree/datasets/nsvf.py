@@ -233,19 +233,20 @@ def write_nsvf(out_dir: str | os.PathLike, splits: dict[str, tuple[np.ndarray, n
     return out
 
 
-def _has_split(root: Path, split: str) -> bool:
+def _has_images(root: Path, *splits: str) -> bool:
+    """Whether ``rgb/`` holds an image of one of ``splits`` (by its file-name prefix)."""
     names = [p.name for p in (root / "rgb").iterdir()] if (root / "rgb").is_dir() else []
-    prefixes = [NSVF_SPLIT_PREFIX[split]] if split in NSVF_SPLIT_PREFIX else []
-    if split == "test":
-        prefixes.append(NSVF_SPLIT_PREFIX["val"])
-    elif split == "val" and not any(n.startswith(NSVF_SPLIT_PREFIX["test"]) for n in names):
-        return False                     # test falls back to the val images: not its own
+    prefixes = [NSVF_SPLIT_PREFIX[s] for s in splits if s in NSVF_SPLIT_PREFIX]
     return any(n.startswith(p) for n in names for p in prefixes)
+
+
+def _has_split(root: Path, split: str) -> bool:
+    return _has_images(root, split, "val") if split == "test" else _has_images(root, split)
 
 
 FORMAT = DatasetFormat(
     "nsvf", "intrinsics.txt + pose/",
     detect=lambda root: (root / "intrinsics.txt").is_file() and (root / "pose").is_dir(),
-    load=load_nsvf, has_split=_has_split)
+    load=load_nsvf, has_split=_has_split, own_val=lambda root: _has_images(root, "test"))
 """NSVF in the registry of :mod:`plenoctree.datasets.dataset`: images named ``0_`` / ``1_`` /
 ``2_`` (test falls back to ``1_``, and ``val`` is then not a split of its own)."""

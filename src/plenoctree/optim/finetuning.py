@@ -273,7 +273,7 @@ def _view_sets(cfg: FinetuneConfig, tree: Any
     chosen on the photos the test PSNR is measured on), else ``TRAIN_VAL_VIEWS`` (or
     ``val_views``) evenly spaced training views that stay in training (``val_fraction`` 0),
     or ``val_fraction`` of the training views held out; none when ``val_every`` is 0."""
-    from ..datasets import take_views
+    from ..datasets import evenly_spaced, take_views
     from ..datasets.dataset import has_split
     from ._loop import ViewSet
 
@@ -289,10 +289,8 @@ def _view_sets(cfg: FinetuneConfig, tree: Any
         del val_data                   # the view set holds its own copy of the images
         return ViewSet.from_dataset(train), val_set, bg
     if float(cfg.val_fraction) == 0.0:
-        every = np.arange(len(train))
-        val_set = ViewSet.from_dataset(train, take_views(every, cfg.val_views or TRAIN_VAL_VIEWS,
-                                                         spread=True))
-        return ViewSet.from_dataset(train), val_set, bg
+        seen = evenly_spaced(len(train), cfg.val_views or TRAIN_VAL_VIEWS)
+        return ViewSet.from_dataset(train), ViewSet.from_dataset(train, seen), bg
     if len(train) < 2:
         raise DatasetError(f"{cfg.data}: no val split and a single training image: cannot "
                            "hold out a validation view (use --val-every 0)")
