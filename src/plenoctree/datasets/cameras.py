@@ -179,6 +179,10 @@ class Cameras:
         ndc_ref: ``(2 fx / W, 2 fy / H)`` of the NDC reference camera when it is not these
             cameras' own (rendering an NDC tree from other cameras, e.g. a camera path:
             ``tree.ndc.apply(cameras)``); None = from these cameras' focal lengths and size.
+        ndc_clip: any camera draws (``to_ndc_rays(..., clip=True)``: rays that never reach
+            the NDC volume miss it, a camera past the near plane starts where it stands); set
+            for views of a tree (``tree.ndc.apply``). False (datasets): NeRF's rays, and a ray
+            that does not point down -z is an error.
 
     Invalid values raise :class:`~plenoctree.errors.ConfigError`.
     """
@@ -193,6 +197,7 @@ class Cameras:
     ndc: bool = False
     ndc_near: float = 1.0
     ndc_ref: tuple[float, float] | None = None
+    ndc_clip: bool = False
 
     def __post_init__(self) -> None:
         for name, val in (("width", self.width), ("height", self.height)):
@@ -208,6 +213,7 @@ class Cameras:
         self.width, self.height = int(self.width), int(self.height)
         _check_plausible(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
         self.ndc = bool(self.ndc)
+        self.ndc_clip = bool(self.ndc_clip)
         near = self.ndc_near
         if isinstance(near, bool) or not isinstance(near, (int, float, np.floating, np.integer)) \
                 or not math.isfinite(near) or near <= 0:
@@ -228,8 +234,9 @@ class Cameras:
             return NotImplemented
         return (np.array_equal(self.c2w, other.c2w)
                 and all(np.array_equal(a, b) for a, b in zip(self._intr(), other._intr()))
-                and (self.width, self.height, self.ndc, self.ndc_near, self.ndc_ref)
-                == (other.width, other.height, other.ndc, other.ndc_near, other.ndc_ref))
+                and (self.width, self.height, self.ndc, self.ndc_near, self.ndc_ref, self.ndc_clip)
+                == (other.width, other.height, other.ndc, other.ndc_near, other.ndc_ref,
+                    other.ndc_clip))
 
     def _intr(self) -> tuple:
         return (self.fx, self.fy, self.cx, self.cy)
@@ -280,7 +287,8 @@ class Cameras:
             from .ndc import to_ndc_rays
 
             nfx, nfy = self.ndc_focal
-            o, d = to_ndc_rays(o, d, nfx, nfy, self.width, self.height, self.ndc_near)
+            o, d = to_ndc_rays(o, d, nfx, nfy, self.width, self.height, self.ndc_near,
+                               clip=self.ndc_clip)
         return o, d
 
     def pixel_rays(self, image: Any, col: Any, row: Any) -> tuple[Any, Any]:
@@ -328,7 +336,7 @@ class Cameras:
 
             nfx, nfy = self.ndc_focal
             origins, dirs = to_ndc_rays(origins, dirs, nfx, nfy, self.width, self.height,
-                                        self.ndc_near)
+                                        self.ndc_near, clip=self.ndc_clip)
         if torch_in:
             return origins.float().contiguous(), dirs.float().contiguous()
         return origins.astype(np.float32), dirs.astype(np.float32)
@@ -358,7 +366,7 @@ class Cameras:
         f = float(factor)
         return Cameras(self.c2w.copy(), self.fx / f, self.fy / f, self.cx / f, self.cy / f,
                        self.width // factor, self.height // factor, self.ndc, self.ndc_near,
-                       self.ndc_ref)
+                       self.ndc_ref, self.ndc_clip)
 
     def resized(self, width: int, height: int) -> "Cameras":
         """The same cameras rendering ``width`` x ``height`` images: focal lengths and
@@ -383,7 +391,7 @@ class Cameras:
             return np.atleast_1d(v[indices])
 
         return Cameras(c2w.copy(), *(sub(v) for v in self._intr()), self.width, self.height,
-                       self.ndc, self.ndc_near, self.ndc_ref)
+                       self.ndc, self.ndc_near, self.ndc_ref, self.ndc_clip)
 
     @property
     def centers(self) -> np.ndarray:

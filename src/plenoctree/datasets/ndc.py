@@ -19,6 +19,20 @@ NeRF samples ``o' + s d'`` for ``s`` in ``[0, 1]`` and measures segment lengths 
 ``t`` along it runs over ``[0, |d'|]`` and the same NDC-space δ results. Densities learned or
 stored for NDC rays are therefore per unit NDC length.
 
+**Any camera** (``clip=True``, the viewer's and every tree view's rule: ``tree.ndc.apply``):
+a view is never refused for where the camera stands or looks. A camera in front of the near
+plane (``o_z > -n``) whose ray points down -z gets NeRF's ray above; one whose ray does not
+(``d_z >= 0``) never reaches the NDC volume and becomes a *miss* ray (:data:`MISS_ORIGIN`,
+pointing +z', away from every NDC box: it draws the background). A camera inside the volume
+(``o_z <= -n``, it flew past the near plane) starts at its own NDC point ``P(o)`` (not at
+the near plane behind it) and follows the image of its ray, whose direction is the
+derivative of the projection times ``z^2 > 0``:
+
+    d' ∝ (ax (d_x o_z - o_x d_z),  ay (d_y o_z - o_y d_z),  -2 n d_z),   ax = -2 fx / W, ...
+
+Rays whose NDC origin lies beyond :data:`CLIP_EXTENT` across (within a hair of the horizon)
+also miss: they meet the NDC box only at infinity.
+
 Functions accept numpy arrays or torch tensors (returned in the same library, dtype and
 device; numpy inputs are computed in float64 and returned as float32).
 """
@@ -31,7 +45,15 @@ import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["to_ndc_rays", "ndc_to_world", "world_to_ndc", "ndc_bounds"]
+__all__ = ["to_ndc_rays", "ndc_to_world", "world_to_ndc", "ndc_bounds", "MISS_ORIGIN",
+           "CLIP_EXTENT"]
+
+#: NDC origin of a ray that never meets the NDC volume (``clip=True``): far past ``z' = 1``,
+#: with direction ``+z'``, so it leaves every NDC tree box untouched (the background).
+MISS_ORIGIN = (0.0, 0.0, 1.0e4)
+#: ``clip=True``: rays whose NDC origin lies farther than this from the axis in x' or y' miss.
+CLIP_EXTENT = 1.0e4
+_MIN_DZ = 1.0e-12      # clip=True: NeRF's ray needs d_z below -this (t stays finite)
 
 
 def _is_torch(x: Any) -> bool:
@@ -50,31 +72,39 @@ def _check_params(fx: float, fy: float, width: float, height: float, near: float
 
 
 def to_ndc_rays(origins: Any, dirs: Any, fx: float, fy: float, width: float, height: float,
-                near: float = 1.0, normalize: bool = True) -> tuple[Any, Any]:
+                near: float = 1.0, normalize: bool = True, clip: bool = False) -> tuple[Any, Any]:
     """Convert world rays of a forward-facing scene to NDC rays.
 
     Args:
         origins: ``[..., 3]`` ray origins, world units (numpy or torch).
         dirs: ``[..., 3]`` ray directions (any length); every ray must point down the world
-            -z axis (``d_z < 0``), as in a forward-facing capture.
+            -z axis (``d_z < 0``), as in a forward-facing capture (unless ``clip``).
         fx, fy: focal lengths of the NDC reference camera, pixels.
         width, height: its image size, pixels.
         near: world distance of the near plane ``z = -near`` (NeRF: 1).
         normalize: return unit NDC directions (default, the :class:`Cameras` contract);
             ``False`` returns NeRF's ``d'`` whose end point ``o' + d'`` lies on ``z' = 1``.
+        clip: any camera (the module's "any camera" rule): rays that never reach the NDC
+            volume become miss rays, a camera past the near plane starts where it stands.
+            Rays that NeRF's rule covers come out bitwise as without ``clip``. Needs
+            ``normalize``.
 
     Returns:
-        ``(origins_ndc [..., 3], dirs_ndc [..., 3])``: origins on the plane ``z' = -1``.
+        ``(origins_ndc [..., 3], dirs_ndc [..., 3])``: origins on the plane ``z' = -1``
+        (``clip``: or at the camera's NDC point, or :data:`MISS_ORIGIN`).
 
     Raises:
-        ConfigError: shapes differ / are not ``(..., 3)``, bad parameters, or a ray with
-            ``d_z >= 0`` or non-finite values (it never reaches the far side of the NDC cube).
+        ConfigError: shapes differ / are not ``(..., 3)``, bad parameters, non-finite
+            values, or (without ``clip``) a ray with ``d_z >= 0`` (it never reaches the far
+            side of the NDC cube).
 
     >>> o, d = to_ndc_rays(np.zeros((1, 3)), np.array([[0., 0., -1.]]), 1., 1., 2., 2.)
     >>> o.tolist(), d.tolist()
     ([[0.0, 0.0, -1.0]], [[0.0, 0.0, 1.0]])
     """
     _check_params(fx, fy, width, height, near)
+    if clip and not normalize:
+        raise ConfigError("NDC: clip=True returns unit directions (normalize=True)")
     torch_in = _is_torch(origins) or _is_torch(dirs)
     if torch_in:
         import torch
@@ -84,35 +114,35 @@ def to_ndc_rays(origins: Any, dirs: Any, fx: float, fy: float, width: float, hei
         out_dtype = o.dtype if o.is_floating_point() else torch.float32
         o, d = o.double(), d.double()
         shape_o, shape_d = tuple(o.shape), tuple(d.shape)
+        xp: Any = torch
     else:
         o = np.asarray(origins, dtype=np.float64)
         d = np.asarray(dirs, dtype=np.float64)
         shape_o, shape_d = o.shape, d.shape
+        xp = np
     if shape_o != shape_d or len(shape_o) < 1 or shape_o[-1] != 3:
         raise ConfigError(f"NDC: origins {list(shape_o)} and dirs {list(shape_d)} must both "
                           "have shape (..., 3)")
     dz = d[..., 2]
-    bad = ~(dz < 0)                       # catches NaN too
-    if bool(bad.any()):
-        raise ConfigError(f"NDC: {int(bad.sum())} ray(s) do not point down the world -z axis "
-                          "(d_z >= 0 or NaN); NDC needs a forward-facing scene whose cameras "
-                          "look down -z (LLFF poses after recentring)")
-    t = -(near + o[..., 2]) / dz
-    o = o + t[..., None] * d
-    ox, oy, oz = o[..., 0], o[..., 1], o[..., 2]
+    if clip:
+        if not bool(xp.isfinite(o).all() and xp.isfinite(d).all()):
+            raise ConfigError("NDC: rays with NaN or infinite origins or directions")
+    elif bool((~(dz < 0)).any()):                       # catches NaN too
+        raise ConfigError(f"NDC: {int((~(dz < 0)).sum())} ray(s) do not point down the world "
+                          "-z axis (d_z >= 0 or NaN); NDC needs a forward-facing scene whose "
+                          "cameras look down -z (LLFF poses after recentring)")
     ax, ay = -2.0 * fx / width, -2.0 * fy / height
-    rx, ry = ox / oz, oy / oz
-    parts_o = (ax * rx, ay * ry, 1.0 + 2.0 * near / oz)
-    parts_d = (ax * (d[..., 0] / dz - rx), ay * (d[..., 1] / dz - ry), -2.0 * near / oz)
-    if torch_in:
-        o_ndc = torch.stack(parts_o, -1)
-        d_ndc = torch.stack(parts_d, -1)
-        finite = bool(torch.isfinite(o_ndc).all() and torch.isfinite(d_ndc).all())
-    else:
-        o_ndc = np.stack(parts_o, -1)
-        d_ndc = np.stack(parts_d, -1)
-        finite = bool(np.isfinite(o_ndc).all() and np.isfinite(d_ndc).all())
-    if not finite:
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        t = -(near + o[..., 2]) / dz
+        on = o + t[..., None] * d
+        ox, oy, oz = on[..., 0], on[..., 1], on[..., 2]
+        rx, ry = ox / oz, oy / oz
+        o_ndc = xp.stack((ax * rx, ay * ry, 1.0 + 2.0 * near / oz), -1)
+        d_ndc = xp.stack((ax * (d[..., 0] / dz - rx), ay * (d[..., 1] / dz - ry),
+                          -2.0 * near / oz), -1)
+        if clip:
+            o_ndc, d_ndc = _clip_rays(xp, o, d, o_ndc, d_ndc, ax, ay, near)
+    if not bool(xp.isfinite(o_ndc).all() and xp.isfinite(d_ndc).all()):
         raise ConfigError("NDC: rays produced non-finite NDC coordinates (infinite inputs?)")
     if normalize:
         if torch_in:
@@ -122,6 +152,32 @@ def to_ndc_rays(origins: Any, dirs: Any, fx: float, fy: float, width: float, hei
     if torch_in:
         return o_ndc.to(out_dtype), d_ndc.to(out_dtype)
     return o_ndc.astype(np.float32), d_ndc.astype(np.float32)
+
+
+def _clip_rays(xp: Any, o: Any, d: Any, o_std: Any, d_std: Any, ax: float, ay: float,
+               near: float) -> tuple[Any, Any]:
+    """The "any camera" rule of :func:`to_ndc_rays` (``clip=True``): NeRF's rays ``o_std,
+    d_std [..., 3]`` (float64, non-finite where the rule does not apply) where they are valid,
+    the camera's own NDC point and the projected direction for a camera past the near plane,
+    :data:`MISS_ORIGIN` / ``+z'`` for the rest. ``xp``: numpy or torch."""
+    def bounded(p: Any) -> Any:
+        return (xp.abs(p[..., 0]) <= CLIP_EXTENT) & (xp.abs(p[..., 1]) <= CLIP_EXTENT)
+
+    inside = o[..., 2] <= -near
+    std_ok = (~inside & (d[..., 2] < -_MIN_DZ) & xp.isfinite(o_std).all(-1)
+              & xp.isfinite(d_std).all(-1) & bounded(o_std))
+    oz = xp.where(inside, o[..., 2], -near)               # > 0 never divides
+    o_in = xp.stack((ax * o[..., 0] / oz, ay * o[..., 1] / oz, 1.0 + 2.0 * near / oz), -1)
+    d_in = xp.stack((ax * (d[..., 0] * oz - o[..., 0] * d[..., 2]),
+                     ay * (d[..., 1] * oz - o[..., 1] * d[..., 2]), -2.0 * near * d[..., 2]), -1)
+    in_ok = inside & bounded(o_in) & (xp.abs(d_in).sum(-1) > 0)
+    miss_o = xp.zeros_like(o_std)
+    miss_o[..., 2] = MISS_ORIGIN[2]
+    miss_d = xp.zeros_like(d_std)
+    miss_d[..., 2] = 1.0
+    o_out = xp.where(std_ok[..., None], o_std, xp.where(in_ok[..., None], o_in, miss_o))
+    d_out = xp.where(std_ok[..., None], d_std, xp.where(in_ok[..., None], d_in, miss_d))
+    return o_out, d_out
 
 
 def world_to_ndc(points: np.ndarray, fx: float, fy: float, width: float, height: float,

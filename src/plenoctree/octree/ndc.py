@@ -103,10 +103,11 @@ class NDCSpace:
 
     def apply(self, cameras: Any) -> Any:
         """``cameras`` (world-space :class:`~plenoctree.datasets.Cameras`, any intrinsics) made
-        to return this space's NDC rays: ``ndc=True``, ``ndc_near``, ``ndc_ref``."""
+        to return this space's NDC rays: ``ndc=True``, ``ndc_near``, ``ndc_ref``, and
+        ``ndc_clip`` (any camera draws: a view is never refused for where it looks)."""
         import dataclasses
 
-        return dataclasses.replace(cameras, ndc=True, ndc_near=self.near,
+        return dataclasses.replace(cameras, ndc=True, ndc_near=self.near, ndc_clip=True,
                                    ndc_ref=(2.0 * self.fx / self.width,
                                             2.0 * self.fy / self.height))
 

@@ -107,15 +107,56 @@ def _render_one(child, skip, shift, data, offset, invr, ox, oy, oz, dx, dy, dz, 
 
 
 #: ``cam[0]`` of :func:`_render_kernel`: rays read from arrays, or made per pixel from a camera.
-CAM_ARRAYS, CAM_PINHOLE, CAM_NDC = 0, 1, 2
+CAM_ARRAYS, CAM_PINHOLE, CAM_NDC, CAM_NDC_CLIP = 0, 1, 2, 3
 CAM_SIZE = 20
+_MISS_Z = 1.0e4              # datasets.ndc.MISS_ORIGIN's z'
+_CLIP_EXTENT = 1.0e4         # datasets.ndc.CLIP_EXTENT
+_MIN_DZ = 1.0e-12            # datasets.ndc._MIN_DZ (keeps t finite: no isfinite under fastmath)
+
+
+@njit(cache=True, fastmath=MARCH_MATH, inline="always")
+def _ndc_ray(cam, ox, oy, oz, ex, ey, ez, clip):
+    """``to_ndc_rays`` (``clip``: its "any camera" rule) of the world ray ``o + t e``
+    (float64 of the float32 ray), rounded to float32: ``(ox, oy, oz, dx, dy, dz)``."""
+    near = cam[19]
+    ok = True
+    if clip and oz <= -near:          # past the near plane: start where the camera stands
+        px = cam[17] * ox / oz
+        py = cam[18] * oy / oz
+        pz = 1.0 + 2.0 * near / oz
+        nx = cam[17] * (ex * oz - ox * ez)
+        ny = cam[18] * (ey * oz - oy * ez)
+        nz = -2.0 * near * ez
+        ok = nx != 0.0 or ny != 0.0 or nz != 0.0
+    elif clip and not ez < -_MIN_DZ:  # never reaches the NDC volume
+        px = py = pz = nx = ny = nz = 0.0
+        ok = False
+    else:                             # NeRF's ray from the near plane
+        t = -(near + oz) / ez
+        qx = ox + t * ex
+        qy = oy + t * ey
+        qz = oz + t * ez
+        rx = qx / qz
+        ry = qy / qz
+        nx = cam[17] * (ex / ez - rx)
+        ny = cam[18] * (ey / ez - ry)
+        nz = -2.0 * near / qz
+        px = cam[17] * rx
+        py = cam[18] * ry
+        pz = 1.0 + 2.0 * near / qz
+    if clip and not (ok and abs(px) <= _CLIP_EXTENT and abs(py) <= _CLIP_EXTENT):
+        return (np.float32(0.0), np.float32(0.0), np.float32(_MISS_Z), np.float32(0.0),
+                np.float32(0.0), np.float32(1.0))
+    nrm = math.sqrt(nx * nx + ny * ny + nz * nz)
+    return (np.float32(px), np.float32(py), np.float32(pz), np.float32(nx / nrm),
+            np.float32(ny / nrm), np.float32(nz / nrm))
 
 
 @njit(cache=True, fastmath=MARCH_MATH, inline="always")
 def _camera_ray(cam, u, v):
     """The ray of pixel ``(u, v)`` of the camera packed in ``cam`` (see :func:`pack_camera`),
     float32-rounded as ``datasets.cameras.generate_rays`` (+ ``datasets.ndc.to_ndc_rays`` when
-    ``cam[0] == CAM_NDC``) return it: ``(ox, oy, oz, dx, dy, dz)`` float32."""
+    ``cam[0]`` is ``CAM_NDC``, or ``CAM_NDC_CLIP`` with ``clip=True``) return it: ``(ox, oy, oz, dx, dy, dz)`` float32."""
     a = (u + 0.5 - cam[3]) / cam[1]
     b = -(v + 0.5 - cam[4]) / cam[2]
     x = a * cam[5] + b * cam[6] - cam[7]
@@ -128,26 +169,9 @@ def _camera_ray(cam, u, v):
     ox = np.float32(cam[14])
     oy = np.float32(cam[15])
     oz = np.float32(cam[16])
-    if cam[0] == CAM_NDC:
-        # to_ndc_rays on the float32 world ray, in float64, then rounded to float32
-        ex, ey, ez = np.float64(dx), np.float64(dy), np.float64(dz)
-        near = cam[19]
-        t = -(near + np.float64(oz)) / ez
-        px = np.float64(ox) + t * ex
-        py = np.float64(oy) + t * ey
-        pz = np.float64(oz) + t * ez
-        rx = px / pz
-        ry = py / pz
-        nx = cam[17] * (ex / ez - rx)
-        ny = cam[18] * (ey / ez - ry)
-        nz = -2.0 * near / pz
-        nrm = math.sqrt(nx * nx + ny * ny + nz * nz)
-        ox = np.float32(cam[17] * rx)
-        oy = np.float32(cam[18] * ry)
-        oz = np.float32(1.0 + 2.0 * near / pz)
-        dx = np.float32(nx / nrm)
-        dy = np.float32(ny / nrm)
-        dz = np.float32(nz / nrm)
+    if cam[0] == CAM_NDC or cam[0] == CAM_NDC_CLIP:
+        return _ndc_ray(cam, np.float64(ox), np.float64(oy), np.float64(oz), np.float64(dx),
+                        np.float64(dy), np.float64(dz), cam[0] == CAM_NDC_CLIP)
     return ox, oy, oz, dx, dy, dz
 
 
@@ -294,13 +318,15 @@ def render_prepared(p: TreeSpec, origins: np.ndarray, dirs: np.ndarray,
 
 
 def pack_camera(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float,
-                ndc: tuple[float, float, int, int, float] | None = None) -> np.ndarray:
+                ndc: tuple[float, float, int, int, float] | None = None,
+                clip: bool = False) -> np.ndarray:
     """float64 ``[CAM_SIZE]`` camera of :func:`render_camera_prepared`: ``c2w [4, 4]`` (or
     ``[3, 4]``, OpenGL), intrinsics in pixels, and for NDC rays ``ndc = (fx, fy, width,
-    height, near)`` of the NDC reference camera (see :mod:`plenoctree.datasets.ndc`)."""
+    height, near)`` of the NDC reference camera (see :mod:`plenoctree.datasets.ndc`; ``clip``:
+    its "any camera" rule, ``Cameras.ndc_clip``)."""
     m = np.asarray(c2w, dtype=np.float64)
     cam = np.zeros(CAM_SIZE, dtype=np.float64)
-    cam[0] = CAM_PINHOLE if ndc is None else CAM_NDC
+    cam[0] = CAM_PINHOLE if ndc is None else (CAM_NDC_CLIP if clip else CAM_NDC)
     cam[1:5] = fx, fy, cx, cy
     cam[5:14] = m[:3, :3].reshape(9)
     cam[14:17] = m[:3, 3].astype(np.float32)         # origins are float32, as generate_rays'
@@ -319,7 +345,8 @@ def pack_cameras(cameras: Any, indices: Any = None) -> np.ndarray:
            if cameras.ndc else None)
     out = np.empty((idx.size, CAM_SIZE), np.float64)
     for j, i in enumerate(idx):
-        out[j] = pack_camera(cameras.c2w[int(i)], *cameras.intrinsics(int(i)), ndc=ndc)
+        out[j] = pack_camera(cameras.c2w[int(i)], *cameras.intrinsics(int(i)), ndc=ndc,
+                             clip=cameras.ndc_clip)
     return out
 
 

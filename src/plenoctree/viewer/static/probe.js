@@ -147,18 +147,28 @@ export function lumisphere(packed, coeffs, c2w, size) {
 
 // The ray the tree sees for the world ray (origin, dir): unit direction; for an NDC tree
 // (ndc: {fx, fy, width, height, near}) the same world -> NDC map as the shader and
-// to_ndc_rays; null when an NDC ray never reaches the NDC cube (d_z >= 0). [origin, dir].
+// to_ndc_rays(clip=True) (a camera past the near plane starts where it stands); null when
+// the ray never reaches the NDC volume. [origin, dir].
 export function treeRay(origin, dir, ndc = null) {
   const l = Math.hypot(...dir) || 1;
   const d = dir.map((v) => v / l);
   if (!ndc) return [origin, d];
-  if (!(d[2] < 0)) return null;
-  const ax = -2 * ndc.fx / ndc.width, ay = -2 * ndc.fy / ndc.height;
-  const t = -(ndc.near + origin[2]) / d[2];
-  const on = origin.map((v, k) => v + t * d[k]);
-  const rx = on[0] / on[2], ry = on[1] / on[2];
-  const o = [ax * rx, ay * ry, 1 + 2 * ndc.near / on[2]];
-  const d2 = [ax * (d[0] / d[2] - rx), ay * (d[1] / d[2] - ry), -2 * ndc.near / on[2]];
+  const ax = -2 * ndc.fx / ndc.width, ay = -2 * ndc.fy / ndc.height, n = ndc.near;
+  let o, d2;
+  if (origin[2] <= -n) {
+    o = [ax * origin[0] / origin[2], ay * origin[1] / origin[2], 1 + 2 * n / origin[2]];
+    d2 = [ax * (d[0] * origin[2] - origin[0] * d[2]), ay * (d[1] * origin[2] - origin[1] * d[2]),
+      -2 * n * d[2]];
+  } else if (d[2] < -1e-12) {
+    const t = -(n + origin[2]) / d[2];
+    const on = origin.map((v, k) => v + t * d[k]);
+    const rx = on[0] / on[2], ry = on[1] / on[2];
+    o = [ax * rx, ay * ry, 1 + 2 * n / on[2]];
+    d2 = [ax * (d[0] / d[2] - rx), ay * (d[1] / d[2] - ry), -2 * n / on[2]];
+  } else {
+    return null;
+  }
   const l2 = Math.hypot(...d2);
+  if (!(l2 > 0) || !(Math.abs(o[0]) <= 1e4 && Math.abs(o[1]) <= 1e4)) return null;
   return [o, d2.map((v) => v / l2)];
 }

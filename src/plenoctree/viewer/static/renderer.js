@@ -127,18 +127,27 @@ void main() {
   vec3 world_o = origin, world_d = dir;
   bool behind = false;
   if (u_ndc == 1) {
-    // world ray -> NeRF NDC ray (plenoctree.datasets.ndc.to_ndc_rays, unit direction)
-    if (dir.z < 0.0) {
-      float near = u_ndc_cam.z;
+    // world ray -> NDC ray, any camera (plenoctree.datasets.ndc.to_ndc_rays(clip=True)):
+    // NeRF's ray from the near plane; a camera past the near plane starts where it stands;
+    // a ray that never reaches the NDC volume draws the background
+    float near = u_ndc_cam.z;
+    vec2 a = -u_ndc_cam.xy;
+    vec3 o2, d2;
+    if (origin.z <= -near) {
+      o2 = vec3(a * origin.xy / origin.z, 1.0 + 2.0 * near / origin.z);
+      d2 = vec3(a * (dir.xy * origin.z - origin.xy * dir.z), -2.0 * near * dir.z);
+    } else if (dir.z < -1e-12) {
       vec3 on = origin + (-(near + origin.z) / dir.z) * dir;
       vec2 r = on.xy / on.z;
-      vec3 o2 = vec3(-u_ndc_cam.x * r.x, -u_ndc_cam.y * r.y, 1.0 + 2.0 * near / on.z);
-      vec3 d2 = vec3(-u_ndc_cam.x * (dir.x / dir.z - r.x), -u_ndc_cam.y * (dir.y / dir.z - r.y),
-                     -2.0 * near / on.z);
+      o2 = vec3(a * r, 1.0 + 2.0 * near / on.z);
+      d2 = vec3(a * (dir.xy / dir.z - r), -2.0 * near / on.z);
+    } else {
+      behind = true;
+    }
+    if (!behind && (any(greaterThan(abs(o2.xy), vec2(1e4))) || dot(d2, d2) <= 0.0)) behind = true;
+    if (!behind) {
       origin = o2;
       dir = normalize(d2);
-    } else {
-      behind = true;                // never reaches the NDC cube
     }
   }
 
