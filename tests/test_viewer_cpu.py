@@ -319,3 +319,104 @@ def test_webgl_full_frame_refined_in_bands_equals_the_direct_frame(browser, proc
 
 if __name__ == "__main__":                 # pragma: no cover
     sys.exit(pytest.main([__file__, "-q"]))
+
+
+@pytest.fixture(scope="module")
+def no_webgl_browser():
+    """Chromium with WebGL switched off entirely (as Chrome without its software WebGL)."""
+    tvb = _browser_mod()
+    with tvb.playwright_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=tvb.CHROMIUM, headless=True,
+                              args=tvb.FLAGS + ["--disable-webgl", "--disable-3d-apis"])
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def llff_tree(tmp_path_factory):
+    from plenoctree.datasets.forward_facing import forward_facing_tree, write_forward_facing_dataset
+
+    d = tmp_path_factory.mktemp("lookaround")
+    root = write_forward_facing_dataset(d / "ff", n_images=4, width=48, height=36, n_samples=32)
+    save_tree(forward_facing_tree(root, 32), d / "ff.npz")
+    return d / "ff.npz"
+
+
+def _frames(page) -> int:
+    return len(page.evaluate("window.viewer.stats().log"))
+
+
+def test_llff_look_around_never_stops_the_page(no_webgl_browser, llff_tree):
+    """The user's path on a forward-facing tree in CPU mode: look around with the arrow keys
+    held for seconds (the camera turns past 180°: most rays miss the NDC volume), then reset:
+    frames keep arriving, no frame is refused, nothing stops the page."""
+    with ViewerServer(llff_tree, port=0, render="auto") as srv:
+        page = no_webgl_browser.new_page(viewport={"width": 775, "height": 800})
+        page.goto(srv.url)
+        page.wait_for_function("window.viewer && window.viewer.state !== 'loading'",
+                               timeout=120_000)
+        try:
+            assert page.evaluate("window.viewer.state") == "ready", page.evaluate("window.viewer.message")
+            assert page.evaluate("window.viewer.renderer()")["mode"] == "cpu"
+            page.wait_for_function("window.viewer.stats().last && window.viewer.stats().last.full",
+                                   timeout=120_000)
+            page.locator("#canvas").focus()
+            for key, seconds in (("ArrowLeft", 3.5), ("ArrowUp", 1.0), ("ArrowRight", 1.5)):
+                n = _frames(page)
+                page.keyboard.down(key)
+                page.wait_for_timeout(seconds * 1000)
+                page.keyboard.up(key)
+                assert _frames(page) > n + 3, key                  # frames kept arriving
+                assert page.evaluate("window.viewer.state") == "ready"
+                assert page.evaluate("window.viewer.notice") == "", page.evaluate("window.viewer.notice")
+            fwd = page.evaluate("window.viewer.currentView(8, 8)")["c2w"]
+            assert fwd[10] > -0.5                                  # looked away from -z
+            n = _frames(page)
+            page.click("#reset_view")
+            page.wait_for_function(f"window.viewer.stats().log.length > {n} && "
+                                   "window.viewer.stats().last.full", timeout=60_000)
+            c2w = page.evaluate("window.viewer.currentView(8, 8)")["c2w"]
+            np.testing.assert_allclose(np.reshape(c2w, (4, 4)), np.eye(4), atol=1e-6)
+        finally:
+            page.close()
+
+
+def test_a_failed_frame_is_a_notice_and_the_next_change_draws(no_webgl_browser, llff_tree):
+    """A frame the server cannot draw (here: the first answered 400 on the way) shows a
+    notice, the page stays ready, the next camera change draws; benchmark() works in CPU mode;
+    the FPS label never runs under the Controls box."""
+    with ViewerServer(llff_tree, port=0, render="cpu") as srv:
+        page = no_webgl_browser.new_page(viewport={"width": 775, "height": 800})
+        failed = []
+
+        def once(route):
+            if failed:
+                route.continue_()
+            else:
+                failed.append(route.request.url)
+                route.fulfill(status=400, body="400 Bad Request: injected", content_type="text/plain")
+
+        page.route("**/frame?*", once)
+        page.goto(srv.url)
+        page.wait_for_function("window.viewer && window.viewer.state !== 'loading'",
+                               timeout=120_000)
+        try:
+            page.wait_for_function("window.viewer.notice !== ''", timeout=60_000)
+            assert "injected" in page.evaluate("window.viewer.notice")
+            assert page.locator("#notice").is_visible()
+            assert page.evaluate("window.viewer.state") == "ready"
+            assert page.locator("#message").is_hidden()
+            n = _frames(page)
+            page.locator("#canvas").focus()
+            page.keyboard.down("KeyW")
+            page.wait_for_timeout(300)
+            page.keyboard.up("KeyW")
+            page.wait_for_function(f"window.viewer.stats().log.length > {n}", timeout=60_000)
+            ms = page.evaluate("window.viewer.benchmark(3)")           # a Promise: awaited
+            assert isinstance(ms, (int, float)) and ms > 0
+            page.wait_for_function("document.getElementById('fps').textContent.includes('FPS')")
+            a = page.locator("#fps").bounding_box()
+            b = page.locator("#hints").bounding_box()
+            assert a["x"] + a["width"] <= b["x"] or a["y"] + a["height"] <= b["y"], (a, b)
+        finally:
+            page.close()

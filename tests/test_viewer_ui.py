@@ -394,6 +394,40 @@ def test_ndc_forward_facing_tree_matches_cpu(browser, ff, source):
         srv.close()
 
 
+def test_ndc_tree_any_camera_matches_cpu(browser, ff):
+    """Cameras the NDC rays of a dataset cannot make: turned far from -z (part of the view
+    misses the NDC volume and shows the background), turned away (all background), flown past
+    the near plane (the rays start at the camera): the page equals the CPU renderer of the same
+    camera (``tree.ndc.apply``: ``to_ndc_rays(clip=True)``)."""
+    from test_ndc_any_camera import POSES, _c2w
+
+    out = export_web(ff["path"], ff["dir"] / "site_any", overwrite=True, cameras=ff["cams"])
+    srv, page = _open_bundle(browser, out)
+    try:
+        page.evaluate("window.viewer.setOptions({background: [0.2, 0.4, 0.6]})")
+        cams = ff["cams"]
+        fx, fy, cx, cy = cams.intrinsics(0)
+        for name in ("turned 20 degrees", "turned away", "past the near plane",
+                     "past the near plane, looking back"):
+            c2w = _c2w(*POSES[name]).astype(np.float32)
+            view = {"c2w": c2w.reshape(-1).tolist(), "fx": fx, "fy": fy, "cx": cx, "cy": cy,
+                    "width": cams.width, "height": cams.height}
+            gpu = _pixels(page, view)
+            one = ff["tree"].ndc.apply(Cameras(c2w[None], fx, fy, cx, cy, cams.width,
+                                               cams.height))
+            o, d = one.rays(0)
+            cpu = render_rays(ff["tree"], o, d, RenderOptions(background=(0.2, 0.4, 0.6)))
+            diff = np.abs(gpu - np.clip(cpu.rgb.numpy(), 0, 1))
+            assert diff.mean() <= 1 / 255 and np.percentile(diff, 99) <= 3 / 255, \
+                (name, diff.mean() * 255, np.percentile(diff, 99) * 255)
+            assert page.evaluate("window.viewer.state") == "ready"
+            if name != "turned away":
+                assert cpu.alpha.numpy().max() > 0.5, name            # something to see
+        page.close()
+    finally:
+        srv.close()
+
+
 def _plane_obj(x0=0.0, color=(0.2, 0.6, 0.3), half=4.0) -> str:
     c = " ".join(str(v) for v in color)
     vs = [(x0, -half, -half), (x0, half, -half), (x0, half, half), (x0, -half, half)]

@@ -7,7 +7,9 @@
 //   one request is in flight: when a frame arrives the next request carries the latest camera
 //   (nothing queues). While the camera moves, frames come at the resolution scale that holds
 //   TARGET_MS per frame (measured on every frame); once it has not moved for QUIET_MS, one
-//   full-resolution frame follows.
+//   full-resolution frame follows. A frame the server cannot draw (or a lost connection) is
+//   reported through onError and not asked for again until the camera or an option changes:
+//   the page never stops drawing.
 // - FrameStats: frames actually delivered to the screen in the last second (both modes).
 
 const SOFTWARE_GL = /swiftshader|llvmpipe|softpipe|software|basic render|mesa offscreen|lavapipe/i;
@@ -86,6 +88,7 @@ export class CpuFrames {
     this.renderFullMs = null;    // server render time of a full-resolution frame (EMA)
     this.sentKey = null;         // camera + options of the last request
     this.sharpKey = null;        // ... of the last full-resolution frame on screen
+    this.failedKey = null;       // ... of a frame the server could not draw (not asked again)
     this.onError = () => {};
     this.next = () => {};        // called when a frame is on screen (pump the next one)
   }
@@ -96,6 +99,7 @@ export class CpuFrames {
   // scaling), continuous (keep drawing), changedAt (performance.now() of the last change)}.
   pump(v) {
     if (this.busy) return;
+    if (v.key === this.failedKey && !v.continuous) return;     // wait for the next change
     const moving = v.continuous || performance.now() - v.changedAt < QUIET_MS;
     if (v.key === this.sentKey && !v.continuous && (v.key === this.sharpKey || moving)) return;
     const scale = v.fixed || !moving ? 1 : this.scale;
@@ -135,10 +139,12 @@ export class CpuFrames {
       const ms = performance.now() - t0;
       const full = scale === 1;
       if (full) this.sharpKey = key;
+      this.failedKey = null;
       this._adapt(ms, renderMs, view.width * view.height, W * H);
       this.stats.add({ width: view.width, height: view.height, full, ms, renderMs, encodeMs, key });
     } catch (err) {
       this.sentKey = null;
+      this.failedKey = key;
       if (chain) this.onError(err);
       return err;
     } finally {

@@ -13,7 +13,7 @@ import { OrbitCamera, UP, applyHeldKeys, isMoveKey } from "./camera.js";
 import { drawFrustums } from "./overlay.js";
 import { probeRay, lumisphere, treeRay } from "./probe.js";
 import { MeshPass, parseObj, parseGlb, toSceneUp } from "./mesh.js";
-import { detectGL, glRendererName, FrameStats, CpuFrames, markWebglOnly } from "./frames.js";
+import { detectGL, glRendererName, FrameStats, CpuFrames, FrameError, markWebglOnly } from "./frames.js";
 import { GlFrames } from "./glframes.js";
 
 const $ = (id) => document.getElementById(id);
@@ -54,7 +54,7 @@ const ready = new Promise((res, rej) => { resolveReady = res; rejectReady = rej;
 ready.catch(() => {});
 
 const api = {
-  state: "loading", message: "", ready,
+  state: "loading", message: "", notice: "", ready,
   info: () => (scene ? describe(scene) : null),
   limits: () => (renderer ? renderer.limits : null),
   setView(view) { fixedView = view; invalidate(); },
@@ -67,8 +67,10 @@ const api = {
   pixels() {
     return toBase64(drawMode === "cpu" ? canvasPixels() : renderer.readPixels());
   },
-  // Median milliseconds per frame (draw + wait for the GPU) over n frames.
+  // Median milliseconds per frame over n frames: WebGL, draw + wait for the GPU (a number);
+  // CPU mode, full-resolution frames from request to screen (a Promise of the number).
   benchmark(n = 10) {
+    if (drawMode === "cpu") return cpuBenchmark(n);
     const times = [];
     renderOnce();
     for (let i = 0; i < n; i++) times.push(renderOnce());
@@ -395,6 +397,26 @@ function cpuDrawNow() {
   return cpu.drawNow(v.key, v.viewAt(1), v.opts, v.fixed ? null : v.target);
 }
 
+async function cpuBenchmark(n) {
+  const times = [];
+  await cpuDrawNow();
+  for (let i = 0; i < n; i++) times.push(await cpuDrawNow());
+  times.sort((a, b) => a - b);
+  return times[Math.floor(times.length / 2)];
+}
+
+// A frame the server could not draw: a notice that goes away by itself; the page keeps its state and draws again at the next camera change.
+let noticeTimer = null;
+function showNotice(text) {
+  const el = $("notice");
+  el.textContent = text;
+  el.hidden = false;
+  api.notice = text;
+  console.warn(text);
+  clearTimeout(noticeTimer);
+  noticeTimer = setTimeout(() => { el.hidden = true; }, 6000);
+}
+
 // RGBA8 pixels of the 2D canvas (CPU mode), rows top to bottom.
 function canvasPixels() {
   const ctx = canvas.getContext("2d");
@@ -585,7 +607,9 @@ function startCpuMode() {
     maxDepth: c.max_depth, format: { name: c.format, basisDim: c.basis_dim } };
   opts.ndc = c.ndc || null;
   cpu = new CpuFrames(canvas, stats);
-  cpu.onError = showError;
+  cpu.onError = (err) => showNotice(err instanceof FrameError ? err.message
+    : `the server could not be reached (${err && err.message ? err.message : err}); `
+      + "the next camera change tries again");
   cpu.next = () => { if (api.state === "ready") cpu.pump(cpuView()); };
   rendererLabel = `CPU (numba, ${c.threads} thread${c.threads === 1 ? "" : "s"})`;
   $("fps").title = glInfo.webgl2 ? `this browser's WebGL: ${glInfo.renderer || "unknown"}` : "no WebGL2 in this browser";
