@@ -93,6 +93,43 @@ def test_streamed_frame_equals_the_render_of_the_same_camera(cpu_server, proc):
     assert np.abs(depth - grey[..., None]).mean() < 2 / 255
 
 
+def test_moving_levels_are_built_and_drawn_on_request(cpu_server, proc):
+    """``lod=k`` draws the tree with its k deepest levels merged (once built in the
+    background; the response says which level drew); ``lod=0`` is the tree itself."""
+    import time
+
+    from plenoctree.compression import load_any_tree
+    from plenoctree.viewer.frames import MOVING_LEVELS, moving_level
+
+    tree = load_any_tree(proc)
+    frames = cpu_server.httpd.frames
+    deadline = time.time() + 120
+    while len(frames.levels) < MOVING_LEVELS + 1 and time.time() < deadline:
+        time.sleep(0.2)
+    assert len(frames.levels) == MOVING_LEVELS + 1
+    assert frames.level_leaves[0] > frames.level_leaves[1] > frames.level_leaves[2]
+    status, _, body = _get(cpu_server.port, "/config.json")
+    assert b'"lods": 2' in body
+    cams = Cameras(C2W[None], FX, FX, SIZE / 2, SIZE / 2, SIZE, SIZE)
+    for lod in (0, 1, 2):
+        status, headers, body = _get(cpu_server.port, "/frame?" + _query(
+            C2W, FX, FX, SIZE / 2, SIZE / 2, SIZE, SIZE, lod=lod, q=95))
+        assert status == 200 and headers["X-Lod"] == str(lod)
+        got = np.asarray(Image.open(io.BytesIO(body)).convert("RGB"), np.float64) / 255
+        level = tree if lod == 0 else moving_level(moving_level(tree, 1), lod - 1) \
+            if lod == 2 else moving_level(tree, 1)
+        want = render_image(level, cams, 0).rgb.numpy()
+        assert _psnr(got, want) > 35, (lod, _psnr(got, want))
+    full = render_image(tree, cams, 0).rgb.numpy()
+    coarse = render_image(moving_level(tree, 1), cams, 0).rgb.numpy()
+    assert 15 < _psnr(coarse, full) < 60                      # the same scene, blurrier
+    from plenoctree.octree import Octree
+
+    one = Octree.from_grid(np.ones((8, 4), np.float32), np.ones((2, 2, 2), bool),
+                           np.zeros(3), np.ones(3), data_format="RGBA")
+    assert one.max_depth == 0 and moving_level(one, 1) is None
+
+
 def test_ndc_tree_frame_equals_the_render_of_its_camera(tmp_path):
     from plenoctree.datasets import load_dataset
     from plenoctree.datasets.forward_facing import forward_facing_tree, write_forward_facing_dataset
@@ -126,6 +163,8 @@ BAD = {
     "bad mode": _query(C2W, FX, FX, 4, 4, 8, 8, mode="x"),
     "bad quality": _query(C2W, FX, FX, 4, 4, 8, 8, q=0),
     "bad stop": _query(C2W, FX, FX, 4, 4, 8, 8, stop=1.5),
+    "lod beyond the moving levels": _query(C2W, FX, FX, 4, 4, 8, 8, lod=9),
+    "negative lod": _query(C2W, FX, FX, 4, 4, 8, 8, lod=-1),
     "negative sh_min": _query(C2W, FX, FX, 4, 4, 8, 8, sh_min=-1),
     "camera far outside": _query(look_at(np.array([1e12, 0, 0])), FX, FX, 4, 4, 8, 8),
 }
@@ -198,12 +237,18 @@ def _browser_mod():
 
 
 @pytest.fixture(scope="module")
-def browser():
+def playwright():
     tvb = _browser_mod()
     with tvb.playwright_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=tvb.CHROMIUM, headless=True, args=tvb.FLAGS)
-        yield b
-        b.close()
+        yield p
+
+
+@pytest.fixture(scope="module")
+def browser(playwright):
+    tvb = _browser_mod()
+    b = playwright.chromium.launch(executable_path=tvb.CHROMIUM, headless=True, args=tvb.FLAGS)
+    yield b
+    b.close()
 
 
 def _open(browser, url):
@@ -322,14 +367,13 @@ if __name__ == "__main__":                 # pragma: no cover
 
 
 @pytest.fixture(scope="module")
-def no_webgl_browser():
+def no_webgl_browser(playwright):
     """Chromium with WebGL switched off entirely (as Chrome without its software WebGL)."""
     tvb = _browser_mod()
-    with tvb.playwright_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=tvb.CHROMIUM, headless=True,
-                              args=tvb.FLAGS + ["--disable-webgl", "--disable-3d-apis"])
-        yield b
-        b.close()
+    b = playwright.chromium.launch(executable_path=tvb.CHROMIUM, headless=True,
+                                   args=tvb.FLAGS + ["--disable-webgl", "--disable-3d-apis"])
+    yield b
+    b.close()
 
 
 @pytest.fixture(scope="module")
