@@ -86,7 +86,8 @@ def to_ndc_rays(origins: Any, dirs: Any, fx: float, fy: float, width: float, hei
             ``False`` returns NeRF's ``d'`` whose end point ``o' + d'`` lies on ``z' = 1``.
         clip: any camera (the module's "any camera" rule): rays that never reach the NDC
             volume become miss rays, a camera past the near plane starts where it stands.
-            Rays that NeRF's rule covers come out bitwise as without ``clip``. Needs
+            A ray NeRF's rule covers (from in front of the near plane, down -z, its NDC
+            origin within :data:`CLIP_EXTENT`) comes out bitwise as without ``clip``. Needs
             ``normalize``.
 
     Returns:
