@@ -116,7 +116,7 @@ def test_cli_compress_decompress(tree_file, tmp_path, capsys):
     out = tmp_path / "t.plnz"
     js = tmp_path / "rep.json"
     assert main(["compress", str(tree_file), "--out", str(out), "--bits", "12",
-                 "--views", "1", "--size", "32", "--json", str(js)]) == 0
+                 "--orbit-views", "1", "--size", "32", "--json", str(js)]) == 0
     text = capsys.readouterr().out
     assert "ratio" in text and "PSNR" in text and "compress" in text
     rep = json.loads(js.read_text())

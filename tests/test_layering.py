@@ -7,7 +7,7 @@ inside functions alike: a deferred import is still a dependency) and checked aga
 A *unit* is a top-level module (``video``, ``_util``) or a subpackage (``datasets``,
 ``render``); imports inside one unit are free. The layers, bottom up (DESIGN.md §1)::
 
-    leaves     errors _log _lazy _npz _util runtime device _triton backend sh metrics plots
+    leaves     errors _bounds _log _lazy _npz _util runtime device _triton backend sh metrics plots
     data       octree; datasets (octree/sh only for the procedural scenes, see EXCEPTIONS)
     engine     render (octree, sh); compression (octree)
     stages     evaluation camera_path export process viewer; nerf video compression_report;
@@ -28,10 +28,12 @@ import pytest
 SRC = Path(__file__).resolve().parents[1] / "src"
 PKG = "plenoctree"
 
-_LEAF = {"errors"}
+#: What every unit may import: the error types and the bounds policy of every setting.
+_LEAF = {"errors", "_bounds"}
 #: unit -> the units it may import (besides itself). The graph must stay acyclic.
 ALLOWED: dict[str, set[str]] = {
     "errors": set(),
+    "_bounds": {"errors"},
     "_log": set(),
     "_lazy": set(),
     "_npz": _LEAF,

@@ -31,12 +31,14 @@ pytestmark = [pytest.mark.distributed, pytest.mark.slow]
 STEPS = 80
 
 
-def _run(args: list[str], cwd: Path, timeout: float = 600) -> None:
+def _run(args: list[str], cwd: Path, timeout: float = 600) -> str:
+    """Run ``python ARGS`` in ``cwd``; returns its standard output (it must exit 0)."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     env.pop("WORLD_SIZE", None)
     p = subprocess.run([sys.executable, *args], cwd=cwd, env=env, capture_output=True,
                        text=True, timeout=timeout)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    return p.stdout
 
 
 def _losses(run: Path) -> list[float]:
@@ -70,6 +72,40 @@ def test_two_gloo_processes_match_one_process(tmp_path):
         assert abs(a - b) <= 0.25 * a, (one, two)
     mean1, mean2 = sum(one) / len(one), sum(two) / len(two)
     assert abs(mean1 - mean2) <= 0.08 * mean1, (one, two)
+
+
+_TRAIN_SPY = """
+import os, sys
+import plenoctree.nerf as nerf
+from plenoctree.cli import main
+
+def train(*args, **kw):                          # `plenoctree train`, recording each rank's result
+    res = real(*args, **kw)
+    open(f"psnr_{os.environ['RANK']}.txt", "w").write(repr(res.val_psnr))
+    return res
+
+real, nerf.train = nerf.train, train
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_two_processes_report_the_validation_psnr_once(tmp_path):
+    """Only rank 0 validates: ``plenoctree train`` prints the run's line once, with rank 0's
+    PSNR (the second rank printed ``validation PSNR nan dB``), and every rank's result holds
+    that PSNR."""
+    from plenoctree.nerf.config import config_json
+
+    data = tiny_dataset(tmp_path / "data")
+    cfg = tiny_cpu_config(data, tmp_path / "unused", steps=4)
+    (tmp_path / "cfg.json").write_text(config_json(cfg))
+    (tmp_path / "spy.py").write_text(_TRAIN_SPY)
+    out = _run(["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                "spy.py", "train", "--config", "cfg.json", "--quiet", "--out", "ddp"], tmp_path)
+    lines = [ln for ln in out.splitlines() if ln.startswith("trained ")]
+    assert len(lines) == 1 and "nan" not in out, out
+    psnr = json.loads((tmp_path / "ddp" / "summary.json").read_text())["val_psnr"]
+    assert f"validation PSNR {psnr:.2f} dB" in lines[0], (lines, psnr)
+    assert [float((tmp_path / f"psnr_{r}.txt").read_text()) for r in (0, 1)] == [psnr, psnr]
 
 
 _CLOSE_SCRIPT = """

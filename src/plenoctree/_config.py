@@ -14,6 +14,7 @@ import typing
 from pathlib import Path
 from typing import Any
 
+from ._bounds import bound_error, is_integer_type
 from .errors import ConfigError
 
 __all__ = ["apply", "field_help", "flag_name", "spell_flags", "load_config_file",
@@ -152,10 +153,10 @@ def _type_words(tp: Any) -> str:
 
 
 def check_value(cls: type, f: dataclasses.Field, value: Any, where: str, key: str = "") -> None:
-    """ConfigError unless ``value`` fits field ``f`` of dataclass ``cls`` (its type annotation
-    and its ``choices`` metadata); the message names ``where`` (the config file), the key
-    (``key``: its dotted path, default the field's name) and, for a top-level key, the flag
-    (``--steps`` for ``max_steps``)."""
+    """ConfigError unless ``value`` fits field ``f`` of dataclass ``cls`` (its type annotation,
+    its ``choices`` metadata and the ceilings of :mod:`._bounds`); the message names ``where``
+    (the config file), the key (``key``: its dotted path, default the field's name) and, for a
+    top-level key, the flag (``--steps`` for ``max_steps``)."""
     try:
         tp = typing.get_type_hints(cls)[f.name]
     except Exception:  # noqa: BLE001 - an annotation that cannot be resolved: no type check
@@ -168,6 +169,9 @@ def check_value(cls: type, f: dataclasses.Field, value: Any, where: str, key: st
     if choices and value is not None and value not in choices:
         raise ConfigError(f"{where}: {named} must be one of "
                           f"{', '.join(map(str, choices))}, got {value!r}")
+    problem = bound_error(f.name, value, is_integer_type(tp))
+    if problem:
+        raise ConfigError(f"{where}: {named} {problem}")
 
 
 def load_config_file(path: str | Path | None) -> dict[str, Any]:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from ._bounds import check_bounds
 from ._config import config_dict
 from ._util import atomic_save_json, atomic_write, check_output_dir, run_lock
 from .compression.codec import CompressOptions
@@ -117,6 +118,7 @@ def _validate(cfg: PipelineConfig) -> None:
     if cfg.nerf_eval_views < -1:
         raise ConfigError(f"--nerf-eval-views must be >= -1 (0 = all, -1 = skip), got "
                           f"{cfg.nerf_eval_views}")
+    check_bounds(cfg, nested=False)           # the pipeline-wide settings (stages: above)
 
 
 @dataclass

@@ -320,13 +320,23 @@ def add_command(sub: argparse._SubParsersAction, name: str, cls: type,
 
 def _spelled(p: argparse.ArgumentParser, call: Callable[[], Any]) -> Any:
     """``call()``, its ConfigError spelling the config's field names as ``p``'s flags
-    (``finetune: lr_decay must`` → ``--lr-decay must``)."""
+    (``finetune: lr_decay must`` → ``--lr-decay must``) and a config key checked by
+    :func:`apply` with the flag the command gives it (compress's ``'views' (--views) must``
+    → ``'views' (--orbit-views) must``, lod's ``'lod.max_depth' must`` → ``'lod.max_depth'
+    (--max-depth) must``)."""
     try:
         return call()
     except ConfigError as e:
-        flags = {a.dest.rsplit(".", 1)[-1]: a.option_strings[0]
-                 for a in p._actions if a.option_strings and a.dest != "help"}
-        spelled = spell_flags(str(e), flags)
+        actions = [a for a in p._actions if a.option_strings and a.dest != "help"]
+        by_dest = {a.dest: a.option_strings[0] for a in actions}
+
+        def key_flag(m: re.Match) -> str:
+            flag = by_dest.get(m.group(1), m.group(2))
+            return f"'{m.group(1)}'" + (f" ({flag})" if flag else "")
+
+        keyed = re.sub(r"'([\w.]+)'(?: \((--[\w.-]+)\))?(?= must)", key_flag, str(e))
+        spelled = spell_flags(keyed, {a.dest.rsplit(".", 1)[-1]: a.option_strings[0]
+                                      for a in actions})
         if spelled == str(e):
             raise
         raise ConfigError(spelled) from e

@@ -34,7 +34,7 @@ class CompressConfig:
     downscale: int = 4
     """integer image downscale for the PSNR check"""
     limit: int | None = None
-    """only the first N views of the split (0 or default: all)"""
+    """only the first N views of --data's split (0 or default: all; needs --data)"""
     views: int = 4
     """orbit views for the fidelity check without --data"""
     size: int = 128
@@ -91,6 +91,9 @@ def _run_compress(cfg: CompressConfig, args: argparse.Namespace) -> int:
     if isinstance(cfg.views, bool) or not isinstance(cfg.views, int) or cfg.views < 1:
         raise ConfigError(f"--orbit-views must be a positive integer (orbit views for the "
                           f"fidelity check), got {cfg.views!r}")
+    if cfg.limit is not None and not cfg.data:
+        raise ConfigError(f"--views {cfg.limit} counts views of --data's split, and no --data "
+                          "was given; the orbit views of the fidelity check are --orbit-views")
     check_json(args)
     data = None
     with output_file(out, "compress", overwrite=args.overwrite, kind="tree"):

@@ -9,6 +9,7 @@ reports PSNR / SSIM and seconds per frame.
 from __future__ import annotations
 
 import argparse
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -140,8 +141,13 @@ def run_train(args: argparse.Namespace) -> int:
         False if args.quiet else None)
     quiet = None if progress is None else not progress
     res = train(cfg, resume=args.resume, quiet=quiet)
-    print(f"trained {res.step} steps in {res.train_time_s / 60:.1f} min of training; "
-          f"validation PSNR {res.val_psnr:.2f} dB; run directory {res.run_dir}")
+    from ..nerf.distributed import rank_from_env
+
+    if rank_from_env() == 0:        # under torchrun one line for the run, not one per rank
+        val = ("no validation views" if math.isnan(res.val_psnr)
+               else f"validation PSNR {res.val_psnr:.2f} dB")
+        print(f"trained {res.step} steps in {res.train_time_s / 60:.1f} min of training; "
+              f"{val}; run directory {res.run_dir}")
     return 0
 
 

@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from .._bounds import check_bounds
 from ..errors import ConfigError, TreeFormatError
 from ..octree import Octree
 from .quantize import MAX_BITS, median_cut_many
@@ -81,7 +82,7 @@ class CompressOptions:
                               f"got {self.sigma_thresh!r}") from None
         if not math.isfinite(thr) or thr < 0:
             raise ConfigError(f"CompressOptions.sigma_thresh must be finite and >= 0, got {thr}")
-        return self
+        return check_bounds(self, "CompressOptions.")
 
 
 @dataclass(eq=False)

@@ -27,6 +27,7 @@ from typing import Callable
 
 import numpy as np
 
+from .._bounds import check_bounds
 from ..errors import ConfigError
 from ..octree import Octree
 from .codec import CompressOptions, compress
@@ -62,7 +63,7 @@ class LodOptions:
         a = float(self.prune_alpha)
         if not (math.isfinite(a) and 0.0 <= a < 1.0):
             raise ConfigError(f"LodOptions.prune_alpha must be in [0, 1), got {self.prune_alpha!r}")
-        return self
+        return check_bounds(self, "LodOptions.")
 
     def describe(self) -> str:
         parts = []

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from .._bounds import check_bounds
 from .._util import atomic_save_json
 from ..errors import ConfigError, PlenOctreeError
 from .bbox import AutoBoxOptions, BoxResult, auto_bbox, fixed_bbox, stretch_depth
@@ -243,6 +244,7 @@ def _validate(cfg: ExtractConfig) -> None:
                     ("--threads", cfg.threads)):
         if v < 0:
             raise ConfigError(f"{name} must be >= 0, got {v}")
+    check_bounds(cfg)
 
 
 def _load_run(cfg: ExtractConfig) -> tuple[Any, Any, float | None]:

@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from .._bounds import check_bounds
 from .._util import atomic_save_json, progress
 from ..errors import ConfigError
 from ..sh import SH_C0
@@ -510,7 +511,7 @@ class RefineConfig:
         if self.precision not in ("auto", "fp16", "fp32"):
             raise ConfigError(f"refine: --precision must be auto, fp16 or fp32, got "
                               f"{self.precision!r}")
-        return self
+        return check_bounds(self, "refine: ")
 
 
 @dataclass

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .._bounds import check_bounds
 from ..errors import ConfigError
 
 __all__ = ["ModelConfig", "TrainConfig", "preset", "PRESETS", "field_docs", "config_from_dict",
@@ -297,7 +298,8 @@ def config_json(cfg: TrainConfig) -> str:
 
 
 def validate(cfg: TrainConfig) -> TrainConfig:
-    """Check option values; raise :class:`ConfigError` naming the first bad one."""
+    """Check option values (the ceilings of every count and time: :mod:`plenoctree._bounds`);
+    raise :class:`ConfigError` naming the first bad one."""
     m = cfg.model
 
     def need(ok: bool, msg: str) -> None:
@@ -353,4 +355,4 @@ def validate(cfg: TrainConfig) -> TrainConfig:
 
     need(cfg.format in (None, *FORMATS),
          f"format must be one of {', '.join(FORMATS)}, got {cfg.format!r}")
-    return cfg
+    return check_bounds(cfg)

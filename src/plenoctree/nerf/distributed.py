@@ -23,8 +23,10 @@ How a step is split (``world`` processes, ``rank`` 0…world-1):
 * the step's loss, MSE, ray and sample counts and its duration are reduced too, so every rank
   logs, adapts its ray count and stops at the same step (a time budget cannot make ranks
   disagree);
-* rank 0 alone writes ``config.json``, the logs, validation renders, the checkpoint and
-  ``summary.json``; resuming (``--resume``) loads that checkpoint on every rank.
+* rank 0 alone validates and writes ``config.json``, the logs, validation renders, the
+  checkpoint and ``summary.json``; at the end every rank gets its validation PSNR, and
+  ``plenoctree train`` prints its summary line on rank 0 only; resuming (``--resume``)
+  loads that checkpoint on every rank.
 
 The result is the single-process run with the same global batch up to the rendering noise
 (checked by ``tests/test_nerf_distributed.py``); a run may be resumed with another number of
@@ -99,6 +101,16 @@ class DistContext:
 
         t = torch.tensor(values, dtype=torch.float64, device=self.device)
         dist.all_reduce(t, op=dist.ReduceOp.SUM)
+        return t.tolist()
+
+    def from_main(self, values: list[float]) -> list[float]:
+        """Rank 0's ``values`` on every rank (the values themselves for one process)."""
+        if not self.active:
+            return list(values)
+        import torch.distributed as dist
+
+        t = torch.tensor(values, dtype=torch.float64, device=self.device)
+        dist.broadcast(t, src=0)
         return t.tolist()
 
     def broadcast_module(self, module: torch.nn.Module) -> None:

@@ -513,7 +513,8 @@ class Trainer:
             self.checkpoint()
 
     def validate(self) -> None:
-        """Render and score the validation views (rank 0); appends a ``val.csv`` row."""
+        """Render and score the validation views (rank 0 alone; the other ranks get its PSNR
+        at the end, :meth:`_finish`); appends a ``val.csv`` row."""
         self.read_losses()
         if self.val is None or not self.dctx.is_main:
             return
@@ -562,6 +563,8 @@ class Trainer:
 
     def _finish(self) -> TrainResult:
         dctx, log, val = self.dctx, self.log, self.val
+        # only rank 0 validated (torchrun): its PSNR is the run's, on every rank
+        self.val_psnr = dctx.from_main([self.val_psnr])[0]
         summary = {"step": self.step, "train_time_s": self.train_s, "wall_time_s": self._wall(),
                    "val_psnr": self.val_psnr,
                    "val_ssim": log.val[-1]["ssim"] if log.val else None,

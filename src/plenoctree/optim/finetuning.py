@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from .._bounds import check_bounds
 from ..errors import ConfigError, DatasetError
 
 __all__ = ["FinetuneConfig", "FinetuneResult", "finetune"]
@@ -121,7 +122,8 @@ class FinetuneConfig:
     verbose: bool = _f(True, "log one line per epoch / validation at INFO (off: at DEBUG)")
 
     def validated(self) -> FinetuneConfig:
-        """Check value ranges; raises :class:`ConfigError`."""
+        """Check value ranges (upper ends: :mod:`plenoctree._bounds`); raises
+        :class:`ConfigError`."""
         for name in ("tree", "data", "out"):
             if getattr(self, name) in (None, ""):
                 raise ConfigError(f"finetune: {name} is required")
@@ -155,7 +157,7 @@ class FinetuneConfig:
                               f"{self.precision!r}")
         if not 0.0 <= float(self.stop_thresh) < 1.0:
             raise ConfigError(f"finetune: stop_thresh must be in [0, 1), got {self.stop_thresh!r}")
-        return self
+        return check_bounds(self, "finetune: ")
 
 
 @dataclass
