@@ -25,7 +25,7 @@ from ..errors import ConfigError, TreeFormatError
 from .options import FormatInfo, RenderOptions, RenderOutput, parse_data_format
 
 __all__ = ["RenderOptions", "RenderOutput", "available_backends", "render_rays", "render_image",
-           "tree_to_device", "CpuTree", "DeviceTree"]
+           "tree_to_device", "CpuTree", "DeviceTree", "origin_in_reach"]
 
 def available_backends(device: Any = None) -> list[str]:
     """Render backends usable here (on ``device`` when given), fastest first."""
@@ -64,6 +64,16 @@ def _check_rays(origins: Any, dirs: Any) -> None:
         else np.einsum("...i,...i->...", dirs, dirs)
     if bool((sq <= 1e-24).any()):
         raise ConfigError("dirs: contains zero-length directions")
+
+
+def origin_in_reach(tree: Any, point: Any) -> bool:
+    """Whether a ray can start at the world ``point [3]`` of ``tree``: within
+    ``MAX_RAY_ORIGIN`` tree units of its box (farther, a float64 step cannot advance and
+    :func:`render_rays` refuses the ray; the box then spans under 1e-8 rad from there)."""
+    from ..octree.limits import MAX_RAY_ORIGIN
+
+    p = vec3(tree.offset) + vec3(tree.invradius) * np.asarray(point, np.float64).reshape(3)
+    return bool(np.abs(p).max() <= MAX_RAY_ORIGIN)
 
 
 def _check_origins(origins: Any, offset: np.ndarray, inv: np.ndarray) -> None:

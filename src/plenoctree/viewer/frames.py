@@ -161,18 +161,6 @@ def moving_level(tree: Any, k: int) -> Any:
     return merge_to_depth(tree, depth - int(k))
 
 
-def _too_far(tree: Any, camera: Any) -> bool:
-    """Whether the camera centre lies farther than ``MAX_RAY_ORIGIN`` tree units from the
-    tree's box (the renderer refuses such ray origins: a float64 step cannot advance). From
-    there the box spans under 1e-8 rad: less than a pixel for any focal length the camera
-    checks accept."""
-    from ..octree.limits import MAX_RAY_ORIGIN
-
-    c = camera.c2w[0, :3, 3].astype(np.float64)
-    p = np.asarray(tree.offset, np.float64) + np.asarray(tree.invradius, np.float64) * c
-    return bool(np.abs(p).max() > MAX_RAY_ORIGIN)
-
-
 def _shade(out: Any, req: FrameRequest) -> np.ndarray:
     """uint8 ``[H, W, 3]`` of a render for the request's view mode (the page's shader's
     depth and opacity mappings)."""
@@ -255,13 +243,14 @@ class FrameRenderer:
         """``(uint8 [H, W, 3] image of req, the level that drew it)``: level ``req.lod`` or,
         while that is not built yet, the finest one below it. A view is never refused for
         where the camera stands or looks: NDC trees through ``tree.ndc.apply`` (any camera);
-        a camera so far away that the renderer cannot step from it (:func:`_too_far`) sees
-        the tree smaller than a pixel, and gets the background."""
+        a camera so far away that the renderer cannot step from it
+        (:func:`~plenoctree.render.origin_in_reach`) sees the tree smaller than a pixel (any
+        focal length the camera checks accept), and gets the background."""
         import torch
 
-        from ..render import RenderOutput, render_image
+        from ..render import RenderOutput, origin_in_reach, render_image
 
-        if self.ndc is None and _too_far(self.tree, req.camera):
+        if self.ndc is None and not origin_in_reach(self.tree, req.camera.c2w[0, :3, 3]):
             h, w = req.camera.height, req.camera.width
             bg = torch.tensor(req.options.background, dtype=torch.float32)
             out = RenderOutput(bg.expand(h, w, 3), torch.zeros(h, w), torch.zeros(h, w))
