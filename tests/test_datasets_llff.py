@@ -117,9 +117,42 @@ def test_forward_facing_defaults_to_ndc_and_spherify_does_not(ff_root):
         load_llff(ff_root, options=LLFFOptions(ndc=True, spherify=True))
 
 
-def test_inward_facing_scene_refuses_ndc(llff_root):
+def test_inward_facing_scene_is_detected_and_refuses_ndc(llff_root, ff_root, caplog):
+    """A folder whose cameras surround the scene is a 360° capture: spherified, no NDC, and
+    the loader says so; forward-facing folders keep NDC; NDC asked for is still refused."""
+    from plenoctree.datasets.llff import llff_capture_kind
+
+    assert llff_capture_kind(llff_root) == "360" and llff_capture_kind(ff_root) == "forward"
+    with caplog.at_level("INFO", logger="plenoctree.datasets.llff"):
+        data = load_llff(llff_root, "train")
+    assert "a 360° capture" in caplog.text and "poses_bounds.npy" in caplog.text
+    assert not data.cameras.ndc
+    np.testing.assert_allclose(data.scene_bbox, [[-1] * 3, [1] * 3])
+    same = load_llff(llff_root, "train", options=LLFFOptions(spherify=True))
+    np.testing.assert_array_equal(data.cameras.c2w, same.cameras.c2w)
+    assert llff_render_cameras(llff_root, n_frames=4).ndc is False          # a circle
+    caplog.clear()
+    with caplog.at_level("INFO", logger="plenoctree.datasets.llff"):
+        assert load_llff(ff_root, "train").cameras.ndc
+    assert "360" not in caplog.text
     with pytest.raises(DatasetError, match="forward-facing"):
-        load_llff(llff_root, "train")           # sphere of cameras: NDC impossible
+        load_llff(llff_root, "train", options=LLFFOptions(ndc=True))   # NDC impossible
+
+
+@pytest.mark.parametrize("scene,kind", [("flower", "forward"), ("lounge", "360")])
+def test_real_captures_are_detected(scene, kind):
+    """LLFF's flower is forward-facing; lounge (a 347° walk-around in mip-NeRF 360's layout)
+    is a 360° capture: spherified, no NDC rays."""
+    from pathlib import Path
+
+    from plenoctree.datasets.llff import llff_capture_kind
+
+    root = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / scene
+    if not (root / "poses_bounds.npy").is_file():
+        pytest.skip(f"{root} is not here")
+    assert llff_capture_kind(root) == kind
+    data = load_dataset(root, "test", downscale=8 if scene == "flower" else 4, limit=1)
+    assert data.cameras.ndc == (kind == "forward")
 
 
 def test_render_path(ff_root):

@@ -1,4 +1,5 @@
-"""Loader for LLFF forward-facing captures (``poses_bounds.npy`` + ``images[_N]/``).
+"""Loader for LLFF captures (``poses_bounds.npy`` + ``images[_N]/``): forward-facing ones, and
+inward-facing 360° ones in the same layout (mip-NeRF 360's scenes ship it).
 
 Layout::
 
@@ -19,6 +20,11 @@ full-resolution images. The standard conversion (NeRF's LLFF loader, reimplement
 4. (``spherify``, for inward-facing 360° captures) re-centred on the point nearest to all
    optical axes, up axis = mean camera offset, and scaled to unit camera distance.
 
+Which kind a folder holds is decided by its cameras unless :class:`LLFFOptions` says
+(``spherify=None``, the default): cameras whose optical axes spread as around an object are a
+360° capture (:func:`llff_capture_kind`, the rule ``process`` applies to photos), which is
+spherified and gets no NDC; the decision is logged.
+
 Forward-facing scenes use NDC rays (:mod:`plenoctree.datasets.ndc`, near plane 1): the
 dataset's near/far are 0 and the NDC length of the longest ray, and its ``scene_bbox`` is the
 NDC box holding every camera's rays (z in [-1, 1]). ``llffhold = 8``: images 0, 8, 16, ...
@@ -29,6 +35,7 @@ the spiral (or, spherified, circular) video path. Every problem raises
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from dataclasses import dataclass
@@ -45,7 +52,10 @@ from .cameras import Cameras
 from .ndc import ndc_bounds
 
 __all__ = ["load_llff", "LLFFOptions", "read_llff", "LLFFScene", "llff_render_cameras",
-           "spiral_path", "average_pose", "write_llff", "LLFF_HOLD", "BD_FACTOR"]
+           "spiral_path", "average_pose", "write_llff", "llff_capture_kind", "LLFF_HOLD",
+           "BD_FACTOR"]
+
+logger = logging.getLogger(__name__)
 
 LLFF_HOLD = HOLDOUT
 """Every ``LLFF_HOLD``-th image (0, 8, 16, ...) is held out for testing (``_files.HOLDOUT``)."""
@@ -275,13 +285,38 @@ class LLFFOptions:
     ignores it)."""
     ndc: bool | None = None
     """NDC rays (None: yes unless ``spherify``)."""
-    spherify: bool = False
-    """Spherical normalisation for inward-facing 360° captures (no NDC)."""
+    spherify: bool | None = None
+    """Spherical normalisation for inward-facing 360° captures (no NDC); None: when the
+    cameras surround the scene (:func:`llff_capture_kind`) and ``ndc`` is not given."""
     recenter: bool = True
     """Recentre on the average pose (:func:`read_llff`); False keeps the file's world frame."""
     bd_factor: float | None = BD_FACTOR
     """Rescale so the nearest depth bound is ``1 / bd_factor`` (:func:`read_llff`); None keeps
     the file's scale."""
+
+
+def llff_capture_kind(root: str | os.PathLike) -> str:
+    """``"forward"`` or ``"360"``: the kind of capture ``root/poses_bounds.npy`` holds, by the
+    spread of its optical axes (``colmap.capture_kind``, the rule ``process`` decides photos
+    by: flower's axes agree to 0.999, lounge's walk-around 0.88, the threshold is 0.9)."""
+    from .colmap import capture_kind
+
+    c2w, _, _ = read_poses_bounds(Path(root) / POSES_FILE)
+    return capture_kind(c2w)
+
+
+def _spherify_of(root: Path, opt: LLFFOptions) -> bool:
+    """``opt.spherify``; None: False when ``opt.ndc`` is given (either way), else whether the
+    cameras surround the scene (said in the log)."""
+    if opt.spherify is not None:
+        return bool(opt.spherify)
+    if opt.ndc is not None:
+        return False
+    if llff_capture_kind(root) == "360":
+        logger.info("%s: the cameras surround the scene: a 360° capture (spherical "
+                    "normalisation, no NDC rays)", root / POSES_FILE)
+        return True
+    return False
 
 
 def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
@@ -313,14 +348,14 @@ def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
     """
     bg = check_load_options(split, downscale, background, limit)
     opt = options or LLFFOptions()
-    spherify = opt.spherify
-    ndc = (not spherify) if opt.ndc is None else opt.ndc
-    if ndc and spherify:
+    if opt.ndc and opt.spherify:
         raise ConfigError("LLFF: ndc and spherify exclude each other (NDC is for forward-facing "
                           "captures, spherify for 360° ones)")
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset folder does not exist")
+    spherify = _spherify_of(root, opt)
+    ndc = (not spherify) if opt.ndc is None else opt.ndc
     scene = read_llff(root, recenter=opt.recenter, bd_factor=opt.bd_factor, spherify=spherify)
     n = len(scene.c2w)
     folder, files, factor = _images_for(root, n, int(downscale))
@@ -372,7 +407,7 @@ def llff_render_cameras(root: str | os.PathLike, n_frames: int = 120, downscale:
         raise ConfigError(f"downscale must be a positive integer, got {downscale!r}")
     root = Path(root)
     opt = options or LLFFOptions()
-    spherify = opt.spherify
+    spherify = _spherify_of(root, opt)
     scene = read_llff(root, recenter=opt.recenter, bd_factor=opt.bd_factor, spherify=spherify)
     folder, files, factor = _images_for(root, len(scene.c2w), int(downscale))
     size = probe_size(files[0])

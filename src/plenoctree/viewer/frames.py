@@ -51,7 +51,7 @@ JPEG_QUALITY = 90
 #: Coarser levels a page may ask for while moving (``lod`` 1..this). Each merged level has
 #: about a quarter of the leaves of the one above on a surface (measured figures:
 #: docs/viewer.md, "Without a GPU: the CPU mode").
-MOVING_LEVELS = 2
+MOVING_LEVELS = 3
 _VIEW_MODES = ("rgb", "depth", "alpha")
 _MAX_QUERY = 4096            # characters of a /frame query string
 
@@ -113,7 +113,8 @@ def parse_frame_query(query: str) -> FrameRequest:
     :func:`~plenoctree.datasets.cameras.check_image_size`), ``c2w`` (16 numbers, row-major),
     ``fx``, ``fy``, ``cx``, ``cy``; optional ``bg`` (3 numbers), ``stop``, ``sh_min``,
     ``sh_max``, ``mode`` (rgb|depth|alpha), ``dr`` (2 numbers: depth range), ``q`` (JPEG
-    quality), ``lod`` (0..:data:`MOVING_LEVELS`: a coarser level while moving). Raises :class:`ConfigError` (the server answers 400) for anything else: missing,
+    quality), ``lod`` (0..:data:`MOVING_LEVELS`: a coarser level while moving). Raises
+    :class:`ConfigError` (the server answers 400) for anything else: missing,
     non-numeric or non-finite values, a singular pose, implausible intrinsics, a bad size.
     """
     from ..datasets import check_image_size
