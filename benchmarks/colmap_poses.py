@@ -50,6 +50,8 @@ import numpy as np
 
 from _bench import CACHE, add_data_root, add_out, data_path, machine_info, write_json
 
+from plenoctree.datasets.camera_sets import umeyama
+
 OUTLIER_DEG = 5.0
 
 
@@ -96,19 +98,6 @@ def prepare_video(lego: Path, size: int, out: Path) -> tuple[Path, list[np.ndarr
                      macro_block_size=16)
         (out / f".{video.name}").rename(video)
     return video, gt
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity ``(s, R, t)`` minimising ``sum |s R src_i + t - dst_i|^2`` (``[N, 3]``)."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    u, sig, vt = np.linalg.svd(xd.T @ xs / len(src))
-    d = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        d[2, 2] = -1
-    r = u @ d @ vt
-    s = float(np.trace(np.diag(sig) @ d) / xs.var(0).sum())
-    return s, r, mu_d - s * r @ mu_s
 
 
 def pose_errors(est: np.ndarray, ref: np.ndarray) -> dict:

@@ -119,3 +119,39 @@ def test_load_cameras_where_4_does_not_divide(tmp_path):
     np.testing.assert_allclose([c.fx / c.width, c.fy / c.height, c.ndc_focal[0] / c.width],
                                [f.fx / f.width, f.fy / f.height, f.ndc_focal[0] / f.width])
     assert c.ndc and f.ndc
+
+
+def test_llff_with_a_colmap_model_of_the_same_photos_is_llff(tmp_path, caplog):
+    """mip-NeRF 360's layout: ``poses_bounds.npy`` + ``images_N/`` and COLMAP's ``sparse/0``.
+    The same photos posed twice (up to a similarity): one dataset, read as LLFF, and said so;
+    different cameras (or photos the model lacks): still ambiguous, naming both choices."""
+    from test_colmap import write_model
+
+    from plenoctree.datasets.llff import read_poses_bounds
+
+    root = write_forward_facing_dataset(tmp_path / "ff", n_images=9, width=8, height=6,
+                                        n_samples=16)
+    c2w, _, hwf = read_poses_bounds(root / "poses_bounds.npy")
+    names = [f"{i:03d}.png" for i in range(len(c2w))]
+    assert sorted(p.name for p in (root / "images").iterdir()) == names
+    # COLMAP's world: another frame and scale (a similarity of the LLFF file's)
+    rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    sim = np.eye(4)
+    sim[:3, :3], sim[:3, 3] = 2.5 * rot, [1.0, -2.0, 0.5]
+    other = sim @ c2w
+    other[:, :3, :3] /= 2.5
+    f = float(hwf[0, 2])
+    write_model(root / "sparse" / "0", other, [f, f, 4.0, 3.0], 8, 6, names, np.zeros((0, 3)))
+    with caplog.at_level("INFO", logger="plenoctree.datasets.dataset"):
+        assert detect_format(root) == "llff"
+    assert "pose the same photos" in caplog.text
+    assert load_dataset(root, "train").cameras.ndc               # loads with no flag
+    moved = other.copy()
+    moved[3, :3, 3] += 0.5                                       # one camera elsewhere
+    write_model(root / "sparse" / "0", moved, [f, f, 4.0, 3.0], 8, 6, names, np.zeros((0, 3)))
+    with pytest.raises(DatasetError, match="do not pose the same photos.*--format llff"):
+        detect_format(root)
+    write_model(root / "sparse" / "0", other[:5], [f, f, 4.0, 3.0], 8, 6, names[:5],
+                np.zeros((0, 3)))                                # a model of 5 of the 9 photos
+    with pytest.raises(DatasetError, match="ambiguous"):
+        detect_format(root)

@@ -15,7 +15,8 @@ needs pycolmap); every undistorted camera must come out at one image size.
 the rest of the chain relies on; ``docs/capture.md``, "What process does"):
 
 * **kind**: ``forward`` when every optical axis lies within ~25° of their mean
-  (``|mean forward axis| >= FORWARD_THRESHOLD``), else ``360`` (an object seen from around it).
+  (:func:`~.camera_sets.capture_kind`: ``|mean forward axis| >= FORWARD_THRESHOLD``), else
+  ``360`` (an object seen from around it).
 * **360**: up = the mean of the cameras' up axes (becomes world +z); centre = the point
   nearest to every optical axis; scale: median camera distance to it = ``CAMERA_RADIUS``
   (4, as in the Blender scenes). Box: the 0.5–99.5 % percentiles of the sparse points inside
@@ -48,16 +49,15 @@ from ..errors import ConfigError, DatasetError
 from ._images import focus_point, load_images, near_far_from_box
 from ._files import check_inside_dataset, check_load_options, confined, holdout_split, take_views
 from .base import Dataset, DatasetFormat
+from .camera_sets import FORWARD_THRESHOLD, capture_kind
 from .cameras import Cameras
 from .colmap_model import colmap_c2w, find_colmap_model, read_colmap_model
 
 __all__ = ["load_colmap", "ColmapOptions", "normalize_scene", "SceneFrame", "depth_bounds",
-           "CAMERA_RADIUS", "FORWARD_THRESHOLD", "KINDS"]
+           "capture_kind", "CAMERA_RADIUS", "FORWARD_THRESHOLD", "KINDS"]
 
 CAMERA_RADIUS = 4.0
 """Median camera distance to the scene centre after normalising a 360° capture."""
-FORWARD_THRESHOLD = 0.9
-"""``|mean optical axis|`` at or above which a capture counts as forward-facing."""
 MIN_POINTS = 50
 SURROUND_FRACTION = 0.9
 """A 360° capture whose padded point box reaches this fraction of ``CAMERA_RADIUS`` surrounds
@@ -80,13 +80,6 @@ class SceneFrame:
     kind: str
     bbox: np.ndarray | None
     bounds: np.ndarray | None
-
-
-def capture_kind(c2w: np.ndarray) -> str:
-    """``"forward"`` or ``"360"`` from the spread of the optical axes (module docstring)."""
-    fwd = -np.asarray(c2w, dtype=np.float64)[:, :3, 2]
-    fwd /= np.linalg.norm(fwd, axis=1, keepdims=True)
-    return "forward" if np.linalg.norm(fwd.mean(0)) >= FORWARD_THRESHOLD else "360"
 
 
 def _apply(transform: np.ndarray, c2w: np.ndarray) -> np.ndarray:

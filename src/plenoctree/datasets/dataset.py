@@ -7,18 +7,22 @@ The registry is one table, :data:`REGISTRY`: each loader module's ``FORMAT`` rec
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from pathlib import Path
 
 from ..errors import ConfigError, DatasetError
 from . import blender, colmap, llff, nerfstudio, nsvf
+from .llff import llff_matches_colmap
 from ._files import evenly_spaced
 from .base import Dataset, DatasetFormat
 
 __all__ = ["Dataset", "DatasetFormat", "REGISTRY", "FORMATS", "load_dataset", "load_cameras",
            "common_downscale", "detect_format", "has_split", "evenly_spaced", "holds_photos",
            "default_background", "PHOTO_BACKGROUND", "RENDER_BACKGROUND"]
+
+logger = logging.getLogger(__name__)
 
 REGISTRY: dict[str, DatasetFormat] = {
     f.name: f for f in (blender.FORMAT, nerfstudio.FORMAT, llff.FORMAT, nsvf.FORMAT,
@@ -43,6 +47,7 @@ def detect_format(root: str | os.PathLike) -> str:
     Signatures: Blender ``transforms_<split>.json``; nerfstudio / instant-ngp
     ``transforms.json``; LLFF ``poses_bounds.npy``; NSVF ``intrinsics.txt`` and ``pose/``;
     COLMAP a model folder ``sparse/0`` (or ``sparse``, or the folder itself) with ``cameras``.
+    An LLFF folder with a COLMAP model of the same photos (mip-NeRF 360's layout) is LLFF.
     Raises :class:`DatasetError` when none or several match (then pass ``format=``).
     """
     root = Path(root)
@@ -51,6 +56,16 @@ def detect_format(root: str | os.PathLike) -> str:
     found = [f.name for f in REGISTRY.values() if f.detect(root)]
     if len(found) == 1:
         return found[0]
+    if sorted(found) == ["colmap", "llff"]:
+        if llff_matches_colmap(root):       # mip-NeRF 360's layout: one capture, posed twice
+            logger.info("%s: poses_bounds.npy and the COLMAP model pose the same photos; "
+                        "reading it as LLFF (--format colmap reads the model)", root)
+            return "llff"
+        raise DatasetError(f"{root}: ambiguous dataset format: poses_bounds.npy and the COLMAP "
+                           "model beside it do not pose the same photos (or one is "
+                           "unreadable); choose one with format= (--format llff reads "
+                           "poses_bounds.npy and images_<N>/, --format colmap the model and "
+                           "images/)")
     expected = "; ".join(f"{f.name}: {f.signature}" for f in REGISTRY.values())
     if not found:
         raise DatasetError(f"{root}: unknown dataset format (expected one of {expected})")

@@ -52,8 +52,8 @@ from .cameras import Cameras
 from .ndc import ndc_bounds
 
 __all__ = ["load_llff", "LLFFOptions", "read_llff", "LLFFScene", "llff_render_cameras",
-           "spiral_path", "average_pose", "write_llff", "llff_capture_kind", "LLFF_HOLD",
-           "BD_FACTOR"]
+           "spiral_path", "average_pose", "write_llff", "llff_capture_kind",
+           "llff_matches_colmap", "LLFF_HOLD", "BD_FACTOR"]
 
 logger = logging.getLogger(__name__)
 
@@ -297,12 +297,39 @@ class LLFFOptions:
 
 def llff_capture_kind(root: str | os.PathLike) -> str:
     """``"forward"`` or ``"360"``: the kind of capture ``root/poses_bounds.npy`` holds, by the
-    spread of its optical axes (``colmap.capture_kind``, the rule ``process`` decides photos
-    by: flower's axes agree to 0.999, lounge's walk-around 0.88, the threshold is 0.9)."""
-    from .colmap import capture_kind
+    spread of its optical axes (``camera_sets.capture_kind``, the rule ``process`` decides
+    photos by: flower's axes agree to 0.999, lounge's walk-around 0.88, the threshold is 0.9)."""
+    from .camera_sets import capture_kind
 
     c2w, _, _ = read_poses_bounds(Path(root) / POSES_FILE)
     return capture_kind(c2w)
+
+
+def llff_matches_colmap(root: str | os.PathLike) -> bool:
+    """Whether ``root/poses_bounds.npy`` and the COLMAP model beside it (``sparse/0``, as
+    mip-NeRF 360's scenes ship both) pose the same photos: the model holds every photo of the
+    LLFF image folder (by file stem) and the two sets of cameras agree up to a similarity
+    (:func:`~plenoctree.datasets.camera_sets.same_cameras`). Then the folder is one dataset, read
+    as LLFF (``poses_bounds.npy`` with its ``images_<N>/``). False when anything is missing
+    or unreadable."""
+    from .camera_sets import same_cameras
+    from .colmap_model import colmap_c2w, find_colmap_model, read_colmap_model
+
+    root = Path(root)
+    try:
+        c2w, _, _ = read_poses_bounds(root / POSES_FILE)
+        folders = sorted(root.glob("images*"), key=lambda p: (p.name != "images", p.name))
+        files = next((image_files(f) for f in folders if f.is_dir()), [])
+        model = find_colmap_model(root)
+        if len(files) != len(c2w) or model is None:
+            return False
+        poses = {Path(name).stem: colmap_c2w(q, t)
+                 for name, _, q, t in read_colmap_model(model).images.values()}
+    except DatasetError:
+        return False
+    if any(f.stem not in poses for f in files):
+        return False
+    return same_cameras(np.stack([poses[f.stem] for f in files]), c2w)
 
 
 def _spherify_of(root: Path, opt: LLFFOptions) -> bool:
