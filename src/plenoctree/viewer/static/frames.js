@@ -9,9 +9,9 @@
 //   TARGET_MS per frame (measured on every frame, per level of detail); the finest level
 //   (lod 0 = the tree, k = its k deepest levels merged, built by the server) that keeps at
 //   least GOOD_SCALE of the canvas is asked for. Once the camera has not moved for QUIET_MS,
-//   one full-resolution frame of the tree itself follows. A frame the server cannot draw (or a lost connection) is
-//   reported through onError and not asked for again until the camera or an option changes:
-//   the page never stops drawing.
+//   one full-resolution frame of the tree itself follows. A frame the server cannot draw (or
+//   a lost connection) is reported through onError and not asked for again until the camera
+//   or an option changes: the page never stops drawing.
 // - FrameStats: frames actually delivered to the screen in the last second (both modes).
 
 const SOFTWARE_GL = /swiftshader|llvmpipe|softpipe|software|basic render|mesa offscreen|lavapipe/i;
