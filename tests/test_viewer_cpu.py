@@ -467,3 +467,38 @@ def test_a_failed_frame_is_a_notice_and_the_next_change_draws(no_webgl_browser, 
             assert a["x"] + a["width"] <= b["x"] or a["y"] + a["height"] <= b["y"], (a, b)
         finally:
             page.close()
+
+
+def test_the_page_picks_the_finest_level_that_keeps_half_the_canvas(no_webgl_browser, llff_tree):
+    """CpuFrames._adapt: each level's full-frame time (measured, or guessed at half the finer
+    one's) gives the scale that holds the 45 ms budget; the finest level reaching 50 % wins,
+    else the coarsest; without levels (lod=off) it is the tree at whatever scale fits."""
+    with ViewerServer(llff_tree, port=0, render="cpu") as srv:
+        page = no_webgl_browser.new_page()
+        page.goto(srv.url)
+        page.wait_for_function("window.viewer && window.viewer.state !== 'loading'",
+                               timeout=120_000)
+        try:
+            got = page.evaluate("""async () => {
+              const m = await import('./frames.js');
+              const f = new m.CpuFrames(document.createElement('canvas'), new m.FrameStats());
+              const out = [];
+              f.lods = 3;
+              f._adapt(100, 90, 640000, 640000, 0);    // the tree: 90 ms a full frame
+              out.push([f.lod, f.scale]);
+              f._adapt(410, 400, 640000, 640000, 0);   // 400 ms (EMA 245): level 1 guessed 122
+              out.push([f.lod, f.scale]);
+              f._adapt(110, 100, 160000, 640000, 1);   // level 1 measured: 400 ms full
+              out.push([f.lod, f.scale]);
+              f.lods = 0;
+              f._adapt(410, 400, 640000, 640000, 0);
+              out.push([f.lod, f.scale]);
+              return out;
+            }""")
+        finally:
+            page.close()
+    (l0, s0), (l1, s1), (l2, s2), (l3, s3) = got
+    assert l0 == 0 and s0 == pytest.approx((35 / 90) ** 0.5, rel=1e-6)
+    assert l1 == 1 and s1 >= 0.5                     # the tree alone stays under 50 %
+    assert l2 == 3 and s2 >= 0.5                     # level 1 slow (2 guessed at 200): 3
+    assert l3 == 0 and 0.25 <= s3 < 0.5              # no levels: the tree, smaller
