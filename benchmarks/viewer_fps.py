@@ -19,6 +19,10 @@ resolution) the script takes, per cycle:
 - freeze: the longest gap between animation frames from the stop to the sharp frame (a
   synchronous read-back or a long task shows here; 16-33 ms is a page that never blocks).
 
+Before the browser runs, the CPU mode's levels of detail are counted and timed outside it
+(:func:`level_table`: leaves per level, the server's render ms per level at the canvas size and
+half of it; ``--no-levels`` skips it), so the page's choice of level reads against counts.
+
 The figure is the median over cycles (min-max beside it). The machine is shared: the JSON holds
 the load average before and after (``_bench.machine_info``); the CPU mode's server and the
 browser share the same cores. Goals (issues 36 and 48, 2 cores): moving >= 20 FPS at >= 50 % of
@@ -166,6 +170,49 @@ def run_mode(browser: Any, url: str, mode: str, args: argparse.Namespace) -> dic
             "median": med, "range": rng, "cycles": cycles}
 
 
+def level_table(tree: Path, size: int, repeats: int = 3) -> dict:
+    """The CPU mode's levels of detail, counted and timed outside the browser: leaves per level
+    (:meth:`FrameRenderer.build_levels`, timed), and the server's render time of one frame per
+    level at ``size``² and ``size/2``² (median of ``repeats``) from the tree's reference view
+    (NDC trees: the NDC reference camera; others: 2.5 radii from the box centre), so the
+    page's choice can be read against counts."""
+    import numpy as np
+
+    from plenoctree.compression import load_any_tree
+    from plenoctree.datasets import Cameras
+    from plenoctree.datasets.trajectories import look_at
+    from plenoctree.render import RenderOptions
+    from plenoctree.viewer.frames import FrameRenderer, FrameRequest
+
+    t = load_any_tree(tree)
+    frames = FrameRenderer(t)
+    t0 = time.perf_counter()
+    frames.build_levels()
+    build_s = time.perf_counter() - t0
+    if t.ndc is not None:
+        c2w, fov_x = np.eye(4), 2 * np.arctan(0.5 * t.ndc.width / t.ndc.fx)
+    else:
+        centre = (0.5 - np.asarray(t.offset)) / np.asarray(t.invradius)
+        radius = float(np.max(0.5 / np.asarray(t.invradius)))
+        c2w, fov_x = look_at(centre + 2.5 * radius * np.array([0.6, 0.5, 0.62]), centre), 0.69
+    rows = []
+    for lod, leaves in enumerate(frames.level_leaves):
+        row = {"lod": lod, "leaves": leaves}
+        for px in (size, size // 2):
+            f = 0.5 * px / np.tan(0.5 * fov_x)
+            cam = Cameras(np.asarray(c2w, np.float32)[None], f, f, px / 2, px / 2, px, px)
+            req = FrameRequest(cam, RenderOptions(), lod=lod)
+            frames.render(req)
+            ms = []
+            for _ in range(repeats):
+                a = time.perf_counter()
+                frames.render(req)
+                ms.append(1e3 * (time.perf_counter() - a))
+            row[f"render_ms_{px}"] = statistics.median(ms)
+        rows.append(row)
+    return {"build_s": build_s, "levels": rows}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--tree", default=None, help="lego | procedural | PATH (default: lego when found)")
@@ -178,6 +225,8 @@ def main() -> None:
     ap.add_argument("--step", type=float, default=3.0, help="orbit per animation frame (px)")
     ap.add_argument("--load-timeout", type=float, default=600.0, help="seconds")
     ap.add_argument("--out", default=None, help="JSON (default results/viewer_fps_<tree>.json)")
+    ap.add_argument("--no-levels", action="store_true",
+                    help="skip the table of levels of detail (leaves, render ms per level)")
     args = ap.parse_args()
     from playwright.sync_api import sync_playwright
 
@@ -186,6 +235,7 @@ def main() -> None:
         raise SystemExit("no chromium executable (scripts/install_browser.sh)")
     load_before = os.getloadavg()
     tree, kind = tree_path(args.tree, args.data_root)
+    levels = None if args.no_levels else level_table(tree, args.size)
     proc, url = start_viewer(tree)
     results = {}
     try:
@@ -214,9 +264,15 @@ def main() -> None:
     print(markdown_table(["page mode -> drawn by", "renderer", "moving FPS (min-max)",
                           "moving scale (linear)", "moving level", "stop -> sharp ms (min-max)",
                           "longest frame gap after stop ms"], rows))
+    if levels is not None:
+        h = args.size // 2
+        print(f"\nlevels of detail (built in {levels['build_s']:.1f} s), server render ms:")
+        print(markdown_table(["level", "leaves", f"{args.size}² ms", f"{h}² ms"], [
+            [r["lod"], f"{r['leaves']:,}", fmt(r[f"render_ms_{args.size}"], ".0f"),
+             fmt(r[f"render_ms_{h}"], ".0f")] for r in levels["levels"]]))
     out = args.out or str(RESULTS / f"viewer_fps_{kind}.json")
     write_json(out, {"tree": str(tree), "kind": kind, "size": args.size, "chromium": version,
-                     "flags": FLAGS, "args": vars(args), "modes": results,
+                     "flags": FLAGS, "args": vars(args), "modes": results, "levels": levels,
                      "goals": {"moving_fps": 20, "moving_scale": 0.5,
                                "stop_to_sharp_ms": {"lego": 300, "3 M-leaf tree": 400}},
                      "machine": machine_info(load_before)})
