@@ -5,23 +5,18 @@ Method: ``plenoctree view TREE --render auto --port 0`` runs as its own process 
 starts it); headless Chromium (Playwright, ``--disable-gpu --enable-unsafe-swiftshader``: the
 software WebGL a browser has without a GPU) opens it with a ``--size`` x ``--size`` canvas (the
 side panel hidden) twice: ``?render=auto`` (which picks the CPU mode under software GL: the
-figure says which mode it chose), ``?render=cpu&lod=off`` (mode ``cpu-nolod``: the CPU
-mode drawing the tree itself while moving, no coarser levels: the baseline of the levels of
-detail) and ``?render=webgl`` (the page's own ray marcher), all measured in the same run. A page hook turns the orbit camera every animation frame
+figure says which mode it chose) and ``?render=webgl`` (the page's own ray marcher: the
+baseline, measured in the same run). A page hook turns the orbit camera every animation frame
 (``camera.orbit(--step, 0)``, as a steady mouse drag) for ``--move-s`` seconds, stops, and
 waits for the sharp frame; ``--cycles`` times. From the page's own frame log
 (``viewer.stats()``: every frame with its time on screen, size and whether it is full
 resolution) the script takes, per cycle:
 
-- moving: frames delivered per second after the first second of motion, the median frame
-  size (pixels, and linear scale of the canvas) and level of detail (0 = the tree);
+- moving: frames delivered per second after the first second of motion, and the median frame
+  size (pixels, and linear scale of the canvas);
 - stop -> sharp: from the last camera change to the full-resolution frame drawn on the canvas;
 - freeze: the longest gap between animation frames from the stop to the sharp frame (a
   synchronous read-back or a long task shows here; 16-33 ms is a page that never blocks).
-
-Before the browser runs, the CPU mode's levels of detail are counted and timed outside it
-(:func:`level_table`: leaves per level, the server's render ms per level at the canvas size and
-half of it; ``--no-levels`` skips it), so the page's choice of level reads against counts.
 
 The figure is the median over cycles (min-max beside it). The machine is shared: the JSON holds
 the load average before and after (``_bench.machine_info``); the CPU mode's server and the
@@ -29,8 +24,7 @@ browser share the same cores. Goals (issues 36 and 48, 2 cores): moving >= 20 FP
 an 800x800 canvas's resolution (also on a 3 M-leaf forward-facing tree); stop -> full 800x800
 frame <= 300 ms (lego), <= 400 ms (the 3 M-leaf tree), with no freeze.
 
-    python benchmarks/viewer_fps.py [--tree lego|procedural|PATH] [--size 800]
-                                    [--modes cpu-nolod,auto,webgl]
+    python benchmarks/viewer_fps.py [--tree lego|procedural|PATH] [--size 800] [--modes cpu,webgl]
 """
 
 from __future__ import annotations
@@ -133,7 +127,6 @@ def one_cycle(page: Any, move_s: float, step: float, size: int, timeout_s: float
         if sizes else None, "moving_frame_ms": statistics.median(e["ms"] for e in moving)
         if moving else None,
         "moving_render_ms": statistics.median(e.get("renderMs", 0) for e in moving) if moving else None,
-        "moving_lod": statistics.median(e.get("lod", 0) for e in moving) if moving else None,
         "stop_to_sharp_ms": sharp["t"] - t_stop, "sharp_size": [sharp["width"], sharp["height"]],
         "sharp_render_ms": sharp.get("renderMs"), "sharp_encode_ms": sharp.get("encodeMs"),
         "max_frame_gap_ms": max(gaps) if gaps else None,
@@ -141,13 +134,12 @@ def one_cycle(page: Any, move_s: float, step: float, size: int, timeout_s: float
 
 
 def run_mode(browser: Any, url: str, mode: str, args: argparse.Namespace) -> dict:
-    """Open the page in ``mode`` (``auto``, ``cpu``, ``cpu-nolod`` or ``webgl``), run the
-    cycles; median figures."""
+    """Open the page in ``mode`` (``auto`` or ``webgl``), run the cycles; median figures."""
     page = browser.new_page(viewport={"width": args.size, "height": args.size})
     page.add_init_script("document.addEventListener('DOMContentLoaded', () => {"
                          "document.getElementById('panel').style.display = 'none'; });")
     t0 = time.perf_counter()
-    page.goto(f"{url}?render=cpu&lod=off" if mode == "cpu-nolod" else f"{url}?render={mode}")
+    page.goto(f"{url}?render={mode}")
     page.wait_for_function("window.viewer && window.viewer.state !== 'loading'",
                            timeout=1e3 * args.load_timeout)
     if page.evaluate("window.viewer.state") != "ready":
@@ -162,7 +154,7 @@ def run_mode(browser: Any, url: str, mode: str, args: argparse.Namespace) -> dic
               for _ in range(args.cycles)]
     page.close()
     med = {k: statistics.median(c[k] for c in cycles) for k in
-           ("moving_fps", "moving_scale", "moving_lod", "stop_to_sharp_ms", "max_frame_gap_ms")
+           ("moving_fps", "moving_scale", "stop_to_sharp_ms", "max_frame_gap_ms")
            if all(c[k] is not None for c in cycles)}
     rng = {k: [min(c[k] for c in cycles), max(c[k] for c in cycles)] for k in med}
     return {"requested": mode, "mode": who["mode"], "label": who["label"],
@@ -170,63 +162,17 @@ def run_mode(browser: Any, url: str, mode: str, args: argparse.Namespace) -> dic
             "median": med, "range": rng, "cycles": cycles}
 
 
-def level_table(tree: Path, size: int, repeats: int = 3) -> dict:
-    """The CPU mode's levels of detail, counted and timed outside the browser: leaves per level
-    (:meth:`FrameRenderer.build_levels`, timed), and the server's render time of one frame per
-    level at ``size``² and ``size/2``² (median of ``repeats``) from the tree's reference view
-    (NDC trees: the NDC reference camera; others: 2.5 radii from the box centre), so the
-    page's choice can be read against counts."""
-    import numpy as np
-
-    from plenoctree.compression import load_any_tree
-    from plenoctree.datasets import Cameras
-    from plenoctree.datasets.trajectories import look_at
-    from plenoctree.render import RenderOptions
-    from plenoctree.viewer.frames import FrameRenderer, FrameRequest
-
-    t = load_any_tree(tree)
-    frames = FrameRenderer(t)
-    t0 = time.perf_counter()
-    frames.build_levels()
-    build_s = time.perf_counter() - t0
-    if t.ndc is not None:
-        c2w, fov_x = np.eye(4), 2 * np.arctan(0.5 * t.ndc.width / t.ndc.fx)
-    else:
-        centre = (0.5 - np.asarray(t.offset)) / np.asarray(t.invradius)
-        radius = float(np.max(0.5 / np.asarray(t.invradius)))
-        c2w, fov_x = look_at(centre + 2.5 * radius * np.array([0.6, 0.5, 0.62]), centre), 0.69
-    rows = []
-    for lod, leaves in enumerate(frames.level_leaves):
-        row = {"lod": lod, "leaves": leaves}
-        for px in (size, size // 2):
-            f = 0.5 * px / np.tan(0.5 * fov_x)
-            cam = Cameras(np.asarray(c2w, np.float32)[None], f, f, px / 2, px / 2, px, px)
-            req = FrameRequest(cam, RenderOptions(), lod=lod)
-            frames.render(req)
-            ms = []
-            for _ in range(repeats):
-                a = time.perf_counter()
-                frames.render(req)
-                ms.append(1e3 * (time.perf_counter() - a))
-            row[f"render_ms_{px}"] = statistics.median(ms)
-        rows.append(row)
-    return {"build_s": build_s, "levels": rows}
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--tree", default=None, help="lego | procedural | PATH (default: lego when found)")
     add_data_root(ap)
     ap.add_argument("--size", type=int, default=800, help="canvas side, CSS pixels (DPR 1)")
-    ap.add_argument("--modes", default="cpu-nolod,auto,webgl",
-                    help="page modes, comma-separated (auto, cpu, cpu-nolod, webgl)")
+    ap.add_argument("--modes", default="auto,webgl", help="page modes, comma-separated")
     ap.add_argument("--cycles", type=int, default=3, help="move / stop cycles per mode")
     ap.add_argument("--move-s", type=float, default=4.0, help="seconds of motion per cycle")
     ap.add_argument("--step", type=float, default=3.0, help="orbit per animation frame (px)")
     ap.add_argument("--load-timeout", type=float, default=600.0, help="seconds")
     ap.add_argument("--out", default=None, help="JSON (default results/viewer_fps_<tree>.json)")
-    ap.add_argument("--no-levels", action="store_true",
-                    help="skip the table of levels of detail (leaves, render ms per level)")
     args = ap.parse_args()
     from playwright.sync_api import sync_playwright
 
@@ -235,7 +181,6 @@ def main() -> None:
         raise SystemExit("no chromium executable (scripts/install_browser.sh)")
     load_before = os.getloadavg()
     tree, kind = tree_path(args.tree, args.data_root)
-    levels = None if args.no_levels else level_table(tree, args.size)
     proc, url = start_viewer(tree)
     results = {}
     try:
@@ -255,24 +200,18 @@ def main() -> None:
         rows.append([f"{r['requested']} -> {r['mode']}", r["label"][:48],
                      f"{fmt(m.get('moving_fps'), '.1f')} ({fmt(g['moving_fps'][0], '.1f')}-"
                      f"{fmt(g['moving_fps'][1], '.1f')})",
-                     f"{100 * m.get('moving_scale', 0):.0f} %", fmt(m.get("moving_lod"), ".0f"),
+                     f"{100 * m.get('moving_scale', 0):.0f} %",
                      f"{fmt(m.get('stop_to_sharp_ms'), '.0f')} ({fmt(g['stop_to_sharp_ms'][0], '.0f')}-"
                      f"{fmt(g['stop_to_sharp_ms'][1], '.0f')})",
                      fmt(m.get("max_frame_gap_ms"), ".0f")])
     print(f"\nviewer on {kind} ({tree.name}), canvas {args.size}x{args.size}, Chromium {version}, "
           f"load {os.getloadavg()[0]:.2f}")
     print(markdown_table(["page mode -> drawn by", "renderer", "moving FPS (min-max)",
-                          "moving scale (linear)", "moving level", "stop -> sharp ms (min-max)",
+                          "moving scale (linear)", "stop -> sharp ms (min-max)",
                           "longest frame gap after stop ms"], rows))
-    if levels is not None:
-        h = args.size // 2
-        print(f"\nlevels of detail (built in {levels['build_s']:.1f} s), server render ms:")
-        print(markdown_table(["level", "leaves", f"{args.size}² ms", f"{h}² ms"], [
-            [r["lod"], f"{r['leaves']:,}", fmt(r[f"render_ms_{args.size}"], ".0f"),
-             fmt(r[f"render_ms_{h}"], ".0f")] for r in levels["levels"]]))
     out = args.out or str(RESULTS / f"viewer_fps_{kind}.json")
     write_json(out, {"tree": str(tree), "kind": kind, "size": args.size, "chromium": version,
-                     "flags": FLAGS, "args": vars(args), "modes": results, "levels": levels,
+                     "flags": FLAGS, "args": vars(args), "modes": results,
                      "goals": {"moving_fps": 20, "moving_scale": 0.5,
                                "stop_to_sharp_ms": {"lego": 300, "3 M-leaf tree": 400}},
                      "machine": machine_info(load_before)})

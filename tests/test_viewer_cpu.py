@@ -103,43 +103,6 @@ def test_a_camera_too_far_to_step_from_sees_the_background(cpu_server):
     np.testing.assert_allclose(img, np.broadcast_to((0.2, 0.4, 0.6), img.shape), atol=3 / 255)
 
 
-def test_moving_levels_are_built_and_drawn_on_request(cpu_server, proc):
-    """``lod=k`` draws the tree with its k deepest levels merged (once built in the
-    background; the response says which level drew); ``lod=0`` is the tree itself."""
-    import time
-
-    from plenoctree.compression import load_any_tree
-    from plenoctree.viewer.frames import MOVING_LEVELS, moving_level
-
-    tree = load_any_tree(proc)
-    frames = cpu_server.httpd.frames
-    deadline = time.time() + 120
-    while len(frames.levels) < MOVING_LEVELS + 1 and time.time() < deadline:
-        time.sleep(0.2)
-    assert len(frames.levels) == MOVING_LEVELS + 1
-    assert all(a > b for a, b in zip(frames.level_leaves, frames.level_leaves[1:]))
-    status, _, body = _get(cpu_server.port, "/config.json")
-    assert f'"lods": {MOVING_LEVELS}'.encode() in body
-    cams = Cameras(C2W[None], FX, FX, SIZE / 2, SIZE / 2, SIZE, SIZE)
-    for lod in (0, 1, 2):
-        status, headers, body = _get(cpu_server.port, "/frame?" + _query(
-            C2W, FX, FX, SIZE / 2, SIZE / 2, SIZE, SIZE, lod=lod, q=95))
-        assert status == 200 and headers["X-Lod"] == str(lod)
-        got = np.asarray(Image.open(io.BytesIO(body)).convert("RGB"), np.float64) / 255
-        level = tree if lod == 0 else moving_level(moving_level(tree, 1), lod - 1) \
-            if lod == 2 else moving_level(tree, 1)
-        want = render_image(level, cams, 0).rgb.numpy()
-        assert _psnr(got, want) > 35, (lod, _psnr(got, want))
-    full = render_image(tree, cams, 0).rgb.numpy()
-    coarse = render_image(moving_level(tree, 1), cams, 0).rgb.numpy()
-    assert 15 < _psnr(coarse, full) < 60                      # the same scene, blurrier
-    from plenoctree.octree import Octree
-
-    one = Octree.from_grid(np.ones((8, 4), np.float32), np.ones((2, 2, 2), bool),
-                           np.zeros(3), np.ones(3), data_format="RGBA")
-    assert one.max_depth == 0 and moving_level(one, 1) is None
-
-
 def test_ndc_tree_frame_equals_the_render_of_its_camera(tmp_path):
     from plenoctree.datasets import load_dataset
     from plenoctree.datasets.forward_facing import forward_facing_tree, write_forward_facing_dataset
@@ -173,8 +136,6 @@ BAD = {
     "bad mode": _query(C2W, FX, FX, 4, 4, 8, 8, mode="x"),
     "bad quality": _query(C2W, FX, FX, 4, 4, 8, 8, q=0),
     "bad stop": _query(C2W, FX, FX, 4, 4, 8, 8, stop=1.5),
-    "lod beyond the moving levels": _query(C2W, FX, FX, 4, 4, 8, 8, lod=9),
-    "negative lod": _query(C2W, FX, FX, 4, 4, 8, 8, lod=-1),
     "negative sh_min": _query(C2W, FX, FX, 4, 4, 8, 8, sh_min=-1),
 }
 
@@ -468,37 +429,3 @@ def test_a_failed_frame_is_a_notice_and_the_next_change_draws(no_webgl_browser, 
         finally:
             page.close()
 
-
-def test_the_page_picks_the_finest_level_that_keeps_half_the_canvas(no_webgl_browser, llff_tree):
-    """CpuFrames._adapt: each level's full-frame time (measured, or guessed at half the finer
-    one's) gives the scale that holds the 45 ms budget; the finest level reaching 50 % wins,
-    else the coarsest; without levels (lod=off) it is the tree at whatever scale fits."""
-    with ViewerServer(llff_tree, port=0, render="cpu") as srv:
-        page = no_webgl_browser.new_page()
-        page.goto(srv.url)
-        page.wait_for_function("window.viewer && window.viewer.state !== 'loading'",
-                               timeout=120_000)
-        try:
-            got = page.evaluate("""async () => {
-              const m = await import('./frames.js');
-              const f = new m.CpuFrames(document.createElement('canvas'), new m.FrameStats());
-              const out = [];
-              f.lods = 3;
-              f._adapt(100, 90, 640000, 640000, 0);    // the tree: 90 ms a full frame
-              out.push([f.lod, f.scale]);
-              f._adapt(410, 400, 640000, 640000, 0);   // 400 ms (EMA 245): level 1 guessed 122
-              out.push([f.lod, f.scale]);
-              f._adapt(110, 100, 160000, 640000, 1);   // level 1 measured: 400 ms full
-              out.push([f.lod, f.scale]);
-              f.lods = 0;
-              f._adapt(410, 400, 640000, 640000, 0);
-              out.push([f.lod, f.scale]);
-              return out;
-            }""")
-        finally:
-            page.close()
-    (l0, s0), (l1, s1), (l2, s2), (l3, s3) = got
-    assert l0 == 0 and s0 == pytest.approx((35 / 90) ** 0.5, rel=1e-6)
-    assert l1 == 1 and s1 >= 0.5                     # the tree alone stays under 50 %
-    assert l2 == 3 and s2 >= 0.5                     # level 1 slow (2 guessed at 200): 3
-    assert l3 == 0 and 0.25 <= s3 < 0.5              # no levels: the tree, smaller

@@ -9,13 +9,6 @@ same rays as ``plenoctree render``; an NDC tree's cameras go through ``tree.ndc.
 there) and encodes it with Pillow. One frame renders at a time (the numba kernel uses every
 core for one image); the page keeps at most one request in flight, so the latest camera wins
 and nothing queues.
-
-While the camera moves the page asks for a coarser level of the same tree (``lod=k``: the
-tree with its ``k`` deepest levels merged, :func:`moving_level`): fewer, larger cells make
-fewer segments per ray, so a moving frame keeps a larger share of the canvas. The levels are
-built once, in the background, after the server starts (:meth:`FrameRenderer.build_levels`);
-until a level is ready the next finer one answers, and the response says which one drew
-(``X-Lod``). The sharp frame after a stop is always the tree itself (``lod=0``).
 """
 
 from __future__ import annotations
@@ -37,8 +30,7 @@ if TYPE_CHECKING:
     from ..datasets import Cameras
     from ..render import RenderOptions
 
-__all__ = ["RENDER_MODES", "JPEG_QUALITY", "MOVING_LEVELS", "FrameRequest", "FrameRenderer",
-           "parse_frame_query", "moving_level"]
+__all__ = ["RENDER_MODES", "JPEG_QUALITY", "FrameRequest", "FrameRenderer", "parse_frame_query"]
 
 logger = logging.getLogger(__name__)
 
@@ -48,10 +40,6 @@ RENDER_MODES = ("auto", "cpu", "webgl")
 #: Default JPEG quality of a frame: the page's sharp frames (full chroma: 41-43 dB on lego at
 #: 800x800, about 6 ms); it asks 80 while the camera moves (2x2 chroma subsampling below 90).
 JPEG_QUALITY = 90
-#: Coarser levels a page may ask for while moving (``lod`` 1..this). Each merged level has
-#: about a quarter of the leaves of the one above on a surface (measured figures:
-#: docs/viewer.md, "Without a GPU: the CPU mode").
-MOVING_LEVELS = 3
 _VIEW_MODES = ("rgb", "depth", "alpha")
 _MAX_QUERY = 4096            # characters of a /frame query string
 
@@ -68,7 +56,6 @@ class FrameRequest:
         mode: ``rgb``, ``depth`` (grey: white at ``depth_range[0]``, black at ``[1]``, world
             units; NDC lengths for NDC trees) or ``alpha`` (opacity, ink on the background).
         quality: JPEG quality 1..95 (from 90 on without chroma subsampling).
-        lod: 0 = the tree; ``k`` = its level :func:`moving_level` ``k`` (while moving).
     """
 
     camera: Cameras
@@ -76,7 +63,6 @@ class FrameRequest:
     mode: str = "rgb"
     depth_range: tuple[float, float] = (0.0, 1.0)
     quality: int = JPEG_QUALITY
-    lod: int = 0
 
 
 def _floats(q: dict[str, list[str]], key: str, n: int, default: Any = None) -> list[float]:
@@ -113,8 +99,7 @@ def parse_frame_query(query: str) -> FrameRequest:
     :func:`~plenoctree.datasets.cameras.check_image_size`), ``c2w`` (16 numbers, row-major),
     ``fx``, ``fy``, ``cx``, ``cy``; optional ``bg`` (3 numbers), ``stop``, ``sh_min``,
     ``sh_max``, ``mode`` (rgb|depth|alpha), ``dr`` (2 numbers: depth range), ``q`` (JPEG
-    quality), ``lod`` (0..:data:`MOVING_LEVELS`: a coarser level while moving). Raises
-    :class:`ConfigError` (the server answers 400) for anything else: missing,
+    quality). Raises :class:`ConfigError` (the server answers 400) for anything else: missing,
     non-numeric or non-finite values, a singular pose, implausible intrinsics, a bad size.
     """
     from ..datasets import check_image_size
@@ -134,9 +119,6 @@ def parse_frame_query(query: str) -> FrameRequest:
     quality = _int(q, "q", JPEG_QUALITY)
     if not 1 <= quality <= 95:
         raise ConfigError(f"parameter 'q' (JPEG quality) must be in 1..95, got {quality}")
-    lod = _int(q, "lod", 0)
-    if not 0 <= lod <= MOVING_LEVELS:
-        raise ConfigError(f"parameter 'lod' must be in 0..{MOVING_LEVELS}, got {lod}")
     from ..datasets import Cameras
     from ..render.options import RenderOptions
 
@@ -146,20 +128,7 @@ def parse_frame_query(query: str) -> FrameRequest:
     opts = RenderOptions(stop_thresh=stop, background=bg, sh_min=sh_min, sh_max=sh_max).validated()
     camera = Cameras(c2w[None], fx, fy, cx, cy, w, h)
     return FrameRequest(camera, opts, mode=mode, depth_range=dr,  # type: ignore[arg-type]
-                        quality=quality, lod=lod)
-
-
-def moving_level(tree: Any, k: int) -> Any:
-    """The tree with its ``k`` deepest levels merged (:func:`~plenoctree.compression.lod.
-    merge_to_depth`: each 2x2x2 block becomes one leaf that keeps the block's mean
-    transmittance and opacity-weighted colour), or None when the tree is not ``k + 1`` levels
-    deep. The same box, NDC space and colour format: it draws the same scene, blurrier."""
-    from ..compression.lod import merge_to_depth
-
-    depth = int(getattr(tree, "max_depth", 0))
-    if depth - int(k) < 1:
-        return None
-    return merge_to_depth(tree, depth - int(k))
+                        quality=quality)
 
 
 def _shade(out: Any, req: FrameRequest) -> np.ndarray:
@@ -194,9 +163,6 @@ class FrameRenderer:
         self.tree = tree_to_device(tree, "cpu")
         self.n_leaves = int(getattr(tree, "n_leaves", 0))
         self.max_depth = int(getattr(tree, "max_depth", 0))
-        self.levels = [self.tree]      # [k]: moving_level k, appended by build_levels
-        self.level_leaves = [self.n_leaves]
-        self._source = tree
         self._lock = threading.Lock()
 
     @staticmethod
@@ -218,32 +184,11 @@ class FrameRenderer:
             "format": t.data_format, "basis_dim": fmt.basis_dim,
             "ndc": None if self.ndc is None else self.ndc.to_json(),
             "n_leaves": self.n_leaves, "max_depth": self.max_depth, "threads": self.threads(),
-            "lods": min(MOVING_LEVELS, max(self.max_depth - 1, 0)),
         }
 
-    def build_levels(self) -> None:
-        """Make the coarser levels the page draws while moving (:func:`moving_level` 1..
-        :data:`MOVING_LEVELS`), finest first; each is usable as soon as it is appended. Runs
-        once, in the background (a 3 M-leaf tree: seconds)."""
-        from ..render import tree_to_device
-
-        src = self._source
-        for k in range(1, MOVING_LEVELS + 1):
-            t0 = time.perf_counter()
-            level = moving_level(src, 1)            # one level coarser than the last
-            if level is None:
-                break
-            self.levels.append(tree_to_device(level, "cpu"))
-            self.level_leaves.append(int(level.n_leaves))
-            logger.info("viewer: moving level %d: %d leaves (%.1f s)", k, level.n_leaves,
-                        time.perf_counter() - t0)
-            src = level
-        self._source = None
-
-    def render(self, req: FrameRequest) -> tuple[np.ndarray, int]:
-        """``(uint8 [H, W, 3] image of req, the level that drew it)``: level ``req.lod`` or,
-        while that is not built yet, the finest one below it. A view is never refused for
-        where the camera stands or looks: NDC trees through ``tree.ndc.apply`` (any camera);
+    def render(self, req: FrameRequest) -> np.ndarray:
+        """uint8 ``[H, W, 3]`` image of ``req``. A view is never refused for where the camera
+        stands or looks: NDC trees through ``tree.ndc.apply`` (any camera);
         a camera so far away that the renderer cannot step from it
         (:func:`~plenoctree.render.origin_in_reach`) sees the tree smaller than a pixel (any
         focal length the camera checks accept), and gets the background."""
@@ -255,36 +200,24 @@ class FrameRenderer:
             h, w = req.camera.height, req.camera.width
             bg = torch.tensor(req.options.background, dtype=torch.float32)
             out = RenderOutput(bg.expand(h, w, 3), torch.zeros(h, w), torch.zeros(h, w))
-            return _shade(out, req), 0
+            return _shade(out, req)
         cams = req.camera if self.ndc is None else self.ndc.apply(req.camera)
-        levels = self.levels
-        lod = min(req.lod, len(levels) - 1)
         with self._lock:
-            out = render_image(levels[lod], cams, 0, req.options, backend="numba")
-        return _shade(out, req), lod
+            out = render_image(self.tree, cams, 0, req.options, backend="numba")
+        return _shade(out, req)
 
-    def jpeg(self, req: FrameRequest) -> tuple[bytes, float, float, int]:
-        """``(JPEG bytes, render ms, encode ms, level drawn)`` of ``req``."""
+    def jpeg(self, req: FrameRequest) -> tuple[bytes, float, float]:
+        """``(JPEG bytes, render ms, encode ms)`` of ``req``."""
         from PIL import Image
 
         t0 = time.perf_counter()
-        img, lod = self.render(req)
+        img = self.render(req)
         t1 = time.perf_counter()
         buf = io.BytesIO()
         Image.fromarray(img).save(buf, "JPEG", quality=req.quality,
                                   subsampling=0 if req.quality >= 90 else 2)
         t2 = time.perf_counter()
-        return buf.getvalue(), 1e3 * (t1 - t0), 1e3 * (t2 - t1), lod
-
-    def prepare(self) -> None:
-        """:meth:`warm_up`, then :meth:`build_levels` (the server's background thread; a
-        level that cannot be built leaves the page drawing the finer ones)."""
-        self.warm_up()
-        try:
-            self.build_levels()
-        except Exception as e:        # the tree itself still draws every frame
-            logger.warning("viewer: no coarser levels for moving frames (%s: %s)",
-                           type(e).__name__, e)
+        return buf.getvalue(), 1e3 * (t1 - t0), 1e3 * (t2 - t1)
 
     def warm_up(self) -> None:
         """Render one tiny frame (loads the compiled kernel) so the page's first frame is not

@@ -207,7 +207,7 @@ class _Handler(BaseHTTPRequestHandler):
         frames = self.server.frames
         try:
             req = parse_frame_query(query)
-            body, render_ms, encode_ms, lod = frames.jpeg(req)
+            body, render_ms, encode_ms = frames.jpeg(req)
         except ConfigError as e:
             self._error(HTTPStatus.BAD_REQUEST, str(e))
             return
@@ -222,7 +222,6 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("X-Content-Type-Options", "nosniff")
         self.send_header("X-Render-Ms", f"{render_ms:.2f}")
         self.send_header("X-Encode-Ms", f"{encode_ms:.2f}")
-        self.send_header("X-Lod", str(lod))
         self.end_headers()
         if not head_only:
             try:
@@ -356,8 +355,8 @@ class ViewerServer:
         self.httpd.host_label = self.host
         self.httpd.hosts = _allowed_hosts(self.host, self.port)
         self._thread: threading.Thread | None = None
-        if frames is not None:        # load the compiled kernel, then make the moving levels
-            threading.Thread(target=frames.prepare, daemon=True, name="viewer-prepare").start()
+        if frames is not None:                   # load the compiled kernel before the page asks
+            threading.Thread(target=frames.warm_up, daemon=True, name="viewer-warm-up").start()
 
     @property
     def port(self) -> int:

@@ -6,12 +6,10 @@
 //   the main thread (createImageBitmap) and draws it on its canvas with a 2D context. At most
 //   one request is in flight: when a frame arrives the next request carries the latest camera
 //   (nothing queues). While the camera moves, frames come at the resolution scale that holds
-//   TARGET_MS per frame (measured on every frame, per level of detail); the finest level
-//   (lod 0 = the tree, k = its k deepest levels merged, built by the server) that keeps at
-//   least GOOD_SCALE of the canvas is asked for. Once the camera has not moved for QUIET_MS,
-//   one full-resolution frame of the tree itself follows. A frame the server cannot draw (or
-//   a lost connection) is reported through onError and not asked for again until the camera
-//   or an option changes: the page never stops drawing.
+//   TARGET_MS per frame (measured on every frame); once it has not moved for QUIET_MS, one
+//   full-resolution frame follows. A frame the server cannot draw (or a lost connection) is
+//   reported through onError and not asked for again until the camera or an option changes:
+//   the page never stops drawing.
 // - FrameStats: frames actually delivered to the screen in the last second (both modes).
 
 const SOFTWARE_GL = /swiftshader|llvmpipe|softpipe|software|basic render|mesa offscreen|lavapipe/i;
@@ -58,7 +56,6 @@ export class FrameStats {
 const TARGET_MS = 45;        // request -> screen while moving (20+ FPS with a margin)
 const QUIET_MS = 40;         // no camera change this long: the full-resolution frame
 const MIN_SCALE = 0.25;
-const GOOD_SCALE = 0.5;      // moving: the finest level that keeps this share of each side
 const SHARP_QUALITY = 90;    // JPEG quality of the full-resolution frame (no chroma subsampling)
 const MOVING_QUALITY = 80;
 
@@ -68,14 +65,14 @@ export class FrameError extends Error {
 
 // The query string of GET /frame for a view ({c2w, fx, fy, cx, cy, width, height}) and the
 // page's options (background, stop_thresh, sh_min, sh_max, mode, depth_range).
-export function frameQuery(view, opts, quality = 90, lod = 0) {
+export function frameQuery(view, opts, quality = 90) {
   const f = (v) => (Number.isInteger(v) ? String(v) : v.toPrecision(9));
   const p = new URLSearchParams({
     w: String(view.width), h: String(view.height), c2w: view.c2w.map(f).join(","),
     fx: f(view.fx), fy: f(view.fy), cx: f(view.cx), cy: f(view.cy),
     bg: opts.background.map(f).join(","), stop: f(opts.stop_thresh),
     sh_min: String(opts.sh_min), sh_max: String(opts.sh_max), mode: opts.mode || "rgb",
-    dr: (opts.depth_range || [0, 1]).map(f).join(","), q: String(quality), lod: String(lod),
+    dr: (opts.depth_range || [0, 1]).map(f).join(","), q: String(quality),
   });
   return p.toString();
 }
@@ -86,11 +83,9 @@ export class CpuFrames {
     this.ctx = canvas.getContext("2d", { alpha: false });
     this.stats = stats;
     this.busy = false;
-    this.lods = 0;               // coarser levels the server offers (config.json cpu.lods)
     this.scale = 0.5;            // resolution scale while moving (adapted per frame)
-    this.lod = 0;                // level of detail while moving (adapted per frame)
     this.otherMs = 10;           // request -> screen time besides the server's render (EMA)
-    this.renderFullMs = [];      // [lod]: server render time of a full-resolution frame (EMA)
+    this.renderFullMs = null;    // server render time of a full-resolution frame (EMA)
     this.sentKey = null;         // camera + options of the last request
     this.sharpKey = null;        // ... of the last full-resolution frame on screen
     this.failedKey = null;       // ... of a frame the server could not draw (not asked again)
@@ -107,11 +102,9 @@ export class CpuFrames {
     if (v.key === this.failedKey && !v.continuous) return;     // wait for the next change
     const moving = v.continuous || performance.now() - v.changedAt < QUIET_MS;
     if (v.key === this.sentKey && !v.continuous && (v.key === this.sharpKey || moving)) return;
-    const sharp = v.fixed || !moving;
-    const scale = sharp ? 1 : this.scale;
+    const scale = v.fixed || !moving ? 1 : this.scale;
     this.sentKey = v.key;
-    this._draw(v.key, v.viewAt(scale), v.opts, v.fixed ? null : v.target, scale, true,
-      sharp ? 0 : this.lod);
+    this._draw(v.key, v.viewAt(scale), v.opts, v.fixed ? null : v.target, scale);
   }
 
   // Draw `view` at full resolution after the frame in flight (scripts: api.render); resolves
@@ -125,16 +118,15 @@ export class CpuFrames {
   }
 
   // One request -> screen round trip; returns the error (null when the frame is on screen).
-  async _draw(key, view, opts, target, scale, chain = true, lod = 0) {
+  async _draw(key, view, opts, target, scale, chain = true) {
     this.busy = true;
     const t0 = performance.now();
     try {
-      const q = scale === 1 && lod === 0 ? SHARP_QUALITY : MOVING_QUALITY;
-      const resp = await fetch(`frame?${frameQuery(view, opts, q, lod)}`, { cache: "no-store" });
+      const q = scale === 1 ? SHARP_QUALITY : MOVING_QUALITY;
+      const resp = await fetch(`frame?${frameQuery(view, opts, q)}`, { cache: "no-store" });
       if (!resp.ok) throw new FrameError(`the server could not draw this view: ${(await resp.text()).trim()}`);
       const renderMs = Number(resp.headers.get("X-Render-Ms")) || 0;
       const encodeMs = Number(resp.headers.get("X-Encode-Ms")) || 0;
-      const drawn = Number(resp.headers.get("X-Lod")) || 0;      // the level that drew it
       const bmp = await createImageBitmap(await resp.blob());
       const [W, H] = target || [view.width, view.height];
       if (this.canvas.width !== W || this.canvas.height !== H) {
@@ -145,12 +137,11 @@ export class CpuFrames {
       this.ctx.drawImage(bmp, 0, 0, W, H);
       bmp.close();
       const ms = performance.now() - t0;
-      const full = scale === 1 && drawn === 0;
+      const full = scale === 1;
       if (full) this.sharpKey = key;
       this.failedKey = null;
-      this._adapt(ms, renderMs, view.width * view.height, W * H, drawn);
-      this.stats.add({ width: view.width, height: view.height, full, lod: drawn, ms, renderMs,
-        encodeMs, key });
+      this._adapt(ms, renderMs, view.width * view.height, W * H);
+      this.stats.add({ width: view.width, height: view.height, full, ms, renderMs, encodeMs, key });
     } catch (err) {
       this.sentKey = null;
       this.failedKey = key;
@@ -163,26 +154,15 @@ export class CpuFrames {
     return null;
   }
 
-  // Level and scale for the next moving frame: each level's full-frame render time (EMA;
-  // an unmeasured level is guessed at half the finer one's) gives the scale s that holds
-  // other + renderFull * s^2 = TARGET_MS; the finest level with s >= GOOD_SCALE wins, else
-  // the coarsest.
-  _adapt(ms, renderMs, pixels, fullPixels, lod) {
+  // Scale for the next moving frame: other + renderFull * s^2 = TARGET_MS.
+  _adapt(ms, renderMs, pixels, fullPixels) {
     const k = 0.5;
     const renderFull = renderMs * fullPixels / Math.max(pixels, 1);
-    const prev = this.renderFullMs[lod];
-    this.renderFullMs[lod] = prev === undefined ? renderFull : (1 - k) * prev + k * renderFull;
+    this.renderFullMs = this.renderFullMs === null ? renderFull : (1 - k) * this.renderFullMs + k * renderFull;
     this.otherMs = (1 - k) * this.otherMs + k * Math.max(ms - renderMs, 0);
     const budget = Math.max(TARGET_MS - this.otherMs, 0.3 * TARGET_MS);
-    let guess = this.renderFullMs[0] === undefined ? renderFull : this.renderFullMs[0];
-    for (let level = 0; level <= this.lods; level++) {
-      const t = this.renderFullMs[level] === undefined ? guess : this.renderFullMs[level];
-      const s = Math.max(MIN_SCALE, Math.min(1, Math.sqrt(budget / Math.max(t, 1e-3))));
-      this.lod = level;
-      this.scale = s;
-      if (s >= GOOD_SCALE) break;
-      guess = 0.5 * t;
-    }
+    const s = Math.sqrt(budget / Math.max(this.renderFullMs, 1e-3));
+    this.scale = Math.max(MIN_SCALE, Math.min(1, s));
   }
 }
 

@@ -368,8 +368,7 @@ function treeRadius() {
 function showRate() {
   const last = stats.last;
   const text = last ? `${rendererLabel} · ${stats.fps()} FPS @ ${last.width}x${last.height}`
-    + `${last.lod ? ` (coarser level ${last.lod})` : ""} · ${last.ms.toFixed(0)} ms/frame`
-    : rendererLabel;
+    + ` · ${last.ms.toFixed(0)} ms/frame` : rendererLabel;
   if ($("fps").textContent !== text) $("fps").textContent = text;
 }
 
@@ -608,7 +607,6 @@ function startCpuMode() {
     maxDepth: c.max_depth, format: { name: c.format, basisDim: c.basis_dim } };
   opts.ndc = c.ndc || null;
   cpu = new CpuFrames(canvas, stats);
-  cpu.lods = params.get("lod") === "off" ? 0 : Number(c.lods) || 0;    // ?lod=off: the A/B baseline
   cpu.onError = (err) => showNotice(err instanceof FrameError ? err.message
     : `the server could not be reached (${err && err.message ? err.message : err}); `
       + "the next camera change tries again");
