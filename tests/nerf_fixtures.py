@@ -93,3 +93,17 @@ def tiny_run_and_tree(tmp_path: Path) -> tuple[Path, Path, Path]:
                  "--samples", "2", "--bbox", "fixed", "--masking", "sigma",
                  "--mask-alpha-thresh", "1e-12", "--no-eval", "--no-progress"]) == 0
     return data, run, tree
+
+
+def ff_tree(folder: Path, n_images: int = 4, n_samples: int = 32, grid: int = 32,
+            precision: str = "fp32"):
+    """A forward-facing (LLFF, NDC) procedural capture written in ``folder/ff`` and its NDC
+    tree of ``grid`` cells across saved as ``folder/ff.npz``: ``(root, tree, path)``."""
+    from plenoctree.datasets.forward_facing import forward_facing_tree, write_forward_facing_dataset
+    from plenoctree.octree.io import save_tree
+
+    root = write_forward_facing_dataset(folder / "ff", n_images=n_images, width=48, height=36,
+                                        n_samples=n_samples)
+    tree = forward_facing_tree(root, grid)
+    save_tree(tree, folder / "ff.npz", precision=precision)
+    return root, tree, folder / "ff.npz"

@@ -17,20 +17,9 @@ import pytest
 from plenoctree._bounds import (MAX_BATCH, MAX_COUNT, MAX_MINUTES, bound_error, check_bounds)
 from plenoctree.cli import build_parser, main
 from plenoctree.errors import ConfigError
+from test_hardening import _fails
 
 HUGE = 10**30
-
-
-def _fails(capsys, argv, *needles):
-    """``main(argv)`` exits 1 with one error line (no traceback) holding every needle."""
-    assert main([str(a) for a in argv]) == 1
-    err = capsys.readouterr().err
-    assert "Traceback" not in err, err
-    line = [ln for ln in err.splitlines() if "error:" in ln]
-    assert len(line) == 1, err
-    for n in needles:
-        assert str(n) in line[0], line[0]
-    return line[0]
 
 
 def _config(tmp_path, values) -> str:

@@ -24,10 +24,10 @@ from PIL import Image
 from plenoctree.datasets import Cameras
 from plenoctree.datasets.ndc import MISS_ORIGIN, to_ndc_rays
 from plenoctree.errors import ConfigError
-from plenoctree.octree.io import save_tree
 from plenoctree.octree.ndc import NDCSpace
 from plenoctree.render import RenderOptions, render_image, render_rays
 from plenoctree.render._render_numba import _camera_ray, pack_cameras
+from nerf_fixtures import ff_tree
 from viewer_http import get
 
 SPACE = NDCSpace(64, 48, 50.0, 50.0, 1.0)
@@ -131,13 +131,8 @@ def test_dataset_rays_are_unchanged_and_still_strict():
 
 @pytest.fixture(scope="module")
 def ff(tmp_path_factory):
-    from plenoctree.datasets.forward_facing import forward_facing_tree, write_forward_facing_dataset
-
-    d = tmp_path_factory.mktemp("ffany")
-    root = write_forward_facing_dataset(d / "ff", n_images=4, width=48, height=36, n_samples=32)
-    tree = forward_facing_tree(root, 32)
-    save_tree(tree, d / "ff.npz")
-    return tree, d / "ff.npz"
+    _, tree, path = ff_tree(tmp_path_factory.mktemp("ffany"))
+    return tree, path
 
 
 @pytest.mark.parametrize("name", sorted(POSES))

@@ -193,13 +193,11 @@ def test_apply_renders_any_camera_in_the_trees_ndc_space():
 # ---------------------------------------------------------------------- commands
 @pytest.fixture(scope="module")
 def ff(tmp_path_factory):
-    from plenoctree.datasets.forward_facing import forward_facing_tree, write_forward_facing_dataset
+    from nerf_fixtures import ff_tree
 
     d = tmp_path_factory.mktemp("ndc_tree")
-    root = write_forward_facing_dataset(d / "ff", n_images=9, width=48, height=36, n_samples=64)
-    tree = forward_facing_tree(root, 32)
-    save_tree(tree, d / "ff.npz")
-    return {"root": root, "tree": tree, "path": d / "ff.npz", "dir": d}
+    root, tree, path = ff_tree(d, n_images=9, n_samples=64)
+    return {"root": root, "tree": tree, "path": path, "dir": d}
 
 
 def test_forward_facing_tree_knows_its_dataset_ndc_space(ff):

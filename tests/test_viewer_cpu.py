@@ -104,13 +104,11 @@ def test_a_camera_too_far_to_step_from_sees_the_background(cpu_server):
 
 
 def test_ndc_tree_frame_equals_the_render_of_its_camera(tmp_path):
-    from plenoctree.datasets import load_dataset
-    from plenoctree.datasets.forward_facing import forward_facing_tree, write_forward_facing_dataset
+    from nerf_fixtures import ff_tree
 
-    root = write_forward_facing_dataset(tmp_path / "ff", n_images=4, width=48, height=36,
-                                        n_samples=32)
-    tree = forward_facing_tree(root, 32)
-    save_tree(tree, tmp_path / "ff.npz")
+    from plenoctree.datasets import load_dataset
+
+    root, tree, _ = ff_tree(tmp_path)
     cams = load_dataset(root, "train").cameras                    # NDC cameras
     with ViewerServer(tmp_path / "ff.npz", port=0, render="auto") as srv:
         status, _, body = _get(srv.port, "/config.json")
@@ -342,12 +340,9 @@ def no_webgl_browser(playwright):
 
 @pytest.fixture(scope="module")
 def llff_tree(tmp_path_factory):
-    from plenoctree.datasets.forward_facing import forward_facing_tree, write_forward_facing_dataset
+    from nerf_fixtures import ff_tree
 
-    d = tmp_path_factory.mktemp("lookaround")
-    root = write_forward_facing_dataset(d / "ff", n_images=4, width=48, height=36, n_samples=32)
-    save_tree(forward_facing_tree(root, 32), d / "ff.npz")
-    return d / "ff.npz"
+    return ff_tree(tmp_path_factory.mktemp("lookaround"))[2]
 
 
 def _frames(page) -> int:
