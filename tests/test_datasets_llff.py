@@ -120,9 +120,8 @@ def test_forward_facing_defaults_to_ndc_and_spherify_does_not(ff_root):
 def test_inward_facing_scene_is_detected_and_refuses_ndc(llff_root, ff_root, caplog):
     """A folder whose cameras surround the scene is a 360° capture: spherified, no NDC, and
     the loader says so; forward-facing folders keep NDC; NDC asked for is still refused."""
-    from plenoctree.datasets.llff import llff_capture_kind
-
-    assert llff_capture_kind(llff_root) == "360" and llff_capture_kind(ff_root) == "forward"
+    assert read_llff(llff_root, spherify=None).spherify           # decided by the cameras
+    assert not read_llff(ff_root, spherify=None).spherify
     with caplog.at_level("INFO", logger="plenoctree.datasets.llff"):
         data = load_llff(llff_root, "train")
     assert "a 360° capture" in caplog.text and "poses_bounds.npy" in caplog.text
@@ -145,12 +144,14 @@ def test_real_captures_are_detected(scene, kind):
     is a 360° capture: spherified, no NDC rays."""
     from pathlib import Path
 
-    from plenoctree.datasets.llff import llff_capture_kind
+    from plenoctree.datasets.camera_sets import capture_kind
+    from plenoctree.datasets.llff import read_poses_bounds
 
     root = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / scene
     if not (root / "poses_bounds.npy").is_file():
         pytest.skip(f"{root} is not here")
-    assert llff_capture_kind(root) == kind
+    assert capture_kind(read_poses_bounds(root / "poses_bounds.npy")[0]) == kind
+    assert read_llff(root, spherify=None).spherify == (kind == "360")
     data = load_dataset(root, "test", downscale=8 if scene == "flower" else 4, limit=1)
     assert data.cameras.ndc == (kind == "forward")
 

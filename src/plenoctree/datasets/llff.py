@@ -22,7 +22,7 @@ full-resolution images. The standard conversion (NeRF's LLFF loader, reimplement
 
 Which kind a folder holds is decided by its cameras unless :class:`LLFFOptions` says
 (``spherify=None``, the default): cameras whose optical axes spread as around an object are a
-360° capture (:func:`llff_capture_kind`, the rule ``process`` applies to photos), which is
+360° capture (``camera_sets.capture_kind``, the rule ``process`` applies to photos), which is
 spherified and gets no NDC; the decision is logged.
 
 Forward-facing scenes use NDC rays (:mod:`plenoctree.datasets.ndc`, near plane 1): the
@@ -52,8 +52,7 @@ from .cameras import Cameras
 from .ndc import ndc_bounds
 
 __all__ = ["load_llff", "LLFFOptions", "read_llff", "LLFFScene", "llff_render_cameras",
-           "spiral_path", "average_pose", "write_llff", "llff_capture_kind",
-           "llff_matches_colmap", "LLFF_HOLD", "BD_FACTOR"]
+           "spiral_path", "average_pose", "write_llff", "llff_matches_colmap", "LLFF_HOLD", "BD_FACTOR"]
 
 logger = logging.getLogger(__name__)
 
@@ -178,15 +177,24 @@ def _spherify(c2w: np.ndarray) -> np.ndarray:
 
 
 def read_llff(root: str | os.PathLike, recenter: bool = True, bd_factor: float | None = BD_FACTOR,
-              spherify: bool = False) -> LLFFScene:
+              spherify: bool | None = False) -> LLFFScene:
     """Read ``root/poses_bounds.npy`` and normalise it (module docstring, steps 1-4).
 
     ``bd_factor=None`` skips the rescaling, ``recenter=False`` the recentring (then the file's
-    world frame is kept, up to the scale).
+    world frame is kept, up to the scale). ``spherify=None``: when the cameras surround the
+    scene (:func:`~.camera_sets.capture_kind` of the file's poses), said in the log; the
+    result's ``spherify`` says what was done.
     """
+    from .camera_sets import capture_kind
+
     root = Path(root)
     path = root / POSES_FILE
     c2w, bounds, hwf = read_poses_bounds(path)
+    if spherify is None:
+        spherify = capture_kind(c2w) == "360"
+        if spherify:
+            logger.info("%s: the cameras surround the scene: a 360° capture (spherical "
+                        "normalisation, no NDC rays)", path)
     transform = np.eye(4)
     if bd_factor is not None:
         if not (isinstance(bd_factor, (int, float)) and 0 < bd_factor and math.isfinite(bd_factor)):
@@ -287,22 +295,12 @@ class LLFFOptions:
     """NDC rays (None: yes unless ``spherify``)."""
     spherify: bool | None = None
     """Spherical normalisation for inward-facing 360° captures (no NDC); None: when the
-    cameras surround the scene (:func:`llff_capture_kind`) and ``ndc`` is not given."""
+    cameras surround the scene (:func:`read_llff`) and ``ndc`` is not given."""
     recenter: bool = True
     """Recentre on the average pose (:func:`read_llff`); False keeps the file's world frame."""
     bd_factor: float | None = BD_FACTOR
     """Rescale so the nearest depth bound is ``1 / bd_factor`` (:func:`read_llff`); None keeps
     the file's scale."""
-
-
-def llff_capture_kind(root: str | os.PathLike) -> str:
-    """``"forward"`` or ``"360"``: the kind of capture ``root/poses_bounds.npy`` holds, by the
-    spread of its optical axes (``camera_sets.capture_kind``, the rule ``process`` decides
-    photos by: flower's axes agree to 0.999, lounge's walk-around 0.88, the threshold is 0.9)."""
-    from .camera_sets import capture_kind
-
-    c2w, _, _ = read_poses_bounds(Path(root) / POSES_FILE)
-    return capture_kind(c2w)
 
 
 def llff_matches_colmap(root: str | os.PathLike) -> bool:
@@ -332,18 +330,12 @@ def llff_matches_colmap(root: str | os.PathLike) -> bool:
     return same_cameras(np.stack([poses[f.stem] for f in files]), c2w)
 
 
-def _spherify_of(root: Path, opt: LLFFOptions) -> bool:
-    """``opt.spherify``; None: False when ``opt.ndc`` is given (either way), else whether the
-    cameras surround the scene (said in the log)."""
+def _spherify_option(opt: LLFFOptions) -> bool | None:
+    """``opt.spherify``; when unset, False if ``opt.ndc`` is given (either way), else None
+    (:func:`read_llff` decides by the cameras)."""
     if opt.spherify is not None:
         return bool(opt.spherify)
-    if opt.ndc is not None:
-        return False
-    if llff_capture_kind(root) == "360":
-        logger.info("%s: the cameras surround the scene: a 360° capture (spherical "
-                    "normalisation, no NDC rays)", root / POSES_FILE)
-        return True
-    return False
+    return False if opt.ndc is not None else None
 
 
 def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
@@ -381,9 +373,10 @@ def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
     root = Path(root)
     if not root.is_dir():
         raise DatasetError(f"{root}: dataset folder does not exist")
-    spherify = _spherify_of(root, opt)
+    scene = read_llff(root, recenter=opt.recenter, bd_factor=opt.bd_factor,
+                      spherify=_spherify_option(opt))
+    spherify = scene.spherify
     ndc = (not spherify) if opt.ndc is None else opt.ndc
-    scene = read_llff(root, recenter=opt.recenter, bd_factor=opt.bd_factor, spherify=spherify)
     n = len(scene.c2w)
     folder, files, factor = _images_for(root, n, int(downscale))
     sel = holdout_split(n, split, root / POSES_FILE, opt.llffhold)
@@ -434,8 +427,9 @@ def llff_render_cameras(root: str | os.PathLike, n_frames: int = 120, downscale:
         raise ConfigError(f"downscale must be a positive integer, got {downscale!r}")
     root = Path(root)
     opt = options or LLFFOptions()
-    spherify = _spherify_of(root, opt)
-    scene = read_llff(root, recenter=opt.recenter, bd_factor=opt.bd_factor, spherify=spherify)
+    scene = read_llff(root, recenter=opt.recenter, bd_factor=opt.bd_factor,
+                      spherify=_spherify_option(opt))
+    spherify = scene.spherify
     folder, files, factor = _images_for(root, len(scene.c2w), int(downscale))
     size = probe_size(files[0])
     fx, fy, cx, cy = _intrinsics(scene.hwf, size, folder)

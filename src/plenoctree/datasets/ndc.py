@@ -167,7 +167,7 @@ def _clip_rays(xp: Any, o: Any, d: Any, o_std: Any, d_std: Any, ax: float, ay: f
     inside = o[..., 2] <= -near
     std_ok = (~inside & (d[..., 2] < -_MIN_DZ) & xp.isfinite(o_std).all(-1)
               & xp.isfinite(d_std).all(-1) & bounded(o_std))
-    oz = xp.where(inside, o[..., 2], -near)               # > 0 never divides
+    oz = xp.where(inside, o[..., 2], -near)      # outside rays: a stand-in, no division by ~0
     o_in = xp.stack((ax * o[..., 0] / oz, ay * o[..., 1] / oz, 1.0 + 2.0 * near / oz), -1)
     d_in = xp.stack((ax * (d[..., 0] * oz - o[..., 0] * d[..., 2]),
                      ay * (d[..., 1] * oz - o[..., 1] * d[..., 2]), -2.0 * near * d[..., 2]), -1)

@@ -72,8 +72,13 @@ def origin_in_reach(tree: Any, point: Any) -> bool:
     :func:`render_rays` refuses the ray; the box then spans under 1e-8 rad from there)."""
     from ..octree.limits import MAX_RAY_ORIGIN
 
-    p = vec3(tree.offset) + vec3(tree.invradius) * np.asarray(point, np.float64).reshape(3)
-    return bool(np.abs(p).max() <= MAX_RAY_ORIGIN)
+    point = np.asarray(point, np.float64).reshape(1, 3)
+    return _reach(vec3(tree.offset), vec3(tree.invradius), point) <= MAX_RAY_ORIGIN
+
+
+def _reach(offset: np.ndarray, inv: np.ndarray, points: np.ndarray) -> float:
+    """The largest tree coordinate (in magnitude) of world ``points [M, 3]`` (float64)."""
+    return float(np.abs(offset + inv * points).max())
 
 
 def _check_origins(origins: Any, offset: np.ndarray, inv: np.ndarray) -> None:
@@ -90,9 +95,9 @@ def _check_origins(origins: Any, offset: np.ndarray, inv: np.ndarray) -> None:
             return
         flat = origins.reshape(-1, 3)
         lo, hi = flat.min(0).astype(np.float64), flat.max(0).astype(np.float64)
-    far = np.maximum(np.abs(offset + inv * lo), np.abs(offset + inv * hi))
-    if not (far <= MAX_RAY_ORIGIN).all():
-        raise ConfigError(f"origins: a ray starts at tree coordinate {far.max():.3g} (the tree "
+    far = _reach(offset, inv, np.stack([lo, hi]))
+    if not far <= MAX_RAY_ORIGIN:
+        raise ConfigError(f"origins: a ray starts at tree coordinate {far:.3g} (the tree "
                           f"box is [0, 1]^3; at most {MAX_RAY_ORIGIN:g}: farther, a float64 "
                           "step cannot advance); move the camera closer")
 
