@@ -23,6 +23,7 @@ optionally a radiance field object (anything following
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import time
 from dataclasses import dataclass, field
@@ -41,6 +42,8 @@ from .memory import StageMonitor, check_budget, memory_limit
 from .sampling import SampleOptions, SamplingStats, output_format, sample_cells
 from .visibility import (auto_ray_scale, rescale_cameras, sigma_mask, visibility_weights,
                          weight_mask)
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["ExtractConfig", "ExtractResult", "extract", "estimate_grid_memory",
            "clamp_sigma_for_fp16", "extraction_grid", "GRID", "NDC_GRID"]
@@ -78,6 +81,10 @@ class ExtractConfig:
     is that many times deeper than wide (NDC rays run along depth: what the image resolves is
     in x and y; flower, 512 cells across: +0.2 dB at 26 % fewer leaves and 1.27x the FPS of
     256³ refined); 1 = cubic cells. 360° scenes ignore it."""
+    far_grid: int = 0
+    """Runs with a far field (360° captures of a place): cells per axis of each shell's grid
+    around the box (a power of two; 0: half of --grid). Shell l's cells are 2^l times the size
+    of those of this grid over the box."""
     samples: int = 8
     """Random samples averaged per kept voxel (paper: 256)."""
     averaging: str = "opacity"
@@ -310,7 +317,8 @@ class _Inputs:
     data_root: str
     downscale: int
     background: tuple
-    train: Any                     # training views (None unless --masking weight needs them)
+    train: Any                     # training views (None unless --masking weight needs them;
+                                   # after the filter, their cameras only)
     ndc: Any
     fmt: str
     extra_data: Any
@@ -431,6 +439,29 @@ def _sample_and_build(cfg: ExtractConfig, inp: _Inputs, spec: GridSpec, mask: np
     return tree, st
 
 
+def _shells(cfg: ExtractConfig, inp: _Inputs, tree: Any, grid: int, limit: int
+            ) -> tuple[Any, dict]:
+    """Stage ``shells``: the far field around the box (:mod:`.shells`)."""
+    from .shells import ShellOptions, add_shells, shell_levels
+
+    far = inp.field.model.far
+    outer = (far.radius * float(2 ** far.levels)).detach().cpu().numpy()
+    levels = shell_levels(tree.radius, outer, tree.max_depth)
+    cams = inp.train
+    if cams is None:                # (--masking sigma: the views were not loaded)
+        cams = _load_split(inp.data_root, "train", inp.downscale, inp.background).cameras
+    opts = ShellOptions(grid=cfg.far_grid or max(4, grid // 2),
+                        weight_thresh=cfg.weight_thresh, backend=cfg.backend,
+                        show_progress=cfg.show_progress,
+                        samples=SampleOptions(samples=cfg.samples, chunk=cfg.chunk,
+                                              seed=cfg.seed + 1, averaging=cfg.averaging,
+                                              show_progress=cfg.show_progress))
+    grown, info = add_shells(tree, inp.field, cams, levels, opts, limit)
+    logger.info(f"far field: {levels} shells around the box, {sum(info['shell_leaves'])} "
+                f"leaves ({', '.join(map(str, info['shell_leaves']))} per shell)")
+    return grown, info
+
+
 def _output_path(cfg: ExtractConfig, from_run: bool) -> Path | None:
     """``cfg.out`` (a folder: its ``tree.npz``), else ``RUN_DIR/tree.npz`` for a run, else
     None (a field given directly is not saved)."""
@@ -486,13 +517,18 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
     with mon.stage("filter"):
         mask, n_cand, vis_info = _filter(cfg, sigma, spec, inp.train, limit)
         del sigma
-        inp.train = None            # the training images are not needed any more
+        if inp.train is not None:   # the images are not needed any more, the cameras are
+            inp.train = inp.train.cameras
         n_kept = int(np.count_nonzero(mask))
         check_budget(f"{n_kept} leaves x {inp.dim} values (sampling and octree)",
                      int(n_kept * inp.dim * 4 * 3.5), limit,
                      "use a smaller --grid or a higher --weight-thresh")
     tree, st = _sample_and_build(cfg, inp, spec, mask, mon)
     del mask
+    far_info = {}
+    if getattr(getattr(inp.field, "model", None), "far", None) is not None:
+        with mon.stage("shells"):
+            tree, far_info = _shells(cfg, inp, tree, grid, limit)
     out = _output_path(cfg, inp.train_cfg is not None)
     file_bytes, n_clamped = 0, 0
     if out is not None:
@@ -500,7 +536,8 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
             file_bytes, n_clamped = _save(tree, out, cfg.precision)
     res = ExtractResult(tree, out, box, grid, n_cand, n_kept, file_bytes, {},
                         nerf_psnr=inp.nerf_psnr,
-                        extra={"sampled_points": st.points, "nonfinite_values": st.nonfinite,
+                        extra={**far_info,
+                               "sampled_points": st.points, "nonfinite_values": st.nonfinite,
                                "sigma_clamped_fp16": n_clamped, **_settings(cfg), **vis_info,
                                "config": {k: (list(v) if isinstance(v, tuple) else v)
                                           for k, v in dataclasses.asdict(cfg).items()}})

@@ -139,8 +139,9 @@ class NeRFField:
     """Adapter from a trained :class:`~plenoctree.nerf.NeRFModel` to :class:`RadianceField`.
 
     The fine network is evaluated under ``torch.no_grad`` (optionally in bf16 autocast) on
-    ``device``. σ is set to 0 outside the model's ``scene_bbox`` and, when the model has an
-    occupancy grid and ``use_occupancy``, in unoccupied cells: the NeRF's own renderer never
+    ``device``. σ is set to 0 outside the model's ``scene_bbox`` (or, with a far field, outside
+    its outer cube) and, when the model has an occupancy grid and ``use_occupancy``, in the
+    box's unoccupied cells: the NeRF's own renderer never
     samples there, so whatever the network says in those places is never seen in training.
 
     Args:
@@ -184,14 +185,19 @@ class NeRFField:
 
         lo = torch.as_tensor(self.scene_bbox[0], dtype=p.dtype, device=p.device)
         hi = torch.as_tensor(self.scene_bbox[1], dtype=p.dtype, device=p.device)
-        ok = ((p >= lo) & (p <= hi)).all(-1)
+        in_box = ((p >= lo) & (p <= hi)).all(-1)
+        ok = in_box
         if self._occ is not None:
             mask, bbox = self._occ
             res = torch.tensor(mask.shape, device=p.device)
             g = ((p - bbox[0]) / (bbox[1] - bbox[0]) * res).floor().long()
             inside = ((g >= 0) & (g < res)).all(-1)
             g = torch.minimum(torch.clamp(g, min=0), res - 1)
-            ok &= inside & mask[g[:, 0], g[:, 1], g[:, 2]]
+            ok = ok & inside & mask[g[:, 0], g[:, 1], g[:, 2]]
+        far = getattr(self.model, "far", None)
+        if far is not None:             # the far field's shells, up to the outer cube
+            outer = far.outer_bbox().to(device=p.device, dtype=p.dtype)
+            ok = ok | (~in_box & ((p >= outer[0]) & (p <= outer[1])).all(-1))
         return ok
 
     def density(self, points: np.ndarray) -> np.ndarray:
@@ -205,7 +211,12 @@ class NeRFField:
         if idx.numel():                  # the network runs only where the NeRF samples
             with torch.no_grad(), self._ctx():
                 pv = p[idx]
-                s = fine.density(pv) if hasattr(fine, "density") else self.model.query(pv)[0]
+                if getattr(self.model, "far", None) is not None:
+                    s = self.model.density(pv)
+                elif hasattr(fine, "density"):
+                    s = fine.density(pv)
+                else:
+                    s = self.model.query(pv)[0]
             sigma[idx] = s.float()
         return sigma.cpu().numpy()
 

@@ -40,6 +40,8 @@ class Dataset:
         masks: float32 ``[N, H, W]`` pixel validity in [0, 1] (the fraction of valid source
             pixels after downscaling; 0 = exclude from training losses), or ``None`` when the
             dataset has no masks (nerfstudio ``mask_path``).
+        unbounded: the capture is of a place (a 360° walk-around with the world around the
+            ``scene_bbox``): training adds a far field beyond the box (``nerf.far``).
     """
 
     images: np.ndarray
@@ -53,6 +55,7 @@ class Dataset:
     names: list[str] = field(default_factory=list)
     alphas: np.ndarray | None = None
     masks: np.ndarray | None = None
+    unbounded: bool = False
 
     def __post_init__(self) -> None:
         n, h, w = len(self.cameras), self.cameras.height, self.cameras.width

@@ -264,7 +264,7 @@ def load_colmap(root: str | os.PathLike, split: str = "train", downscale: int = 
         near, far = near_far_from_box(frame.c2w, bbox)
     return Dataset(images=imgs, cameras=cameras, near=near, far=far, scene_bbox=bbox,
                    split=split, root=root, background=tuple(float(v) for v in bg),
-                   names=[Path(names[i]).stem for i in sel], alphas=alphas)
+                   names=[Path(names[i]).stem for i in sel], alphas=alphas, unbounded=not ndc)
 
 
 FORMAT = DatasetFormat("colmap", "sparse/0/cameras.bin|txt",

@@ -411,7 +411,7 @@ def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
                                 all_cams.height, near, far)
     return Dataset(images=images, cameras=cams, near=near, far=far, scene_bbox=bbox,
                    split=split, root=root, background=tuple(float(v) for v in bg),
-                   names=[files[i].stem for i in sel], alphas=alphas)
+                   names=[files[i].stem for i in sel], alphas=alphas, unbounded=spherify)
 
 
 def llff_render_cameras(root: str | os.PathLike, n_frames: int = 120, downscale: int = 1,

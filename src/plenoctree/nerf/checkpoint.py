@@ -165,16 +165,17 @@ def model_from_checkpoint(ck: dict[str, Any], expect: TrainConfig | None = None,
     cfg: TrainConfig = ck["config"]
     if expect is not None:
         _check_same_model(path, {**config_to_dict(cfg.model), "sampler": cfg.sampler,
-                                 "occ_res": cfg.occ_res},
+                                 "occ_res": cfg.occ_res, "far_levels": cfg.far_levels},
                           {**config_to_dict(expect.model), "sampler": expect.sampler,
-                           "occ_res": expect.occ_res})
+                           "occ_res": expect.occ_res, "far_levels": expect.far_levels})
     state = ck["model"]
     bbox = state.get("scene_bbox")
     if bbox is None or tuple(bbox.shape) != (2, 3):
         raise CheckpointError(f"{path}: checkpoint has no scene_bbox [2, 3]")
     try:
         model = NeRFModel(cfg.model, bbox.numpy(),
-                          occ_res=cfg.occ_res if cfg.sampler == "occupancy" else 0)
+                          occ_res=cfg.occ_res if cfg.sampler == "occupancy" else 0,
+                          far_levels=max(cfg.far_levels, 0))    # (-1: a run from before)
     except ConfigError as e:
         raise CheckpointError(f"{path}: {e}") from None
     want = model_signature(model.state_dict())

@@ -118,6 +118,14 @@ class TrainConfig:
     """Occupancy sampler: distance between samples along a ray, world units."""
     occ_res: int = 128
     """Occupancy sampler: cells per axis of the occupancy grid over the scene box."""
+    far_levels: int = -1
+    """Far field: shells of a second network around the scene box, each twice the size of
+    the last (0 = none; -1 = automatic: enough to reach the dataset's far bound, 4 to 7, for
+    captures of a place (360° LLFF and COLMAP scenes) with the occupancy sampler, else 0)."""
+    far_samples: int = 32
+    """Far field: samples per ray, uniform in inverse distance beyond the scene box."""
+    far_fine: int = 32
+    """Far field: samples per ray drawn from the weights of the ``far_samples`` ones."""
     occ_update_every: int = 16
     """Occupancy sampler: steps between occupancy-grid updates."""
     occ_warmup_steps: int = 256
@@ -324,6 +332,11 @@ def validate(cfg: TrainConfig) -> TrainConfig:
          "a coarse network is only used by the hierarchical sampler (set coarse=False)")
     need(cfg.n_coarse >= 2 and cfg.n_fine >= 0, "n_coarse must be >= 2 and n_fine >= 0")
     need(cfg.render_step > 0, f"render_step must be > 0, got {cfg.render_step}")
+    need(-1 <= cfg.far_levels <= 7, f"far_levels must be -1 (auto), 0 (none) or 1-7, got "
+         f"{cfg.far_levels}")
+    need(cfg.far_levels <= 0 or cfg.sampler == "occupancy",
+         "far_levels needs the occupancy sampler (--sampler occupancy)")
+    need(cfg.far_samples >= 2 and cfg.far_fine >= 0, "far_samples must be >= 2 and far_fine >= 0")
     need(cfg.occ_res >= 1 and cfg.occ_update_every >= 1, "occ_res and occ_update_every must be >= 1")
     need(0 < cfg.occ_threshold < 1 and 0 <= cfg.occ_decay <= 1,
          "occ_threshold must be in (0, 1) and occ_decay in [0, 1]")

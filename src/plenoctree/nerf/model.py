@@ -303,11 +303,15 @@ class NeRFModel(nn.Module):
     * ``basis`` ("sh" | "sg" | "plain"), ``basis_dim`` (B), ``sh_degree``, ``data_format``
       ("SH16", "SG25", "RGBA"), ``sg_lobes()`` / ``sg_extra_data()`` for SG models;
     * ``scene_bbox`` — float32 ``[2, 3]`` world box used in training (the grid's extent);
-    * ``occupancy`` — the :class:`OccupancyGrid` (occupancy sampler) or ``None``.
+    * ``occupancy`` — the :class:`OccupancyGrid` (occupancy sampler) or ``None``;
+    * ``far`` — the :class:`~plenoctree.nerf.far.FarField` beyond the box (``far_levels``
+      shells) or ``None``.
     """
 
-    def __init__(self, cfg: ModelConfig, scene_bbox, occ_res: int = 0):
+    def __init__(self, cfg: ModelConfig, scene_bbox, occ_res: int = 0, far_levels: int = 0):
         super().__init__()
+        from .far import FarField
+
         bbox = np.asarray(scene_bbox, dtype=np.float32).reshape(2, 3)
         if not np.all(np.isfinite(bbox)) or not np.all(bbox[1] > bbox[0]):
             raise ConfigError(f"scene_bbox must be finite with max > min, got {bbox.tolist()}")
@@ -316,6 +320,7 @@ class NeRFModel(nn.Module):
         self.fine = RadianceField(cfg, bbox)
         self.coarse = RadianceField(cfg, bbox) if cfg.coarse else None
         self.occupancy = OccupancyGrid(bbox, occ_res) if occ_res else None
+        self.far = FarField(cfg, bbox, far_levels) if far_levels > 0 else None
 
     @property
     def basis(self) -> str:
@@ -342,10 +347,45 @@ class NeRFModel(nn.Module):
         axes, sharp = self.sg_lobes()
         return torch.cat([sharp[:, None], axes], dim=1).detach().cpu().numpy().astype(np.float32)
 
+    @property
+    def far_levels(self) -> int:
+        """Shells of the far field around the scene box (0: none; :mod:`.far`)."""
+        return self.far.levels if self.far is not None else 0
+
+    def _split(self, points: torch.Tensor) -> torch.Tensor:
+        """bool ``[N]``: the points outside the scene box (the far field's)."""
+        u = self.far.box_coords(points)
+        return u.abs().amax(-1) > 1.0
+
     def query(self, points: torch.Tensor, dirs: torch.Tensor | None = None
               ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(sigma [N], coeffs [N, 3·B])`` of the fine network at world points ``[N, 3]``."""
-        return self.fine(points, dirs)
+        """``(sigma [N], coeffs [N, 3·B])`` at world points ``[N, 3]``: the fine network in the
+        scene box, the far field (when there is one) outside it."""
+        if self.far is None:
+            return self.fine(points, dirs)
+        out = self._split(points)
+        if not bool(out.any()):
+            return self.fine(points, dirs)
+        sigma = torch.empty(points.shape[0], device=points.device)
+        coeffs = torch.empty((points.shape[0], 3 * self.basis_dim), device=points.device)
+        for sel, net in ((~out, self.fine), (out, self.far)):
+            idx = sel.nonzero()[:, 0]
+            if idx.numel():
+                s, c = net(points[idx], None if dirs is None else dirs[idx])
+                sigma[idx], coeffs[idx] = s, c
+        return sigma, coeffs
+
+    def density(self, points: torch.Tensor) -> torch.Tensor:
+        """σ ``[N]`` at world points ``[N, 3]`` (the far field outside the box, as ``query``)."""
+        if self.far is None:
+            return self.fine.density(points)
+        out = self._split(points)
+        sigma = torch.empty(points.shape[0], device=points.device)
+        for sel, net in ((~out, self.fine), (out, self.far)):
+            idx = sel.nonzero()[:, 0]
+            if idx.numel():
+                sigma[idx] = net.density(points[idx])
+        return sigma
 
     def forward(self, points: torch.Tensor, dirs: torch.Tensor | None = None):
         return self.fine(points, dirs)

@@ -29,6 +29,7 @@ import torch
 
 from ..datasets import Dataset
 from .config import TrainConfig
+from .far import composite_far, render_far
 from .model import NeRFModel, RadianceField
 from .occupancy import OccupancyGrid
 from .sampling import MarchGrid, MarchRays, march_rays, pdf_samples, ray_aabb, \
@@ -316,6 +317,12 @@ def render_rays_occupancy(model: NeRFModel, rays: RayBatch, cfg: TrainConfig,
     occ: OccupancyGrid = model.occupancy
     r = _march_waves(model.fine, MarchRays(rays.origins, rays.dirs, t_min, t_max, jitter),
                      MarchGrid(float(cfg.render_step), occ.mask, occ.bbox), mode)
+    if model.far is not None:           # the world beyond the box, in ray order (nerf.far)
+        with autocast(dev, mode.amp):
+            f = render_far(model.far, rays.origins, rays.dirs, rays.near, model.scene_bbox,
+                           cfg.far_samples, cfg.far_fine, mode.train, mode.generator)
+        r = {**r, **composite_far(f, r["rgb"], r["acc"], r["dsum"]),
+             "n_samples": r["n_samples"] + f["n_samples"]}
     acc = r["acc"]
     out = {"rgb": r["rgb"] + (1.0 - acc)[:, None] * rays.bg(), "acc": acc,
            "depth": r["dsum"] / acc.clamp(min=1e-10), "n_samples": r["n_samples"]}

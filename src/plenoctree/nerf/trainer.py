@@ -16,6 +16,8 @@ written, so the last good checkpoint stays.
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import math
 import os
 import sys
@@ -36,6 +38,7 @@ from .checkpoint import CHECKPOINT_NAME, CheckpointError, TrainProgress, \
     model_from_checkpoint, read_checkpoint, save_checkpoint
 from .config import PHOTO_DISTORTION, TrainConfig, config_json, validate
 from .encoding import HashGridEncoding
+from .far import resolve_far_levels
 from .evaluate import evaluate_views
 from .model import NeRFModel
 from .renderer import ImageOptions, RayBatch, RenderMode, autocast, render_rays_hierarchical, \
@@ -43,6 +46,8 @@ from .renderer import ImageOptions, RayBatch, RenderMode, autocast, render_rays_
 from .runlog import RunLog
 from .training import (VAL_SHARE, RaySource, TrainingError, flush_tiny_moments,
                        learning_rate, load_val_views, sparsity_loss)
+
+logger = logging.getLogger(__name__)
 
 # Runtime set-up (threads, malloc, device, AMP) is plenoctree.runtime's, not re-exported here.
 __all__ = ["TrainResult", "Trainer", "TrainerState", "train"]
@@ -227,6 +232,12 @@ class Trainer:
         self.data = load_dataset(cfg.data, "train", format=cfg.format, downscale=cfg.downscale,
                                  background=cfg.background)
         self.val = load_val_views(cfg)
+        levels = resolve_far_levels(cfg, self.data)
+        if levels != cfg.far_levels:
+            cfg = self.cfg = dataclasses.replace(cfg, far_levels=levels)
+            if levels and self.dctx.is_main:
+                logger.info(f"far field: {levels} shells around the scene box (to "
+                            f"{2 ** levels}x its size): the world beyond it is trained too")
         self._build_model(ck)
         wall_before = self._restore(ck) if ck is not None else self._fresh_state()
         if self.dctx.is_main:
@@ -265,7 +276,8 @@ class Trainer:
             model = model_from_checkpoint(ck, expect=cfg, device=device)
         else:
             model = NeRFModel(cfg.model, self.data.scene_bbox,
-                              occ_res=cfg.occ_res if self.occ else 0).to(device)
+                              occ_res=cfg.occ_res if self.occ else 0,
+                              far_levels=cfg.far_levels).to(device)
         self.dctx.broadcast_module(model)
         model.train()
         for mod in model.modules():

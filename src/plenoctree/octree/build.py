@@ -16,7 +16,7 @@ from ..errors import TreeFormatError
 from .check import expected_data_dim
 from .tree import _CELL_OFFSETS, Octree, parse_data_format
 
-__all__ = ["tree_from_grid", "dense_tree", "box_params"]
+__all__ = ["tree_from_grid", "tree_from_leaves", "dense_tree", "box_params"]
 
 _CHUNK = 1 << 18            # parent nodes processed per block (bounds temporaries)
 
@@ -165,6 +165,89 @@ def tree_from_grid(values: Any, mask: Any, center: Any = 0.0, radius: Any = 1.0,
     return Octree(child=child.reshape(n_nodes, 2, 2, 2), data=data.reshape(n_nodes, 2, 2, 2, dim),
                   offset=offset, invradius=invradius, data_format=data_format,
                   extra_data=extra, depth_limit=d - 1)
+
+
+def _node_keys(depth: int, q: np.ndarray) -> np.ndarray:
+    """int64 keys of node cubes ``q [M, 3]`` (coordinates < ``2^depth``), C order."""
+    return (q[:, 0] << (2 * depth)) | (q[:, 1] << depth) | q[:, 2]
+
+
+def tree_from_leaves(depths: Any, coords: Any, values: Any, center: Any = 0.0, radius: Any = 1.0,
+                     data_format: str = "SH16", extra_data: Any = None) -> Octree:
+    """Build the octree holding the given leaves, of any mix of depths.
+
+    A leaf of cell depth ``c`` (as :attr:`Octree.depth_limit`: the root's cells have depth 0)
+    sits at integer ``coords`` in ``[0, 2^(c+1))^3`` of the ``2^(c+1)`` grid over the box. Their
+    ancestors become nodes; every other cell of those nodes is an empty leaf (zero data), so
+    space that holds no given leaf stays as coarse as it can. Nodes are numbered breadth-first.
+
+    Args:
+        depths: int ``[M]`` cell depths (0 .. ``MAX_DEPTH``). coords: int ``[M, 3]``.
+        values: float ``[M, D]`` the leaves' data (colour coefficients then σ >= 0).
+        center, radius, data_format, extra_data: as :func:`tree_from_grid`.
+
+    Returns:
+        An :class:`Octree` with float32 data and ``depth_limit = max(depths)``.
+
+    Raises:
+        ValueError: bad shapes, coordinates outside their grid, a leaf inside another or
+            given twice, non-finite values or σ < 0.
+    """
+    from .limits import MAX_DEPTH
+
+    dep = np.asarray(depths, dtype=np.int64).reshape(-1)
+    xyz = np.asarray(coords, dtype=np.int64).reshape(-1, 3)
+    vals = np.asarray(values, dtype=np.float32)
+    m = dep.shape[0]
+    if xyz.shape[0] != m or vals.ndim != 2 or vals.shape[0] != m or m == 0:
+        raise ValueError(f"need depths [M], coords [M, 3], values [M, D] with M >= 1, got "
+                         f"{list(dep.shape)}, {list(xyz.shape)}, {list(vals.shape)}")
+    if dep.min() < 0 or dep.max() > MAX_DEPTH:
+        raise ValueError(f"leaf depths must be in [0, {MAX_DEPTH}]")
+    if (xyz < 0).any() or (xyz >= (np.int64(2) << dep)[:, None]).any():
+        raise ValueError("leaf coordinates must lie in [0, 2^(depth + 1)) per axis")
+    if not np.isfinite(vals).all() or (vals[:, -1] < 0).any():
+        raise ValueError("leaf values must be finite with sigma (the last channel) >= 0")
+    extra = _check_format(data_format, int(vals.shape[1]), extra_data)
+    d_max = int(dep.max())
+    keys = []                                   # sorted node keys per node depth 0..d_max
+    for t in range(d_max + 1):
+        sel = dep >= t
+        q = xyz[sel] >> (dep[sel] - t + 1)[:, None]
+        keys.append(np.unique(_node_keys(t, q)))
+    starts = np.concatenate([[0], np.cumsum([len(k) for k in keys])]).astype(np.int64)
+    n_nodes = int(starts[-1])
+    child = np.zeros((n_nodes, 8), dtype=np.int32)
+    for t in range(1, d_max + 1):
+        k = keys[t]
+        q = np.stack([k >> (2 * t), (k >> t) & ((1 << t) - 1), k & ((1 << t) - 1)], -1)
+        parent = starts[t - 1] + np.searchsorted(keys[t - 1], _node_keys(t - 1, q >> 1))
+        slot = ((q[:, 0] & 1) << 2) | ((q[:, 1] & 1) << 1) | (q[:, 2] & 1)
+        child[parent, slot] = (starts[t] + np.arange(len(k)) - parent).astype(np.int32)
+    node = _leaf_nodes(dep, xyz, keys, starts)
+    slot = ((xyz[:, 0] & 1) << 2) | ((xyz[:, 1] & 1) << 1) | (xyz[:, 2] & 1)
+    flat = node * 8 + slot
+    if (child.reshape(-1)[flat] != 0).any():
+        raise ValueError("a leaf lies inside another leaf (a cell is both a leaf and a node)")
+    if np.unique(flat).size != m:
+        raise ValueError("a leaf is given twice")
+    data = np.zeros((n_nodes * 8, vals.shape[1]), dtype=np.float32)
+    data[flat] = vals
+    offset, invradius = box_params(center, radius)
+    return Octree(child=child.reshape(n_nodes, 2, 2, 2),
+                  data=data.reshape(n_nodes, 2, 2, 2, vals.shape[1]), offset=offset,
+                  invradius=invradius, data_format=data_format, extra_data=extra,
+                  depth_limit=d_max)
+
+
+def _leaf_nodes(dep: np.ndarray, xyz: np.ndarray, keys: list, starts: np.ndarray
+                ) -> np.ndarray:
+    """Index ``[M]`` of the node holding each leaf (the node at the leaf's own depth)."""
+    node = np.empty(dep.shape[0], dtype=np.int64)
+    for c in np.unique(dep):
+        i = np.flatnonzero(dep == c)
+        node[i] = starts[c] + np.searchsorted(keys[c], _node_keys(int(c), xyz[i] >> 1))
+    return node
 
 
 def _default_lobes(b: int, rng: np.random.Generator) -> np.ndarray:
