@@ -27,7 +27,7 @@ import torch
 from torch import nn
 
 from .config import ModelConfig
-from .sampling import pdf_samples, ray_aabb, stratified_samples
+from .sampling import pdf_samples, ray_aabb
 
 __all__ = ["FarField", "contract", "far_levels_for", "resolve_far_levels", "render_far", "composite_far",
            "MIN_LEVELS", "MAX_LEVELS"]
@@ -128,9 +128,15 @@ class FarField(nn.Module):
 
 def _disparity_samples(t0: torch.Tensor, t1: torch.Tensor, n: int, perturb: bool,
                        generator: torch.Generator | None) -> torch.Tensor:
-    """``[R, n]`` increasing distances uniform in ``1/t`` between ``t0`` and ``t1`` (> 0)."""
-    s = stratified_samples(1.0 / t0, 1.0 / t1, n, perturb, generator)
-    return torch.sort(1.0 / s, -1).values
+    """``[R, n]`` increasing distances, one in each of ``n`` bins of equal width in ``1/t``
+    between ``t0`` and ``t1`` (> 0): at its middle, or uniform within it (``perturb``)."""
+    u = torch.linspace(0.0, 1.0, n + 1, device=t0.device)
+    s = (1.0 / t0)[:, None] * (1.0 - u) + (1.0 / t1)[:, None] * u            # [R, n + 1]
+    if perturb:
+        j = torch.rand((t0.shape[0], n), generator=generator, device=t0.device)
+    else:
+        j = torch.full((t0.shape[0], n), 0.5, device=t0.device)
+    return 1.0 / (s[:, :-1] + (s[:, 1:] - s[:, :-1]) * j)
 
 
 def render_far(far: FarField, origins: torch.Tensor, dirs: torch.Tensor, near: float,

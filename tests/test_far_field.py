@@ -1,0 +1,243 @@
+"""The far field of unbounded captures (issue 50): the NeRF-SH's second network beyond the
+scene box, its samples joined with the box's in ray order, and the octree's shells."""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from plenoctree.convert.field import AnalyticField
+from plenoctree.convert.shells import ShellOptions, add_shells, shell_levels
+from plenoctree.datasets.cameras import Cameras
+from plenoctree.nerf.checkpoint import load_nerf, save_checkpoint
+from plenoctree.nerf.config import ModelConfig, TrainConfig
+from plenoctree.nerf.far import (MAX_LEVELS, MIN_LEVELS, FarField, composite_far, contract,
+                                 far_levels_for, render_far, resolve_far_levels)
+from plenoctree.nerf.model import NeRFModel
+from plenoctree.nerf.renderer import RayBatch, RenderMode, render_rays_occupancy
+from plenoctree.nerf.volrend import render_weights
+from plenoctree.octree.build import tree_from_grid, tree_from_leaves
+from plenoctree.render import RenderOptions, render_rays
+
+TINY = ModelConfig(grid_levels=4, grid_log2_table=12, grid_max_res=64, net_width=16)
+BOX = np.array([[-1.0] * 3, [1.0] * 3], np.float32)
+
+
+def test_contraction_is_the_identity_in_the_box_and_maps_everything_into_2():
+    u = torch.tensor([[0.3, -0.9, 1.0], [1.0 + 1e-6, 0.0, 0.0], [4.0, 1.0, -2.0],
+                      [-1e9, 3.0, 0.0]])
+    c = contract(u)
+    assert torch.equal(c[0], u[0])
+    assert torch.allclose(c[1], u[1], atol=1e-5)                  # continuous at the surface
+    assert torch.allclose(c[2], torch.tensor([1.75, 0.4375, -0.875]))   # (2 - 1/4) u / 4
+    assert c.abs().max() <= 2.0 and c[3, 0] == pytest.approx(-2.0)
+    r = torch.linspace(1.0, 100.0, 50)[:, None] * torch.tensor([[1.0, 0.2, 0.1]])
+    assert (contract(r)[1:, 0] > contract(r)[:-1, 0]).all()       # monotone outwards
+
+
+def test_far_levels_reach_the_far_bound_within_their_limits():
+    cams = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    assert far_levels_for(BOX, cams, 15.0) == 4                    # 1 + 15 = 16 = 2^4
+    assert far_levels_for(BOX, cams, 16.5) == 5
+    assert far_levels_for(BOX, cams, 0.5) == MIN_LEVELS
+    assert far_levels_for(BOX, cams, 1e6) == MAX_LEVELS
+    assert far_levels_for(BOX * 4, cams, 60.0) == 4                # in box radii: 0.25 + 15
+
+
+def _data(unbounded: bool):
+    c2w = np.tile(np.eye(4, dtype=np.float32), (2, 1, 1))
+    c2w[1, :3, 3] = [0.5, 0.0, 0.0]
+    return types.SimpleNamespace(unbounded=unbounded, scene_bbox=BOX, far=15.0,
+                                 cameras=types.SimpleNamespace(c2w=c2w))
+
+
+def test_far_field_is_automatic_for_captures_of_a_place_only():
+    cfg = TrainConfig()
+    assert cfg.far_levels == -1
+    assert resolve_far_levels(cfg, _data(True)) == 4
+    assert resolve_far_levels(cfg, _data(False)) == 0               # lego, flower, fox
+    assert resolve_far_levels(dataclasses.replace(cfg, far_levels=0), _data(True)) == 0
+    assert resolve_far_levels(dataclasses.replace(cfg, far_levels=6), _data(False)) == 6
+    hier = dataclasses.replace(cfg, sampler="hierarchical")
+    assert resolve_far_levels(hier, _data(True)) == 0
+
+
+def _sequential(sig, rgb, delta):
+    """Reference: one ray's samples composited one after the other: ``(rgb, acc)``."""
+    w, _ = render_weights(sig[None], delta[None])
+    return (w[0, :, None] * rgb).sum(0), w.sum()
+
+
+@pytest.mark.parametrize("origin", [[0.2, 0.1, -0.3], [3.0, 0.4, 0.2]])
+def test_far_samples_join_the_box_in_ray_order(origin):
+    """``composite_far`` equals compositing [far before the box, the box, far behind it] as
+    one sequence, for a camera inside and one outside the box."""
+    torch.manual_seed(0)
+    far = FarField(TINY, BOX, 4)
+    o = torch.tensor([origin])
+    d = torch.nn.functional.normalize(torch.tensor([[-1.0, 0.05, 0.02]]), dim=-1)
+    f = render_far(far, o, d, 0.05, torch.as_tensor(BOX), 16, 8, False)
+    # the box's own samples: 5 segments of known density and colour
+    s_in = torch.tensor([0.5, 3.0, 0.0, 1.0, 2.0])
+    c_in = torch.rand(5, 3)
+    d_in = torch.full((5,), 0.1)
+    w_in, _ = render_weights(s_in[None], d_in[None])
+    rgb_in = (w_in[0, :, None] * c_in).sum(0)[None]
+    acc_in = w_in.sum()[None]
+    j = composite_far(f, rgb_in, acc_in, torch.zeros(1))
+    keep = f["sigma"][0] > 0
+    before = keep & ~f["after"][0]
+    after = keep & f["after"][0]
+    sig = torch.cat([f["sigma"][0][before], s_in, f["sigma"][0][after]])
+    rgb = torch.cat([f["rgb"][0][before], c_in, f["rgb"][0][after]])
+    delta = torch.cat([f["delta"][0][before], d_in, f["delta"][0][after]])
+    ref_rgb, ref_acc = _sequential(sig.detach(), rgb.detach(), delta)
+    assert torch.allclose(j["rgb"][0].detach(), ref_rgb, atol=1e-5)
+    assert float(j["acc"][0].detach()) == pytest.approx(float(ref_acc), abs=1e-5)
+    assert bool(before.any()) == (origin[0] > 1.0)        # outside: far samples come first
+
+
+def test_far_samples_cover_the_outer_cube_in_inverse_distance():
+    far = FarField(TINY, BOX, 4)
+    o = torch.zeros(3, 3)
+    d = torch.eye(3)
+    f = render_far(far, o, d, 0.1, torch.as_tensor(BOX), 32, 0, False)
+    t = f["t"]
+    assert (t[:, 1:] > t[:, :-1]).all()
+    assert torch.allclose(f["delta"].sum(1), torch.full((3,), 16.0 - 0.1))
+    assert (f["sigma"][t < 1.0] == 0).all() and (f["sigma"][t > 1.0] > 0).all()
+    inv = 1.0 / t                                   # bin middles, equal steps in 1 / t
+    steps = inv[:, :-1] - inv[:, 1:]
+    assert torch.allclose(steps, torch.full_like(steps, (1 / 0.1 - 1 / 16.0) / 32), rtol=1e-3)
+
+
+def test_model_queries_the_far_field_outside_the_box_and_saves_it(tmp_path):
+    torch.manual_seed(0)
+    model = NeRFModel(TINY, BOX, occ_res=8, far_levels=5)
+    p = torch.tensor([[0.1, 0.2, 0.3], [3.0, 0.0, 0.0], [0.0, -20.0, 1.0]])
+    sigma, coeffs = model.query(p)
+    s_in, c_in = model.fine(p[:1])
+    s_far, c_far = model.far(p[1:])
+    assert torch.allclose(sigma, torch.cat([s_in, s_far]))
+    assert torch.allclose(coeffs, torch.cat([c_in, c_far]))
+    assert torch.allclose(model.density(p), sigma, rtol=1e-5)
+    cfg = dataclasses.replace(TrainConfig(model=TINY, occ_res=8), far_levels=5)
+    save_checkpoint(tmp_path / "checkpoint.pt", cfg, model)
+    back = load_nerf(tmp_path / "checkpoint.pt")
+    assert back.far_levels == 5
+    assert torch.allclose(back.query(p)[0], sigma)
+
+
+def test_training_rays_reach_the_far_field_with_gradients():
+    torch.manual_seed(0)
+    model = NeRFModel(TINY, BOX, occ_res=8, far_levels=4)
+    cfg = TrainConfig(model=TINY, occ_res=8, render_step=0.05, far_samples=8, far_fine=8)
+    o = torch.zeros(4, 3)
+    d = torch.nn.functional.normalize(torch.randn(4, 3), dim=-1)
+    rays = RayBatch(o, d, 0.05, 30.0, torch.zeros(3))
+    out = render_rays_occupancy(model, rays, cfg, RenderMode(train=True,
+                                                             generator=torch.Generator()))
+    out["rgb"].sum().backward()
+    assert model.far.net.encoder.table.grad.abs().sum() > 0
+    assert model.fine.encoder.table.grad.abs().sum() > 0
+    assert out["n_samples"] > 4 * 24
+    assert (out["acc"] > 0).all() and (out["acc"] <= 1).all()
+
+
+# ------------------------------------------------------------------ octree
+
+
+def test_tree_from_leaves_equals_tree_from_grid():
+    rng = np.random.default_rng(0)
+    mask = rng.random((8, 8, 8)) < 0.2
+    vals = rng.random((8, 8, 8, 4)).astype(np.float32)
+    a = tree_from_grid(vals, mask, data_format="RGBA")
+    ijk = np.argwhere(mask)
+    b = tree_from_leaves(np.full(len(ijk), 2), ijk, vals[mask], data_format="RGBA")
+    b.check_integrity()
+    pts = rng.uniform(-1, 1, (4000, 3))
+    assert np.array_equal(a.query(pts), b.query(pts))
+    assert (a.n_nodes, a.n_leaves) == (b.n_nodes, b.n_leaves)
+
+
+def test_tree_from_leaves_mixes_depths_and_refuses_overlaps():
+    t = tree_from_leaves([0, 3, 3], [[1, 1, 1], [0, 0, 0], [5, 2, 1]],
+                         np.arange(12, dtype=np.float32).reshape(3, 4), data_format="RGBA")
+    t.check_integrity()
+    assert t.depth_limit == 3
+    q = t.query(np.array([[0.5, 0.5, 0.5], [-0.95, -0.95, -0.95], [-0.7, -0.7, -0.7]]))
+    assert q[:, 0].tolist() == [0.0, 4.0, 0.0]
+    with pytest.raises(ValueError, match="inside another"):
+        tree_from_leaves([0, 1], [[0, 0, 0], [0, 0, 0]], np.ones((2, 4)), data_format="RGBA")
+    with pytest.raises(ValueError, match="twice"):
+        tree_from_leaves([1, 1], [[0, 0, 0], [0, 0, 0]], np.ones((2, 4)), data_format="RGBA")
+    with pytest.raises(ValueError, match=r"\[0, 2\^"):
+        tree_from_leaves([0], [[2, 0, 0]], np.ones((1, 4)), data_format="RGBA")
+
+
+def _room_field():
+    """A ball in the box and the walls of a room 3 box radii away (shell 2), SH degree 0."""
+    def density(x):
+        ball = np.linalg.norm(x - [0.0, 0.0, -0.3], axis=-1) < 0.3
+        r = np.abs(x).max(-1)
+        return np.where(ball, 40.0, np.where((r > 3.0) & (r < 3.4), 30.0, 0.0))
+
+    def coeffs(x):
+        r = np.abs(x).max(-1, keepdims=True)
+        c = np.where(r > 2.0, [2.0, -2.0, -2.0], [-2.0, 2.0, -2.0])     # red walls, green ball
+        return (c / 0.28209479177387814).astype(np.float32)
+
+    return AnalyticField(density, coeffs, sh_degree=0, scene_bbox=BOX)
+
+
+def _inward_cameras(n: int = 8, size: int = 24) -> Cameras:
+    c2w = []
+    for a in np.linspace(0, 2 * np.pi, n, endpoint=False):
+        pos = np.array([0.8 * np.cos(a), 0.8 * np.sin(a), 0.2])
+        fwd = -pos / np.linalg.norm(pos)
+        right = np.cross(fwd, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        up = np.cross(right, fwd)
+        m = np.eye(4)
+        m[:3, :3] = np.stack([right, up, -fwd], 1)
+        m[:3, 3] = pos
+        c2w.append(m)
+    return Cameras(np.array(c2w, np.float32), size * 0.6, size * 0.6, size / 2, size / 2,
+                   size, size)
+
+
+def test_shells_hold_the_room_and_leave_the_box_as_it_was():
+    field = _room_field()
+    cams = _inward_cameras()
+    n = 32
+    ax = (np.arange(n) + 0.5) / n * 2 - 1
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    sig, co = field.query(pts)
+    mask = (sig > 0).reshape(n, n, n)
+    vals = np.concatenate([co, sig[:, None]], 1).reshape(n, n, n, 4)
+    box = tree_from_grid(vals, mask, 0.0, 1.0, "SH1")
+    levels = shell_levels(box.radius, np.full(3, 4.0), box.max_depth)
+    assert levels == 2
+    grown, info = add_shells(box, field, cams, levels, ShellOptions(grid=32))
+    grown.check_integrity()
+    assert info["far_levels"] == 2 and info["shell_leaves"][0] == 0 < info["shell_leaves"][1]
+    assert np.allclose(grown.radius, 4.0) and grown.max_depth == box.max_depth + 2
+    rng = np.random.default_rng(1)
+    inside = rng.uniform(-0.99, 0.99, (5000, 3))
+    assert np.array_equal(grown.query(inside), box.query(inside))
+    o, d = cams.rays(0)
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+    black = RenderOptions(background=(0.0, 0.0, 0.0))
+    first = render_rays(box, o, d, black)
+    before, alpha = first.rgb.numpy(), first.alpha.numpy()
+    after = render_rays(grown, o, d, black).rgb.numpy()
+    wall = alpha < 1e-3                                 # the box alone: black behind the ball
+    assert 0.3 < wall.mean() < 0.95
+    red = after[wall]
+    assert (red[:, 0] > 0.8).mean() > 0.95 and (red[:, 1] < 0.2).all()
+    ball = alpha > 0.999                                # the ball, drawn as before
+    assert ball.any() and np.allclose(after[ball], before[ball], atol=1e-3)
