@@ -241,3 +241,38 @@ def test_shells_hold_the_room_and_leave_the_box_as_it_was():
     assert (red[:, 0] > 0.8).mean() > 0.95 and (red[:, 1] < 0.2).all()
     ball = alpha > 0.999                                # the ball, drawn as before
     assert ball.any() and np.allclose(after[ball], before[ball], atol=1e-3)
+
+
+def test_a_360_llff_folder_trains_a_far_field_and_extracts_shells(tmp_path, capsys):
+    """The chain on a capture of a place: ``train`` adds the far field by itself (config.json
+    records its shells), ``extract`` grows the tree with them, the tree loads and renders."""
+    import json
+
+    from plenoctree.cli import main
+    from plenoctree.datasets import load_blender
+    from plenoctree.datasets.llff import write_llff
+    from plenoctree.datasets.procedural import write_procedural_dataset
+    from plenoctree.octree import load_tree
+
+    bl = load_blender(write_procedural_dataset(tmp_path / "bl", 8, 1, 1, width=16, height=12,
+                                               n_samples=32), "train")
+    c = bl.cameras
+    root = write_llff(tmp_path / "llff", c.c2w, bl.images, c.fx,
+                      np.tile([2.0, 40.0], (len(c), 1)))
+    run = tmp_path / "run"
+    assert main(["train", "--data", str(root), "--out", str(run), "--steps", "3",
+                 "--val-views", "1", "--no-progress"]) == 0
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["far_levels"] >= 4
+    tree_file = tmp_path / "tree.npz"
+    assert main(["extract", str(run), "--out", str(tree_file), "--grid", "16", "--far-grid",
+                 "8", "--samples", "1", "--bbox", "fixed", "--masking", "sigma",
+                 "--mask-alpha-thresh", "1e-12", "--no-eval", "--no-progress"]) == 0
+    info = json.loads((tmp_path / "tree.extract.json").read_text())
+    tree = load_tree(tree_file)
+    inner = np.asarray(info["inner_box"]["radius"])
+    assert np.allclose(tree.radius, inner * 2 ** info["far_levels"])
+    assert len(info["shell_leaves"]) == info["far_levels"] and sum(info["shell_leaves"]) > 0
+    o, d = c.rays(0)
+    out = render_rays(tree, o.reshape(-1, 3), d.reshape(-1, 3))
+    assert np.isfinite(out.rgb.numpy()).all()
