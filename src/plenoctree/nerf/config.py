@@ -104,7 +104,8 @@ class TrainConfig:
     photo_background: str = "auto"
     """Photos without alpha: "random" trains them on random background colours too, so every
     ray must end opaque inside the scene box (nothing in a photo is see-through to a white
-    backdrop; unbounded content settles on the box's far walls); "fixed" composites them with
+    backdrop; unbounded content settles on the box's far walls, or with a far field on its outer
+    cube); "fixed" composites them with
     ``background``; "auto": random for real photos (LLFF, COLMAP, nerfstudio formats), fixed
     for Blender and NSVF (renders with a white backdrop baked in)."""
     sampler: str = "occupancy"
