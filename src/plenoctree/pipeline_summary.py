@@ -12,8 +12,9 @@ __all__ = ["pipeline_summary", "summary_markdown", "finetune_outcome"]
 
 
 def finetune_outcome(tree_ft: Path) -> dict:
-    """The fine-tuner's ``end`` record (validation before / best, best epoch, why it stopped,
-    back-offs) from ``<tree_ft stem>.log.jsonl``; ``{}`` when absent."""
+    """The fine-tuner's ``end`` record (validation before / best, on which views, the training
+    views held out for it, best epoch, why it stopped, back-offs) from
+    ``<tree_ft stem>.log.jsonl``; ``{}`` when absent."""
     path = tree_ft.with_name(tree_ft.stem + ".log.jsonl")
     try:
         lines = path.read_text().splitlines()
@@ -25,8 +26,8 @@ def finetune_outcome(tree_ft: Path) -> dict:
         except ValueError:
             continue
         if rec.get("event") == "end":
-            keys = ("val_psnr_before", "val_psnr_best", "best_epoch", "epochs_run",
-                    "stop_reason", "backoffs", "wall_seconds")
+            keys = ("val_psnr_before", "val_psnr_best", "validation", "held_out", "best_epoch",
+                    "epochs_run", "stop_reason", "backoffs", "wall_seconds")
             return {k: rec.get(k) for k in keys}
     return {}
 
@@ -92,6 +93,16 @@ def _finetune_note(evals: dict, ft: dict) -> dict:
     return note
 
 
+def _validation_views(ft: dict) -> str:
+    """What fine-tuning validated on, in words ("" when its log did not say)."""
+    held = ft.get("held_out") or []
+    if held:
+        return f"{len(held)} training views held out of the updates ({', '.join(held)})"
+    return {"val split": "the dataset's val split",
+            "training views (in training)": "training views that stay in training"}.get(
+        ft.get("validation") or "", ft.get("validation") or "")
+
+
 def summary_markdown(summary: dict) -> str:
     """One markdown table: PSNR/SSIM, FPS, MB and time per stage, plus the speed-up."""
     def f(v, fmt):
@@ -113,7 +124,9 @@ def summary_markdown(summary: dict) -> str:
         gain = ft.get("test_gain_db")
         text = f"Fine-tuning: {f(gain, '+.2f')} dB on the test views"
         if ft.get("val_psnr_before") is not None:
-            text += (f" (validation {f(ft.get('val_psnr_before'), '.2f')} → "
+            on = _validation_views(ft)
+            text += (f" (validation{f' on {on}:' if on else ''} "
+                     f"{f(ft.get('val_psnr_before'), '.2f')} → "
                      f"{f(ft.get('val_psnr_best'), '.2f')} dB, best epoch "
                      f"{ft.get('best_epoch')} of {ft.get('epochs_run')}, "
                      f"{ft.get('backoffs') or 0} learning-rate back-offs; "

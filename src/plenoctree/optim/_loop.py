@@ -184,6 +184,7 @@ class LoopState:
     rng_state: dict | None = None
     lr_scale: float = 1.0        # product of the back-off factors applied so far
     backoffs: int = 0            # back-offs taken (validation drops and divergences)
+    drops: int = 0               # validations in a row below the best since the last reset
 
     def to_json(self) -> str:
         d = dict(self.__dict__)
@@ -252,11 +253,12 @@ class LoopOptions:
 
     ``epochs`` passes over every training pixel, ``batch_rays`` rays a step drawn as
     ``ray_tile × ray_tile`` pixel tiles; validation every ``val_every`` epochs (0: never);
-    ``stop_on_decrease``: a validation drop backs off (at most ``backoffs`` times, learning
-    rates × ``backoff_factor``), then stops; ``lr_decay``: :func:`lr_factor`; ``seed``: the
-    ray order. ``checkpoint`` (None: none) is written at a validation when
-    ``checkpoint_every_s`` seconds passed since the last one, and on Ctrl-C; ``resume``
-    continues from it. ``show_progress``: the progress bar (None: on a terminal).
+    ``stop_on_decrease``: a validation drop (``patience`` validations in a row below the best)
+    backs off (at most ``backoffs`` times, learning rates × ``backoff_factor``), then stops;
+    ``lr_decay``: :func:`lr_factor`; ``seed``: the ray order. ``checkpoint`` (None: none) is
+    written at a validation when ``checkpoint_every_s`` seconds passed since the last one, and
+    on Ctrl-C; ``resume`` continues from it. ``show_progress``: the progress bar (None: on a
+    terminal).
     """
 
     epochs: int
@@ -267,6 +269,7 @@ class LoopOptions:
     seed: int = 0
     backoffs: int = 0
     backoff_factor: float = 0.5
+    patience: int = 1
     lr_decay: float = 1.0
     checkpoint: Path | None = None
     resume: bool = False
@@ -293,8 +296,11 @@ class FineTuneLoop:
     ``lr_decay`` over the epochs, times the back-off scale.
 
     With ``val`` the PSNR is measured before training and every ``val_every`` epochs
-    (:meth:`validate`); the best values are kept. On a drop, with ``stop_on_decrease``: while
-    fewer than ``backoffs`` back-offs were taken, the best values are restored and the learning
+    (:meth:`validate`); the best values are kept, the initial ones (epoch 0) being the first
+    candidate, so the values returned never validate below the initial ones. A validation no
+    better than the best is a drop once ``patience`` of them came in a row (training goes on
+    from the current values until then); on a drop, with ``stop_on_decrease``: while fewer
+    than ``backoffs`` back-offs were taken, the best values are restored and the learning
     rates multiplied by ``backoff_factor`` (:meth:`back_off`, event ``backoff``); after that the
     loop stops. Without ``val`` the values after the last epoch are returned. A divergence
     (non-finite values or a blown-up training error) restores the best values and backs off
@@ -477,16 +483,26 @@ class FineTuneLoop:
         p = self.validate(epoch)
         self.events({"event": "val", "epoch": epoch, "val_psnr": p})
         if p > st.best_psnr:
-            st.best_psnr = p
+            st.best_psnr, st.drops = p, 0
             self._store_best(epoch)
         elif opts.stop_on_decrease:
-            why = (f"validation PSNR fell from {st.best_psnr:.3f} dB "
-                   f"(epoch {st.best_epoch}) to {p:.3f} dB (epoch {epoch})")
-            if not self.back_off(opts.backoff_factor, why):
-                st.stop_reason = why + (f" after {st.backoffs} learning-rate back-offs"
-                                        if opts.backoffs else "")
+            st.drops += 1
+            if st.drops >= opts.patience:
+                self._drop(p, epoch)
         if not st.stop_reason:
             self._save_if_due()
+
+    def _drop(self, p: float, epoch: int) -> None:
+        """Epoch ``epoch``'s validation PSNR ``p`` (dB) is the ``patience``-th in a row below
+        the best: back off, or stop when no back-offs are left."""
+        st, opts = self.state, self.opts
+        why = (f"validation PSNR fell from {st.best_psnr:.3f} dB (epoch {st.best_epoch}) to "
+               f"{p:.3f} dB (epoch {epoch})"
+               + (f", below its best {st.drops} validations in a row" if opts.patience > 1
+                  else ""))
+        if not self.back_off(opts.backoff_factor, why):
+            st.stop_reason = why + (f" after {st.backoffs} learning-rate back-offs"
+                                    if opts.backoffs else "")
 
     def back_off(self, factor: float, why: str) -> bool:
         """Restore the best values and lower the learning rates by ``factor``; False when no
@@ -496,6 +512,7 @@ class FineTuneLoop:
             return False
         st.backoffs += 1
         st.lr_scale *= factor
+        st.drops = 0
         self.stepper.set_values(self.best.load())
         self.values_are_best = True
         self.events({"event": "backoff", "epoch": st.epochs_done, "reason": why,

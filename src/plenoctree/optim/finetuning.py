@@ -18,6 +18,12 @@ it rarely is: on lego's refined tree at 400² the median is ~2e-11 (99.999 % of 
 below ε), and Adam steps as SGD with momentum at ``lr / ε`` for nearly every value. The run
 logs which (event ``gradient_scale``).
 
+Validation picks the tree that is saved: the best of the input tree and the validated epochs.
+It runs on the dataset's own val split where there is one; else on every ``holdout_every``-th
+training view (default 8, with at least :data:`HOLDOUT_MIN_VIEWS` views), held out of the
+updates so a drop shows overfitting (on a walk-around capture, validation on views that stayed
+in training rose while the test PSNR fell); never on the test split.
+
 Defaults (Adam 2e-2 for colour and opacity, constant, 3 back-offs) chosen by measurement: on
 the procedural demo scene the paper's SGD 1e7 diverges (validation 34.97 → 27.46 dB, the input
 kept; with back-offs +0.16 dB) while Adam gains +2.1 dB in 6 epochs; on lego's refined tree
@@ -37,14 +43,14 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from .._bounds import check_bounds
 from ..errors import ConfigError, DatasetError
 
-__all__ = ["FinetuneConfig", "FinetuneResult", "finetune"]
+__all__ = ["FinetuneConfig", "FinetuneResult", "finetune", "held_out_views"]
 
 _PRECISIONS = ("auto", "fp16", "fp32")
 
@@ -53,9 +59,17 @@ DEFAULT_EPOCHS = 12
 Adam 2e-2 has 99 % of its validation gain by epoch 12 (32.06 → 33.955 dB; best 33.971 at epoch
 18). A validation drop backs the learning rate off (``backoffs``), then stops."""
 
-#: Training views validated on when the dataset has no val split of its own and no share is
-#: held out (``val_fraction`` 0): a guard against divergence, not a measure of generalisation.
+#: Training views validated on when the dataset has no val split of its own and none are held
+#: out (``holdout_every`` 0, or too few views): a guard against divergence, not a measure of
+#: generalisation.
 TRAIN_VAL_VIEWS = 8
+
+#: Training views a dataset needs before ``holdout_every`` holds any out of the updates; with
+#: fewer, validation is on :data:`TRAIN_VAL_VIEWS` training views that stay in training.
+HOLDOUT_MIN_VIEWS = 8
+
+#: ``holdout_every``'s default: one training view in 8 is held out for validation.
+DEFAULT_HOLDOUT_EVERY = 8
 
 
 def _f(default: Any, help: str, **kw: Any) -> Any:
@@ -70,7 +84,8 @@ class FinetuneConfig:
     data: str | os.PathLike = _f(None, "dataset folder (Blender / NeRF-synthetic format)")
     out: str | os.PathLike = _f(None, "output tree (.npz), written atomically")
     epochs: int = _f(DEFAULT_EPOCHS, "maximum number of epochs (passes over every training "
-                                     "pixel; stops earlier at the first validation drop)")
+                                     "pixel; stops earlier on validation drops: see patience "
+                                     "and backoffs)")
     lr: float | None = _f(None, "learning rate; default 1e7 for sgd (paper units: per-pixel mean "
                                 "loss of one image), 2e-2 for adam, 1e-3 for rmsprop")
     optimizer: str = _f("adam", "adam (default; with its eps 1e-8 against this loss's tiny "
@@ -82,20 +97,34 @@ class FinetuneConfig:
                                       "default: the same number as lr (sgd: σ uses lr)")
     lr_decay: float = _f(1.0, "multiply the learning rate by this over the epochs (exponential "
                               "schedule; 1 = constant)")
-    backoffs: int = _f(3, "on a validation drop (or a divergence) restore the best values and "
-                          "halve the learning rate, up to this many times, before stopping")
+    backoffs: int = _f(3, "on a validation drop (see patience; or a divergence) restore the "
+                          "best values and halve the learning rate, up to this many times, "
+                          "before stopping")
     batch_rays: int = _f(1 << 16, "rays per optimisation step, drawn at random from all images")
     ray_tile: int = _f(4, "draw rays as random k x k pixel tiles (1 = independent pixels); "
                           "every pixel is still used once per epoch, and tiles run 2-3x faster")
     downscale: int = _f(1, "downscale the images by this integer factor (area averaging)")
     val_every: int = _f(2, "validate every this many epochs (0 = never: keep the last values)")
-    val_fraction: float = _f(0.0, "when the dataset has no val split of its own (none, or its "
-                                  "val views are the test views: LLFF, COLMAP, instant-ngp): 0 "
-                                  "validates on training views, which stay in training (a guard "
-                                  "against divergence); a share in (0, 1) holds that share of "
-                                  "the training images out for validation instead")
+    holdout_every: int = _f(
+        DEFAULT_HOLDOUT_EVERY,
+        "when the dataset has no val split of its own (none, or its val views are the test "
+        "views: LLFF, COLMAP, nerfstudio, instant-ngp): hold every this-many-th training view "
+        "out of the updates and validate on those (at least one; only with at least "
+        f"{HOLDOUT_MIN_VIEWS} training views), so the best epoch, which is kept (the input tree "
+        "too), is chosen on views fine-tuning cannot overfit; 0 = off: validate on "
+        f"{TRAIN_VAL_VIEWS} training views that stay in training (a guard against divergence "
+        "only, as with fewer views). A dataset's own val split is used as it is; the test "
+        "split never")
+    val_fraction: float = _f(0.0, "when the dataset has no val split of its own: a share in "
+                                  "(0, 1) holds that share of the training images, drawn at "
+                                  "random (seed), out for validation instead of every "
+                                  "holdout_every-th; 0 = by holdout_every")
     val_views: int = _f(0, "validate on this many evenly spaced views (0 = all of a val split or "
-                           f"of the held-out share, {TRAIN_VAL_VIEWS} training views)")
+                           f"of the held-out views, {TRAIN_VAL_VIEWS} training views)")
+    patience: int = _f(1, "a validation drop counts once the validation PSNR stayed below its "
+                          "best for this many validations in a row (each val_every epochs "
+                          "apart); then back off, or stop when the back-offs are spent "
+                          "(1 = at the first drop)")
     test_views: int = _f(0, "measure test PSNR on this many evenly spaced views (0 = all; "
                             "-1 = skip the test split)")
     continue_on_decrease: bool = _f(False, "keep going when the validation PSNR drops (the best "
@@ -128,7 +157,7 @@ class FinetuneConfig:
             if getattr(self, name) in (None, ""):
                 raise ConfigError(f"finetune: {name} is required")
         for name, lo in (("epochs", 0), ("batch_rays", 1), ("ray_tile", 1), ("downscale", 1),
-                         ("val_every", 0), ("backoffs", 0),
+                         ("val_every", 0), ("backoffs", 0), ("patience", 1),
                          ("val_views", 0), ("test_views", -1)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
@@ -150,6 +179,10 @@ class FinetuneConfig:
                 and math.isfinite(self.checkpoint_minutes) and self.checkpoint_minutes >= 0):
             raise ConfigError(f"finetune: checkpoint_minutes must be a number >= 0, got "
                               f"{self.checkpoint_minutes!r}")
+        h = self.holdout_every
+        if isinstance(h, bool) or not isinstance(h, (int, np.integer)) or h < 0 or h == 1:
+            raise ConfigError(f"finetune: holdout_every must be 0 (off) or an integer >= 2 (1 "
+                              f"would hold every training view out), got {h!r}")
         if not 0.0 <= float(self.val_fraction) < 1.0:
             raise ConfigError(f"finetune: val_fraction must be in [0, 1), got {self.val_fraction!r}")
         if self.precision not in _PRECISIONS:
@@ -162,7 +195,13 @@ class FinetuneConfig:
 
 @dataclass
 class FinetuneResult:
-    """What :func:`finetune` did. PSNRs in dB (``None`` when not measured)."""
+    """What :func:`finetune` did. PSNRs in dB (``None`` when not measured).
+
+    ``val_psnr_before`` / ``val_psnr_best``: the validation PSNR of the input tree and of the
+    tree saved (the best validated, the input included), on the views ``validation`` names:
+    ``"val split"`` (the dataset's own), ``"held-out training views"`` (``held_out``, kept out
+    of the updates), ``"training views (in training)"`` or ``"none"``.
+    """
 
     out: Path
     test_psnr_before: float | None
@@ -181,6 +220,10 @@ class FinetuneResult:
     device: str = "cpu"
     #: Adam / RMSprop: the touched values' RMS gradient against ε (``gradient_scale``).
     gradient_scale: dict | None = None
+    #: What validation ran on (see above).
+    validation: str = "none"
+    #: Names of the training views held out of the updates for validation.
+    held_out: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -267,14 +310,54 @@ def _load_tree(cfg: FinetuneConfig) -> tuple[Any, str]:
     return tree, precision
 
 
-def _view_sets(cfg: FinetuneConfig, tree: Any
-               ) -> tuple[Any, Any, tuple[float, float, float]]:
-    """``(train, val or None, background)``: the training views, and the validation views:
-    the dataset's val split when it has one of its own (``has_split``: not when its val views
-    are its test views, as LLFF's, COLMAP's and instant-ngp's are: the best epoch would be
-    chosen on the photos the test PSNR is measured on), else ``TRAIN_VAL_VIEWS`` (or
-    ``val_views``) evenly spaced training views that stay in training (``val_fraction`` 0),
-    or ``val_fraction`` of the training views held out; none when ``val_every`` is 0."""
+def held_out_views(n_train: int, every: int, fraction: float = 0.0, seed: int = 0
+                   ) -> np.ndarray:
+    """Which of ``n_train`` training views fine-tuning holds out of its updates to validate on:
+    sorted int64 indices ``[K]`` into the training split (empty: none held out).
+
+    ``fraction`` in (0, 1): ``round(fraction · n_train)`` views drawn at random (``seed``),
+    at least 1 and at most ``n_train - 1``. Else every ``every``-th view from ``every // 2``
+    on (views ``4, 12, 20, …`` for ``every = 8``: each held-out view has trained neighbours on
+    both sides, as the test views interleaved with a capture's training views do), at least
+    one (the middle view when ``every > n_train``); none when ``every`` is 0 or there are fewer
+    than :data:`HOLDOUT_MIN_VIEWS` views. ``every`` >= 2, so at least half the views stay in
+    training.
+
+    >>> held_out_views(20, 8).tolist(), held_out_views(7, 8).tolist(), held_out_views(9, 0).tolist()
+    ([4, 12], [], [])
+    """
+    if float(fraction) > 0.0:
+        if n_train < 2:
+            raise DatasetError("a single training image: cannot hold out a validation view "
+                               "(use --val-every 0)")
+        n_hold = min(n_train - 1, max(1, round(float(fraction) * n_train)))
+        return np.sort(np.random.default_rng(seed).permutation(n_train)[:n_hold]).astype(np.int64)
+    if every <= 0 or n_train < HOLDOUT_MIN_VIEWS:
+        return np.zeros(0, np.int64)
+    hold = np.arange(every // 2, n_train, every, dtype=np.int64)
+    return hold if len(hold) else np.array([n_train // 2], np.int64)
+
+
+class _Views(NamedTuple):
+    """What fine-tuning trains and validates on (:func:`_view_sets`)."""
+
+    train: Any                       # ViewSet: the views the updates see
+    val: Any                         # ViewSet or None: the views validated on
+    background: tuple[float, float, float]
+    validation: str                  # "val split", "held-out training views",
+    #                                  "training views (in training)" or "none"
+    held_out: list[str]              # names of the training views kept out of the updates
+
+
+def _view_sets(cfg: FinetuneConfig, tree: Any) -> _Views:
+    """The training views and the validation views: the dataset's val split when it has one of
+    its own (``has_split``: not when its val views are its test views, as LLFF's, COLMAP's and
+    instant-ngp's are: the best epoch would be chosen on the photos the test PSNR is measured
+    on); else the training views :func:`held_out_views` holds out (``holdout_every``,
+    ``val_fraction``), which leave the training set; else (hold-out off, or too few views)
+    ``TRAIN_VAL_VIEWS`` (or ``val_views``) evenly spaced training views that stay in training.
+    No validation when ``val_every`` is 0. ``val_views`` > 0 validates on that many evenly
+    spaced ones of the chosen views. The test split is never read here."""
     from ..datasets import evenly_spaced, take_views
     from ..datasets.dataset import has_split
     from ._loop import ViewSet
@@ -284,24 +367,26 @@ def _view_sets(cfg: FinetuneConfig, tree: Any
     bg = tuple(float(v) for v in (cfg.background if cfg.background is not None
                                   else train.background))
     if cfg.val_every <= 0:
-        return ViewSet.from_dataset(train), None, bg
+        return _Views(ViewSet.from_dataset(train), None, bg, "none", [])
     if has_split(Path(cfg.data), "val"):
         val_data = _load_split(cfg.data, "val", cfg, cfg.val_views)
         val_set = ViewSet.from_dataset(val_data)
         del val_data                   # the view set holds its own copy of the images
-        return ViewSet.from_dataset(train), val_set, bg
-    if float(cfg.val_fraction) == 0.0:
+        return _Views(ViewSet.from_dataset(train), val_set, bg, "val split", [])
+    try:
+        hold = held_out_views(len(train), int(cfg.holdout_every), float(cfg.val_fraction),
+                              int(cfg.seed))
+    except DatasetError as e:
+        raise DatasetError(f"{cfg.data}: no val split and {e}") from None
+    if not len(hold):
         seen = evenly_spaced(len(train), cfg.val_views or TRAIN_VAL_VIEWS)
-        return ViewSet.from_dataset(train), ViewSet.from_dataset(train, seen), bg
-    if len(train) < 2:
-        raise DatasetError(f"{cfg.data}: no val split and a single training image: cannot "
-                           "hold out a validation view (use --val-every 0)")
-    rng = np.random.default_rng(cfg.seed)
-    n_hold = min(len(train) - 1, max(1, round(cfg.val_fraction * len(train))))
-    perm = rng.permutation(len(train))
-    hold, keep = np.sort(perm[:n_hold]), np.sort(perm[n_hold:])
+        return _Views(ViewSet.from_dataset(train), ViewSet.from_dataset(train, seen), bg,
+                      "training views (in training)", [])
+    keep = np.setdiff1d(np.arange(len(train)), hold)
     val_set = ViewSet.from_dataset(train, take_views(hold, cfg.val_views or None, spread=True))
-    return ViewSet.from_dataset(train, keep), val_set, bg
+    held = [train.names[i] if train.names else f"view_{i}" for i in hold]
+    return _Views(ViewSet.from_dataset(train, keep), val_set, bg, "held-out training views",
+                  held)
 
 
 def _make_stepper(cfg: FinetuneConfig, tree: Any, bg: tuple[float, float, float]
@@ -326,9 +411,9 @@ def _make_stepper(cfg: FinetuneConfig, tree: Any, bg: tuple[float, float, float]
     return stepper, {"lr": lr, "sigma_lr": sigma_lr, "h": h}
 
 
-def _describe(cfg: FinetuneConfig, tree: Any, views: tuple, stepper: Any, rates: dict) -> str:
+def _describe(cfg: FinetuneConfig, tree: Any, views: _Views, stepper: Any, rates: dict) -> str:
     """The run's first line: tree, data, views, optimiser, batches, backend and device."""
-    train, val = views
+    train, val = views.train, views.val
     lr, sigma_lr, h = rates["lr"], rates["sigma_lr"], rates["h"]
     return (f"finetune: {Path(cfg.tree)} ({tree.n_leaves} leaves, {tree.data_format}) on {cfg.data} "
             f"[{len(train)} train / {len(val) if val else 0} val views, "
@@ -356,15 +441,19 @@ def _loop_options(cfg: FinetuneConfig, checkpoint: Path) -> Any:
     return LoopOptions(epochs=int(cfg.epochs), batch_rays=int(cfg.batch_rays),
                        ray_tile=int(cfg.ray_tile), val_every=int(cfg.val_every),
                        stop_on_decrease=not cfg.continue_on_decrease, seed=int(cfg.seed),
-                       backoffs=int(cfg.backoffs), lr_decay=float(cfg.lr_decay),
+                       backoffs=int(cfg.backoffs), patience=int(cfg.patience),
+                       lr_decay=float(cfg.lr_decay),
                        checkpoint=checkpoint, resume=bool(cfg.resume),
                        checkpoint_every_s=60.0 * float(cfg.checkpoint_minutes),
                        show_progress=cfg.show_progress)
 
 
-def _fingerprint(cfg: FinetuneConfig, tree: Any, rates: dict, backend: str) -> dict:
-    """What a checkpoint must match to be resumed by this run."""
-    return {"tree": str(Path(cfg.tree).resolve()),
+def _fingerprint(cfg: FinetuneConfig, tree: Any, rates: dict, backend: str,
+                 held_out: list[str]) -> dict:
+    """What a checkpoint must match to be resumed by this run (``held_out``: the names of the
+    training views held out of the updates, recorded only when there are some)."""
+    held = {"held_out": list(held_out)} if held_out else {}
+    return {**held, "tree": str(Path(cfg.tree).resolve()),
             "n_cells": int(np.prod(tree.data.shape[:-1])), "data_dim": int(tree.data_dim), "optimizer": cfg.optimizer, "lr": rates["lr"],
             "sigma_lr": rates["sigma_lr"], "lr_decay": float(cfg.lr_decay),
             "backoffs": int(cfg.backoffs), "batch_rays": int(cfg.batch_rays),
@@ -390,10 +479,12 @@ def _finetune(cfg: FinetuneConfig) -> FinetuneResult:
     """Fine-tune ``cfg.tree`` on ``cfg.data`` and write ``cfg.out``.
 
     Steps: load and check the tree (leaves, finite values, some σ > 0) and the dataset (its box
-    must overlap the tree's); hold out validation views; measure test PSNR; run the
-    :class:`~._loop.FineTuneLoop` (validation every ``val_every`` epochs, stop at the first
-    drop, keep the best); save the best values in the requested precision; measure test PSNR
-    again.
+    must overlap the tree's); choose the validation views (:func:`_view_sets`: held-out
+    training views when the dataset has no val split of its own), logging which were held
+    out; measure test PSNR; run the :class:`~._loop.FineTuneLoop` (validation every
+    ``val_every`` epochs, back-offs and stop on drops, keep the best, the input included); save
+    the best values in the requested precision; measure test PSNR again; log the validation
+    PSNR before and after.
 
     A diverging learning rate (non-finite values, or the training error blowing up) stops the
     loop: the last good values (best validated, or the initial ones) are saved to ``out`` and a
@@ -408,9 +499,12 @@ def _finetune(cfg: FinetuneConfig) -> FinetuneResult:
     files = _Files.of(cfg)
     events = EventLog(files.log, t_start, logging.INFO if cfg.verbose else logging.DEBUG)
     tree, precision = _load_tree(cfg)
-    train_set, val_set, bg = _view_sets(cfg, tree)
-    stepper, rates = _make_stepper(cfg, tree, bg)
-    events.note(_describe(cfg, tree, (train_set, val_set), stepper, rates))
+    views = _view_sets(cfg, tree)
+    stepper, rates = _make_stepper(cfg, tree, views.background)
+    events.note(_describe(cfg, tree, views, stepper, rates))
+    if views.held_out:
+        events.note(f"validation on {len(views.val)} of {len(views.held_out)} training views "
+                    f"held out of the updates: {', '.join(views.held_out)}")
     test_set = _test_views(cfg)
     test_before = render_views_psnr(stepper, test_set) if test_set is not None else None
     if test_before is not None:
@@ -423,8 +517,8 @@ def _finetune(cfg: FinetuneConfig) -> FinetuneResult:
                                          for k, v in asdict(cfg).items()}})
     if not cfg.resume:
         remove_best_files(files.checkpoint)   # an earlier run's: its checkpoint is replaced
-    loop = FineTuneLoop(stepper, train_set, val_set, _loop_options(cfg, files.checkpoint),
-                        _fingerprint(cfg, tree, rates, stepper.backend), events)
+    loop = FineTuneLoop(stepper, views.train, views.val, _loop_options(cfg, files.checkpoint),
+                        _fingerprint(cfg, tree, rates, stepper.backend, views.held_out), events)
     best, state = loop.run()
     scale = _report_gradient_scale(cfg, stepper, events)
     stepper.release()        # the moments and gradient slabs are not needed to save and score
@@ -448,7 +542,11 @@ def _finetune(cfg: FinetuneConfig) -> FinetuneResult:
         wall_seconds=time.perf_counter() - t_start,
         train_rays_per_second=state.train_rays / max(state.train_seconds, 1e-9),
         backend=stepper.backend, history=state.history,
-        device=str(getattr(stepper, "device", "cpu")), gradient_scale=scale)
+        device=str(getattr(stepper, "device", "cpu")), gradient_scale=scale,
+        validation=views.validation, held_out=views.held_out)
+    if result.val_psnr_before is not None:
+        events.note(f"{views.validation} PSNR before {result.val_psnr_before:.3f} dB, after "
+                    f"{result.val_psnr_best:.3f} dB (best epoch {state.best_epoch})")
     events({"event": "end", **result.to_json()})
     from ..plots import plot_finetune_curve      # train/val PSNR per epoch (needs matplotlib)
 
