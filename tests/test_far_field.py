@@ -15,9 +15,9 @@ from plenoctree.convert.shells import ShellOptions, add_shells, shell_levels
 from plenoctree.datasets.cameras import Cameras
 from plenoctree.nerf.checkpoint import load_nerf, save_checkpoint
 from plenoctree.nerf.config import ModelConfig, TrainConfig
-from plenoctree.nerf.far import (MAX_LEVELS, MIN_LEVELS, FarField, composite_far, contract,
+from plenoctree.nerf.far import (CONTRACTED_BOX, MAX_LEVELS, MIN_LEVELS, FarField, composite_far, contract,
                                  far_levels_for, render_far, resolve_far_levels)
-from plenoctree.nerf.model import NeRFModel
+from plenoctree.nerf.model import NeRFModel, RadianceField
 from plenoctree.nerf.renderer import RayBatch, RenderMode, render_rays_occupancy
 from plenoctree.nerf.volrend import render_weights
 from plenoctree.octree.build import tree_from_grid, tree_from_leaves
@@ -77,7 +77,7 @@ def test_far_samples_join_the_box_in_ray_order(origin):
     """``composite_far`` equals compositing [far before the box, the box, far behind it] as
     one sequence, for a camera inside and one outside the box."""
     torch.manual_seed(0)
-    far = FarField(TINY, BOX, 4)
+    far = FarField(RadianceField(TINY, CONTRACTED_BOX), BOX, 4)
     o = torch.tensor([origin])
     d = torch.nn.functional.normalize(torch.tensor([[-1.0, 0.05, 0.02]]), dim=-1)
     f = render_far(far, o, d, 0.05, torch.as_tensor(BOX), 16, 8, False)
@@ -102,7 +102,7 @@ def test_far_samples_join_the_box_in_ray_order(origin):
 
 
 def test_far_samples_cover_the_outer_cube_in_inverse_distance():
-    far = FarField(TINY, BOX, 4)
+    far = FarField(RadianceField(TINY, CONTRACTED_BOX), BOX, 4)
     o = torch.zeros(3, 3)
     d = torch.eye(3)
     f = render_far(far, o, d, 0.1, torch.as_tensor(BOX), 32, 0, False)
@@ -210,10 +210,11 @@ def _inward_cameras(n: int = 8, size: int = 24) -> Cameras:
                    size, size)
 
 
-def test_shells_hold_the_room_and_leave_the_box_as_it_was():
+def room_trees(n: int = 32):
+    """``(box, grown, info, cams)``: the room field's ``n³`` tree of the box, the same grown
+    with 2 shells, and the cameras inside the box that see the walls."""
     field = _room_field()
     cams = _inward_cameras()
-    n = 32
     ax = (np.arange(n) + 0.5) / n * 2 - 1
     pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
     sig, co = field.query(pts)
@@ -223,6 +224,11 @@ def test_shells_hold_the_room_and_leave_the_box_as_it_was():
     levels = shell_levels(box.radius, np.full(3, 4.0), box.max_depth)
     assert levels == 2
     grown, info = add_shells(box, field, cams, levels, ShellOptions(grid=32))
+    return box, grown, info, cams
+
+
+def test_shells_hold_the_room_and_leave_the_box_as_it_was():
+    box, grown, info, cams = room_trees()
     grown.check_integrity()
     assert info["far_levels"] == 2 and info["shell_leaves"][0] == 0 < info["shell_leaves"][1]
     assert np.allclose(grown.radius, 4.0) and grown.max_depth == box.max_depth + 2
@@ -276,3 +282,12 @@ def test_a_360_llff_folder_trains_a_far_field_and_extracts_shells(tmp_path, caps
     o, d = c.rays(0)
     out = render_rays(tree, o.reshape(-1, 3), d.reshape(-1, 3))
     assert np.isfinite(out.rgb.numpy()).all()
+
+
+def test_the_torch_twin_draws_the_shells_as_the_kernel():
+    _, grown, _, cams = room_trees()
+    o, d = cams.rays(3)
+    a = render_rays(grown, o, d, backend="numba")
+    b = render_rays(grown, o, d, backend="torch")
+    assert np.abs(a.rgb.numpy() - b.rgb.numpy()).max() < 1e-4
+    assert np.abs(a.depth.numpy() - b.depth.numpy()).max() < 1e-3

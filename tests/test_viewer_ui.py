@@ -615,3 +615,34 @@ def test_a_large_glb_mesh_loads(bundle):
                            base64.b64encode(glb).decode())
     bundle.evaluate("window.viewer.clearMeshes()")
     assert info == {"vertices": n * n, "triangles": len(faces)}
+
+
+def test_far_field_shells_draw_as_on_the_cpu(browser, tmp_path):
+    """A tree grown with far-field shells (a ball in the box, a room's walls in shell 2): the
+    page equals the CPU renderer from a camera inside the box and one outside it."""
+    from test_far_field import room_trees
+
+    _, grown, _, cams = room_trees()
+    path = tmp_path / "room.npz"
+    save_tree(grown, path)
+    out = export_web(path, tmp_path / "site", overwrite=True, cameras=cams)
+    srv, page = _open_bundle(browser, out)
+    try:
+        fx, fy, cx, cy = cams.intrinsics(0)
+        outside = cams.c2w[0].copy()
+        outside[:3, 3] *= 2.5                               # in shell 2, looking inwards
+        for c2w in (cams.c2w[0], outside):
+            view = {"c2w": np.asarray(c2w, np.float32).reshape(-1).tolist(), "fx": fx,
+                    "fy": fy, "cx": cx, "cy": cy, "width": cams.width, "height": cams.height}
+            gpu = _pixels(page, view)
+            one = Cameras(np.asarray(c2w, np.float32)[None], fx, fy, cx, cy, cams.width,
+                          cams.height)
+            o, d = one.rays(0)
+            cpu = render_rays(grown, o, d, RenderOptions(background=(1.0, 1.0, 1.0)))
+            diff = np.abs(gpu - np.clip(cpu.rgb.numpy(), 0, 1))
+            assert diff.mean() <= 1 / 255 and np.percentile(diff, 99) <= 3 / 255, \
+                (diff.mean() * 255, np.percentile(diff, 99) * 255)
+            assert (cpu.alpha.numpy() > 0.99).mean() > 0.5    # walls (where the views saw)
+        page.close()
+    finally:
+        srv.close()

@@ -26,12 +26,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from .config import ModelConfig
 from .sampling import pdf_samples, ray_aabb
 
-__all__ = ["FarField", "contract", "far_levels_for", "resolve_far_levels", "render_far", "composite_far",
+__all__ = ["FarField", "CONTRACTED_BOX", "contract", "far_levels_for", "resolve_far_levels", "render_far", "composite_far",
            "MIN_LEVELS", "MAX_LEVELS"]
 
+CONTRACTED_BOX = np.array([[-2.0] * 3, [2.0] * 3], np.float32)
+"""The box the far network's encoding covers: contracted box units."""
 MIN_LEVELS = 4
 """Fewest shells of an automatic far field: the outer cube is >= 16x the scene box."""
 MAX_LEVELS = 7
@@ -81,19 +82,18 @@ class FarField(nn.Module):
     contracted box coordinates ``[-2, 2]^3``.
 
     Args:
-        cfg: the network settings (those of the inner network: the same basis and degree).
-        bbox: ``[2, 3]`` scene box (the inner network's). levels: ``L``, shells around it.
+        net: the network (``RadianceField(cfg, CONTRACTED_BOX)``, the inner network's basis
+            and degree). bbox: ``[2, 3]`` scene box (the inner network's). levels: ``L``,
+            shells around it.
     """
 
-    def __init__(self, cfg: ModelConfig, bbox, levels: int):
+    def __init__(self, net: nn.Module, bbox, levels: int):
         super().__init__()
-        from .model import RadianceField
-
         b = np.asarray(bbox, np.float32).reshape(2, 3)
         self.levels = int(levels)
         self.register_buffer("centre", torch.as_tensor(0.5 * (b[0] + b[1])))
         self.register_buffer("radius", torch.as_tensor(0.5 * (b[1] - b[0])))
-        self.net = RadianceField(cfg, np.array([[-2.0] * 3, [2.0] * 3], np.float32))
+        self.net = net
 
     def box_coords(self, points: torch.Tensor) -> torch.Tensor:
         """World ``[N, 3]`` -> box units ``[N, 3]`` (the box is ``|u|∞ <= 1``)."""

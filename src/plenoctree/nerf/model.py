@@ -30,6 +30,7 @@ from ..errors import ConfigError
 from ..sh import eval_sg_bases, eval_sh_bases, num_sh_bases
 from .config import ModelConfig
 from .encoding import HashGridEncoding, HashGridLayout, PositionalEncoding
+from .far import CONTRACTED_BOX, FarField
 from .occupancy import OccupancyGrid
 
 __all__ = ["RadianceField", "NeRFModel", "trunc_exp", "fibonacci_sphere", "sh_colors"]
@@ -310,8 +311,6 @@ class NeRFModel(nn.Module):
 
     def __init__(self, cfg: ModelConfig, scene_bbox, occ_res: int = 0, far_levels: int = 0):
         super().__init__()
-        from .far import FarField
-
         bbox = np.asarray(scene_bbox, dtype=np.float32).reshape(2, 3)
         if not np.all(np.isfinite(bbox)) or not np.all(bbox[1] > bbox[0]):
             raise ConfigError(f"scene_bbox must be finite with max > min, got {bbox.tolist()}")
@@ -320,7 +319,8 @@ class NeRFModel(nn.Module):
         self.fine = RadianceField(cfg, bbox)
         self.coarse = RadianceField(cfg, bbox) if cfg.coarse else None
         self.occupancy = OccupancyGrid(bbox, occ_res) if occ_res else None
-        self.far = FarField(cfg, bbox, far_levels) if far_levels > 0 else None
+        self.far = (FarField(RadianceField(cfg, CONTRACTED_BOX), bbox, far_levels)
+                    if far_levels > 0 else None)
 
     @property
     def basis(self) -> str:
