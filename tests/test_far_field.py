@@ -291,3 +291,20 @@ def test_the_torch_twin_draws_the_shells_as_the_kernel():
     b = render_rays(grown, o, d, backend="torch")
     assert np.abs(a.rgb.numpy() - b.rgb.numpy()).max() < 1e-4
     assert np.abs(a.depth.numpy() - b.depth.numpy()).max() < 1e-3
+
+
+def test_process_made_360_datasets_are_captures_of_a_place(tmp_path):
+    """``process`` writes 360° photos as nerfstudio files with its ``plenoctree_transform``:
+    those train a far field; other nerfstudio / instant-ngp files (fox) do not."""
+    from plenoctree.datasets import load_dataset
+    from plenoctree.datasets.nerfstudio import write_nerfstudio
+
+    c2w = np.tile(np.eye(4), (8, 1, 1))
+    c2w[:, 0, 3] = np.linspace(-1, 1, 8)
+    imgs = np.full((8, 8, 8, 3), 128, np.uint8)
+    k = (8.0, 8.0, 4.0, 4.0)
+    ngp = write_nerfstudio(tmp_path / "ngp", c2w, imgs, k, extra={"aabb_scale": 4})
+    mine = write_nerfstudio(tmp_path / "mine", c2w, imgs, k,
+                            extra={"plenoctree_transform": np.eye(4).tolist()})
+    assert not load_dataset(ngp, "train").unbounded
+    assert load_dataset(mine, "train").unbounded

@@ -30,6 +30,8 @@ Splits: the file's ``train_filenames`` / ``val_filenames`` / ``test_filenames`` 
 present; otherwise every 8th frame sorted by file name (0, 8, ...) is both val and test, the
 others train (``_files.HOLDOUT``: LLFF's rule, as the LLFF and COLMAP formats; nerfstudio's
 own default is a 90 % / 10 % split). ``"all"`` takes every frame.
+A file ``plenoctree process`` wrote (its ``plenoctree_transform`` key: a 360° capture of
+photos) is a capture of a place, ``Dataset.unbounded``: training adds the far field.
 Optional ``mask_path`` images become ``Dataset.masks`` (non-zero = pixel valid). Every
 problem raises :class:`~plenoctree.errors.DatasetError` naming the file.
 """
@@ -290,7 +292,7 @@ def load_nerfstudio(root: str | os.PathLike, split: str = "train", downscale: in
     return Dataset(images=images, cameras=cams, near=near, far=far, scene_bbox=bbox,
                    split=split, root=root, background=tuple(float(v) for v in bg),
                    names=[Path(frames[i]["file_path"]).stem for i in idx], alphas=alphas,
-                   masks=masks)
+                   masks=masks, unbounded="plenoctree_transform" in obj)
 
 
 def _undistort(images: np.ndarray, intr: np.ndarray, dists: list, paths: list[Path]
