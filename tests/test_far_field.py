@@ -4,6 +4,7 @@ scene box, its samples joined with the box's in ray order, and the octree's shel
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 
 import numpy as np
@@ -308,3 +309,14 @@ def test_process_made_360_datasets_are_captures_of_a_place(tmp_path):
                             extra={"plenoctree_transform": np.eye(4).tolist()})
     assert not load_dataset(ngp, "train").unbounded
     assert load_dataset(mine, "train").unbounded
+
+
+def test_validation_rows_keep_a_pass_inside_its_share():
+    from plenoctree.nerf.training import VAL_PIXELS, val_row_stride
+
+    assert val_row_stride(5 * 100 * 100, 100) == 1                     # small views: all rows
+    assert val_row_stride(5 * 480 * 270, 270) == math.ceil(5 * 480 * 270 / VAL_PIXELS)
+    # a pass of 60 s for a 120-s interval is 5x its 10 % share: 5x fewer rows next time
+    assert val_row_stride(5 * 480 * 270, 270, 3, 60.0, 120.0) == 15
+    assert val_row_stride(5 * 480 * 270, 270, 3, 6.0, 120.0) == 3      # inside: unchanged
+    assert val_row_stride(5 * 480 * 270, 270, 30, 600.0, 120.0) == 270 // 8

@@ -187,7 +187,8 @@ class TrainConfig:
     """Steps between rows of the training log."""
     val_every_s: float = 120.0
     """Seconds of training between validations (0 = only by steps / at the end); stretched so
-    that validations take at most a tenth of the time (``training.VAL_SHARE``)."""
+    that validations take at most a tenth of the time (``training.VAL_SHARE``), and large
+    views are validated on every k-th row (``training.VAL_PIXELS``)."""
     val_every_steps: int = 0
     """Steps between validations (0 = only by time / at the end)."""
     val_split: str = "test"

@@ -45,7 +45,7 @@ from .renderer import ImageOptions, RayBatch, RenderMode, autocast, render_rays_
     render_rays_occupancy
 from .runlog import RunLog
 from .training import (VAL_SHARE, RaySource, TrainingError, flush_tiny_moments,
-                       learning_rate, load_val_views, sparsity_loss)
+                       learning_rate, load_val_views, sparsity_loss, val_row_stride)
 
 logger = logging.getLogger(__name__)
 
@@ -213,6 +213,7 @@ class Trainer:
         self.budget_s = cfg.minutes * 60.0
         self.step, self.train_s = 0, 0.0
         self.val_psnr = float("nan")
+        self.val_stride = 0                 # validation rows step (training.val_row_stride)
         self.lr = cfg.lr_init
         self.ready = False
         self._pending: list[tuple] = []     # (step, loss, mse) not yet read back
@@ -512,7 +513,7 @@ class Trainer:
             t0 = time.perf_counter()
             self.validate()
             # large validation images must not eat the time budget: at most VAL_SHARE of
-            # the wall time goes to timed validations
+            # the wall time goes to timed validations (fewer rows, then a later next one)
             gap = (time.perf_counter() - t0) * (1.0 - VAL_SHARE) / VAL_SHARE
             if cfg.val_every_s > 0:
                 st.next_val_s = max(st.next_val_s, self.train_s + gap)
@@ -526,12 +527,21 @@ class Trainer:
 
     def validate(self) -> None:
         """Render and score the validation views (rank 0 alone; the other ranks get its PSNR
-        at the end, :meth:`_finish`); appends a ``val.csv`` row."""
+        at the end, :meth:`_finish`), every ``val_stride``-th row of large views; appends a
+        ``val.csv`` row."""
         self.read_losses()
         if self.val is None or not self.dctx.is_main:
             return
+        pixels, height = self.val.images[..., 0].size, self.val.cameras.height
+        if not self.val_stride:
+            self.val_stride = val_row_stride(pixels, height)
+        rows = slice(None, None, self.val_stride) if self.val_stride > 1 else None
+        t0 = time.perf_counter()
         r = evaluate_views(self.model, self.val, self.cfg, out_dir=self.out / "val",
-                           opts=ImageOptions(amp=self.amp, device=self.device))
+                           with_ssim=rows is None,
+                           opts=ImageOptions(amp=self.amp, device=self.device, rows=rows))
+        self.val_stride = val_row_stride(pixels, height, self.val_stride,
+                                         time.perf_counter() - t0, self.cfg.val_every_s)
         self.val_psnr = r["mean_psnr"]
         self.log.val.append({"step": self.step, "train_s": round(self.train_s, 3),
                              "wall_s": round(self._wall(), 3), "psnr": self.val_psnr,

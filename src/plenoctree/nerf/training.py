@@ -14,12 +14,35 @@ from ..errors import PlenOctreeError
 from .config import TrainConfig
 
 __all__ = ["TrainingError", "learning_rate", "flush_tiny_moments", "sparsity_loss", "RaySource",
-           "load_val_views", "VAL_SHARE"]
+           "load_val_views", "VAL_SHARE", "VAL_PIXELS", "val_row_stride"]
 
 VAL_SHARE = 0.1
 """Timed validations take at most this share of the wall time: after a validation that took
 ``t`` seconds the next waits at least ``t (1 - VAL_SHARE) / VAL_SHARE`` training seconds
 (5 views of 504x378 take ~40 s on 2 cores, so they come every ~6 minutes, not every 2)."""
+
+
+VAL_PIXELS = 1 << 18
+"""Pixels a validation renders at most, its views together: larger views are validated on
+every ``k``-th row (:func:`val_row_stride`; PSNR of a row sample, no SSIM), so that one pass
+stays inside its share of the time however large the views and however many samples a ray
+takes (a 360° walk-around's far field)."""
+
+
+def val_row_stride(n_pixels: int, height: int, stride: int = 0, seconds: float = 0.0,
+                   interval_s: float = 0.0) -> int:
+    """Rows step of the next validation: from the pixel budget (``stride`` 0: none yet), then
+    widened after a pass of ``seconds`` that took more than ``VAL_SHARE`` of the validation
+    interval ``interval_s``; at least 8 rows of each view stay.
+
+    Args:
+        n_pixels: pixels of all validation views at full rows. height: rows of a view.
+    """
+    if stride <= 0:
+        stride = max(1, math.ceil(n_pixels / VAL_PIXELS))
+    elif interval_s > 0 and seconds > VAL_SHARE * interval_s:
+        stride = math.ceil(stride * seconds / (VAL_SHARE * interval_s))
+    return int(max(1, min(stride, height // 8)))
 
 
 class TrainingError(PlenOctreeError, RuntimeError):
