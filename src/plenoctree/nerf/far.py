@@ -20,6 +20,7 @@ far samples before the box, the box, far samples behind it.
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -30,6 +31,8 @@ from .sampling import pdf_samples, ray_aabb
 
 __all__ = ["FarField", "CONTRACTED_BOX", "contract", "far_levels_for", "resolve_far_levels", "render_far", "composite_far",
            "MIN_LEVELS", "MAX_LEVELS"]
+
+logger = logging.getLogger(__name__)
 
 CONTRACTED_BOX = np.array([[-2.0] * 3, [2.0] * 3], np.float32)
 """The box the far network's encoding covers: contracted box units."""
@@ -66,15 +69,19 @@ def far_levels_for(bbox: np.ndarray, origins: np.ndarray, far: float) -> int:
     return int(min(max(need, MIN_LEVELS), MAX_LEVELS))
 
 
-def resolve_far_levels(cfg, data) -> int:
+def resolve_far_levels(cfg, data, announce: bool = False) -> int:
     """``cfg.far_levels`` with "automatic" (-1) decided for dataset ``data``: shells
     (:func:`far_levels_for`) for a capture of a place (``data.unbounded``) trained with the
-    occupancy sampler, else none."""
+    occupancy sampler, else none (``announce``: log the decision)."""
     if cfg.far_levels >= 0:
         return int(cfg.far_levels)
     if cfg.sampler != "occupancy" or not getattr(data, "unbounded", False):
         return 0
-    return far_levels_for(data.scene_bbox, data.cameras.c2w[:, :3, 3], data.far)
+    levels = far_levels_for(data.scene_bbox, data.cameras.c2w[:, :3, 3], data.far)
+    if announce:
+        logger.info(f"far field: {levels} shells around the scene box (to {2 ** levels}x its "
+                    "size): the world beyond it is trained too")
+    return levels
 
 
 class FarField(nn.Module):

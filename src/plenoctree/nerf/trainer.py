@@ -17,7 +17,6 @@ written, so the last good checkpoint stays.
 from __future__ import annotations
 
 import dataclasses
-import logging
 import math
 import os
 import sys
@@ -46,8 +45,6 @@ from .renderer import ImageOptions, RayBatch, RenderMode, autocast, render_rays_
 from .runlog import RunLog
 from .training import (VAL_SHARE, RaySource, TrainingError, flush_tiny_moments,
                        learning_rate, load_val_views, sparsity_loss, val_row_stride)
-
-logger = logging.getLogger(__name__)
 
 # Runtime set-up (threads, malloc, device, AMP) is plenoctree.runtime's, not re-exported here.
 __all__ = ["TrainResult", "Trainer", "TrainerState", "train"]
@@ -233,12 +230,8 @@ class Trainer:
         self.data = load_dataset(cfg.data, "train", format=cfg.format, downscale=cfg.downscale,
                                  background=cfg.background)
         self.val = load_val_views(cfg)
-        levels = resolve_far_levels(cfg, self.data)
-        if levels != cfg.far_levels:
-            cfg = self.cfg = dataclasses.replace(cfg, far_levels=levels)
-            if levels and self.dctx.is_main:
-                logger.info(f"far field: {levels} shells around the scene box (to "
-                            f"{2 ** levels}x its size): the world beyond it is trained too")
+        cfg = self.cfg = dataclasses.replace(cfg, far_levels=resolve_far_levels(
+            cfg, self.data, announce=self.dctx.is_main))
         self._build_model(ck)
         wall_before = self._restore(ck) if ck is not None else self._fresh_state()
         if self.dctx.is_main:
