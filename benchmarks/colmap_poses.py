@@ -21,16 +21,19 @@ the true poses of the frames kept.
 
     python benchmarks/colmap_poses.py --video 100 --size 320 --out benchmarks/results/video.json
 
-``--real flower|fox``: a real capture of the data root's ``real/`` (its README) instead:
-flower's 34 photos (``images_8``, 504x378) against LLFF's published ``poses_bounds.npy``, fox's
-67 video frames (1080x1920) against instant-ngp's ``transforms.json``. Besides the pose errors
+``--real flower|fox|lounge``: a real capture of the data root's ``real/`` (its README)
+instead: flower's 34 photos (``images_8``, 504x378) against LLFF's published
+``poses_bounds.npy``, fox's 67 video frames (1080x1920) against instant-ngp's
+``transforms.json``, lounge's 64 walk-around frames (``images_2``, 960x540) against its
+``poses_bounds.npy`` (mip-NeRF 360's layout). Besides the pose errors
 it reports what ``process`` wrote against the published file: the focal length (pixels of the
 input photos), the principal point's offset from the image centre, and the per-image near /
 far depth bounds (flower: in LLFF's units through the similarity's scale, and their ratio).
 
     python benchmarks/colmap_poses.py --real flower --out benchmarks/results/colmap_flower.json
 
-``--matcher``, ``--max-image-size``, ``--guided``, ``--overlap`` set ``process``'s options
+``--matcher``, ``--max-image-size``, ``--guided``, ``--overlap``, ``--retry`` set
+``process``'s options
 (default: its own). The lego scene is ``nerf_synthetic/lego`` of the data root
 (``--data-root``); the photos and ``process``'s outputs go under ``--work`` (default
 ``benchmarks/results/cache/colmap_poses``, kept: a second run reuses the photos).
@@ -121,11 +124,11 @@ def pose_errors(est: np.ndarray, ref: np.ndarray) -> dict:
             "outliers": int((rerr > OUTLIER_DEG).sum())}
 
 
-REAL = {"flower": "images_8", "fox": "images"}
+REAL = {"flower": "images_8", "fox": "images", "lounge": "images_2"}
 """The real captures of ``real/`` and their photo folders."""
 
 
-def real_reference(root: Path) -> tuple[dict[str, np.ndarray], dict]:
+def real_reference(root: Path, folder: str | None = None) -> tuple[dict[str, np.ndarray], dict]:
     """The published poses of a real capture ``root``: photo name -> OpenGL c2w, and
     ``{"focal": pixels of the photos, "cx", "cy": principal point offset from the centre,
     "bounds": name -> (near, far)}`` (bounds: LLFF files only)."""
@@ -135,8 +138,9 @@ def real_reference(root: Path) -> tuple[dict[str, np.ndarray], dict]:
 
     if (root / "poses_bounds.npy").is_file():
         c2w, bounds, hwf = read_poses_bounds(root / "poses_bounds.npy")
-        names = sorted(p.name for p in (root / REAL["flower"]).iterdir())
-        w = Image.open(root / REAL["flower"] / names[0]).size[0]
+        photos = root / (folder or REAL[root.name])
+        names = sorted(p.name for p in photos.iterdir())      # LLFF's order (lexicographic)
+        w = Image.open(photos / names[0]).size[0]
         return (dict(zip(names, c2w)), {"focal": float(hwf[0, 2] * w / hwf[0, 1]), "cx": 0.0,
                 "cy": 0.0, "bounds": dict(zip(names, bounds.tolist()))})
     meta = json.loads((root / "transforms.json").read_text())
@@ -220,8 +224,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--matcher", default=None)
     ap.add_argument("--max-image-size", type=int, default=None)
     ap.add_argument("--overlap", type=int, default=None, help="sequential_overlap")
+    ap.add_argument("--retry", choices=("on", "off"), default=None,
+                    help="register the left-out images again (default: process's on)")
     ap.add_argument("--real", choices=sorted(REAL), default=None,
                     help="a real capture of the data root's real/ instead of lego")
+    ap.add_argument("--folder", default=None,
+                    help="the --real capture's photo folder (default: images_8 for flower, "
+                         "images for fox, images_2 for lounge)")
     ap.add_argument("--baseline", action="store_true",
                     help="also run pycolmap's defaults on the same photos")
     ap.add_argument("--video", type=int, default=0, metavar="N",
@@ -237,8 +246,8 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(args.work)
     ref_info: dict = {}
     if real is not None:
-        source = real / REAL[args.real]
-        gt, ref_info = real_reference(real)
+        source = real / (args.folder or REAL[args.real])
+        gt, ref_info = real_reference(real, args.folder)
     elif args.video:
         source, orbit = prepare_video(lego, args.size, work)
         gt = {f"frame_{k:05d}.png": c for k, c in enumerate(orbit)}
@@ -257,6 +266,8 @@ def main(argv: list[str] | None = None) -> int:
             setattr(ours, name, getattr(args, flag))
     if args.guided:
         ours.guided_matching = args.guided == "on"
+    if args.retry:
+        ours.retry = args.retry == "on"
     variants = [("process defaults", ours)]
     if args.baseline:
         variants.append(("pycolmap defaults", SfmOptions(
@@ -269,7 +280,8 @@ def main(argv: list[str] | None = None) -> int:
         summary, c2w, names, minutes = run_process(source, out, opts, frames=args.video or 150)
         ref = np.stack([gt[n] for n in names])
         row = {"registered": len(names), "images": summary["n_images"],
-               "models": summary["n_models"],
+               "models": summary["n_models"], "pairs": summary.get("pairs"),
+               "retry": summary.get("retry"),
                "minutes": minutes, "cpu_minutes": summary["cpu_minutes"],
                "peak_rss_mb": summary["peak_rss_mb"], "kind": summary["kind"],
                **pose_errors(c2w, ref), "options": {k: v for k, v in vars(opts).items()},
@@ -295,6 +307,8 @@ def main(argv: list[str] | None = None) -> int:
     import pycolmap
 
     for name, r in runs.items():
+        print(f"{name}: {r['models']} model(s), {r['pairs']} pairs matched"
+              + (f", retry {r['retry']}" if r.get("retry") else ""))
         if "intrinsics" in r:
             print(f"{name}: focal {r['intrinsics']['process']['focal']:.1f} px (published "
                   f"{r['intrinsics']['published']['focal']:.1f}); seconds "

@@ -158,7 +158,8 @@ def test_matcher_choice_and_adaptive_chunks(monkeypatch):
     assert sfm.choose_matcher("exhaustive", 500, True, 4400) == "exhaustive"
     opts = sfm.SfmOptions(sequential_overlap=3)
     matcher, pairs, guided = sfm.plan_matching(opts, 67, True, 4400)
-    assert matcher == "sequential" and pairs == sfm.sequential_pairs(67, 3) and not guided
+    assert matcher == "sequential" and not guided
+    assert pairs == sorted(set(sfm.sequential_pairs(67, 3)) | set(sfm.loop_pairs(67, 3)))
     assert sfm.plan_matching(opts, 60, True, 800)[1:] == (
         [(i, j) for i in range(60) for j in range(i + 1, 60)], True)   # few features: guided
     assert sfm.plan_matching(sfm.SfmOptions(guided_matching=False), 10, False, 800)[2] is False
@@ -210,8 +211,9 @@ def test_lego_video_end_to_end(tmp_path):
     """A video of the lego test orbit → frames → COLMAP → a dataset; the registered frames'
     poses agree with the truth. (This synthetic orbit on white is hard for SIFT: ~800
     features per 320² frame, 10.8° between frames; the side views below ~15° elevation do
-    not register. 39 of 60 did when measured, 16 before the frame runs, the exhaustive
-    matching of <= 100 frames and the feature-scaled inlier minimum.)"""
+    not register at first. 39 of 60 did when measured, 16 before the frame runs, the exhaustive
+    matching of <= 100 frames and the feature-scaled inlier minimum; 56 with the retry of the
+    frames left out, process/register.py, all within 1° of the truth.)"""
     iio = pytest.importorskip("imageio.v2")
     import sys as _sys
 
@@ -228,7 +230,7 @@ def test_lego_video_end_to_end(tmp_path):
     out = tmp_path / "data"
     s = process(ProcessConfig(images=str(video), out=str(out), frames=60, drop_blurry=0.1))
     assert s["format"] == "nerfstudio" and s["kind"] == "360" and s["video"]
-    assert s["n_images"] == 60 and s["n_registered"] >= 30
+    assert s["n_images"] == 60 and s["n_registered"] >= 50        # 56 with the retry, 39 without
     from plenoctree.datasets import load_dataset
 
     data = load_dataset(out, "all")

@@ -2,7 +2,8 @@
 
 Steps: list and check the photos (or pick sharp, evenly spread frames of a video,
 :mod:`.frames`); SIFT features, matching and incremental mapping with pycolmap (:mod:`.sfm`;
-the largest model is kept); COLMAP's undistortion to a pinhole camera; the scene normalised
+the images left out of the largest model are tried again, :mod:`.register`, and the largest
+model is kept); COLMAP's undistortion to a pinhole camera; the scene normalised
 (:func:`plenoctree.datasets.colmap.normalize_scene`: 360° object vs forward-facing decided from
 the cameras); the dataset written in the format that carries that choice, so ``run`` needs no
 flags:
@@ -305,7 +306,8 @@ def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Pa
         shutil.copy2(p, model_out / p.name)
     logger.info(f"process: {frame.kind} capture -> {fmt_name} dataset, images {w}x{h}")
     return {"format": fmt_name, "kind": frame.kind, "n_images": len(names),
-            "n_registered": len(reg), "n_models": res.n_models,
+            "n_registered": len(reg), "n_models": res.n_models, "pairs": res.pairs,
+            "retry": res.retry,
             "unregistered": sorted(set(names) - set(reg)), "image_size": [w, h],
             "camera": cams[0].model, "seconds": {**res.seconds,
                                                  "undistort_write": time.perf_counter() - t0},

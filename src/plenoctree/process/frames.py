@@ -26,7 +26,7 @@ import numpy as np
 from .sfm import ProcessError
 
 __all__ = ["list_photos", "video_frames", "sharpness", "is_video", "require_video_reader",
-           "in_capture_order", "thumbnails", "VIDEO_SUFFIXES", "PHOTO_SUFFIXES"]
+           "in_capture_order", "thumbnails", "natural_key", "VIDEO_SUFFIXES", "PHOTO_SUFFIXES"]
 
 logger = logging.getLogger(__name__)
 
@@ -40,8 +40,25 @@ def is_video(path: str | os.PathLike) -> bool:
     return p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES
 
 
+_DIGITS = re.compile(r"(\d+)")
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key of a file name whose runs of digits compare as numbers: ``IMG_4831_2`` comes
+    before ``IMG_4831_10`` (frames numbered without leading zeros, as many frame extractors
+    write them, keep their capture order; zero-padded names sort as before). Ties (``f01`` /
+    ``f1``) by the name itself.
+
+    >>> sorted(["f_10.jpg", "f_2.jpg", "f_1.jpg"], key=natural_key)
+    ['f_1.jpg', 'f_2.jpg', 'f_10.jpg']
+    """
+    parts = _DIGITS.split(name)           # text, number, text, ...: the types match by position
+    return tuple(int(p) if i % 2 else p for i, p in enumerate(parts)), name
+
+
 def list_photos(folder: str | os.PathLike, single_camera: bool = True) -> list[Path]:
-    """The photos (PNG / JPEG, sorted by name) of ``folder``, each fully decoded once.
+    """The photos (PNG / JPEG) of ``folder`` in name order with numbers compared as numbers
+    (:func:`natural_key`: the capture order of unpadded frame numbers), each fully decoded once.
 
     Raises:
         ProcessError: folder missing or empty, no image among its files, fewer than 3
@@ -53,7 +70,8 @@ def list_photos(folder: str | os.PathLike, single_camera: bool = True) -> list[P
     if not folder.is_dir():
         raise ProcessError(f"{folder}: not a folder of photos or a video file "
                            f"({', '.join(VIDEO_SUFFIXES)})")
-    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    files = sorted((p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")),
+                   key=lambda p: natural_key(p.name))
     photos = [p for p in files if p.suffix.lower() in PHOTO_SUFFIXES]
     if not files:
         raise ProcessError(f"{folder}: the folder is empty (put the photos there: PNG or JPEG)")

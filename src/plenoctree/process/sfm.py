@@ -24,9 +24,13 @@ rotations (0.34° against 0.44° median), so it is on only where the images keep
 (fox's 1920-px frames: about half the features and matching time of 1600 px; the feature cap
 does not bind at these sizes); every pair is matched where that is estimated to take at most
 :data:`EXHAUSTIVE_SECONDS`, and ordered images beyond (video frames, photos whose names follow
-the capture) with their neighbours and frames 2^k later (:func:`choose_matcher`; pycolmap's
-loop detection needs a vocabulary tree, a download, so none). The inlier minimum
-follows the features (:func:`min_inliers`).
+the capture) with their neighbours, frames 2^k later and the last frames with the first
+(:func:`choose_matcher`, :func:`loop_pairs`: the loop of a walk-around closed; pycolmap's loop
+detection needs a vocabulary tree, a download, so none). The inlier minimum follows the
+features (:func:`min_inliers`). When the largest model holds under 95 % of the images, the
+frames left out are matched with more neighbours and registered into it with COLMAP's own
+thresholds (:mod:`.register`; on the lounge walk-around 64 of 64 frames in one model where
+the first mapping split it, docs/capture_records.md).
 """
 
 from __future__ import annotations
@@ -41,10 +45,11 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..errors import ConfigError, PlenOctreeError
+from .register import largest, retry_registration
 
 __all__ = ["SfmOptions", "SfmResult", "run_sfm", "require_pycolmap", "check_options",
-           "ProcessError", "sequential_pairs", "min_inliers", "choose_matcher", "plan_matching",
-           "in_chunks"]
+           "ProcessError", "sequential_pairs", "loop_pairs", "min_inliers", "choose_matcher",
+           "plan_matching", "in_chunks"]
 
 logger = logging.getLogger(__name__)
 
@@ -97,7 +102,11 @@ class SfmOptions:
     max_image_size: int = 1024
     """longest image side used for features (larger images are downscaled for SIFT only)"""
     sequential_overlap: int = 10
-    """neighbours matched per frame by the sequential matcher (plus frames 2^k later)"""
+    """neighbours matched per frame by the sequential matcher (plus frames 2^k later, and the
+    last frames with the first ones, which closes the loop of a walk-around)"""
+    retry: bool = True
+    """when the largest model holds under 95 % of the images: match the left-out frames with
+    more neighbours and map on from it with COLMAP's own registration thresholds"""
     num_threads: int = -1
     """threads (-1: all cores)"""
     seed: int = 0
@@ -123,6 +132,10 @@ class SfmResult:
     n_registered: int
     n_models: int
     seconds: dict
+    pairs: int = 0
+    """image pairs matched (the retry's included)"""
+    retry: dict = field(default_factory=dict)
+    """what :func:`~plenoctree.process.register.retry_registration` did (empty: not needed)"""
 
 
 def _disable(show_progress: bool | None) -> bool | None:
@@ -196,8 +209,6 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
         ProcessError: pycolmap missing, too few images, no model, too few registered images.
     """
     pycolmap = require_pycolmap()
-    from .._util import progress
-
     opts = opts or SfmOptions()
     check_options(opts)
     label = image_dir if label is None else label
@@ -216,6 +227,71 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
 
     # 1. Features (in chunks of about CHUNK_SECONDS, for the progress line).
     t0 = time.perf_counter()
+    _extract_features(pycolmap, db, image_dir, names, opts, show_progress)
+    times["features"] = time.perf_counter() - t0
+
+    # 2. Matching: the pairs and guided matching chosen from the set (:func:`plan_matching`).
+    t0 = time.perf_counter()
+    with pycolmap.Database.open(db) as d:
+        n_kp = sorted(d.num_keypoints_for_image(im.image_id) for im in d.read_all_images())
+    median_kp = n_kp[len(n_kp) // 2]
+    matcher, pairs, guided = plan_matching(opts, len(names), sequential, median_kp)
+    mopts = replace(opts, guided_matching=guided)
+    _match_pairs(pycolmap, db, work, names, pairs, mopts, show_progress,
+                 f"colmap matching ({matcher})")
+    times["matching"] = time.perf_counter() - t0
+
+    # 3. Incremental mapping (progress: one tick per registered image).
+    t0 = time.perf_counter()
+    popt = _mapper_options(pycolmap, opts)
+    cap = popt.mapper.abs_pose_min_num_inliers
+    popt.mapper.abs_pose_min_num_inliers = min_inliers(median_kp, cap)
+    if popt.mapper.abs_pose_min_num_inliers < cap:
+        logger.info(f"colmap: {median_kp} features in the median image: an image is "
+            f"registered with >= {popt.mapper.abs_pose_min_num_inliers} inliers")
+    models = _incremental(pycolmap, db, image_dir, work / "sparse", popt, len(names),
+                          show_progress)
+    times["mapping"] = time.perf_counter() - t0
+    if not models:
+        raise ProcessError(f"{label}: COLMAP could not reconstruct any cameras from the "
+                           f"{len(names)} images (too few matches). Try more photos with more "
+                           "overlap (each part of the scene seen from 3+ nearby views), "
+                           "sharper or more textured images, or --matcher exhaustive")
+    retry: dict = {}
+    if opts.retry:          # 4. The images left out of the largest model, again (.register)
+        models, retry, dt = _retry(pycolmap, db, image_dir, work, names, models, pairs, mopts,
+                                   matcher == "sequential", show_progress)
+        times.update(dt)
+    n_models, best = len(models), largest(models)
+    weak = drop_weak_images(best, WEAK_IMAGE_FRACTION)
+    if weak:
+        logger.info(f"colmap: {len(weak)} weakly supported image(s) left out: {', '.join(weak)}")
+    # A final global bundle adjustment of the chosen model.
+    pycolmap.logging.minloglevel = 2          # (the mapper resets COLMAP's log level)
+    t0 = time.perf_counter()
+    refine_pp = refines_principal_point(opts.refine_principal_point, scene, best)
+    _global_ba(pycolmap, best, refine_pp)
+    times["final_ba"] = time.perf_counter() - t0
+    if refine_pp:
+        pp = [f"({c.principal_point_x:.1f}, {c.principal_point_y:.1f})"
+              for c in best.cameras.values()][:3]
+        logger.info(f"colmap: principal point refined: {', '.join(pp)} px")
+    n_reg = best.num_reg_images()
+    logger.info(f"colmap: {n_reg} of {len(names)} images registered"
+        + (f" (largest of {n_models} models)" if n_models > 1 else ""))
+    if n_reg < 3:
+        raise ProcessError(f"{label}: only {n_reg} of {len(names)} images could be "
+                           "registered; take more overlapping photos of the scene")
+    return SfmResult(best, len(names), n_reg, n_models, times,
+                     pairs=len(pairs) + retry.get("pairs", 0), retry=retry)
+
+
+def _extract_features(pycolmap: Any, db: Path, image_dir: str | os.PathLike,
+                      names: list[str], opts: SfmOptions, show_progress: bool | None) -> None:
+    """SIFT features of ``names`` into ``db`` in chunks (:func:`in_chunks`), one progress tick
+    per image; with ``opts.single_camera`` every chunk shares the first one's camera."""
+    from .._util import progress
+
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = opts.camera_model
     reader.default_focal_length_factor = float(opts.focal_factor)
@@ -236,59 +312,59 @@ def run_sfm(image_dir: str | os.PathLike, work_dir: str | os.PathLike, names: Se
     with progress(total=len(names), desc="colmap features", unit="img",
                   disable=_disable(show_progress)) as bar:
         in_chunks(names, extract, bar.update, first=2)
-    times["features"] = time.perf_counter() - t0
 
-    # 2. Matching: the pairs and guided matching chosen from the set (:func:`plan_matching`).
-    t0 = time.perf_counter()
-    with pycolmap.Database.open(db) as d:
-        n_kp = sorted(d.num_keypoints_for_image(im.image_id) for im in d.read_all_images())
-    median_kp = n_kp[len(n_kp) // 2]
-    matcher, pairs, guided = plan_matching(opts, len(names), sequential, median_kp)
-    _match_pairs(pycolmap, db, work, names, pairs, replace(opts, guided_matching=guided),
-                 show_progress, f"colmap matching ({matcher})")
-    times["matching"] = time.perf_counter() - t0
 
-    # 3. Incremental mapping (progress: one tick per registered image).
-    t0 = time.perf_counter()
-    popt = _mapper_options(pycolmap, opts)
-    cap = popt.mapper.abs_pose_min_num_inliers
-    popt.mapper.abs_pose_min_num_inliers = min_inliers(median_kp, cap)
-    if popt.mapper.abs_pose_min_num_inliers < cap:
-        logger.info(f"colmap: {median_kp} features in the median image: an image is "
-            f"registered with >= {popt.mapper.abs_pose_min_num_inliers} inliers")
-    sparse = work / "sparse"
-    sparse.mkdir(exist_ok=True)
-    with progress(total=len(names), desc="colmap mapping", unit="img",
-                  disable=_disable(show_progress)) as bar:
-        models = pycolmap.incremental_mapping(db, image_dir, sparse, options=popt,
-                                              next_image_callback=lambda: bar.update(1))
-    times["mapping"] = time.perf_counter() - t0
-    if not models:
-        raise ProcessError(f"{label}: COLMAP could not reconstruct any cameras from the "
-                           f"{len(names)} images (too few matches). Try more photos with more "
-                           "overlap (each part of the scene seen from 3+ nearby views), "
-                           "sharper or more textured images, or --matcher exhaustive")
-    best = max(models.values(), key=lambda r: r.num_reg_images())
-    weak = drop_weak_images(best, WEAK_IMAGE_FRACTION)
-    if weak:
-        logger.info(f"colmap: {len(weak)} weakly supported image(s) left out: {', '.join(weak)}")
-    # A final global bundle adjustment of the chosen model.
-    pycolmap.logging.minloglevel = 2          # (the mapper resets COLMAP's log level)
-    t0 = time.perf_counter()
-    refine_pp = refines_principal_point(opts.refine_principal_point, scene, best)
-    _global_ba(pycolmap, best, refine_pp)
-    times["final_ba"] = time.perf_counter() - t0
-    if refine_pp:
-        pp = [f"({c.principal_point_x:.1f}, {c.principal_point_y:.1f})"
-              for c in best.cameras.values()][:3]
-        logger.info(f"colmap: principal point refined: {', '.join(pp)} px")
-    n_reg = best.num_reg_images()
-    logger.info(f"colmap: {n_reg} of {len(names)} images registered"
-        + (f" (largest of {len(models)} models)" if len(models) > 1 else ""))
-    if n_reg < 3:
-        raise ProcessError(f"{label}: only {n_reg} of {len(names)} images could be "
-                           "registered; take more overlapping photos of the scene")
-    return SfmResult(best, len(names), n_reg, len(models), times)
+def _incremental(pycolmap: Any, db: Path, image_dir: str | os.PathLike, out: Path, popt: Any,
+                 n: int, show_progress: bool | None, desc: str = "colmap mapping",
+                 start: Any = None) -> dict:
+    """COLMAP's incremental mapping of ``db`` into ``out`` (created), one progress tick per
+    registered image; from the model ``start`` on (written to ``out/start``) when given."""
+    from .._util import progress
+
+    out.mkdir(parents=True, exist_ok=True)
+    input_path = ""
+    if start is not None:
+        input_path = out / "start"
+        input_path.mkdir(exist_ok=True)
+        start.write(input_path)
+    with progress(total=n, desc=desc, unit="img", disable=_disable(show_progress)) as bar:
+        if start is not None:
+            bar.update(start.num_reg_images())
+        return pycolmap.incremental_mapping(db, image_dir, out, options=popt,
+                                            input_path=input_path,
+                                            next_image_callback=lambda: bar.update(1))
+
+
+def _retry(pycolmap: Any, db: Path, image_dir: str | os.PathLike, work: Path, names: list[str],
+           models: dict, pairs: list, opts: SfmOptions, ordered: bool,
+           show_progress: bool | None) -> tuple[dict, dict, dict]:
+    """:func:`~plenoctree.process.register.retry_registration` with this database: pairs
+    matched as the first ones (at most as many again), mapping on with
+    :data:`~plenoctree.process.register.RETRY_MAPPER`. Returns its ``(models, stats)`` and
+    the seconds it spent matching and mapping (``retry_matching``, ``retry_mapping``)."""
+    from .register import RETRY_MAPPER
+
+    popt = _mapper_options(pycolmap, replace(opts, mapper={**opts.mapper, **RETRY_MAPPER}))
+    seconds = {"retry_matching": 0.0, "retry_mapping": 0.0}
+    rounds = [0]
+
+    def match(extra: list[tuple[int, int]]) -> None:
+        t0 = time.perf_counter()
+        _match_pairs(pycolmap, db, work, names, extra, opts, show_progress,
+                     "colmap matching (retry)")
+        seconds["retry_matching"] += time.perf_counter() - t0
+
+    def remap(start: Any) -> dict:
+        t0 = time.perf_counter()
+        rounds[0] += 1
+        out = _incremental(pycolmap, db, image_dir, work / f"retry{rounds[0]}", popt,
+                           len(names), show_progress, "colmap mapping (retry)", start)
+        seconds["retry_mapping"] += time.perf_counter() - t0
+        return out
+
+    models, stats = retry_registration(models, names, pairs, ordered, opts.sequential_overlap,
+                                       match, remap, max_pairs=len(pairs))
+    return models, stats, (seconds if stats else {})
 
 
 MATCH_SECONDS = 0.015
@@ -332,18 +408,20 @@ def choose_matcher(matcher: str, n: int, ordered: bool, median_features: int) ->
 
 def plan_matching(opts: SfmOptions, n: int, ordered: bool, median_features: int
                   ) -> tuple[str, list[tuple[int, int]], bool]:
-    """``(matcher, pairs (i, j), guided)`` for ``n`` images (:func:`choose_matcher`; guided
-    matching by :data:`GUIDED_MAX_FEATURES` unless ``opts`` says), said on the log."""
+    """``(matcher, pairs (i, j), guided)`` for ``n`` images (:func:`choose_matcher`; the
+    sequential pairs with the loop's (:func:`loop_pairs`); guided matching by
+    :data:`GUIDED_MAX_FEATURES` unless ``opts`` says), said on the log."""
     matcher = choose_matcher(opts.matcher, n, ordered, median_features)
     if matcher == "sequential":
-        pairs = sequential_pairs(n, opts.sequential_overlap)
+        pairs = sorted(set(sequential_pairs(n, opts.sequential_overlap))
+                       | set(loop_pairs(n, opts.sequential_overlap)))
     else:
         pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
     guided = (median_features < GUIDED_MAX_FEATURES if opts.guided_matching is None
               else bool(opts.guided_matching))
     logger.info(f"colmap: {len(pairs)} image pairs to match ({matcher}"
-                + (f": {opts.sequential_overlap} neighbours and frames 2^k later each"
-                   if matcher == "sequential" else "")
+                + (f": {opts.sequential_overlap} neighbours and frames 2^k later each, the "
+                   "last frames with the first" if matcher == "sequential" else "")
                 + f"{', guided' if guided else ''}; {n} images, {median_features} features "
                   "in the median one)")
     return matcher, pairs, guided
@@ -391,6 +469,16 @@ def sequential_pairs(n: int, overlap: int) -> list[tuple[int, int]]:
             pairs.update((i, i + k) for i in range(n - k))
         k *= 2
     return sorted(pairs)
+
+
+def loop_pairs(n: int, overlap: int) -> list[tuple[int, int]]:
+    """Pairs ``(i, j)`` that close the loop of a walk-around's ``n`` frames in time order: the
+    last frames with the first ones, as if the sequence went on round (``j - i >= n -
+    overlap``: each frame with its ``overlap`` neighbours across the end; ``overlap *
+    (overlap + 1) / 2`` pairs). An open path's ends just fail to match."""
+    if n <= overlap + 1:
+        return []                      # sequential_pairs already holds every pair
+    return [(i, j) for i in range(overlap) for j in range(n - overlap + i, n)]
 
 
 def refines_principal_point(option: str, scene: str, rec: Any) -> bool:
