@@ -320,3 +320,23 @@ def test_validation_rows_keep_a_pass_inside_its_share():
     assert val_row_stride(5 * 480 * 270, 270, 3, 60.0, 120.0) == 15
     assert val_row_stride(5 * 480 * 270, 270, 3, 6.0, 120.0) == 3      # inside: unchanged
     assert val_row_stride(5 * 480 * 270, 270, 30, 600.0, 120.0) == 270 // 8
+
+
+def test_shells_leave_thin_fog_empty():
+    """Cells the filter keeps but too thin to change a ray (opacity < min_alpha) stay empty:
+    a fog of opacity 0.005 per cell between the box and the walls adds no leaf."""
+    room = _room_field()
+
+    def density(x):
+        r = np.abs(x).max(-1)
+        return np.where((r > 2.0) & (r < 3.0), 0.02, room.density(x))
+
+    foggy = AnalyticField(density, room._coeffs, sh_degree=0, scene_bbox=BOX)
+    cams = _inward_cameras()
+    box = tree_from_grid(np.zeros((4, 4, 4, 4), np.float32), np.zeros((4, 4, 4), bool) | (
+        np.arange(4)[:, None, None] == 1), 0.0, 1.0, "SH1")
+    kept = {a: add_shells(box, foggy, cams, 2, ShellOptions(grid=32, min_alpha=a))[1]
+            for a in (0.0, 0.01)}
+    assert kept[0.0]["shell_leaves"][1] > 2 * kept[0.01]["shell_leaves"][1]
+    walls = add_shells(box, room, cams, 2, ShellOptions(grid=32))[1]
+    assert kept[0.01]["shell_leaves"][1] == walls["shell_leaves"][1]
