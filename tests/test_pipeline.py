@@ -225,3 +225,20 @@ def test_scene_settings_read_the_capture_only_when_left_to_it(monkeypatch):
     assert pl._scene_settings(pl.wired(given)).refine.passes == 1 and probes == []
     auto = pl._scene_settings(pl.wired(PipelineConfig(data="scene", out="o", downscale=2)))
     assert auto.refine.passes == 1 and len(probes) == 1
+
+
+@pytest.mark.parametrize("scene,forward", [("flower", True), ("lounge", False)])
+def test_run_reads_an_llff_folder_as_the_capture_it_is(scene, forward):
+    """``run``'s working resolution and refinement passes follow the capture's kind: an LLFF
+    folder whose cameras surround the scene (lounge) is a 360° capture, not forward-facing."""
+    import plenoctree.pipeline as pl
+    from plenoctree.datasets.llff import POSES_FILE
+
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / scene
+    if not (root / POSES_FILE).is_file():
+        pytest.skip(f"{root} not available")
+    cfg = pl.wired(PipelineConfig(data=str(root), out="o"))
+    fmt, w, h, fwd = pl._capture(cfg)
+    assert (fmt, fwd) == ("llff", forward)

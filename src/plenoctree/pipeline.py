@@ -339,13 +339,15 @@ def _capture(cfg: PipelineConfig) -> tuple[str, int, int, bool]:
     """``(format, width, height, forward)`` of the dataset's full-size images (LLFF: the size in
     ``poses_bounds.npy``, whose ``images/`` may be absent); ``forward``: NDC (forward-facing)."""
     from .datasets import detect_format, load_dataset
+    from .datasets.camera_sets import capture_kind
     from .datasets.llff import POSES_FILE, read_poses_bounds
 
     data = cfg.train.data
     fmt = cfg.format or detect_format(data)
-    if fmt == "llff":
-        h, w = (int(v) for v in read_poses_bounds(Path(data) / POSES_FILE)[2][0, :2])
-        return fmt, w, h, True
+    if fmt == "llff":               # forward-facing unless its cameras surround the scene
+        poses, _, hwf = read_poses_bounds(Path(data) / POSES_FILE)[:3]
+        h, w = (int(v) for v in hwf[0, :2])
+        return fmt, w, h, capture_kind(poses) == "forward"
     probe = load_dataset(data, "train", format=fmt, limit=1)
     return fmt, probe.cameras.width, probe.cameras.height, bool(probe.cameras.ndc)
 
