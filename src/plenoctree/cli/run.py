@@ -35,8 +35,9 @@ def _run(args: argparse.Namespace) -> int:
         print(json.dumps(config_dict(wired(cfg)), indent=2))
         return 0
     summary = run_pipeline(cfg)
-    if summary.get("web"):
-        print(f"open the viewer: plenoctree view {cfg.out}/tree_ft.plnz")
+    if summary.get("web"):          # --data: the first view like the dataset's cameras
+        print(f"open the viewer: plenoctree view {cfg.out}/tree_ft.plnz --data "
+              f"{wired(cfg).train.data}")
     return 0
 
 
