@@ -288,9 +288,10 @@ def test_resume_continues_exactly(scene, tmp_path):
 
 
 def test_validation_without_a_val_split_and_fp16_precision(scene, tmp_path):
-    """Without a val split of its own, fine-tuning holds every 8th training view out of the
-    updates and validates on those; ``val_fraction`` holds a random share out instead;
-    ``holdout_every=0`` trains on every view and validates on 8 of them (a divergence guard)."""
+    """Without a val split of its own, ``holdout_every=8`` holds every 8th training view out of
+    the updates and validates on those; ``val_fraction`` holds a random share out instead;
+    ``holdout_every=0`` trains on every view and validates on 8 of them (a divergence guard),
+    as the automatic value does for a scene that is not a capture of a place."""
     data = tmp_path / "data"
     shutil.copytree(scene / "data", data)
     (data / "transforms_val.json").unlink()
@@ -298,13 +299,18 @@ def test_validation_without_a_val_split_and_fp16_precision(scene, tmp_path):
     save_tree(t, tmp_path / "half.npz", precision="fp16")
     with log_lines() as lines:
         res = finetune(cfg(scene, tmp_path / "h.npz", tree=tmp_path / "half.npz", data=data,
-                           epochs=2, optimizer="adam", lr=1e-2, test_views=2, verbose=True))
+                           epochs=2, optimizer="adam", lr=1e-2, test_views=2, verbose=True,
+                           holdout_every=8))
     assert any("[35 train / 5 val views" in line for line in lines), lines[:2]
     assert res.held_out == [f"r_{i}" for i in (4, 12, 20, 28, 36)]
     assert len(res.history) >= 2                       # epoch 0 and epoch 2 validations
     with log_lines() as lines:
         finetune(cfg(scene, tmp_path / "n.npz", data=data, epochs=1, val_every=1,
                      holdout_every=0, test_views=-1, verbose=True))
+    assert any("[40 train / 8 val views" in line for line in lines), lines[:2]
+    with log_lines() as lines:
+        finetune(cfg(scene, tmp_path / "a.npz", data=data, epochs=1, val_every=1,
+                     test_views=-1, verbose=True))
     assert any("[40 train / 8 val views" in line for line in lines), lines[:2]
     with log_lines() as lines:
         finetune(cfg(scene, tmp_path / "p.npz", data=data, epochs=1, val_every=1,
