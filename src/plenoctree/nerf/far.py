@@ -29,8 +29,8 @@ from torch import nn
 
 from .sampling import pdf_samples, ray_aabb
 
-__all__ = ["FarField", "CONTRACTED_BOX", "contract", "far_levels_for", "resolve_far_levels", "render_far", "composite_far",
-           "MIN_LEVELS", "MAX_LEVELS"]
+__all__ = ["FarField", "CONTRACTED_BOX", "contract", "far_levels_for", "resolve_far_levels",
+           "render_far", "composite_far", "MIN_LEVELS", "MAX_LEVELS"]
 
 logger = logging.getLogger(__name__)
 
@@ -120,14 +120,18 @@ class FarField(nn.Module):
         space, its world density falls with distance as the cells grow.
         """
         u = self.box_coords(points)
-        r = u.abs().amax(-1).clamp(min=1.0)
         sigma, coeffs = self.net(contract(u), dirs)
-        return sigma / (r * r * self.radius.min()), coeffs
+        return sigma / self._stretch(u), coeffs
 
     def density(self, points: torch.Tensor) -> torch.Tensor:
         u = self.box_coords(points)
+        return self.net.density(contract(u)) / self._stretch(u)
+
+    def _stretch(self, u: torch.Tensor) -> torch.Tensor:
+        """``[N]`` world length per contracted length along the deciding coordinate
+        (``|u|∞^2`` box radii; 1 box radius inside the box)."""
         r = u.abs().amax(-1).clamp(min=1.0)
-        return self.net.density(contract(u)) / (r * r * self.radius.min())
+        return r * r * self.radius.min()
 
     def colors(self, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         return self.net.colors(coeffs, dirs)
@@ -174,9 +178,13 @@ def render_far(far: FarField, origins: torch.Tensor, dirs: torch.Tensor, near: f
     def outside(t: torch.Tensor) -> torch.Tensor:
         return ~(hits[:, None] & (t > t_in[:, None]) & (t < t_out_box[:, None]))
 
+    def edges(t: torch.Tensor) -> torch.Tensor:
+        """``[R, S + 1]``: each sample's interval, from ``t0`` to ``t1`` split at midpoints."""
+        return torch.cat([t0[:, None], 0.5 * (t[:, 1:] + t[:, :-1]), t1[:, None]], -1)
+
     def deltas(t: torch.Tensor) -> torch.Tensor:
-        edges = torch.cat([t0[:, None], 0.5 * (t[:, 1:] + t[:, :-1]), t1[:, None]], -1)
-        return edges[:, 1:] - edges[:, :-1]
+        e = edges(t)
+        return e[:, 1:] - e[:, :-1]
 
     t = _disparity_samples(t0, t1, n_coarse, train, generator)
     if n_fine > 0:
@@ -184,8 +192,7 @@ def render_far(far: FarField, origins: torch.Tensor, dirs: torch.Tensor, near: f
             sig_c = far.density(points(t)).reshape(t.shape) * outside(t)
             tau = sig_c * deltas(t)
             w = torch.exp(-(torch.cumsum(tau, -1) - tau)) * (1.0 - torch.exp(-tau))
-            edges = torch.cat([t0[:, None], 0.5 * (t[:, 1:] + t[:, :-1]), t1[:, None]], -1)
-            t_f = pdf_samples(edges, w, n_fine, train, generator)
+            t_f = pdf_samples(edges(t), w, n_fine, train, generator)
         t = torch.sort(torch.cat([t, t_f], -1), -1).values
     d = dirs[:, None, :].expand(n, t.shape[1], 3).reshape(-1, 3)
     sigma, coeffs = far(points(t), d)
