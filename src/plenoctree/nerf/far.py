@@ -5,8 +5,8 @@ a room, houses, sky). The octree holds that world as **shells**: its root is the
 grown ``2^L`` times about the box's centre, shell ``l`` (``1 <= l <= L``) is the box grown
 ``2^l`` times minus the box grown ``2^(l-1)`` times, and each shell is cut into cells
 ``2^l`` times the size of those of a ``far_grid^3`` grid over the box (a constant angle seen
-from the centre; see :mod:`plenoctree.convert.shells`). The octree's traversal, fine-tuning and compression do
-not change: shells are ordinary leaves.
+from the centre; see :mod:`plenoctree.convert.shells`). The octree's traversal, fine-tuning
+and compression do not change: shells are ordinary leaves.
 
 The NeRF-SH learns the far field with a second network, :class:`FarField`, evaluated at
 points contracted into ``[-2, 2]^3`` box units (the L∞ form of mip-NeRF 360's contraction:
