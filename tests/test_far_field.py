@@ -16,8 +16,9 @@ from plenoctree.convert.shells import ShellOptions, add_shells, shell_levels
 from plenoctree.datasets.cameras import Cameras
 from plenoctree.nerf.checkpoint import load_nerf, save_checkpoint
 from plenoctree.nerf.config import ModelConfig, TrainConfig
-from plenoctree.nerf.far import (CONTRACTED_BOX, MAX_LEVELS, MIN_LEVELS, FarField, composite_far, contract,
-                                 far_levels_for, render_far, resolve_far_levels)
+from plenoctree.nerf.far import (CONTRACTED_BOX, MAX_LEVELS, MIN_LEVELS, FarField,
+                                 composite_far, contract, far_levels_for, render_far,
+                                 resolve_far_levels)
 from plenoctree.nerf.model import NeRFModel, RadianceField
 from plenoctree.nerf.renderer import RayBatch, RenderMode, render_rays_occupancy
 from plenoctree.nerf.volrend import render_weights

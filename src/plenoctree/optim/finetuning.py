@@ -370,8 +370,9 @@ def _view_sets(cfg: FinetuneConfig, tree: Any) -> _Views:
     its own (``has_split``: not when its val views are its test views, as LLFF's, COLMAP's and
     instant-ngp's are: the best epoch would be chosen on the photos the test PSNR is measured
     on); else the training views :func:`held_out_views` holds out (``holdout_every``, -1:
-    8 for a capture of a place, else none; ``val_fraction``), which leave the training set; else (hold-out off, or too few views)
-    ``TRAIN_VAL_VIEWS`` (or ``val_views``) evenly spaced training views that stay in training.
+    8 for a capture of a place, else none; ``val_fraction``), which leave the training set;
+    else (hold-out off, or too few views) ``TRAIN_VAL_VIEWS`` (or ``val_views``) evenly
+    spaced training views that stay in training.
     No validation when ``val_every`` is 0. ``val_views`` > 0 validates on that many evenly
     spaced ones of the chosen views. The test split is never read here."""
     from ..datasets import evenly_spaced, take_views
