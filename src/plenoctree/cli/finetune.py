@@ -21,10 +21,6 @@ def _run(cfg, args: argparse.Namespace) -> int:
     res = finetune(cfg)
     fmt = lambda v: "n/a" if v is None else f"{v:.3f} dB"  # noqa: E731
     print(f"test PSNR before {fmt(res.test_psnr_before)}  after {fmt(res.test_psnr_after)}")
-    if res.val_psnr_before is not None:
-        held = f": {', '.join(res.held_out)}" if res.held_out else ""
-        print(f"validation on {res.validation}{held}: {fmt(res.val_psnr_before)} before, "
-              f"{fmt(res.val_psnr_best)} after")
     print(f"{res.epochs_run} epochs ({res.steps} steps), best epoch {res.best_epoch}, "
           f"{res.wall_seconds:.1f} s, {res.train_rays_per_second / 1e6:.2f} M rays/s "
           f"({res.backend}); {res.stop_reason}")

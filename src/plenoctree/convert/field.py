@@ -204,19 +204,14 @@ class NeRFField:
         import torch
 
         p = torch.from_numpy(_points(points)).to(self.device)
-        fine = self.model.fine
         vis = self._visible(p)
         sigma = torch.zeros(p.shape[0], dtype=torch.float32, device=p.device)
         idx = vis.nonzero()[:, 0]
         if idx.numel():                  # the network runs only where the NeRF samples
             with torch.no_grad(), self._ctx():
                 pv = p[idx]
-                if getattr(self.model, "far", None) is not None:
-                    s = self.model.density(pv)
-                elif hasattr(fine, "density"):
-                    s = fine.density(pv)
-                else:
-                    s = self.model.query(pv)[0]
+                s = self.model.density(pv) if hasattr(self.model, "density") else \
+                    self.model.query(pv)[0]
             sigma[idx] = s.float()
         return sigma.cpu().numpy()
 

@@ -52,7 +52,8 @@ from .cameras import Cameras
 from .ndc import ndc_bounds
 
 __all__ = ["load_llff", "LLFFOptions", "read_llff", "LLFFScene", "llff_render_cameras",
-           "spiral_path", "average_pose", "write_llff", "llff_matches_colmap", "LLFF_HOLD", "BD_FACTOR"]
+           "spiral_path", "average_pose", "write_llff", "llff_matches_colmap", "LLFF_HOLD",
+           "BD_FACTOR"]
 
 logger = logging.getLogger(__name__)
 

@@ -352,40 +352,36 @@ class NeRFModel(nn.Module):
         """Shells of the far field around the scene box (0: none; :mod:`.far`)."""
         return self.far.levels if self.far is not None else 0
 
-    def _split(self, points: torch.Tensor) -> torch.Tensor:
-        """bool ``[N]``: the points outside the scene box (the far field's)."""
+    def _route(self, points: torch.Tensor, run) -> tuple[torch.Tensor, ...]:
+        """``run(net, idx)`` (a tuple of ``[len(idx), ...]`` tensors) of the fine network for
+        the points in the scene box and of the far field for those outside it, gathered back
+        into point order (``[N, ...]`` each)."""
         u = self.far.box_coords(points)
-        return u.abs().amax(-1) > 1.0
+        parts = [(idx, run(net, idx)) for net, idx in
+                 ((self.fine, (u.abs().amax(-1) <= 1.0).nonzero()[:, 0]),
+                  (self.far, (u.abs().amax(-1) > 1.0).nonzero()[:, 0])) if idx.numel()]
+        outs = []
+        for k, first in enumerate(parts[0][1]):
+            o = first.new_empty((points.shape[0], *first.shape[1:]))
+            for idx, res in parts:
+                o[idx] = res[k].to(o.dtype)
+            outs.append(o)
+        return tuple(outs)
 
     def query(self, points: torch.Tensor, dirs: torch.Tensor | None = None
               ) -> tuple[torch.Tensor, torch.Tensor]:
         """``(sigma [N], coeffs [N, 3·B])`` at world points ``[N, 3]``: the fine network in the
         scene box, the far field (when there is one) outside it."""
-        if self.far is None:
+        if self.far is None or points.shape[0] == 0:
             return self.fine(points, dirs)
-        out = self._split(points)
-        if not bool(out.any()):
-            return self.fine(points, dirs)
-        sigma = torch.empty(points.shape[0], device=points.device)
-        coeffs = torch.empty((points.shape[0], 3 * self.basis_dim), device=points.device)
-        for sel, net in ((~out, self.fine), (out, self.far)):
-            idx = sel.nonzero()[:, 0]
-            if idx.numel():
-                s, c = net(points[idx], None if dirs is None else dirs[idx])
-                sigma[idx], coeffs[idx] = s, c
-        return sigma, coeffs
+        return self._route(points, lambda net, i: net(points[i],
+                                                      None if dirs is None else dirs[i]))
 
     def density(self, points: torch.Tensor) -> torch.Tensor:
         """σ ``[N]`` at world points ``[N, 3]`` (the far field outside the box, as ``query``)."""
-        if self.far is None:
+        if self.far is None or points.shape[0] == 0:
             return self.fine.density(points)
-        out = self._split(points)
-        sigma = torch.empty(points.shape[0], device=points.device)
-        for sel, net in ((~out, self.fine), (out, self.far)):
-            idx = sel.nonzero()[:, 0]
-            if idx.numel():
-                sigma[idx] = net.density(points[idx])
-        return sigma
+        return self._route(points, lambda net, i: (net.density(points[i]),))[0]
 
     def forward(self, points: torch.Tensor, dirs: torch.Tensor | None = None):
         return self.fine(points, dirs)
