@@ -283,3 +283,22 @@ def test_distortion_loss_gathers_the_weight_along_rays(data, tmp_path):
         bad = tiny_paper_config(data, tmp_path / "bad")
         bad.distortion_weight = 0.01
         train(bad, quiet=True)
+
+
+def test_large_validation_views_are_scored_on_every_kth_row(data, tmp_path, monkeypatch):
+    """Views over the pixel budget are validated on every k-th row (PSNR of those rows, no
+    SSIM); within it, on all rows with SSIM."""
+    import csv
+    import math
+
+    from plenoctree.nerf import training
+
+    monkeypatch.setattr(training, "VAL_PIXELS", 100)
+    cfg = tiny_cpu_config(data, tmp_path / "rows", steps=2)
+    train(cfg)
+    row = list(csv.DictReader(open(tmp_path / "rows" / "val.csv")))[-1]
+    assert math.isfinite(float(row["psnr"])) and row["ssim"] in ("", "nan")
+    monkeypatch.setattr(training, "VAL_PIXELS", 1 << 18)
+    train(tiny_cpu_config(data, tmp_path / "all", steps=2))
+    row = list(csv.DictReader(open(tmp_path / "all" / "val.csv")))[-1]
+    assert math.isfinite(float(row["ssim"]))
