@@ -317,12 +317,12 @@ class _Inputs:
     data_root: str
     downscale: int
     background: tuple
-    train: Any                     # training views (None unless --masking weight needs them;
-                                   # after the filter, their cameras only)
+    train: Any                     # training views (None unless --masking weight needs them)
     ndc: Any
     fmt: str
     extra_data: Any
     dim: int
+    cams: Any = None               # the training views' cameras (kept for the shells)
 
 
 def _prepare(cfg: ExtractConfig) -> tuple[ExtractConfig, int]:
@@ -447,7 +447,7 @@ def _shells(cfg: ExtractConfig, inp: _Inputs, tree: Any, grid: int, limit: int
     far = inp.field.model.far
     outer = (far.radius * float(2 ** far.levels)).detach().cpu().numpy()
     levels = shell_levels(tree.radius, outer, tree.max_depth)
-    cams = inp.train
+    cams = inp.cams
     if cams is None:                # (--masking sigma: the views were not loaded)
         cams = _load_split(inp.data_root, "train", inp.downscale, inp.background).cameras
     opts = ShellOptions(grid=cfg.far_grid or max(4, grid // 2),
@@ -518,7 +518,7 @@ def extract(cfg: ExtractConfig, field: Any = None) -> ExtractResult:
         mask, n_cand, vis_info = _filter(cfg, sigma, spec, inp.train, limit)
         del sigma
         if inp.train is not None:   # the images are not needed any more, the cameras are
-            inp.train = inp.train.cameras
+            inp.cams, inp.train = inp.train.cameras, None
         n_kept = int(np.count_nonzero(mask))
         check_budget(f"{n_kept} leaves x {inp.dim} values (sampling and octree)",
                      int(n_kept * inp.dim * 4 * 3.5), limit,
