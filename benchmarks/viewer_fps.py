@@ -24,7 +24,7 @@ browser share the same cores. Goals (issues 36 and 48, 2 cores): moving >= 20 FP
 an 800x800 canvas's resolution (also on a 3 M-leaf forward-facing tree); stop -> full 800x800
 frame <= 300 ms (lego), <= 400 ms (the 3 M-leaf tree), with no freeze.
 
-    python benchmarks/viewer_fps.py [--tree lego|procedural|PATH] [--size 800] [--modes cpu,webgl]
+    python benchmarks/viewer_fps.py [--tree lego|procedural|PATH] [--data DIR] [--size 800] [--modes cpu,webgl]
 """
 
 from __future__ import annotations
@@ -87,12 +87,15 @@ def tree_path(name: str | None, root: str | None) -> tuple[Path, str]:
     return Path(name), "file"
 
 
-def start_viewer(tree: Path) -> tuple[subprocess.Popen, str]:
-    """``plenoctree view TREE --render auto --port 0`` in its own process; (process, URL)."""
+def start_viewer(tree: Path, data: str | None = None) -> tuple[subprocess.Popen, str]:
+    """``plenoctree view TREE --render auto --port 0 [--data DATA]`` in its own process;
+    (process, URL). ``data``: the first view like the dataset's cameras (a far-field tree is
+    otherwise framed from outside its shells)."""
     src = Path(__file__).resolve().parents[1] / "src"
     env = {**os.environ, "PYTHONPATH": f"{src}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
-    proc = subprocess.Popen([sys.executable, "-m", "plenoctree", "view", str(tree), "--port", "0",
-                             "--render", "auto"], stdout=subprocess.PIPE, text=True, env=env)
+    cmd = [sys.executable, "-m", "plenoctree", "view", str(tree), "--port", "0", "--render",
+           "auto"] + (["--data", str(data)] if data else [])
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env)
     line = proc.stdout.readline()
     m = re.search(r"(http://\S+?/)[ ,]", line)
     if not m:
@@ -166,6 +169,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--tree", default=None, help="lego | procedural | PATH (default: lego when found)")
     add_data_root(ap)
+    ap.add_argument("--data", default=None,
+                    help="dataset of the tree: the first view like its cameras (view --data)")
     ap.add_argument("--size", type=int, default=800, help="canvas side, CSS pixels (DPR 1)")
     ap.add_argument("--modes", default="auto,webgl", help="page modes, comma-separated")
     ap.add_argument("--cycles", type=int, default=3, help="move / stop cycles per mode")
@@ -181,7 +186,7 @@ def main() -> None:
         raise SystemExit("no chromium executable (scripts/install_browser.sh)")
     load_before = os.getloadavg()
     tree, kind = tree_path(args.tree, args.data_root)
-    proc, url = start_viewer(tree)
+    proc, url = start_viewer(tree, args.data)
     results = {}
     try:
         with sync_playwright() as p:
