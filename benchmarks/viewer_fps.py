@@ -96,8 +96,11 @@ def start_viewer(tree: Path, data: str | None = None) -> tuple[subprocess.Popen,
     cmd = [sys.executable, "-m", "plenoctree", "view", str(tree), "--port", "0", "--render",
            "auto"] + (["--data", str(data)] if data else [])
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=env)
-    line = proc.stdout.readline()
-    m = re.search(r"(http://\S+?/)[ ,]", line)
+    for _ in range(20):             # log lines (e.g. the dataset's) may come first
+        line = proc.stdout.readline()
+        m = re.search(r"(http://\S+?/)[ ,]", line)
+        if m or not line:
+            break
     if not m:
         proc.kill()
         raise SystemExit(f"plenoctree view did not start: {line!r}")
