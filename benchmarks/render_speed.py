@@ -42,6 +42,7 @@ Usage (each ≤ 2-3 min on 2 loaded cores)::
     .venv/bin/python benchmarks/render_speed.py --tree ff        # forward-facing NDC, 504x378
     .venv/bin/python benchmarks/render_speed.py --tree my.npz --sizes 400
     .venv/bin/python benchmarks/render_speed.py --tree out/ff/tree_ft.npz --data DIR  # its views
+    .venv/bin/python benchmarks/render_speed.py --tree T --data DIR --downscale 2  # at 1/2 size
 
 Writes ``benchmarks/results/render_speed_<tree>.json`` (``--out``) and prints markdown tables.
 """
@@ -214,6 +215,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--sizes", type=int, nargs="+", default=[400, 800],
                     help="image sizes (px; orbit views)")
     ap.add_argument("--views", type=int, default=4, help="views per pass")
+    ap.add_argument("--downscale", type=int, default=1,
+                    help="with --data: the views at 1/N of their size (a capture's working "
+                         "resolution: lounge's 960x540 frames are trained at 480x270, 2)")
     ap.add_argument("--repeats", type=int, default=5, help="timed passes per path and size")
     ap.add_argument("--twin-rays", type=int, default=8000,
                     help="rays per view rendered by the torch twin (strided subset)")
@@ -231,6 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     if desc.get("data"):      # --data, or the ff tree's own capture (all its cameras)
         cams, idx = data_cameras(desc["data"], args.views,
                                  "all" if desc["kind"] == "forward_facing" else "test")
+        cams = cams.scaled(args.downscale)
         sets = {f"{cams.width}x{cams.height}": (cams, idx)}
     else:
         sets = {f"{s}x{s}": (orbit_cameras(args.views, s), list(range(args.views)))

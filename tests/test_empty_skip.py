@@ -33,13 +33,27 @@ def _sparse_tree(seed: int, fmt: str = "SH4") -> Octree:
     return tree
 
 
-def test_skip_regions_hold_no_occupied_leaf():
+def _grown(tree: Octree, levels: int) -> Octree:
+    """``tree`` in a root ``2^levels`` times as wide about its centre (a far-field tree's
+    shape: the content in a small box at the root's centre)."""
+    from plenoctree.convert.shells import _box_leaves
+    from plenoctree.octree.build import tree_from_leaves
+
+    d, c, v = _box_leaves(tree, levels)
+    return tree_from_leaves(d, c, v, tree.center, tree.radius * 2.0 ** levels, tree.data_format)
+
+
+@pytest.mark.parametrize("levels", [0, 3])
+def test_skip_regions_hold_no_occupied_leaf(levels):
     """Every (empty leaf, ray octant): the leaf's box with its forward faces pushed by the
-    table's skip overlaps no σ > 0 leaf (brute force over all pairs)."""
+    table's skip overlaps no σ > 0 leaf (brute force over all pairs); in a grown tree the
+    leaves of the box skip on nested grids as fine as the box's own."""
     tree = _sparse_tree(3)
+    tree = _grown(tree, levels) if levels else tree
     child, data = _flat(tree.child, tree.data)       # the kernels' flat arrays
     t = skip_tables(child, data)
-    assert t.grid_bits == tree.max_depth + 1 and t.skip.shape[1] == 8
+    assert t.grid_bits == min(8, tree.max_depth + 1) and t.skip.shape[1] == 9
+    assert t.skip[:, 8].max() == max(0, tree.max_depth + 1 - 8)
     depth, corner, size = tree._leaf_geometry()
     node, i, j, k = tree.leaf_indices()
     cell = node * 8 + i * 4 + j * 2 + k
@@ -52,9 +66,9 @@ def test_skip_regions_hold_no_occupied_leaf():
     assert (has == ~full).all()          # every empty leaf is marked (row 0: no skip)
     assert (t.skip[0] == 0).all() and (rows[has] > 0).sum() < has.sum()
     assert (t.child[t.child >= 0] == child[t.child >= 0]).all()
-    unit = 2.0 ** -t.grid_bits
     pushed = 0
     for leaf in np.flatnonzero(has):
+        unit = 2.0 ** -(t.grid_bits + int(t.skip[rows[leaf], 8]))
         for o in range(8):
             r = int(t.skip[rows[leaf], o]) * unit
             if r == 0:

@@ -259,8 +259,9 @@ def next_leaf(child, skip, shift, oc, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps
     compare the stack against).
 
     Empty-space skipping (:mod:`.empty_skip`): an empty leaf whose ``child`` entry is
-    ``-(row + 1)`` pushes its exit planes forward by ``skip[row, oc] << shift`` integer units
-    (``oc``: :func:`ray_octant`), so the segment runs to the end of the empty region ahead;
+    ``-(row + 1)`` pushes its exit planes forward by ``skip[row, oc] << (shift - skip[row, 8])``
+    integer units (``oc``: :func:`ray_octant`; column 8: the row's nested grid, each one level
+    finer), so the segment runs to the end of the empty region ahead;
     with a plain ``child`` (no negative entries) nothing changes."""
     ts = t + eps_t
     # Truncate, then clamp in integers: the floor of the point clamped to the box (truncation
@@ -294,7 +295,7 @@ def next_leaf(child, skip, shift, oc, px, py, pz, vx, vy, vz, ix, iy, iz, t, eps
     sh = _TOP - level
     r = 0
     if c < 0:
-        r = np.int64(skip[-c - 1, oc]) << shift
+        r = np.int64(skip[-c - 1, oc]) << (shift - skip[-c - 1, 8])
     # Exit face of the leaf (pushed by r): its low (d < 0) or high (d >= 0) side per axis.
     bx = np.float64((((qx >> sh) + 1) << sh) + r if vx >= 0.0 else ((qx >> sh) << sh) - r)
     by = np.float64((((qy >> sh) + 1) << sh) + r if vy >= 0.0 else ((qy >> sh) << sh) - r)

@@ -37,7 +37,7 @@ class TreeSpec:
     """
 
     child: np.ndarray          # int32 [n_cells] (with empty-skip rows: see .empty_skip)
-    skip: np.ndarray           # uint8 [rows, 8] empty-space skips per ray octant
+    skip: np.ndarray           # uint8 [rows, 9] empty-space skips per ray octant, row grid
     shift: int                 # skip units -> integer coordinates
     offset: np.ndarray         # float64 [3]; tree coordinate = offset + invr * world
     invr: np.ndarray           # float64 [3]
