@@ -44,8 +44,8 @@ assert QUANT_BITS == 30, "the kernel hard-codes 2**30 as its quantisation scale"
 
 @triton.jit
 def _march_kernel(child_ptr, data_ptr, basis_ptr, geo_ptr, grad_ptr, crgb_ptr,
-                  rgb_ptr, depth_ptr, alpha_ptr, gdata_ptr, n_rays, stop_thresh,
-                  bg_r, bg_g, bg_b,
+                  rgb_ptr, depth_ptr, alpha_ptr, gdata_ptr, n_rays, stop_thresh: tl.float64,
+                  bg_r: tl.float64, bg_g: tl.float64, bg_b: tl.float64,
                   D: tl.constexpr, B: tl.constexpr, BP: tl.constexpr, QB: tl.constexpr,
                   BACKWARD: tl.constexpr, BLOCK: tl.constexpr):
     pid = tl.program_id(0)
@@ -71,6 +71,13 @@ def _march_kernel(child_ptr, data_ptr, basis_ptr, geo_ptr, grad_ptr, crgb_ptr,
     basis = tl.load(basis_ptr + ray[:, None].to(tl.int64) * B + bidx[None, :],
                     mask=valid[:, None] & bmask[None, :], other=0.0)         # [BLOCK, BP]
     zero = tl.zeros([BLOCK], dtype=basis.dtype)
+    # the float scalars are float64 arguments (a Python float is otherwise passed as float32 to
+    # a compiled kernel, but kept float64 by the interpreter) used in the data's dtype, as the
+    # twin uses them: float64 data sees the exact background and threshold
+    stop = tl.full([BLOCK], stop_thresh, basis.dtype)
+    back_r = tl.full([BLOCK], bg_r, basis.dtype)
+    back_g = tl.full([BLOCK], bg_g, basis.dtype)
+    back_b = tl.full([BLOCK], bg_b, basis.dtype)
     trans = zero + 1.0
     acc_r = zero
     acc_g = zero
@@ -160,12 +167,12 @@ def _march_kernel(child_ptr, data_ptr, basis_ptr, geo_ptr, grad_ptr, crgb_ptr,
             wt_sum += w * (0.5 * (t + t_end)).to(basis.dtype)
         trans = trans_next
         t = tl.where(active, t_end, t)
-        active = active & (t_end < t1) & (trans >= stop_thresh)
+        active = active & (t_end < t1) & (trans >= stop)
 
     if not BACKWARD:
-        tl.store(rgb_ptr + ray * 3 + 0, acc_r + trans * bg_r, mask=valid)
-        tl.store(rgb_ptr + ray * 3 + 1, acc_g + trans * bg_g, mask=valid)
-        tl.store(rgb_ptr + ray * 3 + 2, acc_b + trans * bg_b, mask=valid)
+        tl.store(rgb_ptr + ray * 3 + 0, acc_r + trans * back_r, mask=valid)
+        tl.store(rgb_ptr + ray * 3 + 1, acc_g + trans * back_g, mask=valid)
+        tl.store(rgb_ptr + ray * 3 + 2, acc_b + trans * back_b, mask=valid)
         tl.store(depth_ptr + ray, wt_sum / tl.maximum(w_sum, 1e-10), mask=valid)
         tl.store(alpha_ptr + ray, 1.0 - trans, mask=valid)
 
