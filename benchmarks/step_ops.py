@@ -37,6 +37,10 @@ means a Python loop over data):
 - ``occupancy``: the occupancy grid's update (every ``occ_update_every`` = 16 steps);
 - ``finetune``: ``FineTuneLoop.step`` (rays of the batch, stepper step with Adam, the
   divergence watch).
+- ``fixed``: ``Trainer.iteration`` with ``fixed_step`` (the ``gpu`` preset's step of fixed
+  shape, :mod:`plenoctree.nerf.fixed`) at ``--batches`` rays in a budget of ``--budget``
+  samples, on a step without a log row, occupancy update or ray-count adaptation: its count
+  must not depend on the batch or the budget.
 
 Scenes: ``procedural`` (the analytic scene, written at 64², a CPU-preset model warmed up for
 ``--warm-steps`` steps, the tree ``procedural_tree(128)``) and ``lego`` (the trained NeRF-SH
@@ -66,7 +70,7 @@ from typing import Any, Callable, Iterator
 
 from _bench import add_data_root, add_out, data_path, machine_info, markdown_table, write_json
 
-KINDS = ("train", "train+log", "occupancy", "finetune")
+KINDS = ("train", "train+log", "occupancy", "finetune", "fixed")
 SYNC_KINDS = ("item", "shape", "host", "upload")
 _SHAPE_OPS = {"nonzero", "masked_select", "unique", "_unique", "_unique2", "unique_dim",
               "unique_consecutive", "bincount", "nonzero_numpy", "argwhere"}
@@ -325,19 +329,21 @@ def describe_path(path: str) -> dict:
 
 # --- the training step ---------------------------------------------------------------------
 def _step_number(start: int, cfg: Any, log_row: bool) -> int:
-    """The first step ``>= start`` with a log row (or without one), no occupancy update and no
-    moment flush."""
+    """The first step ``>= start`` with a log row (or without one), no occupancy update, no
+    moment flush and no adaptation of a fixed-shape step's ray count."""
     s = start
     while True:
         occ = s > 0 and s % cfg.occ_update_every == 0
+        adapt = s % cfg.occ_update_every == cfg.occ_update_every - 1
         log = (s + 1) % cfg.log_every == 0
-        if not occ and s % 100 != 99 and log == log_row:
+        if not occ and not adapt and s % 100 != 99 and log == log_row:
             return s
         s += 1
 
 
-def make_trainer(scene: str, root: Path, args: argparse.Namespace) -> Any:
-    """A set-up :class:`~plenoctree.nerf.trainer.Trainer` of ``scene`` writing into ``root``."""
+def make_trainer(scene: str, root: Path, args: argparse.Namespace, fixed: bool = False) -> Any:
+    """A set-up :class:`~plenoctree.nerf.trainer.Trainer` of ``scene`` writing into ``root``
+    (``fixed``: with steps of fixed shape)."""
     import torch
 
     from plenoctree.nerf import preset
@@ -363,6 +369,9 @@ def make_trainer(scene: str, root: Path, args: argparse.Namespace) -> Any:
     cfg.device, cfg.minutes, cfg.max_steps, cfg.threads = "cpu", 0.0, 10**9, args.threads
     cfg.val_views, cfg.val_every_s, cfg.val_every_steps = 0, 0.0, 0
     cfg.ckpt_every_s, cfg.ckpt_every_steps = 0.0, 0
+    cfg.fixed_step = fixed
+    if fixed:
+        cfg.out += "_fixed"
     tr = Trainer(cfg, quiet=True)
     tr.setup()
     if ck is not None:
@@ -382,13 +391,17 @@ def warm_up(tr: Any, steps: int) -> None:
 
 
 def count_train(tr: Any, counter: Recorder, path: str, batch: int, log_row: bool,
-                repeat: int) -> dict:
-    """Counts of ``repeat`` iterations at ``batch`` rays (mean per step)."""
+                repeat: int, budget: int = 0) -> dict:
+    """Counts of ``repeat`` iterations at ``batch`` rays (mean per step); ``budget``: the
+    sample budget of a fixed-shape trainer."""
     from plenoctree._util import progress
 
     bar = progress(total=1, disable=True)
     cfg = tr.cfg
-    cfg.target_samples = max(cfg.target_samples, 64 * batch)     # the sample cap never binds
+    if budget:
+        cfg.target_samples = tr.fixed.capacity = budget
+    else:
+        cfg.target_samples = max(cfg.target_samples, 64 * batch)  # the sample cap never binds
     total, seconds = Counts(), 0.0
     seen: list[int] = []
     probe = type("Probe", (), {"before_step": lambda self, step: None,
@@ -409,7 +422,7 @@ def count_train(tr: Any, counter: Recorder, path: str, batch: int, log_row: bool
     tr.hooks.remove(probe)
     out = total.as_dict(repeat)
     out.update(seconds=seconds / repeat, rays=batch,
-               samples_per_ray=sum(seen[1:]) / (repeat * batch))
+               samples_per_ray=sum(seen[1:]) / (repeat * batch), budget=budget)
     return out
 
 
@@ -491,7 +504,8 @@ def count_finetune(tree: Any, views: Any, counter: Recorder, path: str, batch: i
 # --- report --------------------------------------------------------------------------------
 def table(rows: list[dict]) -> str:
     head = ["kind", "path", "rays", "ops", "views", "triton", "syncs", *SYNC_KINDS, "s"]
-    cells = [[r["kind"], r["path"], r["rays"] or "–", f"{r['ops']:.0f}", f"{r['views']:.0f}",
+    cells = [[r["kind"] + (f" (S={r['budget']})" if r.get("budget") else ""), r["path"],
+              r["rays"] or "–", f"{r['ops']:.0f}", f"{r['views']:.0f}",
               f"{r['triton']:.0f}", f"{r['syncs']:.0f}",
               *(f"{r['sync_' + k]:.0f}" for k in SYNC_KINDS), f"{r['seconds']:.2f}"]
              for r in rows]
@@ -507,7 +521,7 @@ def run_scene(scene: str, args: argparse.Namespace, counter: Recorder, root: Pat
         print(f"  {scene} {kind} {path} {res['rays']}: {res['ops']:.0f} ops, "
               f"{res['syncs']:.0f} syncs ({res['seconds']:.1f} s)", file=sys.stderr, flush=True)
 
-    train_kinds = [k for k in args.kinds if k != "finetune"]
+    train_kinds = [k for k in args.kinds if k not in ("finetune", "fixed")]
     if train_kinds:
         tr = make_trainer(scene, root, args)
         warm_up(tr, args.warm_steps if scene == "procedural" else 2)
@@ -519,6 +533,14 @@ def run_scene(scene: str, args: argparse.Namespace, counter: Recorder, root: Pat
                                                     args.repeat))
             if "occupancy" in args.kinds:
                 add("occupancy", path, count_occupancy(tr, counter, path))
+        del tr
+    if "fixed" in args.kinds:
+        tr = make_trainer(scene, root, args, fixed=True)
+        warm_up(tr, args.warm_steps if scene == "procedural" else 2)
+        for path in args.paths:
+            for batch in args.batches:
+                add("fixed", path, count_train(tr, counter, path, batch, False, args.repeat,
+                                               args.budget))
         del tr
     if "finetune" in args.kinds:
         tree, views = finetune_setup(scene, args, root)
@@ -536,6 +558,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batches", nargs="+", type=int, default=[4096, 16384])
     ap.add_argument("--paths", nargs="+", default=["cpu", "cuda"], choices=["cpu", "cuda"])
     ap.add_argument("--kinds", nargs="+", default=list(KINDS), choices=KINDS)
+    ap.add_argument("--budget", type=int, default=1 << 18,
+                    help="kind fixed: the sample budget of a step (the gpu preset's: 2^18)")
     ap.add_argument("--repeat", type=int, default=1, help="counted steps per row (after one "
                     "warm-up step)")
     ap.add_argument("--warm-steps", type=int, default=40,

@@ -133,7 +133,7 @@ def test_photos_train_opaque_over_random_backgrounds(scene, tmp_path):
     from plenoctree.nerf import load_run, train
     from plenoctree.nerf.renderer import RayBatch, render_rays
     from plenoctree.nerf.config import PHOTO_DISTORTION
-    from plenoctree.nerf.trainer import distortion_weight, opaque_photos
+    from plenoctree.nerf.training import distortion_weight, opaque_photos
 
     data = load_dataset(scene, "train")
     assert holds_photos(scene) and data.alphas is None

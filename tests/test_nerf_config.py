@@ -33,7 +33,17 @@ def test_cpu_preset():
     assert cfg.model.basis == "sh" and cfg.model.sh_degree == 3 and not cfg.model.coarse
     validate(cfg)
     with pytest.raises(ConfigError):
-        preset("gpu")
+        preset("tpu")
+
+
+def test_gpu_preset_takes_fixed_shape_steps():
+    cfg = preset("gpu")
+    validate(cfg)
+    assert cfg.fixed_step and cfg.target_samples == 1 << 18 and cfg.max_steps == 20000
+    assert cfg.model.grid_log2_table == 19 and cfg.sampler == "occupancy"
+    cfg.sampler = "hierarchical"
+    with pytest.raises(ConfigError, match="fixed_step"):
+        validate(cfg)
 
 
 def test_round_trip_and_unknown_keys():

@@ -275,7 +275,7 @@ def test_distortion_loss_gathers_the_weight_along_rays(data, tmp_path):
     # order); without any effect the ratio is ~1
     assert dist1 < 0.8 * dist0, runs
     assert psnr1 > psnr0 - 1.5, runs                    # at little cost to the colours
-    from plenoctree.nerf.trainer import distortion_weight
+    from plenoctree.nerf.training import distortion_weight
 
     auto = tiny_cpu_config(data, tmp_path / "auto")
     assert auto.distortion_weight is None and distortion_weight(auto) == 0.0   # renders: off

@@ -44,6 +44,7 @@ TRITON_IMPLS = (
     ("finetune", "plenoctree.optim._steppers:TritonStepper"),
     ("hashgrid", "plenoctree.nerf._hashgrid_triton:hashgrid_backend"),
     ("march", "plenoctree.nerf._march_triton:march_backend"),
+    ("march_fixed", "plenoctree.nerf._march_triton:march_fixed_backend"),
 )
 
 

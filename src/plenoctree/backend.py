@@ -25,6 +25,8 @@ Ops and the signature of their implementations (each call site documents the sha
                  :class:`plenoctree.nerf.encoding.HashGridEncoding`
 ``march``        ``fn(rays: MarchRays, grid: MarchGrid, max_per_ray) -> PackedSamples`` —
                  :func:`plenoctree.nerf.sampling.march_rays`
+``march_fixed``  ``fn(rays: MarchRays, grid: MarchGrid, capacity) -> FixedSamples`` —
+                 :func:`plenoctree.nerf.fixed.march_fixed`
 ``sh_colors``    ``fn(coeffs [N,3B], dirs [N,3], degree) -> rgb [N,3]`` —
                  :func:`plenoctree.nerf.model.sh_colors`
 ===============  ==========================================================================
@@ -196,6 +198,8 @@ for _op, _numba, _torch in (
     ("hashgrid", "plenoctree.nerf.encoding:_hashgrid_numba_run",
      "plenoctree.nerf.encoding:_hashgrid_torch_run"),
     ("march", "plenoctree.nerf.sampling:_march_numba", "plenoctree.nerf.sampling:_march_torch"),
+    ("march_fixed", "plenoctree.nerf.fixed:_march_fixed_numba",
+     "plenoctree.nerf.fixed:_march_fixed_torch"),
     ("sh_colors", "plenoctree.nerf.model:_sh_colors_numba_run",
      "plenoctree.nerf.model:_sh_colors_torch"),
 ):

@@ -70,8 +70,8 @@ def working_downscale(width: int, height: int, forward: bool, gpu: bool,
 
 
 def train_preset(name: str) -> TrainConfig:
-    """The NeRF-SH training settings of preset ``name``: ``cpu`` and ``paper`` (the trainer's
-    presets) or ``quick`` (cpu with a 3-minute budget). ``plenoctree train --preset`` and
+    """The NeRF-SH training settings of preset ``name``: ``cpu``, ``gpu`` and ``paper`` (the
+    trainer's presets) or ``quick`` (cpu with a 3-minute budget). ``plenoctree train --preset`` and
     ``run --preset`` take the same names."""
     from .nerf.config import preset
 
@@ -197,11 +197,16 @@ def _preset_quick() -> PipelineConfig:
     return cfg
 
 
+def _preset_gpu() -> PipelineConfig:
+    return PipelineConfig(train=train_preset("gpu"))
+
+
 PRESETS: dict[str, Callable[[], PipelineConfig]] = {
-    "cpu": PipelineConfig, "paper": _preset_paper, "quick": _preset_quick}
+    "cpu": PipelineConfig, "paper": _preset_paper, "quick": _preset_quick, "gpu": _preset_gpu}
 """``plenoctree run --preset NAME``: ``cpu`` (the defaults: cpu NeRF-SH preset for 30 minutes,
-256³), ``paper`` (the paper's NeRF-SH, 512³, 256 samples per voxel; for GPUs), ``quick`` (a few
-minutes end to end, to try a dataset)."""
+256³), ``gpu`` (the gpu NeRF-SH preset: fixed-shape steps of 2^18 samples, 20,000 steps, then
+the cpu pipeline's stages), ``paper`` (the paper's NeRF-SH, 512³, 256 samples per voxel; for
+GPUs), ``quick`` (a few minutes end to end, to try a dataset)."""
 
 
 def pipeline_preset(name: str) -> PipelineConfig:

@@ -291,7 +291,17 @@ class Cameras:
                                clip=self.ndc_clip)
         return o, d
 
-    def pixel_rays(self, image: Any, col: Any, row: Any) -> tuple[Any, Any]:
+    def device_tables(self, device: Any) -> tuple[Any, Any]:
+        """``(c2w, intrinsics)`` float64 torch tensors ``[N, 3|4, 4]``, ``[N, 4]`` on
+        ``device``: what :meth:`pixel_rays` reads, uploaded once by a caller that makes rays
+        every step (each upload is a host round trip on a GPU)."""
+        import torch
+
+        return (torch.as_tensor(self.c2w, device=device, dtype=torch.float64),
+                torch.as_tensor(self.intrinsics_array(), device=device))
+
+    def pixel_rays(self, image: Any, col: Any, row: Any,
+                   tables: tuple[Any, Any] | None = None) -> tuple[Any, Any]:
         """Rays through individual pixels, vectorised (the training ray sampler's path).
 
         Args:
@@ -299,6 +309,8 @@ class Cameras:
                 (the ray goes through the pixel centre ``(col + 0.5, row + 0.5)``; fractional
                 values give sub-pixel rays). numpy arrays or torch tensors (all three of one
                 kind; torch results are float32 on the tensors' device).
+            tables: torch inputs only: :meth:`device_tables` on their device (None: made
+                here, two uploads).
 
         Returns:
             ``(origins [B, 3], unit dirs [B, 3])``, identical to ``rays(image[b])[row[b],
@@ -310,8 +322,8 @@ class Cameras:
 
             dev = image.device
             idx = image.long()
-            c2w = torch.as_tensor(self.c2w, device=dev, dtype=torch.float64)[idx]
-            k = torch.as_tensor(self.intrinsics_array(), device=dev)[idx]
+            c2w_all, k_all = tables if tables is not None else self.device_tables(dev)
+            c2w, k = c2w_all[idx], k_all[idx]
             u, v = col.to(torch.float64), row.to(torch.float64)
             d_cam = torch.stack([(u + 0.5 - k[:, 2]) / k[:, 0], -(v + 0.5 - k[:, 3]) / k[:, 1],
                                  -torch.ones_like(u)], -1)

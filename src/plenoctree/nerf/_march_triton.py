@@ -118,3 +118,49 @@ def march_backend(rays, grid, max_per_ray: int):
         _march_kernel[launch](*args, counts, k_next, done, offsets, ray_idx, ts, pts,
                             FILL=True, BLOCK=block, **opts)
     return PackedSamples(ray_idx, ts, pts, offsets, k_next, done.bool())
+
+
+def march_fixed_backend(rays, grid, capacity: int):
+    """Op ``march_fixed`` of :mod:`plenoctree.backend`: the two passes above into the fixed
+    buffers of a sample budget (:func:`plenoctree.nerf.fixed.march_fixed`), with no read-back
+    (the prefix sum is cut at the budget on the device)."""
+    from .._triton import interpret_mode, require_triton
+    from .fixed import _samples, finish_fixed, fixed_buffers
+    from .sampling import _grid_consts
+
+    origins, mask, step = rays.origins, grid.mask, grid.step
+    dev = origins.device
+    require_triton(dev, "march_fixed")
+    n = origins.shape[0]
+    g = int(mask.shape[0])
+    lo, inv = _grid_consts(mask, grid.bbox)
+    m = _mask_int8(mask, dev)
+    counts = torch.empty(n, dtype=torch.int64, device=dev)
+    k_next = torch.empty(n, dtype=torch.int64, device=dev)
+    done = torch.empty(n, dtype=torch.int8, device=dev)
+    block = 1024 if interpret_mode() else BLOCK
+    launch = (triton.cdiv(max(n, 1), block),)
+    opts = {} if interpret_mode() else {"enable_fp_fusion": False}
+    consts = (float(step), *map(float, lo), *map(float, inv), g, 1 << 62, n)
+    args = (origins, rays.dirs, rays.t_min, rays.t_max, rays.jitter, rays.k_start, m) + consts
+    _march_kernel[launch](*args, counts, k_next, done, counts, counts, counts, counts,
+                          FILL=False, BLOCK=block, **opts)
+    cut, full = finish_fixed(counts, capacity)
+    ray_idx, ts, pts = fixed_buffers(n, capacity, grid.bbox)
+    _march_kernel[launch](*args, counts, k_next, done, cut, ray_idx, ts, pts,
+                          FILL=True, BLOCK=block, **opts)
+    return _samples(ray_idx, ts, pts, cut, full, capacity)
+
+
+_MASK_CACHE: dict = {}
+
+
+def _mask_int8(mask: torch.Tensor, dev: torch.device) -> torch.Tensor:
+    """The occupancy mask as flat int8 on ``dev``, converted once per mask content (the grid
+    changes every ``occ_update_every`` steps, in place: its version counter says when)."""
+    c = _MASK_CACHE
+    if c.get("mask") is mask and c.get("version") == mask._version:
+        return c["m"]
+    m = mask.to(device=dev, dtype=torch.int8).contiguous().reshape(-1)
+    c.update(mask=mask, version=mask._version, m=m)
+    return m

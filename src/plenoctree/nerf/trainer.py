@@ -30,21 +30,22 @@ import torch
 
 from .._util import atomic_save_json, atomic_write, progress
 from ..datasets import load_dataset
-from ..datasets.dataset import holds_photos
 from ..errors import ConfigError
 from ..runtime import ThreadTuner, resolve_amp, resolve_device, setup_threads
 from .checkpoint import CHECKPOINT_NAME, CheckpointError, TrainProgress, \
     model_from_checkpoint, read_checkpoint, save_checkpoint
-from .config import PHOTO_DISTORTION, TrainConfig, config_json, validate
+from .config import TrainConfig, config_json, validate
 from .encoding import HashGridEncoding
 from .far import resolve_far_levels
+from .fixed import FixedBatch, fixed_loss, render_fixed
 from .evaluate import evaluate_views
 from .model import NeRFModel
 from .renderer import ImageOptions, RayBatch, RenderMode, autocast, render_rays_hierarchical, \
     render_rays_occupancy
 from .runlog import RunLog
-from .training import (VAL_SHARE, RaySource, TrainingError, flush_tiny_moments,
-                       learning_rate, load_val_views, sparsity_loss, val_row_stride)
+from .training import (VAL_SHARE, RaySource, TrainingError, distortion_weight,
+                       flush_tiny_moments, learning_rate, load_val_views, opaque_photos,
+                       sparsity_loss, val_row_stride)
 
 # Runtime set-up (threads, malloc, device, AMP) is plenoctree.runtime's, not re-exported here.
 __all__ = ["TrainResult", "Trainer", "TrainerState", "train"]
@@ -118,24 +119,6 @@ class StepFigures:
     rays: int          # rays whose colour entered the loss
     samples: int       # network evaluations of the rendering
     occupancy_s: float  # seconds spent updating the occupancy grid
-
-
-def opaque_photos(cfg: TrainConfig) -> bool:
-    """Whether images without alpha are trained over random colours (``cfg.photo_background``;
-    "auto": when the dataset holds real photos)."""
-    if cfg.photo_background != "auto":
-        return cfg.photo_background == "random"
-    return holds_photos(cfg.data, cfg.format)
-
-
-def distortion_weight(cfg: TrainConfig) -> float:
-    """The distortion loss's weight: ``cfg.distortion_weight``, or when None
-    :data:`~plenoctree.nerf.config.PHOTO_DISTORTION` for real photos with the occupancy sampler
-    and 0 otherwise."""
-    if cfg.distortion_weight is not None:
-        return float(cfg.distortion_weight)
-    photos = cfg.sampler == "occupancy" and holds_photos(cfg.data, cfg.format)
-    return PHOTO_DISTORTION if photos else 0.0
 
 
 def _prepare_run_dir(cfg: TrainConfig, resume: bool):
@@ -245,6 +228,11 @@ class Trainer:
         self.rays = RaySource(self.data, self.device, cfg.random_background,
                               opaque_photos=opaque_photos(cfg))
         self.dist_weight = distortion_weight(cfg)
+        self.fixed = FixedBatch(cfg.target_samples, cfg.max_rays, self.device) \
+            if cfg.fixed_step else None
+        if self.fixed is not None and self.dctx.active:
+            raise ConfigError("--fixed-step does not run under torchrun yet; train on one "
+                              "device, or without --fixed-step")
         self.occ_thresh = -math.log(1.0 - cfg.occ_threshold) / cfg.render_step
         self.wall0 = time.perf_counter() - wall_before
         self.last_ckpt_wall = time.perf_counter()
@@ -354,9 +342,18 @@ class Trainer:
         """``(loss, mse, rays used, samples)`` of a random batch of rays (this rank's shard)."""
         cfg, dctx, data = self.cfg, self.dctx, self.data
         n_rays = int(self.state.n_rays) if self.occ else cfg.batch_rays
+        if self.fixed is not None:
+            n_rays = self.fixed.rays(self.state.n_rays)
         o, d, target, bg = (dctx.shard(x) for x in self.rays.sample(n_rays, self.gen))
         batch = RayBatch(o, d, data.near, data.far, bg)
-        if self.occ:
+        if self.fixed is not None:      # nerf.fixed: nothing read back inside the step
+            mode = RenderMode(train=True, generator=self.rgen, amp=self.amp,
+                              distortion=self.dist_weight > 0)
+            r = render_fixed(self.model, batch, cfg, mode, cfg.target_samples)
+            loss, mse = fixed_loss(r, target, self.dist_weight, self.extent)
+            self.fixed.add(n_rays, r["total"])
+            used = n_rays
+        elif self.occ:
             mode = RenderMode(train=True, generator=self.rgen, amp=self.amp,
                               max_samples=2 * cfg.target_samples // dctx.world,
                               distortion=self.dist_weight > 0)
@@ -440,7 +437,10 @@ class Trainer:
         self.opt.step()
         if self.step % 100 == 99:
             flush_tiny_moments(self.opt)
-        if self.occ:
+        if self.fixed is not None:
+            if self.step % cfg.occ_update_every == cfg.occ_update_every - 1:
+                self.fixed.adapt(self.state)
+        elif self.occ:
             st = self.state
             spr = max(n_samples, 1) / max(used, 1)
             st.spr = spr if st.spr == 0 else 0.9 * st.spr + 0.1 * spr

@@ -10,10 +10,11 @@ import numpy as np
 import torch
 
 from ..datasets import Dataset, load_dataset
+from ..datasets.dataset import holds_photos
 from ..errors import PlenOctreeError
-from .config import TrainConfig
+from .config import PHOTO_DISTORTION, TrainConfig
 
-__all__ = ["TrainingError", "learning_rate", "flush_tiny_moments", "sparsity_loss", "RaySource",
+__all__ = ["opaque_photos", "distortion_weight", "TrainingError", "learning_rate", "flush_tiny_moments", "sparsity_loss", "RaySource",
            "load_val_views", "VAL_SHARE", "VAL_PIXELS", "val_row_stride"]
 
 VAL_SHARE = 0.1
@@ -110,6 +111,7 @@ class RaySource:
         self.n, self.h, self.w = n, h, w
         self.device = device
         self.cameras = cams
+        self.tables = cams.device_tables(device)       # uploaded once, not every step
         self.images = torch.from_numpy(np.ascontiguousarray(data.images)).reshape(-1, 3).to(device)
         self.bg = torch.tensor(data.background, dtype=torch.float32, device=device)
         self.alphas = None
@@ -122,7 +124,7 @@ class RaySource:
         (``img * H * W + row * W + col``), equal to ``cameras.rays(img)[row, col]``."""
         img = idx // (self.h * self.w)
         pix = idx % (self.h * self.w)
-        return self.cameras.pixel_rays(img, pix % self.w, pix // self.w)
+        return self.cameras.pixel_rays(img, pix % self.w, pix // self.w, self.tables)
 
     def sample(self, n: int, generator: torch.Generator):
         """``(origins, dirs, target [n, 3], background [n, 3])`` of ``n`` random pixels."""
@@ -148,3 +150,21 @@ def load_val_views(cfg: TrainConfig) -> Dataset | None:
 
 
 # ------------------------------------------------------------------ training
+
+
+def opaque_photos(cfg: TrainConfig) -> bool:
+    """Whether images without alpha are trained over random colours (``cfg.photo_background``;
+    "auto": when the dataset holds real photos)."""
+    if cfg.photo_background != "auto":
+        return cfg.photo_background == "random"
+    return holds_photos(cfg.data, cfg.format)
+
+
+def distortion_weight(cfg: TrainConfig) -> float:
+    """The distortion loss's weight: ``cfg.distortion_weight``, or when None
+    :data:`~plenoctree.nerf.config.PHOTO_DISTORTION` for real photos with the occupancy sampler
+    and 0 otherwise."""
+    if cfg.distortion_weight is not None:
+        return float(cfg.distortion_weight)
+    photos = cfg.sampler == "occupancy" and holds_photos(cfg.data, cfg.format)
+    return PHOTO_DISTORTION if photos else 0.0

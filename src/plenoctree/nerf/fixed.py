@@ -1,0 +1,243 @@
+"""A training step of fixed shape (issue 47): every tensor of a step has a size known before
+the step runs, and nothing is read back to the host inside it.
+
+The occupancy sampler of the CPU preset (:func:`.renderer.render_rays_occupancy`) marches rays
+in waves until their transmittance falls below ``train_stop_thresh``: each wave reads back how
+many rays still march and how many samples the march made (host round trips on a GPU, and an
+op count that grows with the batch). Here instead, as in nerfacc and instant-ngp:
+
+* the rays of the step are marched once through the occupancy grid into buffers of a fixed
+  **sample budget** ``S`` (:func:`march_fixed`: one counting pass, a prefix sum, one filling
+  pass; a ray's samples are written while they fit, the count stays on the device);
+* the network runs on all ``S`` slots; slots no ray filled hold the box's centre and belong
+  to a dummy ray ``R`` whose outputs are dropped (so they get no gradient);
+* eq. (1)–(2) over each ray's whole sequence (no early termination: the samples behind a
+  surface get weights ~0, the same image), the loss over the rays whose samples all fit
+  (``complete``, a mask — never a selection);
+* how many rays the next steps take is adapted from the samples per ray, read back every
+  ``occ_update_every`` steps (:class:`FixedBatch`); the ray count moves in multiples of
+  :data:`RAY_QUANTUM` so that a captured graph (CUDA graphs, ``torch.compile``) sees few
+  shapes.
+
+Backends of op ``march_fixed`` (:mod:`plenoctree.backend`): numba on the CPU, Triton on CUDA
+(the two passes of :mod:`._march_triton` into the fixed buffers), and the torch twin
+:func:`_march_fixed_torch` (the packed march of :func:`.sampling._march_torch`, cut at ``S``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .sampling import MarchGrid, MarchRays, PackedSamples, _grid_consts, _march_torch
+
+__all__ = ["FixedSamples", "march_fixed", "fixed_buffers", "finish_fixed", "FixedBatch",
+           "RAY_QUANTUM"]
+
+#: The adaptive ray count of a fixed-shape step is a multiple of this.
+RAY_QUANTUM = 256
+
+
+@dataclass
+class FixedSamples:
+    """The samples of ``R`` rays in a budget of ``S`` slots, ray after ray.
+
+    Attributes:
+        ray_idx: int64 ``[S]`` ray of each slot (``R``, the dummy ray, for unfilled slots).
+        t: float32 ``[S]`` distance along the ray (0 in unfilled slots).
+        points: float32 ``[S, 3]`` world positions (the box's centre in unfilled slots).
+        offsets: int64 ``[R + 2]``: ray ``r`` owns slots ``offsets[r]:offsets[r + 1]``, the
+            dummy ray the rest (``offsets[R + 1] = S``).
+        complete: bool ``[R]``: every sample of the ray fits in the budget.
+        n_valid: int64 ``[]`` filled slots; total: int64 ``[]`` samples of all rays (also
+            those past the budget). Device tensors, not read back.
+    """
+
+    ray_idx: torch.Tensor
+    t: torch.Tensor
+    points: torch.Tensor
+    offsets: torch.Tensor
+    complete: torch.Tensor
+    n_valid: torch.Tensor
+    total: torch.Tensor
+
+
+def fixed_buffers(n_rays: int, capacity: int, bbox: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(ray_idx [S], t [S], points [S, 3])`` of unfilled slots (dummy ray ``n_rays``, t 0,
+    the centre of ``bbox [2, 3]``) for a march to fill."""
+    dev = bbox.device
+    ray_idx = torch.full((capacity,), n_rays, dtype=torch.int64, device=dev)
+    ts = torch.zeros(capacity, dtype=torch.float32, device=dev)
+    pts = (0.5 * (bbox[0] + bbox[1])).float().expand(capacity, 3).contiguous()
+    return ray_idx, ts, pts
+
+
+def finish_fixed(counts: torch.Tensor, capacity: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(offsets [R + 1] cut at the budget, full offsets [R + 1])`` of per-ray sample
+    ``counts [R]`` (int64), on the device."""
+    full = torch.zeros(counts.shape[0] + 1, dtype=torch.int64, device=counts.device)
+    torch.cumsum(counts, 0, out=full[1:])
+    return full.clamp(max=capacity), full
+
+
+def _samples(ray_idx: torch.Tensor, ts: torch.Tensor, pts: torch.Tensor, cut: torch.Tensor,
+             full: torch.Tensor, capacity: int) -> FixedSamples:
+    end = torch.full((1,), capacity, dtype=torch.int64, device=cut.device)
+    return FixedSamples(ray_idx, ts, pts, torch.cat([cut, end]), full[1:] <= capacity,
+                        cut[-1], full[-1])
+
+
+def _march_fixed_numba(rays: MarchRays, grid: MarchGrid, capacity: int) -> FixedSamples:
+    """The numba marching kernels (CPU tensors) into the budget's buffers."""
+    from . import _march_numba as K
+    from .sampling import _empty_levels
+
+    n = rays.origins.shape[0]
+    lo, inv = _grid_consts(grid.mask, grid.bbox)
+    levels, coarse, cs = _empty_levels(grid.mask)
+    counts = np.empty(n, np.int64)
+    k_next = np.empty(n, np.int64)
+    done = np.empty(n, np.bool_)
+    args = (rays.origins.numpy(), rays.dirs.numpy(), rays.t_min.numpy(), rays.t_max.numpy(),
+            rays.jitter.numpy(), rays.k_start.numpy(), np.float32(grid.step), levels, coarse,
+            np.int64(cs), lo, inv)
+    K.march_count(*args, 0, counts, k_next, done)
+    cut, full = finish_fixed(torch.from_numpy(counts), capacity)
+    ray_idx, ts, pts = fixed_buffers(n, capacity, grid.bbox)
+    K.march_fill(*args, cut.numpy(), ray_idx.numpy(), ts.numpy(), pts.numpy())
+    return _samples(ray_idx, ts, pts, cut, full, capacity)
+
+
+def _march_fixed_torch(rays: MarchRays, grid: MarchGrid, capacity: int) -> FixedSamples:
+    """The twin: every sample by :func:`.sampling._march_torch` (a packed march with host
+    round trips), the first ``capacity`` of them kept."""
+    s: PackedSamples = _march_torch(rays, grid, 0)
+    n = rays.origins.shape[0]
+    cut, full = finish_fixed(s.counts, capacity)
+    ray_idx, ts, pts = fixed_buffers(n, capacity, grid.bbox)
+    m = min(len(s), capacity)
+    ray_idx[:m], ts[:m], pts[:m] = s.ray_idx[:m], s.t[:m], s.points[:m]
+    return _samples(ray_idx, ts, pts, cut, full, capacity)
+
+
+def march_fixed(rays: MarchRays, grid: MarchGrid, capacity: int,
+                backend: str = "auto") -> FixedSamples:
+    """March every ray of ``rays`` through ``grid`` (the samples of
+    :func:`.sampling.march_rays` without a per-ray limit) into a budget of ``capacity``
+    slots, ray after ray, without reading anything back (see the module doc).
+
+    Args:
+        rays: the rays (``k_start`` None or zeros). grid: spacing and occupancy.
+        capacity: the sample budget ``S`` (>= 1).
+        backend: "auto" (numba on CPU, Triton on CUDA), "numba", "triton" or "torch".
+
+    Returns:
+        :class:`FixedSamples`.
+    """
+    from .. import backend as _backend
+
+    rays = rays.contiguous()
+    name = _backend.resolve("march_fixed", backend, rays.origins.device)
+    return _backend.implementation("march_fixed", name)(rays, grid, int(capacity))
+
+
+class FixedBatch:
+    """The ray count of fixed-shape steps: ``S / (samples per ray)`` rounded down to a
+    multiple of :data:`RAY_QUANTUM`, within ``[RAY_QUANTUM, max_rays]``.
+
+    Each step adds its rays and samples (all of them, also past the budget) to device
+    counters (:meth:`add`, no read-back); :meth:`adapt` reads them (one host round trip) and
+    updates the trainer's state (``spr``: running mean of the samples per ray, ``n_rays``) as
+    the waves path does every step, so a checkpoint keeps it."""
+
+    def __init__(self, capacity: int, max_rays: int, device: torch.device):
+        self.capacity, self.max_rays = int(capacity), int(max_rays)
+        self.sums = torch.zeros(2, dtype=torch.float64, device=device)   # rays, samples
+
+    def rays(self, n_rays: float) -> int:
+        """The ray count of a step for the state's ``n_rays``."""
+        top = max(RAY_QUANTUM, self.max_rays // RAY_QUANTUM * RAY_QUANTUM)
+        return max(RAY_QUANTUM, min(int(n_rays) // RAY_QUANTUM * RAY_QUANTUM, top))
+
+    def add(self, n_rays: int, total: torch.Tensor) -> None:
+        """Count a step of ``n_rays`` rays that marched ``total`` (device int64) samples."""
+        self.sums[0] += n_rays
+        self.sums[1] += total
+
+    def adapt(self, state) -> None:
+        """Read the counters (one round trip) and set ``state.spr`` and ``state.n_rays``
+        (``state``: the trainer's :class:`~.trainer.TrainerState`)."""
+        rays, samples = self.sums.tolist()
+        self.sums.zero_()
+        if rays > 0:
+            spr = max(samples, 1.0) / rays
+            state.spr = spr if state.spr == 0 else 0.9 * state.spr + 0.1 * spr
+            state.n_rays = float(min(self.max_rays, max(RAY_QUANTUM,
+                                                        self.capacity / state.spr)))
+
+
+def render_fixed(model, rays, cfg, mode, capacity: int) -> dict:
+    """Training render of ``R`` rays in a fixed sample budget (the fixed-shape counterpart of
+    :func:`.renderer.render_rays_occupancy` with ``mode.train``).
+
+    Args:
+        model: a :class:`~.model.NeRFModel` with an occupancy grid. rays: a
+            :class:`~.renderer.RayBatch`. cfg: its :class:`~.config.TrainConfig`
+            (``render_step``, far-field samples). mode: a training
+            :class:`~.renderer.RenderMode` (``generator``, ``amp``, ``distortion``).
+        capacity: the sample budget ``S``.
+
+    Returns:
+        ``rgb [R, 3]`` (over ``rays``' background), ``acc [R]``, ``complete [R]`` bool,
+        ``n_samples`` (int, = ``S``: every slot is evaluated), ``total`` (int64 ``[]``, the
+        samples the rays had, also past the budget) and with ``mode.distortion``
+        ``distortion [R]``.
+    """
+    from .far import composite_far, render_far
+    from .renderer import autocast, ray_bounds
+    from .volrend import composite_packed, distortion_packed, render_weights_packed
+
+    n = len(rays)
+    dev = rays.origins.device
+    t_min, t_max = ray_bounds(rays.origins, rays.dirs, model.scene_bbox, rays.near, rays.far)
+    jitter = torch.rand(n, generator=mode.generator, device=dev)
+    occ = model.occupancy
+    step = float(cfg.render_step)
+    s = march_fixed(MarchRays(rays.origins, rays.dirs, t_min, t_max, jitter),
+                    MarchGrid(step, occ.mask, occ.bbox), capacity)
+    d = rays.dirs.index_select(0, s.ray_idx.clamp(max=n - 1))
+    with autocast(dev, mode.amp):
+        sigma, coeffs = model.fine(s.points, d)
+    color = model.fine.colors(coeffs, d)
+    w, _ = render_weights_packed(sigma, step, s.ray_idx, s.offsets)
+    vals = torch.cat([color.float(), torch.ones_like(s.t)[:, None], s.t[:, None]], 1)
+    sums = composite_packed(w, vals, s.ray_idx, n + 1)[:n]          # the dummy ray dropped
+    r = {"rgb": sums[:, :3], "acc": sums[:, 3], "dsum": sums[:, 4]}
+    out = {"complete": s.complete, "n_samples": int(capacity), "total": s.total}
+    if mode.distortion:
+        out["distortion"] = distortion_packed(w, s.t, step, s.ray_idx, s.offsets, n + 1)[:n]
+    if model.far is not None:           # the world beyond the box (nerf.far): fixed samples
+        with autocast(dev, mode.amp):
+            f = render_far(model.far, rays.origins, rays.dirs, rays.near, model.scene_bbox,
+                           cfg.far_samples, cfg.far_fine, True, mode.generator)
+        r = {**r, **composite_far(f, r["rgb"], r["acc"], r["dsum"])}
+        out["n_samples"] += n * (cfg.far_samples + cfg.far_fine)
+    out.update(rgb=r["rgb"] + (1.0 - r["acc"])[:, None] * rays.bg(), acc=r["acc"])
+    return out
+
+
+def fixed_loss(r: dict, target: torch.Tensor, dist_weight: float, extent: float
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(loss, mse)`` of :func:`render_fixed`'s output ``r`` against ``target [R, 3]``: the
+    mean squared error over the complete rays (a mask; 0 when none is complete) plus
+    ``dist_weight / extent`` times their mean distortion, as the waves path's loss."""
+    mask = r["complete"].to(target.dtype)
+    used = mask.sum().clamp(min=1.0)
+    mse = (((r["rgb"] - target) ** 2).mean(-1) * mask).sum() / used
+    loss = mse
+    if "distortion" in r and dist_weight > 0:
+        loss = loss + dist_weight / extent * (r["distortion"] * mask).sum() / used
+    return loss, mse

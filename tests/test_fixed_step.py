@@ -1,0 +1,160 @@
+"""The training step of fixed shape (nerf/fixed.py, issue 47): the march into a sample budget
+on every backend equals the twin, the render equals the waves path's without early
+termination on the rays that fit, the step reads nothing back (counted with CPU tensors on
+the CUDA path's code), and a run with it learns."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from nerf_fixtures import tiny_cpu_config, tiny_dataset
+from test_nerf_sampling import BOX, _rays
+
+from plenoctree.nerf.fixed import FixedBatch, march_fixed
+from plenoctree.nerf.sampling import MarchGrid, MarchRays, march_rays
+
+_BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    return tiny_dataset(tmp_path_factory.mktemp("fixed_data"))
+
+
+def _case(seed: int, n: int = 200):
+    o, d, t0, t1, jit, g = _rays(n, seed)
+    mask = torch.rand((16, 16, 16), generator=g) < 0.3
+    return MarchRays(o, d, t0, t1, jit), MarchGrid(0.05, mask, BOX)
+
+
+def _assert_fixed_equal(a, b):
+    for name in ("ray_idx", "offsets", "complete", "n_valid", "total", "t", "points"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+
+
+@pytest.mark.parametrize("capacity", [1, 700, 5000, 100000])
+def test_march_fixed_numba_equals_twin_and_the_packed_march(capacity):
+    rays, grid = _case(1)
+    a = march_fixed(rays, grid, capacity, backend="numba")
+    _assert_fixed_equal(a, march_fixed(rays, grid, capacity, backend="torch"))
+    full = march_rays(rays, grid, backend="torch")
+    n, m = rays.origins.shape[0], min(len(full), capacity)
+    assert 700 < len(full) < 5000 and int(a.total) == len(full) and int(a.n_valid) == m
+    assert a.ray_idx.shape == (capacity,) and a.offsets.shape == (n + 2,)
+    assert torch.equal(a.ray_idx[:m], full.ray_idx[:m]) and (a.ray_idx[m:] == n).all()
+    assert torch.equal(a.points[:m], full.points[:m])
+    assert torch.equal(a.complete, full.offsets[1:] <= capacity)
+    assert torch.equal(a.offsets[:-1], full.offsets.clamp(max=capacity))
+    centre = 0.5 * (BOX[0] + BOX[1])
+    assert (a.points[m:] == centre).all() and (a.t[m:] == 0).all()
+
+
+def test_march_fixed_triton_equals_twin():
+    pytest.importorskip("triton")
+    if os.environ.get("TRITON_INTERPRET") != "1":
+        pytest.skip("TRITON_INTERPRET=1 must be set before triton is imported (conftest.py)")
+    rays, grid = _case(2, n=96)
+    os.environ["PLENOCTREE_TRITON_CPU"] = "1"
+    try:
+        for capacity in (300, 100000):
+            a = march_fixed(rays, grid, capacity, backend="triton")
+            _assert_fixed_equal(a, march_fixed(rays, grid, capacity, backend="torch"))
+    finally:
+        os.environ.pop("PLENOCTREE_TRITON_CPU", None)
+
+
+def _trainer(data: Path, out: Path, fixed: bool):
+    from plenoctree.nerf.trainer import Trainer
+
+    cfg = tiny_cpu_config(data, out, steps=10**6)
+    cfg.fixed_step, cfg.val_views, cfg.amp = fixed, 0, "off"
+    tr = Trainer(cfg, quiet=True)
+    tr.setup()
+    return tr
+
+
+def test_render_fixed_equals_the_waves_without_early_termination(data, tmp_path):
+    """The rays that fit in the budget get the colour of the waves path with
+    ``stop_thresh = 0`` (the same jitter: both draw it first from the generator)."""
+    from plenoctree.nerf.fixed import render_fixed
+    from plenoctree.nerf.renderer import RayBatch, RenderMode, render_rays_occupancy
+
+    tr = _trainer(data, tmp_path / "run", True)
+    o, d, _, bg = tr.rays.sample(300, tr.gen)
+    batch = RayBatch(o, d, tr.data.near, tr.data.far, bg)
+    out = {}
+    for name, capacity in (("fixed", 12000), ("waves", 0)):
+        gen = torch.Generator().manual_seed(5)
+        mode = RenderMode(train=True, generator=gen, stop_thresh=0.0, distortion=True)
+        out[name] = (render_fixed(tr.model, batch, tr.cfg, mode, capacity) if capacity
+                     else render_rays_occupancy(tr.model, batch, tr.cfg, mode))
+    ok = out["fixed"]["complete"]
+    assert 50 < int(ok.sum()) < 300                  # the budget cut some rays off
+    for key in ("rgb", "acc", "distortion"):
+        torch.testing.assert_close(out["fixed"][key][ok], out["waves"][key][ok],
+                                   atol=2e-6, rtol=1e-5)
+
+
+def test_the_fixed_step_reads_nothing_back(data, tmp_path):
+    """A whole training step (rays, march, network, loss, backward, Adam) on the CUDA path's
+    code (Triton in its interpreter, counted with CPU tensors): no host round trip, no
+    upload, and the same op count at any batch."""
+    pytest.importorskip("triton")
+    if os.environ.get("TRITON_INTERPRET") != "1":
+        pytest.skip("TRITON_INTERPRET=1 must be set before triton is imported (conftest.py)")
+    sys.path.insert(0, str(_BENCH))
+    import step_ops
+
+    from plenoctree._util import progress
+
+    tr = _trainer(data, tmp_path / "run", True)
+    bar = progress(total=1, disable=True)
+    for _ in range(3):
+        tr.iteration(bar)
+    counter, seen = step_ops.Recorder(), []
+    os.environ["PLENOCTREE_TRITON_CPU"] = "1"
+    try:
+        with step_ops.backends_of("cuda"):
+            tr.iteration(bar)                    # once per process: the hash grid's layout
+            for batch in (256, 1024, 256):
+                tr.step = step_ops._step_number(tr.step, tr.cfg, False)
+                tr.state.n_rays = float(batch)
+                with counter.region() as c:
+                    tr.iteration(bar)
+                seen.append(c)
+    finally:
+        os.environ.pop("PLENOCTREE_TRITON_CPU", None)
+    for c in seen:
+        assert sum(c.syncs.values()) == 0, dict(c.sites)
+        assert c.triton >= 3                    # march (2 passes), hash grid
+    assert len({c.ops for c in seen}) == 1, [c.ops for c in seen]
+
+
+def test_training_with_fixed_steps_learns_and_adapts_its_rays(data, tmp_path):
+    from plenoctree.nerf import train
+
+    cfg = tiny_cpu_config(data, tmp_path / "run", steps=150)
+    cfg.fixed_step, cfg.val_split, cfg.val_views, cfg.lr_final = True, "train", 2, 5e-3
+    res = train(cfg, quiet=True)
+    first, last = res.log["train"][0]["psnr"], res.log["train"][-1]["psnr"]
+    assert last > first + 5.0 and res.val_psnr > 20.0, (first, last, res.val_psnr)
+    rays = {row["rays"] for row in res.log["train"]}
+    assert all(r % 256 == 0 for r in rays) and len(rays) > 1      # adapted, in quanta
+
+
+def test_fixed_batch_quantises_and_adapts():
+    class State:
+        n_rays, spr = 4096.0, 0.0
+
+    fb = FixedBatch(1 << 14, 1 << 13, torch.device("cpu"))
+    st = State()
+    assert fb.rays(st.n_rays) == 4096 and fb.rays(100.0) == 256 and fb.rays(1e9) == 8192
+    fb.add(1000, torch.tensor(20000))
+    fb.adapt(st)
+    assert st.spr == 20.0 and st.n_rays == (1 << 14) / 20.0 and fb.rays(st.n_rays) == 768
+    assert fb.sums.sum() == 0
