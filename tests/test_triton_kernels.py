@@ -516,3 +516,30 @@ def test_march_kernel_matches_twin(max_per_ray):
         assert torch.equal(getattr(fast, name).cpu(), getattr(ref, name).cpu()), name
     assert torch.equal(fast.t.cpu(), ref.t.cpu()) and torch.equal(fast.points.cpu(),
                                                                   ref.points.cpu())
+
+
+@pytest.mark.parametrize("degree", [0, 2, 3, 4])
+def test_sh_color_kernel_matches_numba_and_twin(degree):
+    """The Triton SH-colour kernel (nerf/_shcolor_triton.py, one launch each way): colours
+    and the gradient w.r.t. the coefficients as the numba kernels and the torch twin, also
+    for bf16 coefficients (the MLP's autocast output)."""
+    from plenoctree.nerf.model import sh_colors
+
+    g = torch.Generator().manual_seed(degree)
+    n, nb = 300, (degree + 1) ** 2
+    k = torch.randn(n, 3 * nb, generator=g)
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    up = torch.randn(n, 3, generator=g)
+    out = {}
+    for be, dtype in (("triton", torch.float32), ("numba", torch.float32),
+                      ("torch", torch.float32), ("triton", torch.bfloat16)):
+        kk = k.detach().clone().to(dtype).requires_grad_(True)
+        rgb = sh_colors(kk.to(DEV), d.to(DEV), degree, backend=be)
+        (rgb * up.to(DEV)).sum().backward()
+        assert rgb.dtype == torch.float32 and kk.grad.dtype == dtype
+        out[be, dtype] = (rgb.detach().cpu(), kk.grad.float())
+    ref = out["triton", torch.float32]
+    for key in (("numba", torch.float32), ("torch", torch.float32)):
+        torch.testing.assert_close(out[key][0], ref[0], atol=3e-7, rtol=0)
+        torch.testing.assert_close(out[key][1], ref[1], atol=3e-7, rtol=0)
+    torch.testing.assert_close(out["triton", torch.bfloat16][0], ref[0], atol=2e-2, rtol=0)
