@@ -65,7 +65,7 @@ _BATCH = (MAX_BATCH, "2^26 per batch")
 
 LIMITS: dict[str, tuple[int, str]] = {
     "minutes": _WEEK_MIN, "checkpoint_minutes": _WEEK_MIN,
-    "val_every_s": _WEEK_S, "ckpt_every_s": _WEEK_S,
+    "val_every_s": _WEEK_S, "ckpt_every_s": _WEEK_S, "preview_every_s": _WEEK_S,
     "batch_rays": _BATCH, "max_rays": _BATCH, "target_samples": _BATCH,
     "sparsity_points": _BATCH, "chunk": _BATCH,
     "occ_res": (MAX_OCC_RES, "1024^3 cells"),

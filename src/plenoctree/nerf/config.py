@@ -204,6 +204,9 @@ class TrainConfig:
     """Split the validation views come from."""
     val_views: int = 5
     """Number of validation views, evenly spaced over the split (5 of 200: r_0, r_40, ...)."""
+    preview_every_s: float = 150.0
+    """Seconds of training between the coarse preview trees of a live view (``plenoctree view
+    RUN`` shows the newest; the first after 60 s; 0 = none)."""
     ckpt_every_s: float = 60.0
     """Seconds between checkpoints (0 = only by steps / at the end)."""
     ckpt_every_steps: int = 0
@@ -355,6 +358,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
          f"{cfg.far_levels}")
     need(not cfg.fixed_step or cfg.sampler == "occupancy",
          "fixed_step needs the occupancy sampler (--sampler occupancy)")
+    need(cfg.preview_every_s >= 0, f"preview_every_s must be >= 0, got {cfg.preview_every_s}")
     need(cfg.far_levels <= 0 or cfg.sampler == "occupancy",
          "far_levels needs the occupancy sampler (--sampler occupancy)")
     need(cfg.far_samples >= 2 and cfg.far_fine >= 0, "far_samples must be >= 2 and far_fine >= 0")

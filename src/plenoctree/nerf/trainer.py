@@ -21,7 +21,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -31,6 +31,7 @@ import torch
 from .._util import atomic_save_json, atomic_write, progress
 from ..datasets import load_dataset
 from ..errors import ConfigError
+from ..octree.ndc import NDCSpace
 from ..runtime import ThreadTuner, resolve_amp, resolve_device, setup_threads
 from .checkpoint import CHECKPOINT_NAME, CheckpointError, TrainProgress, \
     model_from_checkpoint, read_checkpoint, save_checkpoint
@@ -38,6 +39,8 @@ from .config import TrainConfig, config_json, validate
 from .encoding import HashGridEncoding
 from .far import resolve_far_levels
 from .fixed import FixedBatch, fixed_loss, render_fixed
+from .preview import LiveView
+from .trainer_state import LogWindow, StepFigures, TrainerState
 from .evaluate import evaluate_views
 from .model import NeRFModel
 from .renderer import ImageOptions, RayBatch, RenderMode, autocast, render_rays_hierarchical, \
@@ -60,65 +63,6 @@ class TrainResult:
     val_psnr: float
     model: NeRFModel
     log: dict = field(default_factory=dict)
-
-
-@dataclass
-class LogWindow:
-    """Running sums of the steps since the last log row (seconds, rays, samples, loss, MSE,
-    steps); checkpointed, so a resumed run's log equals the uninterrupted one's."""
-
-    t: float = 0.0
-    rays: int = 0
-    samples: int = 0
-    loss: float = 0.0
-    mse: float = 0.0
-    n: int = 0
-
-
-@dataclass
-class TrainerState:
-    """The trainer's scalar state, saved as the checkpoint's ``trainer`` entry (JSON).
-
-    Attributes:
-        n_rays: rays per step, adapted to ``target_samples`` (occupancy sampler).
-        spr: running mean of the samples per ray (0 before the first step).
-        next_val_s: training seconds at which the next timed validation is due.
-        last_ckpt_step: step of the last checkpoint written.
-        win: the sums of the log row being accumulated.
-    """
-
-    n_rays: float
-    spr: float = 0.0
-    next_val_s: float = 0.0
-    last_ckpt_step: int = 0
-    win: LogWindow = field(default_factory=LogWindow)
-
-    def to_json(self) -> dict:
-        return asdict(self)
-
-    def update(self, saved: dict) -> None:
-        """Take the entries of a checkpoint's ``trainer`` dict (missing ones keep theirs)."""
-        for k, v in saved.items():
-            if k == "win":
-                self.win = LogWindow(**v) if v else LogWindow()
-            elif k in ("n_rays", "spr", "next_val_s", "last_ckpt_step"):
-                setattr(self, k, v)
-
-
-@dataclass
-class StepFigures:
-    """What one training step measured (global figures under torchrun).
-
-    ``loss`` and ``mse`` are Python floats under torchrun; in one process they stay detached
-    0-d tensors on the device until :meth:`Trainer.read_losses` reads a window of them back
-    at once (a host round trip each step would stall a GPU)."""
-
-    lr: float
-    loss: float | torch.Tensor
-    mse: float | torch.Tensor
-    rays: int          # rays whose colour entered the loss
-    samples: int       # network evaluations of the rendering
-    occupancy_s: float  # seconds spent updating the occupancy grid
 
 
 def _prepare_run_dir(cfg: TrainConfig, resume: bool):
@@ -230,6 +174,8 @@ class Trainer:
         self.dist_weight = distortion_weight(cfg)
         self.fixed = FixedBatch(cfg.target_samples, cfg.max_rays, self.device) \
             if cfg.fixed_step else None
+        self.live = LiveView(self.out, cfg.preview_every_s, NDCSpace.from_cameras(
+            self.data.cameras)) if self.dctx.is_main else None      # plenoctree view RUN
         if self.fixed is not None and self.dctx.active:
             raise ConfigError("--fixed-step does not run under torchrun yet; train on one "
                               "device, or without --fixed-step")
@@ -471,6 +417,8 @@ class Trainer:
         if self.step % self.cfg.log_every == 0 or self.finished():
             self.log_row(fig, bar)
         self.maybe_validate()
+        if self.live is not None:
+            self.live.tick(self.model, self.train_s)
         self.maybe_checkpoint()
         if self.on_step is not None:
             self.on_step(self.step)
@@ -494,6 +442,9 @@ class Trainer:
                         rays_s=f"{row['rays_per_s']:.0f}")
         self.state.win = LogWindow()
         self.log.write(plot=False)
+        if self.live is not None:
+            self.live.row(self.step, None if self.budget_s > 0 else self.cfg.max_steps,
+                          row["psnr"], self.progress_frac(), self.train_s)
 
     def maybe_validate(self) -> None:
         """Validate when due by training seconds (``val_every_s``) or steps, unless done."""
@@ -572,6 +523,10 @@ class Trainer:
             self.validate()
             self.checkpoint()
             self.log.write()
+            if self.live is not None:       # the trained model's preview, and its PSNR
+                self.live.tick(self.model, self.train_s, force=True)
+                self.live.row(self.step, self.step, self.val_psnr, 1.0, self.train_s,
+                              "NeRF-SH trained")
         finally:
             bar.close()
         return self._finish()
@@ -587,7 +542,8 @@ class Trainer:
                    "mean_rays_per_s": _mean(log.train, "rays_per_s"),
                    "mean_samples_per_s": _mean(log.train, "samples_per_s"),
                    "device": str(self.device), "amp": self.amp,
-                   "threads": torch.get_num_threads(), "world_size": dctx.world}
+                   "threads": torch.get_num_threads(), "world_size": dctx.world,
+                   "preview_s": None if self.live is None else round(self.live.seconds, 3)}
         if dctx.is_main:
             atomic_save_json(self.out / "summary.json", summary)
         dctx.barrier()
