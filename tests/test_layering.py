@@ -63,7 +63,7 @@ ALLOWED: dict[str, set[str]] = {
     "convert": _LEAF | {"_lazy", "_util", "_triton", "backend", "device", "runtime", "sh",
                         "datasets", "octree", "render", "evaluation", "nerf"},
     "optim": _LEAF | {"_lazy", "_util", "_triton", "backend", "device", "plots", "datasets",
-                      "octree", "render", "evaluation"},
+                      "octree", "render", "evaluation", "sh"},
     "_config": _LEAF,
     "pipeline_config": _LEAF | {"_config", "compression", "convert", "nerf", "optim",
                                 "process"},

@@ -8,13 +8,15 @@ it, and a write takes a few seconds per validation that improves (2.6 s per GB h
 Files: ``<stem>.best-<n>.f32`` (raw float32 in C order, the values' shape), ``n`` counting the
 stores. A checkpoint records the ``n`` of the file it needs (:meth:`BestValues.pin`); that file
 is kept until the next checkpoint, so a crash at any point leaves a checkpoint with its best
-values. ``stem=None`` keeps the copy in memory (no checkpoint then).
+values. ``stem=None`` keeps the copy in memory (no checkpoint then). :class:`DeviceBestValues` keeps
+it on a device stepper's device and writes the file only for a checkpoint.
 """
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -95,6 +97,45 @@ class BestValues:
         """Delete the files (all, or all but number ``keep``)."""
         if self.stem is not None:
             _remove(self.stem, None if keep is None else self.file(keep).name)
+
+
+class DeviceBestValues(BestValues):
+    """The best values kept as a copy on the device beside the live ones (a device stepper's
+    ``[n_cells, D]`` tensor ``like``): :meth:`store` is a device-to-device copy and
+    :meth:`load` returns that tensor, so keeping or restoring the best reads nothing back.
+    The file beside the checkpoint is written only when a checkpoint pins the values
+    (:meth:`pin`); resumed or stored numpy values go through the file as in
+    :class:`BestValues`."""
+
+    def __init__(self, like: Any, stem: Path | None) -> None:
+        super().__init__(tuple(like.shape), np.float32, stem)
+        self._dev = like.detach().clone()
+        self._have = False          # _dev holds the best values
+        self._dirty = False         # _dev is newer than the file
+
+    def store(self, values: Any) -> None:
+        if isinstance(values, np.ndarray):
+            super().store(values)
+            self._have = False
+            return
+        if tuple(values.shape) != self.shape:
+            raise ValueError(f"best values: shape {tuple(values.shape)}, expected {self.shape}")
+        self._dev.copy_(values)
+        self._have = self._dirty = True
+
+    def load(self) -> Any:
+        """The best values: the device copy (a tensor), or the file's / memory's (numpy)."""
+        return self._dev if self._have else super().load()
+
+    def adopt(self, token: int) -> None:
+        super().adopt(token)
+        self._have = False
+
+    def pin(self) -> int:
+        if self._have and self._dirty and self.stem is not None:
+            super().store(self._dev.cpu().numpy())
+            self._dirty = False
+        return super().pin()
 
 
 def remove_best_files(checkpoint: Path) -> None:

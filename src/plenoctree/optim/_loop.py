@@ -1,7 +1,11 @@
 """The epoch loop of fine-tuning: random ray batches, validation, early stop, divergence, resume.
 
-Used by :func:`plenoctree.optim.finetuning.finetune`; works with either stepper of
-:mod:`._steppers`.
+Used by :func:`plenoctree.optim.finetuning.finetune`; works with every stepper of
+:mod:`._steppers`. A host stepper (numba) gets each batch's rays made on the CPU and returns the
+step's figures at once; a device stepper (torch, Triton: :mod:`._device_stepper`) gets a slice
+of a tile order drawn on the device and writes its figures into a device buffer the loop reads
+back every ``read_every`` steps and at the end of an epoch, where the divergence watch runs
+over them in order.
 """
 
 from __future__ import annotations
@@ -17,8 +21,10 @@ import numpy as np
 
 from .._util import atomic_save_npz, progress
 from ..errors import ConfigError
-from ._best import BestValues, remove_best_files
+from ._best import BestValues, DeviceBestValues, remove_best_files
+from ._rules import FIG_BAD, FIG_RAYS, FIG_SSE
 from ._events import EventLog
+from ._views import ViewSet, render_views_psnr
 
 __all__ = ["ViewSet", "LoopState", "LoopOptions", "FineTuneLoop", "Diverged",
            "render_views_psnr", "remove_best_files"]
@@ -27,141 +33,6 @@ _EMA = 0.2            # smoothing of the batch MSE for the divergence test
 _DIVERGE_FACTOR = 4.0  # smoothed batch MSE above factor * first-batch MSE + _DIVERGE_ABS ...
 _DIVERGE_ABS = 1e-3    # ... means the learning rate diverged
 _MIN_BATCHES = 5
-
-
-@dataclass
-class ViewSet:
-    """Posed images to train or validate on: ``c2w [N, 4, 4]``, the intrinsics of the first
-    camera, ``images [N, H, W, 3]``, and their names.
-
-    ``images`` are float32 in [0, 1], or uint16 holding ``round(65535 · value)`` (what
-    :meth:`from_dataset` keeps: half the memory, 0.77 GB less for lego's 2 × 100 views at 800²,
-    within 7.6e-6 of the photo's values); :meth:`image` gives a view in float32.
-
-    ``cameras`` (the dataset's :class:`~plenoctree.datasets.Cameras`; default: pinhole cameras
-    from ``c2w`` and the intrinsics) and ``cam_index`` (int64 ``[N]``, view ``i`` is camera
-    ``cam_index[i]``) are the source of truth for rays: each view's camera is packed once into
-    ``packed_cameras`` (its own intrinsics; for an NDC set the NDC reference camera of all the
-    cameras, which is why they are all kept) and one numba kernel makes a batch's rays, equal to
-    ``cameras.rays(i)`` — pinhole or NDC, shared or per-camera intrinsics alike.
-    """
-
-    c2w: np.ndarray
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    images: np.ndarray
-    names: list[str]
-    cameras: Any = None
-    cam_index: np.ndarray | None = None
-    packed_cameras: np.ndarray = field(init=False, repr=False)   # float64 [N, CAM_SIZE]
-
-    def __post_init__(self) -> None:
-        from ..datasets import Cameras
-        from ..render._render_numba import pack_cameras
-
-        if self.cameras is None:
-            self.cameras = Cameras(self.c2w, float(self.fx), float(self.fy), float(self.cx),
-                                   float(self.cy), int(self.width), int(self.height))
-            self.cam_index = np.arange(len(self), dtype=np.int64)
-        self.packed_cameras = pack_cameras(self.cameras, self.cam_index)
-        if self.images.dtype not in (np.float32, np.uint16):
-            raise TypeError(f"ViewSet images must be float32 or uint16, got {self.images.dtype}")
-
-    @property
-    def unit(self) -> float:
-        """The value of one step of ``images`` (1 for float32, 1 / 65535 for uint16)."""
-        return 1.0 / 65535.0 if self.images.dtype == np.uint16 else 1.0
-
-    def image(self, i: int) -> np.ndarray:
-        """View ``i``'s image, float32 ``[H, W, 3]`` in [0, 1]."""
-        img = self.images[i]
-        return img if img.dtype == np.float32 else img.astype(np.float32) * np.float32(self.unit)
-
-    @classmethod
-    def from_dataset(cls, data: Any, indices: Any = None) -> ViewSet:
-        cams = data.cameras
-        idx = np.arange(len(cams)) if indices is None else np.asarray(indices, dtype=np.int64)
-        fx, fy, cx, cy = cams.intrinsics(int(idx[0]) if len(idx) else 0)
-        images = np.empty((len(idx), cams.height, cams.width, 3), np.uint16)
-        for j, i in enumerate(idx):          # one image at a time: no float-sized temporary
-            np.rint(np.clip(np.asarray(data.images[i], np.float32), 0.0, 1.0) * 65535.0,
-                    out=images[j], casting="unsafe")
-        return cls(np.ascontiguousarray(cams.c2w[idx], dtype=np.float32), fx, fy, cx, cy,
-                   cams.width, cams.height, images,
-                   [data.names[i] for i in idx] if data.names else [f"view_{i}" for i in idx],
-                   cams, idx)
-
-    def __len__(self) -> int:
-        return int(self.c2w.shape[0])
-
-    @property
-    def n_rays(self) -> int:
-        return len(self) * self.width * self.height
-
-    def rays(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``origins, dirs, targets`` float32 ``[M, 3]`` of flat pixel indices ``index [M]``
-        (``img * H * W + row * W + col``); the rays equal ``cameras.rays(img)[row, col]``."""
-        from ._render_grad_numba import pixel_rays
-
-        index = np.ascontiguousarray(index, np.int64)
-        m = index.shape[0]
-        o = np.empty((m, 3), np.float32)
-        d = np.empty((m, 3), np.float32)
-        t = np.empty((m, 3), np.float32)
-        pixel_rays(self.packed_cameras, int(self.width), int(self.height), index, self.images,
-                   self.unit, o, d, t)
-        return o, d, t
-
-    def n_tiles(self, k: int) -> int:
-        """Number of ``k × k`` pixel tiles covering every image (partial tiles at the borders)."""
-        return len(self) * (-(-self.height // k)) * (-(-self.width // k))
-
-    def tile_pixels(self, tiles: np.ndarray, k: int) -> np.ndarray:
-        """Flat pixel indices (``img * H * W + v * W + u``) of tiles ``tiles [T]``, tile by tile
-        in raster order within each tile; pixels past the image border are dropped."""
-        nty, ntx = -(-self.height // k), -(-self.width // k)
-        tiles = np.asarray(tiles, dtype=np.int64)
-        img, rem = np.divmod(tiles, nty * ntx)
-        ty, tx = np.divmod(rem, ntx)
-        dy, dx = np.divmod(np.arange(k * k, dtype=np.int64), k)
-        v = ty[:, None] * k + dy
-        u = tx[:, None] * k + dx
-        flat = img[:, None] * (self.height * self.width) + v * self.width + u
-        if self.height % k or self.width % k:
-            return flat[(v < self.height) & (u < self.width)]
-        return flat.reshape(-1)
-
-    def view_rays(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """``origins, dirs [H * W, 3]`` of view ``i`` (``cameras.rays``)."""
-        o, d = self.cameras.rays(int(self.cam_index[i]))
-        return o.reshape(-1, 3), d.reshape(-1, 3)
-
-
-def render_views_psnr(stepper: Any, views: ViewSet) -> float:
-    """Mean over views of the per-view PSNR (dB) of ``stepper``'s current values."""
-    from ..evaluation import score_views
-
-    res = score_views(lambda i: stepper.render(*views.view_rays(i)).reshape(
-        views.height, views.width, 3), _Images(views), with_ssim=False)
-    vals = [min(p, 100.0) for p in res.psnr]
-    return float(np.mean(vals)) if vals else float("nan")
-
-
-class _Images:
-    """``views``' images as a sequence of float32 ``[H, W, 3]`` arrays, made one at a time."""
-
-    def __init__(self, views: ViewSet) -> None:
-        self.views = views
-
-    def __len__(self) -> int:
-        return len(self.views)
-
-    def __getitem__(self, i: int) -> np.ndarray:
-        return self.views.image(i)
 
 
 class Diverged(Exception):
@@ -258,7 +129,9 @@ class LoopOptions:
     ``lr_decay``: :func:`lr_factor`; ``seed``: the ray order. ``checkpoint`` (None: none) is
     written at a validation when ``checkpoint_every_s`` seconds passed since the last one, and
     on Ctrl-C; ``resume`` continues from it. ``show_progress``: the progress bar (None: on a
-    terminal).
+    terminal). ``read_every``: a device stepper's step figures (error, non-finite values) are
+    read back every this many steps and at the end of an epoch (the divergence watch and the
+    progress bar follow them; a step itself never waits for the device).
     """
 
     epochs: int
@@ -275,6 +148,7 @@ class LoopOptions:
     resume: bool = False
     checkpoint_every_s: float = 0.0
     show_progress: bool | None = None
+    read_every: int = 32
 
 
 class FineTuneLoop:
@@ -337,6 +211,9 @@ class FineTuneLoop:
         self._bar: Any = None
         self._base_lr = float(stepper.lr)
         self._base_sigma = getattr(stepper, "sigma_lr", None)
+        self._dev = (_DeviceRun(stepper, train, max(1, int(options.read_every)))
+                     if hasattr(stepper, "step_tiles") else None)
+        self._t_mark = time.perf_counter()       # device steps: counted up to here
 
     @property
     def finished(self) -> bool:
@@ -373,13 +250,10 @@ class FineTuneLoop:
         """Keep the initial values as the best, or resume from the checkpoint; validate the
         initial values (epoch 0) unless resumed past that."""
         ckpt = self.opts.checkpoint
-        values = self.stepper.values()   # one read (a copy from the device for torch steppers)
-        self.best = BestValues(values.shape, values.dtype,
-                               None if ckpt is None else ckpt.with_suffix(""))
+        self.best = self._new_best(None if ckpt is None else ckpt.with_suffix(""))
         self.values_are_best = not (self.opts.resume and ckpt is not None and ckpt.exists())
         if self.values_are_best:
-            self.best.store(values)
-        del values                       # freed before a checkpoint's values are loaded
+            self.best.store(self._best_source())
         if not self.values_are_best:
             self.state = load_checkpoint(ckpt, self.stepper, self.best, self.fingerprint)
             self.events({"event": "resume", "checkpoint": str(ckpt),
@@ -422,18 +296,36 @@ class FineTuneLoop:
         if self._base_sigma is not None:
             self.stepper.sigma_lr = float(self._base_sigma) * f
         st.rng_state = self.rng.bit_generator.state
-        perm = self.rng.permutation(self.n_tiles)
+        perm = self.tile_order()
         t_epoch, s_epoch = time.perf_counter(), st.train_seconds
         self.values_are_best = False
         sse = 0.0
+        self._t_mark = time.perf_counter()
         for b0 in range(0, self.n_tiles, self.tiles_per_batch):
             sse += self.step(perm[b0:b0 + self.tiles_per_batch], epoch)
+            if self._dev is not None and self._dev.full:
+                sse += self.read_figures(epoch)
+        if self._dev is not None:
+            sse += self.read_figures(epoch)
         return sse, time.perf_counter() - t_epoch, st.train_seconds - s_epoch
 
-    def step(self, tiles: np.ndarray, epoch: int) -> float:
-        """One optimisation step on the pixels of ``tiles``; returns the batch's sum of squared
-        errors. Raises :class:`Diverged` on non-finite values or a blown-up training error."""
+    def tile_order(self) -> Any:
+        """An epoch's random order of the training tiles, from the loop's generator: a numpy
+        permutation, or for a device stepper one drawn on the device (seeded from it)."""
+        if self._dev is None:
+            return self.rng.permutation(self.n_tiles)
+        return self.stepper.tile_order(self.n_tiles, int(self.rng.integers(0, 2 ** 63 - 1)))
+
+    def step(self, tiles: Any, epoch: int) -> float:
+        """One optimisation step on the pixels of ``tiles`` (a slice of :meth:`tile_order`);
+        returns the batch's sum of squared errors. Raises :class:`Diverged` on non-finite
+        values or a blown-up training error. A device stepper's step only queues work on the
+        device and returns 0.0: its figures are counted by :meth:`read_figures`."""
         st = self.state
+        if self._dev is not None:
+            self._dev.step(tiles, self.tile, self.scale)
+            st.steps += 1
+            return 0.0
         idx = self.train.tile_pixels(tiles, self.tile)
         o, d, tgt = self.train.rays(idx)
         t0 = time.perf_counter()
@@ -441,10 +333,34 @@ class FineTuneLoop:
         st.train_seconds += time.perf_counter() - t0
         st.train_rays += idx.shape[0]
         st.steps += 1
+        self._watch(sse, idx.shape[0], bad, epoch, st.steps)
+        return sse
+
+    def read_figures(self, epoch: int) -> float:
+        """A device stepper's figures of the steps since the last read (the host waits for the
+        device here, and only here): their time and rays are counted and the divergence watch
+        runs over them in order; returns their sum of squared errors."""
+        st = self.state
+        figs = self._dev.read()
+        now = time.perf_counter()
+        st.train_seconds += now - self._t_mark
+        self._t_mark = now
+        first = st.steps - len(figs) + 1
+        sse = 0.0
+        for i, row in enumerate(figs):
+            n = int(row[FIG_RAYS])
+            st.train_rays += n
+            self._watch(float(row[FIG_SSE]), max(n, 1), int(row[FIG_BAD]), epoch, first + i)
+            sse += float(row[FIG_SSE])
+        return sse
+
+    def _watch(self, sse: float, n: int, bad: int, epoch: int, step: int) -> None:
+        """The divergence watch on step ``step``'s figures: ``sse`` over ``n`` rays, ``bad``
+        non-finite values written; raises :class:`Diverged`."""
         self._batches += 1
-        mse = sse / (3.0 * idx.shape[0])
+        mse = sse / (3.0 * n)
         if bad or not math.isfinite(mse):
-            raise Diverged(f"non-finite values after step {st.steps} (epoch {epoch})")
+            raise Diverged(f"non-finite values after step {step} (epoch {epoch})")
         if self._first_mse is None:
             self._first_mse = self._ema = mse
             self._batches = 1
@@ -452,10 +368,9 @@ class FineTuneLoop:
         blown = self._ema > _DIVERGE_FACTOR * self._first_mse + _DIVERGE_ABS
         if self._batches >= _MIN_BATCHES and blown:
             raise Diverged(f"training MSE rose from {self._first_mse:.3g} to {self._ema:.3g} "
-                           f"(epoch {epoch}, step {st.steps})")
+                           f"(epoch {epoch}, step {step})")
         self._bar.update(1)
         self._bar.set_postfix(epoch=epoch, mse=f"{self._ema:.2e}")
-        return sse
 
     def validate(self, epoch: int) -> float | None:
         """Mean validation PSNR (dB) of the current values, noted in the history (None
@@ -463,7 +378,7 @@ class FineTuneLoop:
         if self.val is None:
             return None
         t0 = time.perf_counter()
-        p = render_views_psnr(self.stepper, self.val)
+        p = render_views_psnr(self.stepper, self.val, keep=True)
         self.state.history.append({"epoch": epoch, "val_psnr": p,
                                    "val_seconds": time.perf_counter() - t0})
         return p
@@ -519,8 +434,26 @@ class FineTuneLoop:
                      "lr_scale": st.lr_scale, "backoffs": st.backoffs})
         return True
 
+    def _new_best(self, stem: Path | None) -> BestValues:
+        """Where the best values are kept: on the device beside the live ones when the stepper
+        is a device stepper and a copy fits there, else on disk beside the checkpoint (in
+        memory without one)."""
+        live = getattr(self.stepper, "device_values", None)
+        if live is not None:
+            t = live()
+            if self.stepper.best_fits(t.numel() * t.element_size()):
+                return DeviceBestValues(t, stem)
+        values = self.stepper.values()
+        return BestValues(values.shape, values.dtype, stem)
+
+    def _best_source(self) -> Any:
+        """The live values as the best copy takes them (a device tensor, or numpy)."""
+        if isinstance(self.best, DeviceBestValues):
+            return self.stepper.device_values()
+        return self.stepper.values()
+
     def _store_best(self, epoch: int) -> None:
-        self.best.store(self.stepper.values())
+        self.best.store(self._best_source())
         self.values_are_best = True
         self.state.best_epoch = epoch
 
@@ -531,3 +464,28 @@ class FineTuneLoop:
             return
         save_checkpoint(ckpt, self.stepper, self.best, self.state, self.fingerprint)
         self._last_ckpt = time.perf_counter()
+
+
+class _DeviceRun:
+    """A device stepper's side of a run: the training photos on the device (uploaded once),
+    the figures buffer (``read_every`` rows) and the steps written to it since the last read."""
+
+    def __init__(self, stepper: Any, train: ViewSet, read_every: int) -> None:
+        self.stepper = stepper
+        self.views = stepper.device_views(train)
+        self.figs = stepper.new_figures(read_every)
+        self.pending = 0
+
+    @property
+    def full(self) -> bool:
+        return self.pending >= self.figs.shape[0]
+
+    def step(self, tiles: Any, k: int, scale: float) -> None:
+        self.stepper.step_tiles(self.views, tiles, k, scale, self.figs, self.pending)
+        self.pending += 1
+
+    def read(self) -> np.ndarray:
+        """float64 ``[pending, 4]`` figures (``_device_twins.FIG_*`` columns); one read back."""
+        out = self.stepper.read_figures(self.figs, self.pending)
+        self.pending = 0
+        return out

@@ -9,8 +9,11 @@ fine-tuning loop passes ``scale = 1 / (3 H W)``, the per-pixel mean of one train
   reach are left alone (``torch.optim.SparseAdam`` semantics), so a step costs O(touched cells).
 - :class:`TorchStepper` (CPU or CUDA): the renderer's torch twin with autograd, then the same
   update rules in torch (SGD dense — identical to the sparse one; Adam/RMSprop lazy over cells
-  with a non-zero gradient). :class:`TritonStepper` (CUDA) is the same with the Triton
-  forward/analytic-backward kernel (``optim/_triton_grad.py``) in place of the twin.
+  with a non-zero gradient, as a dense masked update). :class:`TritonStepper` (CUDA) is the
+  same with Triton kernels for the rays, the march's forward and analytic backward, the loss
+  and the update: five launches a step, nothing read back (``optim/_device_stepper.py``; the
+  fine-tuning loop drives both on the device: photos, tile order, figures and validation stay
+  there).
 
 Both take an optional separate σ learning rate ``sigma_lr`` (world σ units; ``None`` = ``lr``):
 σ's values are in 1 / world length (hundreds on lego), not in the units of the pre-sigmoid
@@ -35,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError
+from ._rules import ADAM_EPS, BETAS, RMS_ALPHA, RMS_EPS
 
 __all__ = ["OPTIMIZERS", "DEFAULT_LR", "NumbaStepper", "TorchStepper", "TritonStepper",
            "make_stepper", "gradient_scale"]
@@ -44,10 +48,7 @@ OPTIMIZERS = ("sgd", "adam", "rmsprop")
 #: move each value by about ``lr`` a step if the gradients were large against ε, but with this
 #: loss they mostly are not (:func:`gradient_scale`): chosen by measurement, not by units.
 DEFAULT_LR = {"sgd": 1e7, "adam": 2e-2, "rmsprop": 1e-3}
-_BETAS = (0.9, 0.999)
-_ADAM_EPS = 1e-8
-_RMS_ALPHA = 0.99
-_RMS_EPS = 1e-8
+_BETAS, _ADAM_EPS, _RMS_ALPHA, _RMS_EPS = BETAS, ADAM_EPS, RMS_ALPHA, RMS_EPS
 
 
 class NumbaStepper:
@@ -152,136 +153,14 @@ class NumbaStepper:
                 np.copyto(mine, state[key])
 
 
-class TorchStepper:
-    """The same step with the renderer's torch twin and autograd (CPU or CUDA)."""
+def __getattr__(name: str) -> Any:
+    """:class:`TorchStepper` and :class:`TritonStepper` live in :mod:`._device_stepper` (torch
+    is imported on first use, not with this module)."""
+    if name in ("TorchStepper", "TritonStepper"):
+        from . import _device_stepper
 
-    backend = "torch"
-
-    def __init__(self, data2: np.ndarray, tree: Any, options: Any, optimizer: str, lr: float,
-                 device: Any = None, sigma_lr: float | None = None) -> None:
-        import torch
-
-        self.torch = torch
-        self.device = torch.device(device if device is not None else
-                                   ("cuda" if torch.cuda.is_available() else "cpu"))
-        self.tree, self.options, self.optimizer, self.lr = tree, options, optimizer, float(lr)
-        self.sigma_lr = None if sigma_lr is None else float(sigma_lr)
-        self.shape = tuple(tree.child.shape) + (data2.shape[1],)
-        self.data = torch.tensor(data2, dtype=torch.float32, device=self.device).reshape(self.shape)
-        self.data.requires_grad_(True)
-        self.step_count = 0
-        z = lambda: torch.zeros(data2.shape, dtype=torch.float32, device=self.device)  # noqa: E731
-        self.m1 = z() if optimizer == "adam" else None
-        self.m2 = z() if optimizer in ("adam", "rmsprop") else None
-        self.last_touched = 0
-
-    def release(self) -> None:
-        """Drop the optimiser moments and the gradient once training is over (see
-        :meth:`NumbaStepper.release`)."""
-        self.m1 = self.m2 = None
-        self.data.grad = None
-
-    def _t(self, x: np.ndarray):
-        return self.torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32)).to(self.device)
-
-    def step(self, origins: np.ndarray, dirs: np.ndarray, targets: np.ndarray,
-             scale: float) -> tuple[float, int]:
-        from .autograd import render_rays_differentiable
-
-        torch = self.torch
-        rgb = render_rays_differentiable(self.data, self.tree, self._t(origins), self._t(dirs),
-                                         self.options, backend=self.backend)
-        err = rgb - self._t(targets)
-        sse_t = (err * err).sum()
-        if self.data.grad is not None:
-            self.data.grad = None
-        (sse_t * scale).backward()
-        self.step_count += 1
-        with torch.no_grad():
-            p = self.data.view(-1, self.shape[-1])
-            g = self.data.grad.view(-1, self.shape[-1])
-            lr = torch.full((self.shape[-1],), self.lr, dtype=p.dtype, device=p.device)
-            if self.sigma_lr is not None:
-                lr[-1] = self.sigma_lr
-            if self.optimizer == "sgd":
-                p.sub_(lr * g)
-                rows = None
-            else:
-                rows = torch.nonzero((g != 0).any(dim=1)).reshape(-1)
-                gr = g[rows]
-                if self.optimizer == "adam":
-                    b1, b2 = _BETAS
-                    m1 = self.m1[rows].mul_(b1).add_((1 - b1) * gr)
-                    m2 = self.m2[rows].mul_(b2).add_((1 - b2) * gr * gr)
-                    self.m1[rows], self.m2[rows] = m1, m2
-                    bc1, bc2 = 1 - b1 ** self.step_count, 1 - b2 ** self.step_count
-                    p[rows] -= lr * (m1 / bc1) / ((m2 / bc2).sqrt() + _ADAM_EPS)
-                else:
-                    m2 = self.m2[rows].mul_(_RMS_ALPHA).add_((1 - _RMS_ALPHA) * gr * gr)
-                    self.m2[rows] = m2
-                    p[rows] -= lr * gr / (m2.sqrt() + _RMS_EPS)
-            # the step's figures read back together: one host round trip, not three
-            figures = [sse_t.detach().double(), (~torch.isfinite(p)).sum().double()]
-            if rows is None:
-                figures.append((g != 0).any(dim=1).sum().double())
-            p[:, -1].clamp_(min=0.0)
-            read = torch.stack(figures).tolist()
-        self.data.grad = None
-        self.last_touched = int(read[2]) if rows is None else int(rows.numel())
-        return read[0], int(read[1])
-
-    def render(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        from ..render._torch_impl import render_rays_torch
-
-        with self.torch.no_grad():
-            out = render_rays_torch(self.tree, self._t(origins), self._t(dirs), self.options,
-                                    data=self.data.detach())
-        return out.rgb.float().cpu().numpy()
-
-    def values(self) -> np.ndarray:
-        return self.data.detach().reshape(-1, self.shape[-1]).cpu().numpy()
-
-    def set_values(self, values: np.ndarray) -> None:
-        with self.torch.no_grad():
-            self.data.view(-1, self.shape[-1]).copy_(self._t(values))
-
-    def state(self) -> dict[str, np.ndarray]:
-        out = {"step_count": np.int64(self.step_count)}
-        for key in ("m1", "m2"):
-            v = getattr(self, key)
-            if v is not None:
-                out[key] = v.cpu().numpy()
-        return out
-
-    def load_state(self, state: dict[str, np.ndarray]) -> None:
-        self.step_count = int(state["step_count"])
-        for key in ("m1", "m2"):
-            mine = getattr(self, key)
-            if mine is not None:
-                if key not in state or tuple(state[key].shape) != tuple(mine.shape):
-                    raise ConfigError(f"checkpoint: optimiser state {key!r} missing or of the "
-                                      "wrong shape")
-                mine.copy_(self._t(state[key]))
-
-
-class TritonStepper(TorchStepper):
-    """:class:`TorchStepper` with the Triton kernel (forward + analytic backward) on CUDA."""
-
-    backend = "triton"
-
-    def __init__(self, *args: Any, **kw: Any) -> None:
-        from .._triton import require_triton
-
-        super().__init__(*args, **kw)
-        require_triton(self.device, "fine-tuning")
-
-    def render(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        from ..render._triton_impl import render_rays_triton
-
-        with self.torch.no_grad():
-            out = render_rays_triton(self.tree, self._t(origins), self._t(dirs), self.options,
-                                     data=self.data.detach())
-        return out.rgb.float().cpu().numpy()
+        return getattr(_device_stepper, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def gradient_scale(stepper: Any, max_rows: int = 100_000) -> dict | None:
