@@ -194,6 +194,9 @@ class _Runner:
             return False
         logger.info(f"[{stage.name}] running")
         from .convert.memory import StageMonitor
+        from .live import write_live
+
+        write_live(self.out, stage=stage.name, step=None, steps=None, psnr=None, eta_s=None)
 
         mon, name = StageMonitor(), stage.name
         t0, c0 = time.perf_counter(), _cpu_seconds()
@@ -214,6 +217,9 @@ class _Runner:
                          {"stamp": stamp, "seconds": seconds, "cpu_seconds": self.cpu[name],
                           "peak_rss_mb": self.peaks[name]})
         logger.info(f"[{name}] done in {seconds:.1f} s")
+        trees = [p for p in stage.outputs if p.suffix in (".npz", ".plnz") and p.is_file()
+                 and p.resolve().parent == self.out.resolve()]
+        write_live(self.out, stage=f"{name} done", **({"tree": trees[0].name} if trees else {}))
         return True
 
     def given(self, name: str, seconds: float | None) -> None:
@@ -261,6 +267,7 @@ def _run(cfg: PipelineConfig, out: Path) -> dict:
     lay = run_layout(out, cfg.nerf)
     _validate(cfg)
     r = _Runner(out)
+    logger.info(f"[run] watch it as it goes: plenoctree view {out}")
     if cfg.images:                # its dataset decides the working resolution
         r.run(_process_stage(cfg))
     cfg = _scene_settings(cfg)

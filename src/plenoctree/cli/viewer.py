@@ -15,7 +15,8 @@ class PageConfig:
     """What the viewer page shows (``view`` and ``export-web``)."""
 
     tree: str = ""
-    """tree file (.npz or .plnz)"""
+    """tree file (.npz or .plnz); for view also a run folder (run --out, train --out): its
+    newest tree, reloaded as newer ones land while the run goes on"""
     max_mb: float = 2048.0
     """GPU texture budget in MB (written into a bundle); larger trees are refused with a hint
     to 'plenoctree lod'"""
@@ -106,9 +107,11 @@ def _run_view(cfg: ViewConfig, args: argparse.Namespace) -> int:
     from ..viewer.budget import check_texture_budget
 
     path = Path(cfg.tree)
-    _check_tree(path)
+    live = path.is_dir()             # a run folder: its newest tree, reloaded as newer land
+    if not live:
+        _check_tree(path)
     # CPU mode: the page never holds the tree, so no texture budget applies
-    need = check_texture_budget(path, cfg.max_mb) if cfg.render != "cpu" else None
+    need = check_texture_budget(path, cfg.max_mb) if cfg.render != "cpu" and not live else None
     extra = _cameras_extra(cfg)
     server = ViewerServer(path, port=cfg.port, max_mb=cfg.max_mb, verbose=cfg.verbose,
                           render=cfg.render, host=cfg.host)
@@ -120,7 +123,8 @@ def _run_view(cfg: ViewConfig, args: argparse.Namespace) -> int:
     how = {"webgl": "WebGL in the browser", "cpu": "the CPU renderer here",
            "auto": "WebGL, or the CPU renderer here when the browser's GL is software"}
     size = "" if need is None else f" ({need / 1e6:.0f} MB of textures)"
-    print(f"Serving {path}{size} at {server.url}, drawn by "
+    what = f"the newest tree of the run in {path} (live)" if live else f"{path}{size}"
+    print(f"Serving {what} at {server.url}, drawn by "
           f"{how[cfg.render]}  (Ctrl-C to stop)", flush=True)
     if cfg.open:
         import webbrowser

@@ -74,6 +74,9 @@ def cameras_config(cameras: Any, names: list[str] | None = None,
 
 def add_cameras_to_server(server: Any, extra: dict[str, Any]) -> None:
     """Serve ``extra`` (from :func:`cameras_config`) in a running ViewerServer's config.json."""
+    if server.httpd.live is not None:               # a run folder: config.json is made per request
+        server.httpd.config_extra.update(extra)
+        return
     body, kind = server.httpd.routes["/config.json"]
     cfg = json.loads(body)
     cfg.update(extra)

@@ -40,6 +40,7 @@ from urllib.parse import unquote, urlsplit
 from ..errors import ConfigError
 from .budget import DEFAULT_MAX_MB
 from .frames import RENDER_MODES, FrameRenderer, parse_frame_query
+from .live import LiveTrees
 
 __all__ = ["ViewerServer", "static_dir", "static_files", "viewer_config", "check_servable",
            "is_loopback", "BACKLOG", "IDLE_TIMEOUT_S"]
@@ -205,6 +206,11 @@ class _Handler(BaseHTTPRequestHandler):
     def _send_frame(self, query: str, head_only: bool) -> None:
         """``/frame``: a JPEG of the CPU renderer (400 for bad parameters, never a traceback)."""
         frames = self.server.frames
+        if self.server.live is not None:
+            frames, _ = self.server.live.frames()
+            if frames is None:
+                self._error(HTTPStatus.SERVICE_UNAVAILABLE, "the run has no tree yet")
+                return
         try:
             req = parse_frame_query(query)
             body, render_ms, encode_ms = frames.jpeg(req)
@@ -229,16 +235,42 @@ class _Handler(BaseHTTPRequestHandler):
             except (BrokenPipeError, ConnectionResetError):
                 pass
 
+    def _send_live(self, path: str, head_only: bool) -> None:
+        """A run folder's dynamic URLs (:mod:`.live`): ``/live.json``, ``/config.json`` and
+        ``/data/<the newest tree>``."""
+        live = self.server.live
+        if path.startswith("/data/"):
+            name = unquote(path[len("/data/"):])
+            f = live.file(name) if _SAFE_NAME.match(name) else None
+            entry: tuple[bytes | Path, str] | None = (f, "application/octet-stream") \
+                if f is not None else None
+        else:
+            status = live.status()
+            body = status if path == "/live.json" else self.server.live_config(status)
+            entry = (json.dumps(body, indent=1).encode(), _TYPES[".json"])
+        if entry is None:
+            self._error(HTTPStatus.NOT_FOUND, "not the run's newest tree (it moved on)")
+            return
+        self._send_entry(entry, head_only)
+
     def _send(self, head_only: bool) -> None:
         if not self._host_ok():
             return
         url = urlsplit(self.path)
-        if url.path == "/frame" and self.server.frames is not None:
+        live = self.server.live
+        if url.path == "/frame" and (self.server.frames is not None or
+                                     (live is not None and live.cpu)):
             self._send_frame(url.query, head_only)
             return
-        entry = self._resolve()
-        if entry is None:
+        if live is not None and (url.path in ("/live.json", "/config.json")
+                                 or url.path.startswith("/data/")):
+            self._send_live(url.path, head_only)
             return
+        entry = self._resolve()
+        if entry is not None:
+            self._send_entry(entry, head_only)
+
+    def _send_entry(self, entry: tuple[bytes | Path, str], head_only: bool) -> None:
         body, ctype = entry
         if isinstance(body, Path):
             f = _open_regular(body)
@@ -283,10 +315,27 @@ class _Server(ThreadingHTTPServer):
     allow_reuse_address = False
     request_queue_size = BACKLOG
     routes: dict[str, tuple[bytes | Path, str]]
+    config_extra: dict[str, Any]
+    title: str
+    max_mb: float
+    render: str
     hosts: set[str]
     host_label: str
     frames: FrameRenderer | None
+    live: LiveTrees | None = None
     verbose: bool
+
+    def live_config(self, status: dict[str, Any]) -> dict[str, Any]:
+        """``config.json`` of a run folder's newest tree (``status``: :meth:`LiveTrees.status`)."""
+        name = status["tree"].split("/")[-1] if status.get("tree") else ""
+        cfg = viewer_config(name or "tree.npz", self.title, self.max_mb)
+        cfg.update(self.config_extra, live=True, version=status["version"],
+                   tree=status.get("tree"), title=self.title)
+        if self.live.cpu:
+            frames, _ = self.live.frames()
+            if frames is not None:
+                cfg.update(render=self.render, cpu=frames.info())
+        return cfg
 
     def handle_error(self, request: Any, client_address: Any) -> None:
         if self.verbose:             # a client that vanished or timed out: not our error
@@ -301,7 +350,9 @@ class ViewerServer:
     """Serve the viewer page and one tree on ``http://<host>:<port>/``.
 
     Args:
-        tree_path: the tree to show (``.npz`` or ``.plnz``); must exist.
+        tree_path: the tree to show (``.npz`` or ``.plnz``); must exist. Or a run folder
+            (``run --out``, ``train --out``): its newest tree, swapped as newer ones land
+            (:mod:`.live`).
         port: TCP port; 0 picks a free one.
         title: page title (default: the tree's file name).
         max_mb: the page's texture budget in MB (it refuses larger trees with a hint).
@@ -322,26 +373,28 @@ class ViewerServer:
                  max_mb: float = DEFAULT_MAX_MB, verbose: bool = False,
                  check: bool = True, render: str = "webgl", host: str = "127.0.0.1") -> None:
         tree = Path(tree_path)
-        if not tree.is_file():
-            raise ConfigError(f"{tree}: no such tree file")
+        live = tree.is_dir()                 # a run folder: its newest tree, live (.live)
+        if not tree.is_file() and not live:
+            raise ConfigError(f"{tree}: no such tree file or run folder")
         if not 0 <= int(port) <= 65535:
             raise ConfigError(f"port must be in 0..65535, got {port}")
         if render not in RENDER_MODES:
             raise ConfigError(f"render must be one of {', '.join(RENDER_MODES)}, got {render!r}")
-        loaded = check_servable(tree) if check or render != "webgl" else None
-        frames = None if render == "webgl" else FrameRenderer(loaded)
+        loaded = check_servable(tree) if not live and (check or render != "webgl") else None
+        frames = None if render == "webgl" or live else FrameRenderer(loaded)
         self.tree_path = tree.resolve()
         self.render = render
-        self.tree_name = _tree_name(tree)
+        self.tree_name = "" if live else _tree_name(tree)
         routes: dict[str, tuple[bytes | Path, str]] = {}
         for name, p in static_files().items():
             routes["/" + name] = (p, _TYPES.get(p.suffix, "application/octet-stream"))
         routes["/"] = routes["/index.html"]
-        config = viewer_config(self.tree_name, title, max_mb)
-        if frames is not None:
-            config.update(render=render, cpu=frames.info())
-        routes["/config.json"] = (json.dumps(config, indent=1).encode(), _TYPES[".json"])
-        routes["/data/" + self.tree_name] = (self.tree_path, "application/octet-stream")
+        if not live:
+            config = viewer_config(self.tree_name, title, max_mb)
+            if frames is not None:
+                config.update(render=render, cpu=frames.info())
+            routes["/config.json"] = (json.dumps(config, indent=1).encode(), _TYPES[".json"])
+            routes["/data/" + self.tree_name] = (self.tree_path, "application/octet-stream")
         self.host = host.strip("[]")
         server_class = _Server6 if ":" in self.host else _Server
         try:
@@ -352,6 +405,9 @@ class ViewerServer:
         self.httpd.routes = routes
         self.httpd.verbose = verbose
         self.httpd.frames = frames
+        self.httpd.live = LiveTrees(tree, render != "webgl") if live else None
+        self.httpd.title = title or f"{tree.name} (live) - PlenOctree viewer"
+        self.httpd.max_mb, self.httpd.render, self.httpd.config_extra = max_mb, render, {}
         self.httpd.host_label = self.host
         self.httpd.hosts = _allowed_hosts(self.host, self.port)
         self._thread: threading.Thread | None = None

@@ -15,6 +15,7 @@ import { probeRay, lumisphere, treeRay } from "./probe.js";
 import { MeshPass, parseObj, parseGlb, toSceneUp } from "./mesh.js";
 import { detectGL, glRendererName, FrameStats, CpuFrames, FrameError, markWebglOnly } from "./frames.js";
 import { GlFrames } from "./glframes.js";
+import { startLive, restoreLiveCamera } from "./live.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -571,6 +572,7 @@ async function loadBuffer(buffer, name, bundled = true) {
   scene = packed;
   opts.ndc = packed.ndc || (bundled && config.ndc) || null;   // the file's own, else the bundle's
   frameInitialView(packed);
+  if (bundled) restoreLiveCamera(config, camera);
   opts.sh_min = 0;
   opts.sh_max = -1;
   syncControls();
@@ -615,6 +617,7 @@ function startCpuMode() {
   $("fps").title = glInfo.webgl2 ? `this browser's WebGL: ${glInfo.renderer || "unknown"}` : "no WebGL2 in this browser";
   markWebglOnly();
   frameInitialView(scene);
+  restoreLiveCamera(config, camera);
   opts.sh_min = 0;
   opts.sh_max = -1;
   syncControls();
@@ -649,6 +652,13 @@ async function main() {
     syncControls();
   }
   fillCameraList();
+  if (config.live) {
+    startLive(config, () => (api.state === "ready" ? camera.state() : null));
+    if (!config.tree) {                  // the run has made no tree yet: poll until it has
+      setStatus("Waiting for the run's first tree (the trainer writes a preview within minutes)...");
+      return;
+    }
+  }
   const treeUrl = params.get("tree") || config.tree;
   const wanted = params.get("tree") ? "webgl" : params.get("render") || config.render || "webgl";
   glInfo = detectGL();
