@@ -116,3 +116,61 @@ def test_page_reloads_onto_a_newer_tree_and_keeps_its_camera(tmp_path):
         assert after == pytest.approx(before, abs=1e-6)
         assert "extract done" in page.inner_text("#live")
         b.close()
+
+
+def test_training_writes_previews_and_its_status(tmp_path):
+    """The trainer's live view: previews from the first seconds on (atomic files a viewer
+    can load), live.json at every log row and at the end, the previews' cost in
+    summary.json; a trained model's preview shows the scene."""
+    from nerf_fixtures import tiny_cpu_config, tiny_dataset
+
+    from plenoctree.datasets import load_dataset
+    from plenoctree.metrics import psnr
+    from plenoctree.nerf import train
+    from plenoctree.octree.io import load_tree
+    from plenoctree.render import render_image
+
+    data = tiny_dataset(tmp_path / "data")
+    cfg = tiny_cpu_config(data, tmp_path / "run", steps=150)
+    cfg.preview_every_s, cfg.val_views = 0.2, 0
+    seen = []
+
+    def on_step(step):
+        live = read_live(tmp_path / "run")
+        if live is not None:
+            seen.append((step, live["stage"], live["tree"]))
+
+    train(cfg, quiet=True, on_step=on_step)
+    assert seen and all(s == "training" for _, s, _ in seen)
+    assert any(t is not None for _, _, t in seen)               # a preview during training
+    live = read_live(tmp_path / "run")
+    assert live["stage"] == "NeRF-SH trained" and live["step"] == 150
+    assert live["tree"] == tmp_path / "run" / "preview.npz"
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert 0 < summary["preview_s"] < summary["train_time_s"]
+    tree = load_tree(live["tree"])
+    views = load_dataset(data, split="train", limit=2)
+    p = psnr(render_image(tree, views.cameras, 0).rgb.numpy(), views.images[0])
+    assert p > 16.0, p                          # the untrained model scores ~14 dB here
+    assert not list((tmp_path / "run").glob("*.tmp-*"))
+
+
+def test_a_plain_nerf_or_no_opaque_cell_makes_no_preview():
+    import torch
+
+    from plenoctree.nerf import NeRFModel
+    from plenoctree.nerf.config import ModelConfig
+    from plenoctree.nerf.preview import preview_tree
+
+    box = torch.tensor([[-1.0, -1, -1], [1, 1, 1]])
+    cfg = ModelConfig(grid_levels=4, grid_base_res=4, grid_max_res=16, grid_log2_table=10,
+                      net_width=16)
+    model = NeRFModel(cfg, box, occ_res=16)
+    with torch.no_grad():
+        for prm in model.fine.parameters():
+            prm.zero_()
+        model.fine.head.bias.fill_(-10.0)       # σ = exp(-11) everywhere: a thin fog
+    assert preview_tree(model) is None          # nothing opaque enough: no tree, no file
+    plain = NeRFModel(ModelConfig(basis="plain", grid_levels=4, grid_base_res=4,
+                                  grid_max_res=16, grid_log2_table=10, net_width=16), box)
+    assert preview_tree(plain) is None

@@ -206,7 +206,7 @@ class TrainConfig:
     """Number of validation views, evenly spaced over the split (5 of 200: r_0, r_40, ...)."""
     preview_every_s: float = 150.0
     """Seconds of training between the coarse preview trees of a live view (``plenoctree view
-    RUN`` shows the newest; the first after 60 s; 0 = none)."""
+    RUN`` shows the newest; the first after 30 s; 0 = none)."""
     ckpt_every_s: float = 60.0
     """Seconds between checkpoints (0 = only by steps / at the end)."""
     ckpt_every_steps: int = 0

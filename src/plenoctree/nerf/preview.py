@@ -8,7 +8,10 @@ occupancy grid (a 128³ grid over the scene box in the cpu preset; without one, 
 build.tree_from_leaves`), with the dataset's NDC space for a forward-facing capture. On lego's
 trained model that is ~0.1 M points: well under a second on 2 cores, so a preview every
 2.5 minutes costs well under the 5 % of training time a live view may take (the trainer
-reports the share: ``preview_s`` in ``summary.json``).
+reports the share: ``preview_s`` in ``summary.json``). Measured on the trained models of
+``runs/lego_cpu_400`` (55 k occupied cells, 77 k leaves) and flower (113 k cells, 158 k
+leaves, NDC): 0.2 and 0.8 s a preview, 0.1–0.5 % of training at one every 150 s; flower's
+preview scores ~20 dB on its test photos (the fine-tuned tree: 28), blocky but recognisable.
 """
 
 from __future__ import annotations
@@ -20,13 +23,16 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["PREVIEW_NAME", "MIN_ALPHA", "DENSE_GRID", "preview_tree", "write_preview"]
+__all__ = ["PREVIEW_NAME", "MIN_ALPHA", "DENSE_GRID", "FIRST_S", "preview_tree", "write_preview",
+           "LiveView"]
 
 PREVIEW_NAME = "preview.npz"
 #: Cells thinner than this opacity (across one cell) are left empty: fog costs a viewer.
 MIN_ALPHA = 0.01
 #: Cells per axis of the preview of a model without an occupancy grid.
 DENSE_GRID = 64
+#: Training seconds before the first preview (flower's photos: a recognisable scene at 30 s).
+FIRST_S = 30.0
 
 
 def _cells(model: Any) -> tuple[torch.Tensor, torch.Tensor, int]:
@@ -96,8 +102,8 @@ def write_preview(model: Any, folder: str | Path, ndc: Any = None) -> dict:
 
 class LiveView:
     """A trainer's live view (``plenoctree view RUN``): ``live.json`` at every log row and a
-    preview tree every ``every_s`` seconds of training, the first after ``min(60, every_s)``
-    seconds (the first minutes show something). ``every_s = 0``: status rows only.
+    preview tree every ``every_s`` seconds of training, the first after ``min(FIRST_S,
+    every_s)`` seconds (the first minutes show something). ``every_s = 0``: status rows only.
 
     Attributes:
         seconds: the time spent writing previews (the share of training it costs is
@@ -106,7 +112,7 @@ class LiveView:
 
     def __init__(self, folder: str | Path, every_s: float, ndc: Any = None):
         self.folder, self.every_s, self.ndc = Path(folder), float(every_s), ndc
-        self.next_s = min(60.0, self.every_s)
+        self.next_s = min(FIRST_S, self.every_s)
         self.seconds = 0.0
         self.tree: str | None = None
 
@@ -133,4 +139,4 @@ class LiveView:
         self.next_s = train_s + self.every_s
         if out["leaves"]:
             self.tree = PREVIEW_NAME
-            write_live(self.folder, tree=self.tree)
+            write_live(self.folder, tree=self.tree, **({} if force else {"stage": "training"}))
