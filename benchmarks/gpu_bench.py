@@ -13,7 +13,12 @@ Method (all on the lego scene of ``--data``; ``--data`` and ``--run`` default to
 - **fine-tune**: ``--ft-steps`` SGD steps of the fine-tuner's stepper (numba on the CPU, the Triton
   forward + analytic backward on the GPU) on random training pixels at 400²; batch
   ``--ft-batch`` rays (CPU: 65536); rays/s over the timed steps after 2 warm-up steps. Rays
-  are copied to the device inside each step (as in ``plenoctree finetune``).
+  are copied to the device inside each step (the stepper's host API). **fine-tune stage**: one
+  epoch of ``FineTuneLoop`` (as ``plenoctree finetune`` runs it: Adam, ``--ft-stage-batch``
+  rays a step in 4×4 tiles, no validation) on every training pixel at 400²; on the GPU the
+  device-resident loop (photos uploaded once, tiles drawn and rays made on the device, the
+  step's figures read every 32 steps); rays/s of the epoch's steps (after a warm-up epoch
+  of ``--ft-warm-views`` views: Triton compilation).
 - **train**: the ``cpu`` NeRF-SH preset on lego at 400² for ``--train-steps`` steps (CPU:
   ``--cpu-train-steps``); the trainer's mean samples/s (its log rows).
 - **extract**: ``plenoctree extract`` of ``--run`` at ``--grid``³ without evaluation; seconds.
@@ -121,6 +126,30 @@ def bench_finetune(tree, train, dev: torch.device, batch: int, steps: int) -> di
             "rays_per_s": batch * steps / secs}
 
 
+def bench_finetune_stage(tree, train, dev: torch.device, batch: int, warm_views: int) -> dict:
+    """One epoch of the fine-tuning loop over every pixel of ``train`` (see the module doc)."""
+    from plenoctree.optim._loop import FineTuneLoop, LoopOptions, ViewSet
+    from plenoctree.optim.finetuning import _make_stepper
+    from plenoctree.pipeline_config import FinetuneConfig
+
+    views = ViewSet.from_dataset(train)
+    warm = ViewSet.from_dataset(train, list(range(min(warm_views, len(views)))))
+    cfg = FinetuneConfig(device=str(dev))
+    res = {}
+    for name, vs in (("warm", warm), ("epoch", views)):
+        stepper, _ = _make_stepper(cfg, tree.copy(), tuple(float(b) for b in train.background))
+        loop = FineTuneLoop(stepper, vs, None, LoopOptions(epochs=1, batch_rays=batch,
+                                                           show_progress=False), {})
+        t0 = time.perf_counter()
+        _, state = loop.run()
+        _sync(dev)
+        res[name] = (time.perf_counter() - t0, state)
+    secs, state = res["epoch"]
+    return {"backend": stepper.backend, "batch_rays": batch, "rays": state.train_rays,
+            "steps": state.steps, "seconds": secs, "step_seconds": state.train_seconds,
+            "rays_per_s": state.train_rays / max(state.train_seconds, 1e-9)}
+
+
 def bench_train(data_root: str, dev: torch.device, steps: int, scratch: Path) -> dict:
     from plenoctree.nerf.config import preset
     from plenoctree.nerf.trainer import train
@@ -158,6 +187,7 @@ def _table(results: dict) -> str:
     cpu, gpu = results.get("cpu", {}), results.get("gpu", {})
     rows = [("render FPS at 800²", "render", "fps", "{:.1f}"),
             ("fine-tune M rays/s", "finetune", "rays_per_s", "{:.2f}", 1e-6),
+            ("fine-tune stage M rays/s", "finetune_stage", "rays_per_s", "{:.2f}", 1e-6),
             ("NeRF-SH train M samples/s", "train", "samples_per_s", "{:.2f}", 1e-6),
             ("extraction s", "extract", "seconds", "{:.1f}")]
     lines = []
@@ -185,6 +215,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--ft-batch", type=int, default=1 << 20, help="GPU fine-tune batch (rays)")
     ap.add_argument("--ft-steps", type=int, default=10)
+    ap.add_argument("--ft-stage-batch", type=int, default=1 << 16,
+                    help="fine-tune stage: rays a step (plenoctree finetune's default)")
+    ap.add_argument("--ft-warm-views", type=int, default=4,
+                    help="fine-tune stage: views of the warm-up epoch")
     ap.add_argument("--train-steps", type=int, default=300)
     ap.add_argument("--cpu-train-steps", type=int, default=30)
     ap.add_argument("--grid", type=int, default=256)
@@ -247,6 +281,10 @@ def main(argv: list[str] | None = None) -> int:
             batch = args.ft_batch if dev.type == "cuda" else 1 << 16
             res["finetune"] = bench_finetune(tree, train_ds, dev, batch, args.ft_steps)
             print(f"  fine-tune {res['finetune']['rays_per_s'] / 1e6:.2f} M rays/s", flush=True)
+            res["finetune_stage"] = bench_finetune_stage(tree, train_ds, dev,
+                                                         args.ft_stage_batch, args.ft_warm_views)
+            print(f"  fine-tune stage {res['finetune_stage']['rays_per_s'] / 1e6:.2f} M rays/s",
+                  flush=True)
         if "train" not in args.skip:
             steps = args.train_steps if dev.type == "cuda" else args.cpu_train_steps
             res["train"] = bench_train(args.data, dev, steps, scratch)

@@ -35,8 +35,11 @@ means a Python loop over data):
   backward, Adam) on a step with no log row, no occupancy update and no moment flush;
 - ``train+log``: the same on a step that writes a log row (every ``log_every`` steps);
 - ``occupancy``: the occupancy grid's update (every ``occ_update_every`` = 16 steps);
-- ``finetune``: ``FineTuneLoop.step`` (rays of the batch, stepper step with Adam, the
-  divergence watch).
+- ``finetune``: ``FineTuneLoop.step`` on a slice of ``FineTuneLoop.tile_order`` (the batch's
+  rays, the stepper's step with Adam; on the CPU path the divergence watch too); on the
+  ``cuda`` path the step's figures stay on the device and the loop reads them back every
+  ``read_every`` steps: row ``finetune read`` counts one such read (``read_figures``: the
+  host wait, the divergence watch over the steps read).
 - ``fixed``: ``Trainer.iteration`` with ``fixed_step`` (the ``gpu`` preset's step of fixed
   shape, :mod:`plenoctree.nerf.fixed`) at ``--batches`` rays in a budget of ``--budget``
   samples, on a step without a log row, occupancy update or ray-count adaptation: its count
@@ -463,6 +466,11 @@ def finetune_setup(scene: str, args: argparse.Namespace, root: Path) -> tuple[An
                             downscale=args.downscale)
     else:
         tree, _ = load_bench_tree("procedural", 128)
+        if not (root / "data").exists():         # --kinds finetune alone: no trainer wrote it
+            from plenoctree.datasets.procedural import write_procedural_dataset
+
+            write_procedural_dataset(root / "data", n_train=20, n_val=0, n_test=1, width=64,
+                                     height=64, n_samples=256)
         data = load_dataset(str(root / "data"), "train")
     return tree, ViewSet.from_dataset(data)
 
@@ -470,9 +478,8 @@ def finetune_setup(scene: str, args: argparse.Namespace, root: Path) -> tuple[An
 def count_finetune(tree: Any, views: Any, counter: Recorder, path: str, batch: int,
                    repeat: int) -> dict:
     """Counts of ``repeat`` ``FineTuneLoop.step`` calls at ``batch`` rays (the default Adam
-    with σ's own rate) on ``path``'s stepper."""
-    import numpy as np
-
+    with σ's own rate) on ``path``'s stepper; ``"read"``: the counts of the read of their
+    figures (device steppers)."""
     from plenoctree._util import progress
     from plenoctree.optim._loop import FineTuneLoop, LoopOptions
     from plenoctree.optim.finetuning import _make_stepper
@@ -481,9 +488,10 @@ def count_finetune(tree: Any, views: Any, counter: Recorder, path: str, batch: i
     backend = "numba" if path == "cpu" else ("triton" if _triton_interpreted() else "torch")
     cfg = FinetuneConfig(backend=backend, device="cpu")
     stepper, _ = _make_stepper(cfg, tree, (1.0, 1.0, 1.0))
-    loop = FineTuneLoop(stepper, views, None, LoopOptions(epochs=1, batch_rays=batch), {})
+    loop = FineTuneLoop(stepper, views, None,
+                        LoopOptions(epochs=1, batch_rays=batch, read_every=repeat + 1), {})
     loop._bar = progress(total=1, disable=True)
-    perm = np.random.default_rng(0).permutation(loop.n_tiles)
+    perm = loop.tile_order()          # numpy on the CPU path, on the device on the cuda path
     k = loop.tiles_per_batch
     total, seconds = Counts(), 0.0
     for i in range(repeat + 1):
@@ -498,6 +506,13 @@ def count_finetune(tree: Any, views: Any, counter: Recorder, path: str, batch: i
         _merge(total, c)
     out = total.as_dict(repeat)
     out.update(seconds=seconds / repeat, rays=batch, stepper=type(stepper).__name__)
+    if getattr(loop, "_dev", None) is not None:         # the figures of those steps, read once
+        t0 = time.perf_counter()
+        with counter.region() as c:
+            loop.read_figures(1)
+        out["read"] = c.as_dict()
+        out["read"].update(seconds=time.perf_counter() - t0, rays=0,
+                           read_every=loop.opts.read_every)
     return out
 
 
@@ -546,8 +561,11 @@ def run_scene(scene: str, args: argparse.Namespace, counter: Recorder, root: Pat
         tree, views = finetune_setup(scene, args, root)
         for path in args.paths:
             for batch in args.batches:
-                add("finetune", path, count_finetune(tree, views, counter, path, batch,
-                                                     args.repeat))
+                res = count_finetune(tree, views, counter, path, batch, args.repeat)
+                read = res.pop("read", None)
+                add("finetune", path, res)
+                if read is not None:
+                    add("finetune read", path, read)
     return rows
 
 
