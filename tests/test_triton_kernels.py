@@ -543,3 +543,41 @@ def test_sh_color_kernel_matches_numba_and_twin(degree):
         torch.testing.assert_close(out[key][0], ref[0], atol=3e-7, rtol=0)
         torch.testing.assert_close(out[key][1], ref[1], atol=3e-7, rtol=0)
     torch.testing.assert_close(out["triton", torch.bfloat16][0], ref[0], atol=2e-2, rtol=0)
+
+
+@pytest.mark.parametrize("fmt", ["SH9", "RGBA"])
+def test_render_image_on_the_device_matches_numba_without_read_backs(fmt):
+    """``render_image(device=...)``'s device path (render/_device.py): the rays made on the
+    device, the SH basis in one launch, the tree's box uploaded once per tree; the image is
+    the numba renderer's, and a frame reads nothing back (two uploads: the camera)."""
+    import sys
+    from pathlib import Path
+
+    from plenoctree.datasets import Cameras
+    from plenoctree.datasets.trajectories import look_at
+    from plenoctree.render import DeviceTree, render_image
+    from plenoctree.render._device import render_camera_device
+    from plenoctree.render.options import parse_data_format
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import step_ops
+
+    tree = _random_tree(fmt, 3)
+    eye = tree.center + np.array([2.0, 1.5, 1.2]) * tree.radius
+    c2w = np.stack([look_at(eye, tree.center), look_at(tree.center + 0.2 * tree.radius,
+                                                       tree.center + tree.radius)])
+    cams = Cameras(c2w.astype(np.float32), 14.0, 14.0, 8.0, 6.0, 16, 12)
+    fast = DeviceTree(tree, DEV)
+    info = parse_data_format(tree.data_format, tree.data_dim, tree.extra_data)
+    counter = step_ops.Recorder()
+    for i in range(2):
+        ref = render_image(tree, cams, i, backend="numba")
+        for backend in ("triton", "torch"):
+            with counter.region() as c:
+                out = render_camera_device(fast, info, cams, i, RenderOptions(), DEV, backend)
+            for a, b in ((out.rgb, ref.rgb), (out.alpha, ref.alpha)):
+                torch.testing.assert_close(a.cpu(), b, atol=1e-4, rtol=0)
+            if backend == "triton":          # (the twin, the spec, reads back as it likes)
+                syncs = dict(c.syncs)
+                assert syncs.pop("upload", 0) == 2 and not any(syncs.values()), dict(c.sites)
+                assert c.triton == (2 if fmt.startswith("SH") else 1)

@@ -16,7 +16,7 @@ import triton.language as tl
 
 from ..sh import SH_C0, SH_C1, SH_C2, SH_C3, SH_C4
 
-__all__ = ["sh_colors_backend"]
+__all__ = ["sh_colors_backend", "sh_basis"]
 
 BLOCK = 128
 
@@ -143,3 +143,39 @@ def sh_colors_backend(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> 
 
     require_triton(coeffs.device, "sh_colors")
     return _SHColorsTriton.apply(coeffs, dirs, int(degree))
+
+
+@triton.jit
+def _basis_kernel(dir_ptr, out_ptr, n, lo, hi,
+                  c0, c1, c20, c21, c22, c23, c24, c30, c31, c32, c33, c34, c35, c36,
+                  c40, c41, c42, c43, c44, c45, c46, c47, c48,
+                  DEG: tl.constexpr, B: tl.constexpr, BP: tl.constexpr, BLOCK: tl.constexpr):
+    pid = tl.program_id(0)
+    m = pid * BLOCK + tl.arange(0, BLOCK)
+    valid = m < n
+    m64 = m.to(tl.int64)
+    x = tl.load(dir_ptr + m64 * 3 + 0, mask=valid, other=0.0).to(tl.float32)[:, None]
+    y = tl.load(dir_ptr + m64 * 3 + 1, mask=valid, other=0.0).to(tl.float32)[:, None]
+    z = tl.load(dir_ptr + m64 * 3 + 2, mask=valid, other=0.0).to(tl.float32)[:, None]
+    b = tl.arange(0, BP)[None, :]
+    basis = _basis(x, y, z, b, c0, c1, c20, c21, c22, c23, c24, c30, c31, c32, c33, c34, c35,
+                   c36, c40, c41, c42, c43, c44, c45, c46, c47, c48, DEG)
+    basis = tl.where((b >= lo) & (b <= hi), basis, 0.0)
+    tl.store(out_ptr + m64[:, None] * B + b, basis, mask=valid[:, None] & (b < B))
+
+
+def sh_basis(dirs: torch.Tensor, degree: int, band: tuple[int, int]) -> torch.Tensor:
+    """float32 ``[N, (degree+1)²]`` SH basis of unit ``dirs [N, 3]`` (any float dtype), zero
+    outside the basis indices ``band = (lo, hi)`` (the renderer's ``basis_range``): the
+    renderer's per-ray basis in one launch (the twin: :func:`plenoctree.sh.eval_sh_bases`)."""
+    from .._triton import interpret_mode
+
+    d = dirs.contiguous()
+    n, nb = d.shape[0], (degree + 1) ** 2
+    out = torch.empty((n, nb), dtype=torch.float32, device=d.device)
+    if n:
+        block = 1024 if interpret_mode() else BLOCK
+        _basis_kernel[(triton.cdiv(n, block),)](
+            d, out, n, int(band[0]), int(band[1]), *map(float, _CONSTS), DEG=int(degree),
+            B=nb, BP=max(triton.next_power_of_2(nb), 2), BLOCK=block)
+    return out

@@ -228,6 +228,9 @@ class DeviceTree:
         self.child = child.to(device=dev, dtype=torch.int32).contiguous()
         self.data = data.to(dev).contiguous()
         self.offset, self.invradius = vec3(tree.offset), vec3(tree.invradius)
+        # the box on the device too: a frame's rays need it (an upload per frame otherwise)
+        self.box = (torch.as_tensor(self.offset, device=dev),
+                    torch.as_tensor(self.invradius, device=dev))
         self.data_format = tree.data_format
         self.extra_data = _extra(tree)
         self.device = dev
@@ -290,11 +293,19 @@ def render_image(tree: Any, cameras: Any, index: int, options: RenderOptions | N
     dev = torch.device(device) if device is not None else torch.device("cpu")
     if dev.type == "cpu" and _backend.resolve("render", backend, dev) == "numba":
         return _numba_render_camera(tree, cameras, index, options)
-    origins, dirs = cameras.rays(index)
     if dev.type == "cpu":
+        origins, dirs = cameras.rays(index)
         return render_rays(tree, origins, dirs, options=options, backend=backend)
-    out = render_rays(tree, torch.from_numpy(origins).to(dev), torch.from_numpy(dirs).to(dev),
-                      options=options, backend=backend)
+    # a device: the rays made there, nothing read back (._device)
+    from ._device import render_camera_device
+
+    opts = (options if options is not None else RenderOptions())
+    if not isinstance(opts, RenderOptions):
+        raise ConfigError(f"options: expected RenderOptions, got {type(opts).__name__}")
+    opts.validated()
+    info = _tree_info(tree)
+    out = render_camera_device(tree_to_device(tree, dev), info, cameras, cameras._index(index),
+                               opts, dev, _backend.resolve("render", backend, dev))
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
     return out

@@ -192,8 +192,11 @@ def _launch_opts() -> dict:
 
 
 def prepare_rays(offset: Any, invradius: Any, origins: torch.Tensor, dirs: torch.Tensor,
-                 step_eps: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-ray float64 geometry ``[N, 14]`` and unit directions ``[N, 3]`` (float64).
+                 step_eps: float, box: tuple[torch.Tensor, torch.Tensor] | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-ray float64 geometry ``[N, 14]`` and unit directions ``[N, 3]`` (float64);
+    ``box``: ``(offset, invradius)`` as float64 tensors on the rays' device already (a
+    ``DeviceTree``'s ``box``: no upload per frame).
 
     Columns: tree-space origin ``o_t`` (3), per-unit-``t`` direction ``d_t`` (3), ``1 / d_t``
     with zero components replaced by ``1e30`` (3), box entry ``t0``, exit ``t1``,
@@ -203,8 +206,11 @@ def prepare_rays(offset: Any, invradius: Any, origins: torch.Tensor, dirs: torch
 
     dev = origins.device
     geo = torch.float64
-    off = torch.as_tensor(np.asarray(offset, dtype=np.float64).reshape(-1), device=dev)
-    inv = torch.as_tensor(np.asarray(invradius, dtype=np.float64).reshape(-1), device=dev)
+    if box is not None:
+        off, inv = box
+    else:
+        off = torch.as_tensor(np.asarray(offset, dtype=np.float64).reshape(-1), device=dev)
+        inv = torch.as_tensor(np.asarray(invradius, dtype=np.float64).reshape(-1), device=dev)
     o = origins.to(geo).reshape(-1, 3)
     d = dirs.to(geo).reshape(-1, 3)
     d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
