@@ -176,7 +176,9 @@ def test_rays_kernel_matches_its_twin(scene, tmp_path, triton_cpu, fmt, cam, sra
     ref_basis = ray_basis_torch(info, unit, ext, opts).to(torch.float32)
     inside = ~outside
     assert outside.any() and inside.any()
-    torch.testing.assert_close(geo[:n][inside, :12], ref_geo[inside, :12], rtol=1e-12, atol=1e-12)
+    # (a GPU may fuse the camera's multiply-adds: a float32 ray one ulp apart, rarely)
+    tol = 1e-6 if ON_GPU else 1e-12
+    torch.testing.assert_close(geo[:n][inside, :12], ref_geo[inside, :12], rtol=tol, atol=tol)
     assert (geo[:n, COL_OUTSIDE] == outside.double()).all()
     assert (geo[:n][outside, 9] >= geo[:n][outside, 10]).all()      # past the border: a miss
     torch.testing.assert_close(basis[:n][inside], ref_basis[inside], rtol=3e-7, atol=3e-7)
@@ -456,3 +458,19 @@ def test_numba_fine_tuning_values_are_pinned(tmp_path):
     assert res.steps == 45 and res.best_epoch == 3
     assert hashlib.sha256(values.tobytes()).hexdigest() == (
         "29873fa728f0486ac52c25d159e3cd5d18ece71aa693f16d97903012fc6c845d")
+
+
+def test_photos_too_large_for_the_device_train_on_host_batches(scene, monkeypatch):
+    """A device stepper whose device cannot hold the photos falls back to host batches (its
+    step API: rays made on the CPU and uploaded each step), and still trains."""
+    from plenoctree.optim._device_stepper import TorchStepper
+
+    monkeypatch.setattr(TorchStepper, "fits", lambda self, nbytes: False)
+    tree = load_tree(scene / "noisy.npz")
+    st = _stepper("torch", tree)
+    loop = FineTuneLoop(st, _views(scene), None, LoopOptions(epochs=1, batch_rays=256,
+                                                             show_progress=False), {})
+    assert loop._dev is None and not st._views
+    values, state = loop.run()
+    assert state.train_rays == _views(scene).n_rays and not np.array_equal(
+        values, tree.data.reshape(values.shape))

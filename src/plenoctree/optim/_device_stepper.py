@@ -151,9 +151,9 @@ class _DeviceStepper:
         """The live values ``[n_cells, D]`` (a view of the device tensor, not a copy)."""
         return self._flat
 
-    def best_fits(self, nbytes: int) -> bool:
-        """Whether a copy of ``nbytes`` fits in the device's free memory with room to spare
-        (the CPU: always)."""
+    def fits(self, nbytes: int) -> bool:
+        """Whether ``nbytes`` more fit in the device's free memory with room to spare (1 GiB
+        or a tenth of the device; the CPU: always)."""
         if self.device.type != "cuda":
             return True
         free, total = torch.cuda.mem_get_info(self.device)

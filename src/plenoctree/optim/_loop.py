@@ -5,7 +5,8 @@ Used by :func:`plenoctree.optim.finetuning.finetune`; works with every stepper o
 step's figures at once; a device stepper (torch, Triton: :mod:`._device_stepper`) gets a slice
 of a tile order drawn on the device and writes its figures into a device buffer the loop reads
 back every ``read_every`` steps and at the end of an epoch, where the divergence watch runs
-over them in order.
+over them in order (on host batches, as a host stepper, when the photos do not fit on the
+device).
 """
 
 from __future__ import annotations
@@ -211,8 +212,10 @@ class FineTuneLoop:
         self._bar: Any = None
         self._base_lr = float(stepper.lr)
         self._base_sigma = getattr(stepper, "sigma_lr", None)
+        # a device stepper trains on photos uploaded once when they fit, else on host batches
         self._dev = (_DeviceRun(stepper, train, max(1, int(options.read_every)))
-                     if hasattr(stepper, "step_tiles") else None)
+                     if hasattr(stepper, "step_tiles") and stepper.fits(train.images.nbytes)
+                     else None)
         self._t_mark = time.perf_counter()       # device steps: counted up to here
 
     @property
@@ -305,7 +308,7 @@ class FineTuneLoop:
             sse += self.step(perm[b0:b0 + self.tiles_per_batch], epoch)
             if self._dev is not None and self._dev.full:
                 sse += self.read_figures(epoch)
-        if self._dev is not None:
+        if self._dev is not None and self._dev.pending:
             sse += self.read_figures(epoch)
         return sse, time.perf_counter() - t_epoch, st.train_seconds - s_epoch
 
@@ -441,7 +444,7 @@ class FineTuneLoop:
         live = getattr(self.stepper, "device_values", None)
         if live is not None:
             t = live()
-            if self.stepper.best_fits(t.numel() * t.element_size()):
+            if self.stepper.fits(t.numel() * t.element_size()):
                 return DeviceBestValues(t, stem)
         values = self.stepper.values()
         return BestValues(values.shape, values.dtype, stem)
