@@ -81,33 +81,47 @@ def _march_kernel(o_ptr, d_ptr, tmin_ptr, tmax_ptr, jit_ptr, k0_ptr, mask_ptr, s
         tl.store(done_ptr + r, (~(tn < t1)).to(tl.int8), mask=valid)
 
 
+def _passes(rays, grid, what: str, cap: int):
+    """``(counts, k_next, done, launch)``: the count pass's outputs (int64 ``[R]``, int64
+    ``[R]``, int8 ``[R]``, uninitialised) and ``launch(fill, offsets, ray_idx, ts, pts)``
+    running one pass of :func:`_march_kernel` on ``rays`` through ``grid`` (at most ``cap``
+    samples a ray in the count pass)."""
+    from .._triton import interpret_mode, require_triton
+    from .sampling import _grid_consts
+
+    origins, mask = rays.origins, grid.mask
+    dev = origins.device
+    require_triton(dev, what)
+    n = origins.shape[0]
+    lo, inv = _grid_consts(mask, grid.bbox)
+    counts = torch.empty(n, dtype=torch.int64, device=dev)
+    k_next = torch.empty(n, dtype=torch.int64, device=dev)
+    done = torch.empty(n, dtype=torch.int8, device=dev)
+    block = 1024 if interpret_mode() else BLOCK
+    opts = {} if interpret_mode() else {"enable_fp_fusion": False}
+    args = (origins, rays.dirs, rays.t_min, rays.t_max, rays.jitter, rays.k_start,
+            _mask_int8(mask, dev), float(grid.step), *map(float, lo), *map(float, inv),
+            int(mask.shape[0]), int(cap), n)
+
+    def launch(fill: bool, offsets, ray_idx, ts, pts) -> None:
+        _march_kernel[(triton.cdiv(max(n, 1), block),)](
+            *args, counts, k_next, done, offsets, ray_idx, ts, pts, FILL=fill, BLOCK=block,
+            **opts)
+    return counts, k_next, done, launch
+
+
 def march_backend(rays, grid, max_per_ray: int):
     """Op ``march`` of :mod:`plenoctree.backend` (tensors on CUDA, or the CPU in the
     interpreter): :class:`~plenoctree.nerf.sampling.MarchRays` through a
     :class:`~plenoctree.nerf.sampling.MarchGrid`; returns
     :class:`~plenoctree.nerf.sampling.PackedSamples`."""
-    from .._triton import interpret_mode, require_triton
-    from .sampling import PackedSamples, _grid_consts
+    from .sampling import PackedSamples
 
-    origins, mask, step = rays.origins, grid.mask, grid.step
-    dev = origins.device
-    require_triton(dev, "march_rays")
-    n = origins.shape[0]
-    g = int(mask.shape[0])
-    lo, inv = _grid_consts(mask, grid.bbox)
-    m = mask.to(device=dev, dtype=torch.int8).contiguous().reshape(-1)
-    counts = torch.empty(n, dtype=torch.int64, device=dev)
-    k_next = torch.empty(n, dtype=torch.int64, device=dev)
-    done = torch.empty(n, dtype=torch.int8, device=dev)
-    block = 1024 if interpret_mode() else BLOCK
-    launch = (triton.cdiv(max(n, 1), block),)
-    opts = {} if interpret_mode() else {"enable_fp_fusion": False}
-    cap = int(max_per_ray) if max_per_ray > 0 else 1 << 62
-    consts = (float(step), *map(float, lo), *map(float, inv), g, cap, n)
-    args = (origins, rays.dirs, rays.t_min, rays.t_max, rays.jitter, rays.k_start, m) + consts
+    dev, n = rays.origins.device, rays.origins.shape[0]
+    counts, k_next, done, launch = _passes(rays, grid, "march_rays",
+                                           int(max_per_ray) if max_per_ray > 0 else 1 << 62)
     if n:
-        _march_kernel[launch](*args, counts, k_next, done, counts, counts, counts, counts,
-                            FILL=False, BLOCK=block, **opts)
+        launch(False, counts, counts, counts, counts)
     offsets = torch.zeros(n + 1, dtype=torch.int64, device=dev)
     torch.cumsum(counts, 0, out=offsets[1:])
     total = int(offsets[-1].item()) if n else 0
@@ -115,8 +129,7 @@ def march_backend(rays, grid, max_per_ray: int):
     ts = torch.empty(total, dtype=torch.float32, device=dev)
     pts = torch.empty((total, 3), dtype=torch.float32, device=dev)
     if total:
-        _march_kernel[launch](*args, counts, k_next, done, offsets, ray_idx, ts, pts,
-                            FILL=True, BLOCK=block, **opts)
+        launch(True, offsets, ray_idx, ts, pts)
     return PackedSamples(ray_idx, ts, pts, offsets, k_next, done.bool())
 
 
@@ -124,31 +137,14 @@ def march_fixed_backend(rays, grid, capacity: int):
     """Op ``march_fixed`` of :mod:`plenoctree.backend`: the two passes above into the fixed
     buffers of a sample budget (:func:`plenoctree.nerf.fixed.march_fixed`), with no read-back
     (the prefix sum is cut at the budget on the device)."""
-    from .._triton import interpret_mode, require_triton
     from .fixed import _samples, finish_fixed, fixed_buffers
-    from .sampling import _grid_consts
 
-    origins, mask, step = rays.origins, grid.mask, grid.step
-    dev = origins.device
-    require_triton(dev, "march_fixed")
-    n = origins.shape[0]
-    g = int(mask.shape[0])
-    lo, inv = _grid_consts(mask, grid.bbox)
-    m = _mask_int8(mask, dev)
-    counts = torch.empty(n, dtype=torch.int64, device=dev)
-    k_next = torch.empty(n, dtype=torch.int64, device=dev)
-    done = torch.empty(n, dtype=torch.int8, device=dev)
-    block = 1024 if interpret_mode() else BLOCK
-    launch = (triton.cdiv(max(n, 1), block),)
-    opts = {} if interpret_mode() else {"enable_fp_fusion": False}
-    consts = (float(step), *map(float, lo), *map(float, inv), g, 1 << 62, n)
-    args = (origins, rays.dirs, rays.t_min, rays.t_max, rays.jitter, rays.k_start, m) + consts
-    _march_kernel[launch](*args, counts, k_next, done, counts, counts, counts, counts,
-                          FILL=False, BLOCK=block, **opts)
+    n = rays.origins.shape[0]
+    counts, k_next, done, launch = _passes(rays, grid, "march_fixed", 1 << 62)
+    launch(False, counts, counts, counts, counts)
     cut, full = finish_fixed(counts, capacity)
     ray_idx, ts, pts = fixed_buffers(n, capacity, grid.bbox)
-    _march_kernel[launch](*args, counts, k_next, done, cut, ray_idx, ts, pts,
-                          FILL=True, BLOCK=block, **opts)
+    launch(True, cut, ray_idx, ts, pts)
     return _samples(ray_idx, ts, pts, cut, full, capacity)
 
 

@@ -66,6 +66,17 @@ def _basis(x, y, z, b, c0, c1, c20, c21, c22, c23, c24, c30, c31, c32, c33, c34,
 
 
 @triton.jit
+def _row_basis(dir_ptr, m64, valid, b, c0, c1, c20, c21, c22, c23, c24, c30, c31, c32, c33,
+               c34, c35, c36, c40, c41, c42, c43, c44, c45, c46, c47, c48, DEG: tl.constexpr):
+    """``[BLOCK, BP]`` basis of the unit directions in rows ``m64`` of ``dir_ptr [N, 3]``."""
+    x = tl.load(dir_ptr + m64 * 3 + 0, mask=valid, other=0.0).to(tl.float32)[:, None]
+    y = tl.load(dir_ptr + m64 * 3 + 1, mask=valid, other=0.0).to(tl.float32)[:, None]
+    z = tl.load(dir_ptr + m64 * 3 + 2, mask=valid, other=0.0).to(tl.float32)[:, None]
+    return _basis(x, y, z, b, c0, c1, c20, c21, c22, c23, c24, c30, c31, c32, c33, c34, c35,
+                  c36, c40, c41, c42, c43, c44, c45, c46, c47, c48, DEG)
+
+
+@triton.jit
 def _shcolor_kernel(coeff_ptr, dir_ptr, rgb_ptr, grad_ptr, gcoeff_ptr, n,
                     c0, c1, c20, c21, c22, c23, c24, c30, c31, c32, c33, c34, c35, c36,
                     c40, c41, c42, c43, c44, c45, c46, c47, c48,
@@ -75,12 +86,9 @@ def _shcolor_kernel(coeff_ptr, dir_ptr, rgb_ptr, grad_ptr, gcoeff_ptr, n,
     m = pid * BLOCK + tl.arange(0, BLOCK)
     valid = m < n
     m64 = m.to(tl.int64)
-    x = tl.load(dir_ptr + m64 * 3 + 0, mask=valid, other=0.0).to(tl.float32)[:, None]
-    y = tl.load(dir_ptr + m64 * 3 + 1, mask=valid, other=0.0).to(tl.float32)[:, None]
-    z = tl.load(dir_ptr + m64 * 3 + 2, mask=valid, other=0.0).to(tl.float32)[:, None]
     b = tl.arange(0, BP)[None, :]
-    basis = _basis(x, y, z, b, c0, c1, c20, c21, c22, c23, c24, c30, c31, c32, c33, c34, c35,
-                   c36, c40, c41, c42, c43, c44, c45, c46, c47, c48, DEG)
+    basis = _row_basis(dir_ptr, m64, valid, b, c0, c1, c20, c21, c22, c23, c24, c30, c31, c32,
+                       c33, c34, c35, c36, c40, c41, c42, c43, c44, c45, c46, c47, c48, DEG)
     m2 = valid[:, None] & (b < B)
     for c in tl.static_range(3):
         ptr = m64[:, None] * (3 * B) + c * B + b
@@ -154,12 +162,9 @@ def _basis_kernel(dir_ptr, out_ptr, n, lo, hi,
     m = pid * BLOCK + tl.arange(0, BLOCK)
     valid = m < n
     m64 = m.to(tl.int64)
-    x = tl.load(dir_ptr + m64 * 3 + 0, mask=valid, other=0.0).to(tl.float32)[:, None]
-    y = tl.load(dir_ptr + m64 * 3 + 1, mask=valid, other=0.0).to(tl.float32)[:, None]
-    z = tl.load(dir_ptr + m64 * 3 + 2, mask=valid, other=0.0).to(tl.float32)[:, None]
     b = tl.arange(0, BP)[None, :]
-    basis = _basis(x, y, z, b, c0, c1, c20, c21, c22, c23, c24, c30, c31, c32, c33, c34, c35,
-                   c36, c40, c41, c42, c43, c44, c45, c46, c47, c48, DEG)
+    basis = _row_basis(dir_ptr, m64, valid, b, c0, c1, c20, c21, c22, c23, c24, c30, c31, c32,
+                       c33, c34, c35, c36, c40, c41, c42, c43, c44, c45, c46, c47, c48, DEG)
     basis = tl.where((b >= lo) & (b <= hi), basis, 0.0)
     tl.store(out_ptr + m64[:, None] * B + b, basis, mask=valid[:, None] & (b < B))
 

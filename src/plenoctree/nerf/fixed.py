@@ -28,10 +28,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
-from .sampling import MarchGrid, MarchRays, PackedSamples, _grid_consts, _march_torch
+from .sampling import MarchGrid, MarchRays, PackedSamples, _march_torch
 
 __all__ = ["FixedSamples", "march_fixed", "fixed_buffers", "finish_fixed", "FixedBatch",
            "RAY_QUANTUM"]
@@ -93,17 +92,10 @@ def _samples(ray_idx: torch.Tensor, ts: torch.Tensor, pts: torch.Tensor, cut: to
 def _march_fixed_numba(rays: MarchRays, grid: MarchGrid, capacity: int) -> FixedSamples:
     """The numba marching kernels (CPU tensors) into the budget's buffers."""
     from . import _march_numba as K
-    from .sampling import _empty_levels
+    from .sampling import numba_march_args
 
     n = rays.origins.shape[0]
-    lo, inv = _grid_consts(grid.mask, grid.bbox)
-    levels, coarse, cs = _empty_levels(grid.mask)
-    counts = np.empty(n, np.int64)
-    k_next = np.empty(n, np.int64)
-    done = np.empty(n, np.bool_)
-    args = (rays.origins.numpy(), rays.dirs.numpy(), rays.t_min.numpy(), rays.t_max.numpy(),
-            rays.jitter.numpy(), rays.k_start.numpy(), np.float32(grid.step), levels, coarse,
-            np.int64(cs), lo, inv)
+    args, (counts, k_next, done) = numba_march_args(rays, grid)
     K.march_count(*args, 0, counts, k_next, done)
     cut, full = finish_fixed(torch.from_numpy(counts), capacity)
     ray_idx, ts, pts = fixed_buffers(n, capacity, grid.bbox)

@@ -21,7 +21,7 @@ import torch
 
 
 __all__ = ["ray_aabb", "stratified_samples", "pdf_samples", "PackedSamples", "MarchRays",
-           "MarchGrid", "march_rays"]
+           "MarchGrid", "march_rays", "numba_march_args"]
 
 
 def ray_aabb(origins: torch.Tensor, dirs: torch.Tensor, bbox: torch.Tensor
@@ -277,20 +277,27 @@ def _empty_levels(mask: torch.Tensor) -> tuple[np.ndarray, np.ndarray, int]:
     return levels, coarse, cs
 
 
+def numba_march_args(rays: MarchRays, grid: MarchGrid) -> tuple[tuple, tuple]:
+    """``(args, outs)`` of the numba kernels :func:`._march_numba.march_count` /
+    ``march_fill`` for contiguous CPU ``rays``: the rays, step, empty levels and box; and the
+    empty ``(counts, k_next, done)`` arrays of the counting pass."""
+    n_rays = rays.origins.shape[0]
+    lo, inv = _grid_consts(grid.mask, grid.bbox)
+    levels, coarse, cs = _empty_levels(grid.mask)
+    args = (rays.origins.numpy(), rays.dirs.numpy(), rays.t_min.numpy(), rays.t_max.numpy(),
+            rays.jitter.numpy(), rays.k_start.numpy(), np.float32(grid.step), levels, coarse,
+            np.int64(cs), lo, inv)
+    return args, (np.empty(n_rays, np.int64), np.empty(n_rays, np.int64),
+                  np.empty(n_rays, np.bool_))
+
+
 def _march_numba(rays: MarchRays, grid: MarchGrid, max_per_ray: int) -> PackedSamples:
     """The numba marching kernels (CPU tensors); the same samples as :func:`_march_torch`,
     crossing empty cubes of the grid in jumps (see :mod:`._march_numba`)."""
     from . import _march_numba as K
 
     n_rays = rays.origins.shape[0]
-    lo, inv = _grid_consts(grid.mask, grid.bbox)
-    levels, coarse, cs = _empty_levels(grid.mask)
-    counts = np.empty(n_rays, np.int64)
-    k_next = np.empty(n_rays, np.int64)
-    done = np.empty(n_rays, np.bool_)
-    args = (rays.origins.numpy(), rays.dirs.numpy(), rays.t_min.numpy(), rays.t_max.numpy(),
-            rays.jitter.numpy(), rays.k_start.numpy(), np.float32(grid.step), levels, coarse,
-            np.int64(cs), lo, inv)
+    args, (counts, k_next, done) = numba_march_args(rays, grid)
     K.march_count(*args, int(max_per_ray), counts, k_next, done)
     offsets = np.zeros(n_rays + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
