@@ -9,8 +9,8 @@ import torch
 from plenoctree import _triton, backend
 from plenoctree.errors import BackendError
 
-BUILTIN_OPS = ["finetune", "hashgrid", "march", "render", "render_grad", "sh_colors",
-               "visibility"]
+BUILTIN_OPS = ["finetune", "hashgrid", "march", "march_fixed", "render", "render_grad",
+               "sh_colors", "visibility"]
 TRITON_OPS = {op for op, _ in _triton.TRITON_IMPLS}
 
 
