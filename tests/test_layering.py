@@ -8,6 +8,7 @@ A *unit* is a top-level module (``video``, ``_util``) or a subpackage (``dataset
 ``render``); imports inside one unit are free. The layers, bottom up (DESIGN.md §1)::
 
     leaves     errors _bounds _log _lazy _npz _util runtime device _triton backend sh metrics plots
+               live (a run's live.json) _sh_triton (the SH kernels for Triton)
     data       octree; datasets (octree/sh only for the procedural scenes, see EXCEPTIONS)
     engine     render (octree, sh); compression (octree)
     stages     evaluation camera_path export process viewer; nerf video compression_report;
@@ -45,18 +46,20 @@ ALLOWED: dict[str, set[str]] = {
     "sh": _LEAF,
     "metrics": _LEAF | {"_util"},
     "plots": _LEAF | {"_util"},
+    "live": _LEAF | {"_util"},
+    "_sh_triton": _LEAF | {"sh", "_triton"},
     "octree": _LEAF | {"_util", "_npz"},
     "datasets": _LEAF | {"_util"},
-    "render": _LEAF | {"_util", "_triton", "backend", "octree", "sh"},
+    "render": _LEAF | {"_util", "_triton", "backend", "octree", "sh", "_sh_triton"},
     "compression": _LEAF | {"_util", "_npz", "octree"},
     "evaluation": _LEAF | {"_util", "backend", "device", "metrics", "plots", "datasets",
                            "octree", "render", "compression"},
     "camera_path": _LEAF | {"_util", "datasets"},
     "export": _LEAF | {"_util", "octree", "render", "sh"},
     "process": _LEAF | {"_util", "datasets"},
-    "viewer": _LEAF | {"_util", "_npz", "datasets", "compression", "render"},
+    "viewer": _LEAF | {"_util", "_npz", "datasets", "compression", "render", "live"},
     "nerf": _LEAF | {"_lazy", "_util", "_triton", "backend", "runtime", "sh", "datasets",
-                     "evaluation"},
+                     "evaluation", "octree", "live", "_sh_triton"},
     "video": _LEAF | {"_util", "device", "plots", "datasets", "render", "compression",
                       "camera_path"},
     "compression_report": _LEAF | {"datasets", "octree", "render", "compression", "evaluation"},
@@ -68,7 +71,7 @@ ALLOWED: dict[str, set[str]] = {
     "pipeline_config": _LEAF | {"_config", "compression", "convert", "nerf", "optim",
                                 "process"},
     "pipeline_summary": _LEAF | {"_config", "device"},
-    "pipeline": _LEAF | {"_config", "_util", "device", "plots", "datasets", "octree",
+    "pipeline": _LEAF | {"_config", "_util", "device", "plots", "datasets", "octree", "live",
                          "compression", "evaluation", "process", "nerf", "convert", "optim",
                          "video", "viewer", "pipeline_config", "pipeline_summary"},
     "demo": _LEAF | {"_util", "datasets", "optim", "convert", "pipeline", "pipeline_config",

@@ -520,7 +520,7 @@ def test_march_kernel_matches_twin(max_per_ray):
 
 @pytest.mark.parametrize("degree", [0, 2, 3, 4])
 def test_sh_color_kernel_matches_numba_and_twin(degree):
-    """The Triton SH-colour kernel (nerf/_shcolor_triton.py, one launch each way): colours
+    """The Triton SH-colour kernel (_sh_triton.py, one launch each way): colours
     and the gradient w.r.t. the coefficients as the numba kernels and the torch twin, also
     for bf16 coefficients (the MLP's autocast output)."""
     from plenoctree.nerf.model import sh_colors

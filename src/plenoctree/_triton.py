@@ -45,7 +45,7 @@ TRITON_IMPLS = (
     ("hashgrid", "plenoctree.nerf._hashgrid_triton:hashgrid_backend"),
     ("march", "plenoctree.nerf._march_triton:march_backend"),
     ("march_fixed", "plenoctree.nerf._march_triton:march_fixed_backend"),
-    ("sh_colors", "plenoctree.nerf._shcolor_triton:sh_colors_backend"),
+    ("sh_colors", "plenoctree._sh_triton:sh_colors_backend"),
 )
 
 

@@ -11,7 +11,7 @@ keeps its box on the device too):
   the camera's pose and intrinsics uploaded: two uploads of 16 and 4 numbers);
 * they are checked as the numba path checks them: the four corner rays, made on the host,
   bound every other one;
-* the SH basis is one Triton launch (:func:`plenoctree.nerf._shcolor_triton.sh_basis`) where
+* the SH basis is one Triton launch (:func:`plenoctree._sh_triton.sh_basis`) where
   Triton runs (SG and RGBA trees: the twin's ops);
 * then the march kernel. Nothing is read back; the caller waits for the GPU at the end.
 
@@ -62,7 +62,7 @@ def render_camera_device(tree: Any, info: Any, cameras: Any, index: int, opts: R
         geo, unit = prepare_rays(tree.offset, tree.invradius, o, d, opts.step_eps,
                                  getattr(tree, "box", None))
         if info.kind == KIND_SH and tree.data.dtype == torch.float32:
-            from ..nerf._shcolor_triton import sh_basis
+            from .._sh_triton import sh_basis
 
             basis = sh_basis(unit, info.sh_degree, opts.basis_range(info.basis_dim))
         else:

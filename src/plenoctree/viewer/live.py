@@ -94,14 +94,14 @@ class LiveTrees:
     def frames(self) -> tuple[Any, str]:
         """``(FrameRenderer, version)`` of the newest readable tree (loads a newer tree first;
         ``(None, "")`` before the first)."""
+        from ..compression.fileio import load_any_tree      # (server.check_servable's check)
         from .frames import FrameRenderer
-        from .server import check_servable
 
         path, version = self.newest()
         with self._lock:
             if path is not None and version != self._frames_version:
                 try:
-                    self._frames = FrameRenderer(check_servable(path))
+                    self._frames = FrameRenderer(load_any_tree(path))
                     self._frames_version, self._path, self.error = version, path, None
                 except (PlenOctreeError, OSError, ValueError) as e:
                     self.error = f"{path.name}: {e}"

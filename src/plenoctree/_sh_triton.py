@@ -1,9 +1,11 @@
 """Triton GPU kernel for NeRF-SH colours: ``rgb = sigmoid(Σ_b k_b Y_b(d))`` and its gradient
 w.r.t. the coefficients, one launch each way (the torch twin,
 :func:`plenoctree.nerf.model._sh_colors_torch`, takes ~55 ops forward and backward at SH
-degree 3: every basis function is a few elementwise ops).
+degree 3: every basis function is a few elementwise ops), and the renderer's per-ray basis
+(:func:`sh_basis`). A leaf module beside :mod:`plenoctree.sh`: the NeRF-SH and the renderer
+both use it.
 
-Same maths as the numba kernels (:mod:`._shcolor_numba`): the basis in float32 in the same
+Same maths as the numba kernels (:mod:`plenoctree.nerf._shcolor_numba`): the basis in float32 in the same
 expression order, the backward pass recomputes it from the directions instead of keeping
 ``[M, B]`` of it.
 """
@@ -14,7 +16,7 @@ import torch
 import triton
 import triton.language as tl
 
-from ..sh import SH_C0, SH_C1, SH_C2, SH_C3, SH_C4
+from .sh import SH_C0, SH_C1, SH_C2, SH_C3, SH_C4
 
 __all__ = ["sh_colors_backend", "sh_basis"]
 
@@ -107,7 +109,7 @@ _CONSTS = (SH_C0, SH_C1, *SH_C2, *SH_C3, *SH_C4)
 
 
 def _launch(coeffs, dirs, degree: int, rgb, grad=None, gcoeffs=None) -> None:
-    from .._triton import interpret_mode
+    from ._triton import interpret_mode
 
     n = dirs.shape[0]
     if n == 0:
@@ -147,7 +149,7 @@ def sh_colors_backend(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> 
     """Op ``sh_colors`` of :mod:`plenoctree.backend` (CUDA tensors, or the CPU in the
     interpreter): ``rgb [N, 3]`` float32 from ``coeffs [N, 3·(degree+1)²]`` and unit
     ``dirs [N, 3]``."""
-    from .._triton import require_triton
+    from ._triton import require_triton
 
     require_triton(coeffs.device, "sh_colors")
     return _SHColorsTriton.apply(coeffs, dirs, int(degree))
@@ -173,7 +175,7 @@ def sh_basis(dirs: torch.Tensor, degree: int, band: tuple[int, int]) -> torch.Te
     """float32 ``[N, (degree+1)²]`` SH basis of unit ``dirs [N, 3]`` (any float dtype), zero
     outside the basis indices ``band = (lo, hi)`` (the renderer's ``basis_range``): the
     renderer's per-ray basis in one launch (the twin: :func:`plenoctree.sh.eval_sh_bases`)."""
-    from .._triton import interpret_mode
+    from ._triton import interpret_mode
 
     d = dirs.contiguous()
     n, nb = d.shape[0], (degree + 1) ** 2
