@@ -412,8 +412,6 @@ def test_numba_loop_steps_as_before(scene):
     """The loop feeds the numba stepper exactly as before the device path: a numpy permutation
     of the tiles an epoch from the loop's generator, each step's rays made on the CPU; the
     values equal, bit for bit, a replay of that algorithm."""
-    from plenoctree.optim._loop import lr_factor  # noqa: F401  (the schedule is unchanged)
-
     tree = load_tree(scene / "noisy.npz")
     views = _views(scene)
     loop_st, replay_st = _stepper("numba", tree), _stepper("numba", tree)
