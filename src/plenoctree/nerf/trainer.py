@@ -151,6 +151,9 @@ class Trainer:
         from .distributed import render_generator, setup_distributed
 
         self.dctx = setup_distributed(resolve_device(cfg.device))   # torchrun: one shard each
+        if cfg.fixed_step and self.dctx.active:
+            raise ConfigError("--fixed-step does not run under torchrun yet; train on one "
+                              "device, or without --fixed-step")
         self.device = self.dctx.device
         self.amp = resolve_amp(cfg.amp, self.device)
         ck = self._prepare_run_dir()
@@ -176,9 +179,6 @@ class Trainer:
             if cfg.fixed_step else None
         self.live = LiveView(self.out, cfg.preview_every_s, NDCSpace.from_cameras(
             self.data.cameras)) if self.dctx.is_main else None      # plenoctree view RUN
-        if self.fixed is not None and self.dctx.active:
-            raise ConfigError("--fixed-step does not run under torchrun yet; train on one "
-                              "device, or without --fixed-step")
         self.occ_thresh = -math.log(1.0 - cfg.occ_threshold) / cfg.render_step
         self.wall0 = time.perf_counter() - wall_before
         self.last_ckpt_wall = time.perf_counter()
