@@ -49,6 +49,12 @@ def test_live_status_files_and_the_newest_tree(tmp_path):
     assert live["stage"] == "extract done" and live["tree"] == tmp_path / "tree.npz"
     write_live(tmp_path, tree="gone.npz")                          # names no file: fall back
     assert read_live(tmp_path)["tree"] is None
+    (tmp_path / "secret.txt").write_text("no")
+    outside = tmp_path.parent / f"{tmp_path.name}_outside.npz"
+    save_tree(procedural_tree(8), outside)
+    for bad in ("../" + outside.name, str(outside), "/etc/passwd", "secret.txt", 3):
+        write_live(tmp_path, tree=bad)                  # only tree files inside the folder
+        assert read_live(tmp_path)["tree"] is None, bad
 
 
 @pytest.mark.parametrize("render", ["cpu", "webgl"])

@@ -73,9 +73,21 @@ def read_live(folder: str | os.PathLike) -> dict | None:
     if not found:
         return None
     _, sub, d = max(found, key=lambda x: x[0])
-    tree = d.get("tree")
-    d["tree"] = (sub / tree) if isinstance(tree, str) and (sub / tree).is_file() else None
+    d["tree"] = _tree_in(sub, d.get("tree"))
     return d
+
+
+def _tree_in(folder: Path, name: Any) -> Path | None:
+    """``folder/name`` when ``name`` names a tree file (``.npz``/``.plnz``) inside ``folder``
+    (a ``live.json`` cannot make a viewer serve any other file), else None."""
+    if not isinstance(name, str) or not name.endswith((".npz", ".plnz")):
+        return None
+    path = folder / name
+    try:
+        inside = path.resolve().is_relative_to(folder.resolve())
+    except (OSError, ValueError):
+        return None
+    return path if inside and path.is_file() else None
 
 
 def newest_tree(folder: str | os.PathLike) -> Path | None:
