@@ -33,7 +33,7 @@ import torch
 from .sampling import MarchGrid, MarchRays, PackedSamples, _march_torch
 
 __all__ = ["FixedSamples", "march_fixed", "fixed_buffers", "finish_fixed", "FixedBatch",
-           "RAY_QUANTUM"]
+           "render_fixed", "fixed_loss", "RAY_QUANTUM"]
 
 #: The adaptive ray count of a fixed-shape step is a multiple of this.
 RAY_QUANTUM = 256
