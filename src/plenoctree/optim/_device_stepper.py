@@ -30,10 +30,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..errors import ConfigError
 from ..render.options import KIND_RGBA, parse_data_format
 from ._device_twins import OPT_CODES
-from ._rules import ADAM_EPS, BETAS, FIG_BAD, FIG_ROWS, FIG_SSE, N_FIGS, RMS_ALPHA, RMS_EPS
+from ._rules import (ADAM_EPS, BETAS, FIG_BAD, FIG_ROWS, FIG_SSE, N_FIGS, RMS_ALPHA, RMS_EPS,
+                     saved_moment)
 
 __all__ = ["DeviceViews", "TorchStepper", "TritonStepper"]
 
@@ -222,10 +222,7 @@ class _DeviceStepper:
         for key in ("m1", "m2"):
             mine = getattr(self, key)
             if mine is not None:
-                if key not in state or tuple(state[key].shape) != tuple(mine.shape):
-                    raise ConfigError(f"checkpoint: optimiser state {key!r} missing or of the "
-                                      "wrong shape")
-                mine.copy_(self._t(state[key]))
+                mine.copy_(self._t(saved_moment(state, key, mine.shape)))
 
     # --- per backend ----------------------------------------------------------------------------
     def _batch(self, views: DeviceViews, tiles: torch.Tensor | None, n_tiles: int, base: int,

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError
-from ._rules import ADAM_EPS, BETAS, RMS_ALPHA, RMS_EPS
+from ._rules import ADAM_EPS, BETAS, RMS_ALPHA, RMS_EPS, saved_moment
 
 __all__ = ["OPTIMIZERS", "DEFAULT_LR", "NumbaStepper", "TorchStepper", "TritonStepper",
            "make_stepper", "gradient_scale"]
@@ -147,10 +147,7 @@ class NumbaStepper:
         for key in ("m1", "m2"):
             mine = getattr(self, key)
             if mine is not None:
-                if key not in state or state[key].shape != mine.shape:
-                    raise ConfigError(f"checkpoint: optimiser state {key!r} missing or of the "
-                                      "wrong shape")
-                np.copyto(mine, state[key])
+                np.copyto(mine, saved_moment(state, key, mine.shape))
 
 
 def __getattr__(name: str) -> Any:
