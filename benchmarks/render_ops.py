@@ -65,8 +65,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['sync_item'] + r['sync_shape'] + r['sync_host']:.0f}",
               f"{r['sync_upload']:.0f}", f"{r['max_abs_diff_rgb_vs_numba']:.1e}"]
              for k, r in rows.items()]
-    print(f"One render_image frame on the GPU path ({desc.get('kind', args.tree)}, {desc.get('n_leaves', '?')} leaves, "
-          f"{args.size}², counted on the CPU)\n")
+    name = f"{desc.get('kind', args.tree)}, {desc.get('n_leaves', '?')} leaves"
+    print(f"One render_image frame on the GPU path ({name}, {args.size}², counted on the "
+          "CPU)\n")
     print(markdown_table(head, cells))
     report = {"benchmark": "render_ops", "tree": desc, "size": args.size,
               "machine": machine_info(), "rows": rows}
