@@ -151,10 +151,15 @@ class TrainConfig:
     """Occupancy sampler: upper bound of the adaptive rays per step."""
     fixed_step: bool = False
     """Occupancy sampler: train in steps of fixed shape (``nerf.fixed``, the ``gpu``
-    preset): each step marches its rays once into a budget of ``target_samples`` samples and
-    evaluates all of them, without early termination and without reading anything back
-    inside the step; the rays per step adapt every ``occ_update_every`` steps. Off: marching
-    waves with early ray termination (fewer samples, the CPU's way)."""
+    preset): each step marches its rays once into ``fixed_candidates × target_samples``
+    candidate slots, drops the samples behind ``train_stop_thresh`` by a density pass without
+    gradients, trains the network on ``target_samples`` slots, and reads nothing back inside
+    the step; the rays per step adapt every ``occ_update_every`` steps. Off: marching waves
+    with early ray termination (host round trips each wave, the CPU's way)."""
+    fixed_candidates: int = 8
+    """Fixed-shape steps: candidate slots marched per trained slot, for early ray termination
+    (nerfacc's and instant-ngp's way). 1 = no early termination: every marched sample is
+    trained (a ray behind a surface keeps its samples, so fewer rays fit in a step)."""
     max_steps: int = field(default=30000, metadata={"flag": "steps"})
     """Training steps (the run also stops at ``minutes`` when that is set)."""
     minutes: float = 0.0
@@ -358,6 +363,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
          f"{cfg.far_levels}")
     need(not cfg.fixed_step or cfg.sampler == "occupancy",
          "fixed_step needs the occupancy sampler (--sampler occupancy)")
+    need(1 <= cfg.fixed_candidates <= 64,
+         f"fixed_candidates must be in 1..64, got {cfg.fixed_candidates}")
     need(cfg.preview_every_s >= 0, f"preview_every_s must be >= 0, got {cfg.preview_every_s}")
     need(cfg.far_levels <= 0 or cfg.sampler == "occupancy",
          "far_levels needs the occupancy sampler (--sampler occupancy)")

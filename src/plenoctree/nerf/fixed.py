@@ -7,17 +7,26 @@ many rays still march and how many samples the march made (host round trips on a
 op count that grows with the batch). Here instead, as in nerfacc and instant-ngp:
 
 * the rays of the step are marched once through the occupancy grid into buffers of a fixed
-  **sample budget** ``S`` (:func:`march_fixed`: one counting pass, a prefix sum, one filling
-  pass; a ray's samples are written while they fit, the count stays on the device);
-* the network runs on all ``S`` slots; slots no ray filled hold the box's centre and belong
-  to a dummy ray ``R`` whose outputs are dropped (so they get no gradient);
-* eq. (1)–(2) over each ray's whole sequence (no early termination: the samples behind a
-  surface get weights ~0, the same image), the loss over the rays whose samples all fit
-  (``complete``, a mask — never a selection);
-* how many rays the next steps take is adapted from the samples per ray, read back every
-  ``occ_update_every`` steps (:class:`FixedBatch`); the ray count moves in multiples of
-  :data:`RAY_QUANTUM` so that a captured graph (CUDA graphs, ``torch.compile``) sees few
-  shapes.
+  size, ``k × S`` **candidate** slots (:func:`march_fixed`: one counting pass, a prefix sum,
+  one filling pass; a ray's samples are written while they fit, the count stays on the
+  device; ``k = cfg.fixed_candidates``, :func:`candidate_factor`);
+* early ray termination without a read-back (:func:`terminate_fixed`): the density of every
+  candidate without gradients, each candidate's transmittance from a per-ray exclusive prefix
+  sum of ``σ δ`` over the packed buffer, the candidates before ``T < train_stop_thresh`` kept
+  (a prefix of each ray, the waves path's samples) and compacted into the **sample budget**
+  ``S`` by a prefix sum over the kept flags (a scatter, the rest into a spare slot);
+* the network runs with gradients on all ``S`` slots; slots no ray filled hold the box's
+  centre and belong to a dummy ray ``R`` whose outputs are dropped (so they get no gradient);
+* eq. (1)–(2) over each ray's kept sequence, the loss over the rays whose kept samples all fit
+  in ``S`` and whose candidates all fit in ``k S`` (``complete``, a mask — never a selection);
+* how many rays the next steps take is adapted from the samples per ray, kept and marched,
+  read back every ``occ_update_every`` steps (:class:`FixedBatch`); the ray count moves in
+  multiples of :data:`RAY_QUANTUM` so that a captured graph (CUDA graphs, ``torch.compile``)
+  sees few shapes.
+
+``k = 1`` (or ``train_stop_thresh = 0``) is the step without early termination: the march
+goes straight into ``S`` and every marched sample is trained (the samples behind a surface get
+weights ~0, the same image, but fill the budget: lego trains ~5 times fewer rays a step).
 
 Backends of op ``march_fixed`` (:mod:`plenoctree.backend`): numba on the CPU, Triton on CUDA
 (the two passes of :mod:`._march_triton` into the fixed buffers), and the torch twin
@@ -26,14 +35,15 @@ Backends of op ``march_fixed`` (:mod:`plenoctree.backend`): numba on the CPU, Tr
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 
 from .sampling import MarchGrid, MarchRays, PackedSamples, _march_torch
 
-__all__ = ["FixedSamples", "march_fixed", "fixed_buffers", "finish_fixed", "FixedBatch",
-           "render_fixed", "fixed_loss", "RAY_QUANTUM"]
+__all__ = ["FixedSamples", "march_fixed", "fixed_buffers", "finish_fixed", "candidate_factor",
+           "terminate_fixed", "kept_figures", "FixedBatch", "render_fixed", "fixed_loss", "RAY_QUANTUM"]
 
 #: The adaptive ray count of a fixed-shape step is a multiple of this.
 RAY_QUANTUM = 256
@@ -50,8 +60,9 @@ class FixedSamples:
         offsets: int64 ``[R + 2]``: ray ``r`` owns slots ``offsets[r]:offsets[r + 1]``, the
             dummy ray the rest (``offsets[R + 1] = S``).
         complete: bool ``[R]``: every sample of the ray fits in the budget.
-        n_valid: int64 ``[]`` filled slots; total: int64 ``[]`` samples of all rays (also
-            those past the budget). Device tensors, not read back.
+        n_valid: int64 ``[]`` filled slots; total: int64 ``[]`` samples the march made for
+            all rays (also those past the budget; after :func:`terminate_fixed` still the
+            candidates'). Device tensors, not read back.
     """
 
     ray_idx: torch.Tensor
@@ -136,39 +147,138 @@ def march_fixed(rays: MarchRays, grid: MarchGrid, capacity: int,
     return _backend.implementation("march_fixed", name)(rays, grid, int(capacity))
 
 
+def candidate_factor(cfg, stop_thresh: float | None = None) -> int:
+    """``k``, the candidate slots marched per slot of the budget: ``cfg.fixed_candidates``,
+    or 1 (no early termination, no density pass) when the threshold (``stop_thresh``; None:
+    ``cfg.train_stop_thresh``) is 0."""
+    thresh = cfg.train_stop_thresh if stop_thresh is None else stop_thresh
+    return int(cfg.fixed_candidates) if thresh > 0 else 1
+
+
+def terminate_fixed(cand: FixedSamples, sigma: torch.Tensor, grid: MarchGrid,
+                    stop_thresh: float, capacity: int) -> FixedSamples:
+    """Early ray termination of marched candidates, compacted into a budget, in fixed shapes.
+
+    With ``τ_i = σ_i δ`` (``δ = grid.step``) and the optical depth before candidate ``i`` of
+    ray ``r``, ``D_i = Σ_{j<i, j in r} τ_j`` (a batch-wide exclusive prefix sum in float64
+    minus its value at the ray's first slot), candidate ``i`` is kept when
+    ``T_i = exp(-D_i) >= stop_thresh``: a prefix of each ray, ending with the sample where
+    ``T`` falls below the threshold — the samples the waves path trains
+    (:func:`.renderer._march_waves`). Kept candidate ``i`` goes to slot
+    ``Σ_{j<=i} keep_j - 1`` when that is below ``capacity``; the others to a spare slot that
+    is cut off.
+
+    Args:
+        cand: :class:`FixedSamples` of ``R`` rays in ``M = k S`` candidate slots.
+        sigma: ``[M]`` density of every candidate (1/world-length; any float dtype, no grad).
+        grid: the march's grid (``step``, ``bbox``). stop_thresh: in ``(0, 1)``.
+        capacity: the budget ``S``.
+
+    Returns:
+        :class:`FixedSamples` in ``S`` slots; ``complete``: the ray's candidates fit in
+        ``M`` and its kept samples in ``S``; ``total``: the candidates' (``cand.total``).
+    """
+    n, m = cand.complete.shape[0], cand.t.shape[0]
+    tau = sigma.detach().double() * float(grid.step)
+    excl = torch.cumsum(tau, 0) - tau
+    first = cand.offsets[:-1].clamp(max=m - 1)                      # [R + 1], the dummy's too
+    before = excl - excl[first][cand.ray_idx]
+    # the dummy ray's slots may be kept too: they land after every real one and hold what
+    # an unfilled slot holds (ray R, t 0, the box's centre)
+    keep = before <= -math.log(stop_thresh)
+    ck = torch.zeros(m + 1, dtype=torch.int64, device=tau.device)   # kept in slots < i
+    torch.cumsum(keep, 0, out=ck[1:])
+    dest = torch.where(keep, ck[1:] - 1, capacity).clamp(max=capacity)
+    ray_idx, ts, pts = fixed_buffers(n, capacity + 1, grid.bbox)
+    ray_idx.scatter_(0, dest, cand.ray_idx)
+    ts.scatter_(0, dest, cand.t)
+    pts.index_copy_(0, dest, cand.points)
+    full = ck[cand.offsets[:n + 1]]                                 # kept, by ray: [R + 1]
+    cut = full.clamp(max=capacity)
+    end = torch.full((1,), capacity, dtype=torch.int64, device=tau.device)
+    return FixedSamples(ray_idx[:capacity], ts[:capacity], pts[:capacity],
+                        torch.cat([cut, end]), cand.complete & (full[1:] <= capacity),
+                        cut[-1], cand.total)
+
+
+def kept_figures(s: FixedSamples) -> torch.Tensor:
+    """float64 ``[2]`` on the device: the complete rays of ``s`` and their samples (the
+    samples a ray trains, measured where it is known whole)."""
+    n = s.complete.shape[0]
+    ok = s.complete
+    return torch.stack([ok.sum(), ((s.offsets[1:n + 1] - s.offsets[:n]) * ok).sum()]).double()
+
+
 class FixedBatch:
-    """The ray count of fixed-shape steps: ``S / (samples per ray)`` rounded down to a
-    multiple of :data:`RAY_QUANTUM`, within ``[RAY_QUANTUM, max_rays]``.
+    """The ray count of fixed-shape steps: the most rays whose samples fit on average, both
+    the kept ones in the budget ``S`` and the marched ones in the ``k S`` candidate slots,
+    ``min(S / kept per ray, k S / marched per ray)``, rounded down to a multiple of
+    :data:`RAY_QUANTUM` within ``[RAY_QUANTUM, max_rays]``.
 
-    Each step adds its rays and samples (all of them, also past the budget) to device
-    counters (:meth:`add`, no read-back); :meth:`adapt` reads them (one host round trip) and
-    updates the trainer's state (``spr``: running mean of the samples per ray, ``n_rays``) as
-    the waves path does every step, so a checkpoint keeps it."""
+    Each step adds its rays, marched samples (all of them, also past the buffer) and
+    :func:`kept_figures` to device counters (:meth:`add`, no read-back); :meth:`adapt` reads
+    them (one host round trip) and updates the trainer's state (``spr``: running mean of the
+    kept samples per ray, ``spr_marched``: of the marched ones, ``n_rays``) as the waves path
+    does every step, so a checkpoint keeps it."""
 
-    def __init__(self, capacity: int, max_rays: int, device: torch.device):
+    def __init__(self, capacity: int, max_rays: int, device: torch.device,
+                 candidates: int = 1):
         self.capacity, self.max_rays = int(capacity), int(max_rays)
-        self.sums = torch.zeros(2, dtype=torch.float64, device=device)   # rays, samples
+        self.candidates = int(candidates)
+        # rays, marched samples; complete rays, their kept samples
+        self.sums = torch.zeros(4, dtype=torch.float64, device=device)
 
     def rays(self, n_rays: float) -> int:
         """The ray count of a step for the state's ``n_rays``."""
         top = max(RAY_QUANTUM, self.max_rays // RAY_QUANTUM * RAY_QUANTUM)
         return max(RAY_QUANTUM, min(int(n_rays) // RAY_QUANTUM * RAY_QUANTUM, top))
 
-    def add(self, n_rays: int, total: torch.Tensor) -> None:
-        """Count a step of ``n_rays`` rays that marched ``total`` (device int64) samples."""
+    def add(self, n_rays: int, total: torch.Tensor, kept: torch.Tensor) -> None:
+        """Count a step of ``n_rays`` rays that marched ``total`` (device int64) samples and
+        kept ``kept`` (:func:`kept_figures`)."""
         self.sums[0] += n_rays
         self.sums[1] += total
+        self.sums[2:] += kept
 
     def adapt(self, state) -> None:
-        """Read the counters (one round trip) and set ``state.spr`` and ``state.n_rays``
-        (``state``: the trainer's :class:`~.trainer.TrainerState`)."""
-        rays, samples = self.sums.tolist()
+        """Read the counters (one round trip) and set ``state.spr``, ``state.spr_marched``
+        and ``state.n_rays`` (``state``: the trainer's :class:`~.trainer.TrainerState`)."""
+        rays, marched, done, kept = self.sums.tolist()
         self.sums.zero_()
+        mean = (lambda old, new: new if old == 0 else 0.9 * old + 0.1 * new)
         if rays > 0:
-            spr = max(samples, 1.0) / rays
-            state.spr = spr if state.spr == 0 else 0.9 * state.spr + 0.1 * spr
-            state.n_rays = float(min(self.max_rays, max(RAY_QUANTUM,
-                                                        self.capacity / state.spr)))
+            state.spr_marched = mean(state.spr_marched, max(marched, 1.0) / rays)
+        if done > 0:
+            state.spr = mean(state.spr, max(kept, 1.0) / done)
+        fits = []                       # the rays whose samples fit, on average
+        if state.spr_marched > 0:
+            fits.append(self.candidates * self.capacity / state.spr_marched)
+        if state.spr > 0:
+            fits.append(self.capacity / state.spr)
+        if fits:
+            state.n_rays = float(min(self.max_rays, max(RAY_QUANTUM, min(fits))))
+
+
+def _sample_fixed(model, rays, cfg, mode, capacity: int) -> FixedSamples:
+    """The samples :func:`render_fixed` trains: the march into ``k S`` candidates, then
+    without gradients their density and :func:`terminate_fixed` (``k > 1``), or the march
+    straight into ``S`` (``k = 1``)."""
+    from .renderer import autocast, ray_bounds
+
+    n, dev = len(rays), rays.origins.device
+    t_min, t_max = ray_bounds(rays.origins, rays.dirs, model.scene_bbox, rays.near, rays.far)
+    jitter = torch.rand(n, generator=mode.generator, device=dev)
+    occ = model.occupancy
+    grid = MarchGrid(float(cfg.render_step), occ.mask, occ.bbox)
+    k = candidate_factor(cfg, mode.stop_thresh)
+    s = march_fixed(MarchRays(rays.origins, rays.dirs, t_min, t_max, jitter), grid,
+                    k * capacity)
+    if k == 1:
+        return s
+    thresh = cfg.train_stop_thresh if mode.stop_thresh is None else mode.stop_thresh
+    with torch.no_grad(), autocast(dev, mode.amp):
+        sigma = model.fine.density(s.points)
+    return terminate_fixed(s, sigma, grid, thresh, capacity)
 
 
 def render_fixed(model, rays, cfg, mode, capacity: int) -> dict:
@@ -178,28 +288,26 @@ def render_fixed(model, rays, cfg, mode, capacity: int) -> dict:
     Args:
         model: a :class:`~.model.NeRFModel` with an occupancy grid. rays: a
             :class:`~.renderer.RayBatch`. cfg: its :class:`~.config.TrainConfig`
-            (``render_step``, far-field samples). mode: a training
-            :class:`~.renderer.RenderMode` (``generator``, ``amp``, ``distortion``).
+            (``render_step``, ``fixed_candidates``, ``train_stop_thresh``, far-field
+            samples). mode: a training :class:`~.renderer.RenderMode` (``generator``,
+            ``amp``, ``distortion``; ``stop_thresh``: None for the config's).
         capacity: the sample budget ``S``.
 
     Returns:
         ``rgb [R, 3]`` (over ``rays``' background), ``acc [R]``, ``complete [R]`` bool,
-        ``n_samples`` (int, = ``S``: every slot is evaluated), ``total`` (int64 ``[]``, the
-        samples the rays had, also past the budget) and with ``mode.distortion``
+        ``n_samples`` (int, = ``S``: every slot is evaluated with gradients; the density pass
+        evaluates ``k S`` more without), ``total`` (int64 ``[]``, the samples the march made,
+        also past the buffer), ``kept`` (:func:`kept_figures`) and with ``mode.distortion``
         ``distortion [R]``.
     """
     from .far import composite_far, render_far
-    from .renderer import autocast, ray_bounds
+    from .renderer import autocast
     from .volrend import composite_packed, distortion_packed, render_weights_packed
 
     n = len(rays)
     dev = rays.origins.device
-    t_min, t_max = ray_bounds(rays.origins, rays.dirs, model.scene_bbox, rays.near, rays.far)
-    jitter = torch.rand(n, generator=mode.generator, device=dev)
-    occ = model.occupancy
     step = float(cfg.render_step)
-    s = march_fixed(MarchRays(rays.origins, rays.dirs, t_min, t_max, jitter),
-                    MarchGrid(step, occ.mask, occ.bbox), capacity)
+    s = _sample_fixed(model, rays, cfg, mode, capacity)
     d = rays.dirs.index_select(0, s.ray_idx.clamp(max=n - 1))
     with autocast(dev, mode.amp):
         sigma, coeffs = model.fine(s.points, d)
@@ -208,7 +316,8 @@ def render_fixed(model, rays, cfg, mode, capacity: int) -> dict:
     vals = torch.cat([color.float(), torch.ones_like(s.t)[:, None], s.t[:, None]], 1)
     sums = composite_packed(w, vals, s.ray_idx, n + 1)[:n]          # the dummy ray dropped
     r = {"rgb": sums[:, :3], "acc": sums[:, 3], "dsum": sums[:, 4]}
-    out = {"complete": s.complete, "n_samples": int(capacity), "total": s.total}
+    out = {"complete": s.complete, "n_samples": int(capacity), "total": s.total,
+           "kept": kept_figures(s)}
     if mode.distortion:
         out["distortion"] = distortion_packed(w, s.t, step, s.ray_idx, s.offsets, n + 1)[:n]
     if model.far is not None:           # the world beyond the box (nerf.far): fixed samples

@@ -38,7 +38,7 @@ from .checkpoint import CHECKPOINT_NAME, CheckpointError, TrainProgress, \
 from .config import TrainConfig, config_json, validate
 from .encoding import HashGridEncoding
 from .far import resolve_far_levels
-from .fixed import FixedBatch, fixed_loss, render_fixed
+from .fixed import FixedBatch, candidate_factor, fixed_loss, render_fixed
 from .preview import LiveView
 from .trainer_state import LogWindow, StepFigures, TrainerState
 from .evaluate import evaluate_views
@@ -175,8 +175,8 @@ class Trainer:
         self.rays = RaySource(self.data, self.device, cfg.random_background,
                               opaque_photos=opaque_photos(cfg))
         self.dist_weight = distortion_weight(cfg)
-        self.fixed = FixedBatch(cfg.target_samples, cfg.max_rays, self.device) \
-            if cfg.fixed_step else None
+        self.fixed = FixedBatch(cfg.target_samples, cfg.max_rays, self.device,
+                                candidate_factor(cfg)) if cfg.fixed_step else None
         self.live = LiveView(self.out, cfg.preview_every_s, NDCSpace.from_cameras(
             self.data.cameras)) if self.dctx.is_main else None      # plenoctree view RUN
         self.occ_thresh = -math.log(1.0 - cfg.occ_threshold) / cfg.render_step
@@ -297,7 +297,7 @@ class Trainer:
                               distortion=self.dist_weight > 0)
             r = render_fixed(self.model, batch, cfg, mode, cfg.target_samples)
             loss, mse = fixed_loss(r, target, self.dist_weight, self.extent)
-            self.fixed.add(n_rays, r["total"])
+            self.fixed.add(n_rays, r["total"], r["kept"])
             used = n_rays
         elif self.occ:
             mode = RenderMode(train=True, generator=self.rgen, amp=self.amp,

@@ -29,7 +29,10 @@ class TrainerState:
 
     Attributes:
         n_rays: rays per step, adapted to ``target_samples`` (occupancy sampler).
-        spr: running mean of the samples per ray (0 before the first step).
+        spr: running mean of the samples per ray (0 before the first step); with steps of
+            fixed shape, those trained (after early termination).
+        spr_marched: steps of fixed shape: running mean of the candidate samples the march
+            made per ray (0 before the first adaptation).
         next_val_s: training seconds at which the next timed validation is due.
         last_ckpt_step: step of the last checkpoint written.
         win: the sums of the log row being accumulated.
@@ -37,6 +40,7 @@ class TrainerState:
 
     n_rays: float
     spr: float = 0.0
+    spr_marched: float = 0.0
     next_val_s: float = 0.0
     last_ckpt_step: int = 0
     win: LogWindow = field(default_factory=LogWindow)
@@ -49,7 +53,7 @@ class TrainerState:
         for k, v in saved.items():
             if k == "win":
                 self.win = LogWindow(**v) if v else LogWindow()
-            elif k in ("n_rays", "spr", "next_val_s", "last_ckpt_step"):
+            elif k in ("n_rays", "spr", "spr_marched", "next_val_s", "last_ckpt_step"):
                 setattr(self, k, v)
 
 
