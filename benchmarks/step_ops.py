@@ -371,7 +371,7 @@ def make_trainer(scene: str, root: Path, args: argparse.Namespace, fixed: bool =
         cfg.distortion_weight = args.distortion_weight
     cfg.device, cfg.minutes, cfg.max_steps, cfg.threads = "cpu", 0.0, 10**9, args.threads
     cfg.val_views, cfg.val_every_s, cfg.val_every_steps = 0, 0.0, 0
-    cfg.ckpt_every_s, cfg.ckpt_every_steps = 0.0, 0
+    cfg.ckpt_every_s, cfg.ckpt_every_steps, cfg.preview_every_s = 0.0, 0, 0.0   # not the step
     cfg.fixed_step = fixed
     if fixed:
         cfg.out += "_fixed"
