@@ -581,3 +581,19 @@ def test_render_image_on_the_device_matches_numba_without_read_backs(fmt):
                 syncs = dict(c.syncs)
                 assert syncs.pop("upload", 0) == 2 and not any(syncs.values()), dict(c.sites)
                 assert c.triton == (2 if fmt.startswith("SH") else 1)
+
+
+def test_composite_kernel_matches_numba_and_twin():
+    """Op ``composite``'s Triton kernels (nerf/_composite_triton.py, one launch each way):
+    the per-ray sums, the distortion loss and the analytic gradients of the numba kernels and
+    the torch twin, on rays of uneven length, empty rays and slots of no ray."""
+    from test_composite import _grads, _batch
+
+    sigma, color, t, offsets = _batch(6, n_rays=150, max_len=20)
+    up = torch.randn(150, 6, generator=torch.Generator().manual_seed(3))
+    dev = [x.to(DEV) for x in (sigma, color, t, offsets)]
+    tri = [x.cpu() for x in _grads("triton", *dev, 0.02, up.to(DEV))]
+    for be in ("numba", "torch"):
+        ref = _grads(be, sigma, color, t, offsets, 0.02, up)
+        for x, y in zip(tri, ref):
+            torch.testing.assert_close(x, y, atol=5e-5, rtol=1e-4)

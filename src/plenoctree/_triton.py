@@ -46,6 +46,7 @@ TRITON_IMPLS = (
     ("march", "plenoctree.nerf._march_triton:march_backend"),
     ("march_fixed", "plenoctree.nerf._march_triton:march_fixed_backend"),
     ("sh_colors", "plenoctree._sh_triton:sh_colors_backend"),
+    ("composite", "plenoctree.nerf.composite:_composite_triton"),
 )
 
 

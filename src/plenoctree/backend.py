@@ -29,6 +29,8 @@ Ops and the signature of their implementations (each call site documents the sha
                  :func:`plenoctree.nerf.fixed.march_fixed`
 ``sh_colors``    ``fn(coeffs [N,3B], dirs [N,3], degree) -> rgb [N,3]`` —
                  :func:`plenoctree.nerf.model.sh_colors`
+``composite``    ``fn(sigma [M], color [M,3], t [M], offsets [R+1], step, dist) -> [R,6]``,
+                 differentiable — :func:`plenoctree.nerf.composite.composite_rays`
 ===============  ==========================================================================
 
 Adding a kernel (e.g. a Triton or CUDA renderer for CUDA tensors) is one registration, made
@@ -202,6 +204,8 @@ for _op, _numba, _torch in (
      "plenoctree.nerf.fixed:_march_fixed_torch"),
     ("sh_colors", "plenoctree.nerf.model:_sh_colors_numba_run",
      "plenoctree.nerf.model:_sh_colors_torch"),
+    ("composite", "plenoctree.nerf.composite:_composite_numba",
+     "plenoctree.nerf.composite:_composite_torch"),
 ):
     register_backend(_op, "numba", _numba, devices=("cpu",), priority=_NUMBA)
     register_backend(_op, "torch", _torch, devices=("cpu", "cuda"), priority=_TORCH)

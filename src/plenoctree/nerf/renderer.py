@@ -34,8 +34,8 @@ from .model import NeRFModel, RadianceField
 from .occupancy import OccupancyGrid
 from .sampling import MarchGrid, MarchRays, march_rays, pdf_samples, ray_aabb, \
     stratified_samples
-from .volrend import composite, composite_packed, deltas_from_t, distortion_packed, \
-    render_weights, render_weights_packed
+from .composite import composite_rays
+from .volrend import composite, deltas_from_t, render_weights
 
 __all__ = ["RayBatch", "RenderMode", "ImageOptions", "autocast", "render_rays",
            "render_rays_hierarchical", "render_rays_occupancy", "render_image", "ray_bounds"]
@@ -281,12 +281,7 @@ def _march_waves(field: RadianceField, rays: MarchRays, grid: MarchGrid, mode: R
     sigma, color = sigma.index_select(0, order), color.index_select(0, order)
     # offsets of the sorted rays without a host round trip (bincount reads its size back)
     offsets = torch.searchsorted(gidx, torch.arange(n + 1, device=dev))
-    w, _ = render_weights_packed(sigma, step, gidx, offsets)
-    out.update(rgb=composite_packed(w, color, gidx, n),
-               acc=composite_packed(w, torch.ones_like(w)[:, None], gidx, n)[:, 0],
-               dsum=composite_packed(w, t[:, None], gidx, n)[:, 0])
-    if mode.distortion:
-        out["distortion"] = distortion_packed(w, t, step, gidx, offsets, n)
+    out.update(composite_rays(sigma, color, t, offsets, step, distortion=mode.distortion))
     return out
 
 
