@@ -219,7 +219,8 @@ class FixedBatch:
     :func:`kept_figures` to device counters (:meth:`add`, no read-back); :meth:`adapt` reads
     them (one host round trip) and updates the trainer's state (``spr``: running mean of the
     kept samples per ray, ``spr_marched``: of the marched ones, ``n_rays``) as the waves path
-    does every step, so a checkpoint keeps it."""
+    does every step, so a checkpoint keeps it: the waves' mean takes 0.1 of each step's figure,
+    so a window of ``m`` steps enters with weight ``1 - 0.9^m``."""
 
     def __init__(self, capacity: int, max_rays: int, device: torch.device,
                  candidates: int = 1):
@@ -227,6 +228,7 @@ class FixedBatch:
         self.candidates = int(candidates)
         # rays, marched samples; complete rays, their kept samples
         self.sums = torch.zeros(4, dtype=torch.float64, device=device)
+        self.steps = 0                  # in the window (a host count)
 
     def rays(self, n_rays: float) -> int:
         """The ray count of a step for the state's ``n_rays``."""
@@ -239,13 +241,15 @@ class FixedBatch:
         self.sums[0] += n_rays
         self.sums[1] += total
         self.sums[2:] += kept
+        self.steps += 1
 
     def adapt(self, state) -> None:
         """Read the counters (one round trip) and set ``state.spr``, ``state.spr_marched``
         and ``state.n_rays`` (``state``: the trainer's :class:`~.trainer.TrainerState`)."""
         rays, marched, done, kept = self.sums.tolist()
         self.sums.zero_()
-        mean = (lambda old, new: new if old == 0 else 0.9 * old + 0.1 * new)
+        w, self.steps = 0.9 ** max(self.steps, 1), 0
+        mean = (lambda old, new: new if old == 0 else w * old + (1.0 - w) * new)
         if rays > 0:
             state.spr_marched = mean(state.spr_marched, max(marched, 1.0) / rays)
         if done > 0:
