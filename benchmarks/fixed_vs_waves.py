@@ -17,7 +17,8 @@ Columns: validation PSNR (dB), wall seconds of the whole run (set-up, steps, the
 validation; the machine may be shared: the load average is printed), and from the last log
 row the rays a step and the samples a ray trained with gradients (``samples_per_ray``; for
 the fixed step the budget over the rays, empty slots included). The JSON also has each fixed
-run's marched candidates a ray (``spr_marched`` of the trainer's state) and the log rows.
+run's marched candidates and kept samples a ray (``spr_marched``, ``spr`` of the trainer's
+state: running means) and the log rows.
 The GPU speed of the fixed step is not measured here (``gpu_bench.py``).
 
 Usage::
@@ -74,6 +75,7 @@ def run_variant(name: str, overrides: dict, args: argparse.Namespace, scratch: P
            "train_s": res.train_time_s, "rays_per_step": last["rays"],
            "samples_per_ray": last["samples_per_ray"],
            "spr_marched": state.get("spr_marched") if cfg.fixed_step else None,
+           "spr_trained": state.get("spr") if cfg.fixed_step else None,
            "log": res.log["train"]}
     print(f"  {name}: {res.val_psnr:.2f} dB, {wall:.0f} s, {last['rays']} rays, "
           f"{last['samples_per_ray']:.1f} samples a ray", file=sys.stderr, flush=True)
