@@ -18,7 +18,7 @@ from plenoctree.nerf.checkpoint import load_nerf, save_checkpoint
 from plenoctree.nerf.config import ModelConfig, TrainConfig
 from plenoctree.nerf.far import (CONTRACTED_BOX, MAX_LEVELS, MIN_LEVELS, FarField,
                                  composite_far, contract, far_levels_for, render_far,
-                                 resolve_far_levels)
+                                 resolve_far_levels, resolve_render_step)
 from plenoctree.nerf.model import NeRFModel, RadianceField
 from plenoctree.nerf.renderer import RayBatch, RenderMode, render_rays_occupancy
 from plenoctree.nerf.volrend import render_weights
@@ -66,6 +66,21 @@ def test_far_field_is_automatic_for_captures_of_a_place_only():
     assert resolve_far_levels(dataclasses.replace(cfg, far_levels=6), _data(False)) == 6
     hier = dataclasses.replace(cfg, sampler="hierarchical")
     assert resolve_far_levels(hier, _data(True)) == 0
+
+
+def test_render_step_follows_the_box_of_a_place_only():
+    """The automatic step: 0.01 world units for objects (lego, flower, fox: unchanged), 1/200
+    of the box's side for a capture of a place, whatever its poses' units (the same walk in
+    units 3.6x larger took 3.6x the samples per ray); an explicit step is kept."""
+    cfg = TrainConfig()
+    assert cfg.render_step == -1
+    assert resolve_render_step(cfg, _data(False)) == 0.01
+    assert resolve_render_step(cfg) == 0.01                          # no dataset: renderers
+    assert resolve_render_step(cfg, _data(True)) == pytest.approx(0.01)       # side 2
+    big = _data(True)
+    big.scene_bbox = BOX * 3.6
+    assert resolve_render_step(cfg, big) == pytest.approx(0.036)
+    assert resolve_render_step(dataclasses.replace(cfg, render_step=0.02), big) == 0.02
 
 
 def _sequential(sig, rgb, delta):
@@ -257,7 +272,7 @@ def test_a_360_llff_folder_trains_a_far_field_and_extracts_shells(tmp_path, caps
     import json
 
     from plenoctree.cli import main
-    from plenoctree.datasets import load_blender
+    from plenoctree.datasets import load_blender, load_dataset
     from plenoctree.datasets.llff import write_llff
     from plenoctree.datasets.procedural import write_procedural_dataset
     from plenoctree.octree import load_tree
@@ -272,6 +287,8 @@ def test_a_360_llff_folder_trains_a_far_field_and_extracts_shells(tmp_path, caps
                  "--val-views", "1", "--no-progress"]) == 0
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["far_levels"] >= 4
+    side = float(np.max(np.diff(load_dataset(root, "train").scene_bbox, axis=0)))
+    assert cfg["render_step"] == pytest.approx(side / 200)          # resolved, then recorded
     tree_file = tmp_path / "tree.npz"
     assert main(["extract", str(run), "--out", str(tree_file), "--grid", "16", "--far-grid",
                  "8", "--samples", "1", "--bbox", "fixed", "--masking", "sigma",

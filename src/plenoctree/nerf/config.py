@@ -118,8 +118,10 @@ class TrainConfig:
     """Hierarchical sampler: stratified samples per ray (paper: 64)."""
     n_fine: int = 128
     """Hierarchical sampler: importance samples per ray (paper: 128)."""
-    render_step: float = 0.01
-    """Occupancy sampler: distance between samples along a ray, world units."""
+    render_step: float = -1.0
+    """Occupancy sampler: distance between samples along a ray, world units (-1 = automatic:
+    0.01, or for a capture of a place, whose box is a working box about the cameras in the
+    arbitrary units of its poses, 1/200 of the box's side: :func:`.far.resolve_render_step`)."""
     occ_res: int = 128
     """Occupancy sampler: cells per axis of the occupancy grid over the scene box."""
     far_levels: int = -1
@@ -358,7 +360,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(not (m.coarse and cfg.sampler == "occupancy"),
          "a coarse network is only used by the hierarchical sampler (set coarse=False)")
     need(cfg.n_coarse >= 2 and cfg.n_fine >= 0, "n_coarse must be >= 2 and n_fine >= 0")
-    need(cfg.render_step > 0, f"render_step must be > 0, got {cfg.render_step}")
+    need(cfg.render_step > 0 or cfg.render_step == -1,
+         f"render_step must be > 0 or -1 (auto), got {cfg.render_step}")
     need(-1 <= cfg.far_levels <= 7, f"far_levels must be -1 (auto), 0 (none) or 1-7, got "
          f"{cfg.far_levels}")
     need(not cfg.fixed_step or cfg.sampler == "occupancy",

@@ -30,6 +30,7 @@ from torch import nn
 from .sampling import pdf_samples, ray_aabb
 
 __all__ = ["FarField", "CONTRACTED_BOX", "contract", "far_levels_for", "resolve_far_levels",
+           "resolve_render_step", "PLACE_STEP", "DEFAULT_STEP",
            "render_far", "composite_far", "MIN_LEVELS", "MAX_LEVELS"]
 
 logger = logging.getLogger(__name__)
@@ -82,6 +83,32 @@ def resolve_far_levels(cfg, data, announce: bool = False) -> int:
         logger.info(f"far field: {levels} shells around the scene box (to {2 ** levels}x its "
                     "size): the world beyond it is trained too")
     return levels
+
+
+#: The automatic render step of a capture of a place: this fraction of its box's side (0.01
+#: on the ±1 box of an LLFF 360° scene, as measured on the lounge; a box of ±3.6 made by
+#: ``process`` for the same frames took 3.6x the samples per ray at 0.01).
+PLACE_STEP = 1.0 / 200
+#: The automatic render step of everything else (world units; lego's ±1.5 box: 300 a side).
+DEFAULT_STEP = 0.01
+
+
+def resolve_render_step(cfg, data=None, announce: bool = False) -> float:
+    """``cfg.render_step`` with "automatic" (-1) decided for dataset ``data``:
+    :data:`PLACE_STEP` of the box's side for a capture of a place (``data.unbounded``: the box
+    follows the cameras, so the samples per ray do not depend on the poses' units),
+    :data:`DEFAULT_STEP` otherwise and without a dataset (the renderers: the trainer writes
+    the resolved step into the run's config). ``announce``: log the decision."""
+    if cfg.render_step > 0:
+        return float(cfg.render_step)
+    if data is None or not getattr(data, "unbounded", False):
+        return DEFAULT_STEP
+    box = np.asarray(data.scene_bbox, np.float64).reshape(2, 3)
+    step = float((box[1] - box[0]).max()) * PLACE_STEP
+    if announce:
+        logger.info(f"render step {step:.4g} (1/{round(1 / PLACE_STEP)} of the scene box's "
+                    "side, a capture of a place); --train.render-step overrides")
+    return step
 
 
 class FarField(nn.Module):

@@ -267,13 +267,14 @@ def _sample_fixed(model, rays, cfg, mode, capacity: int) -> FixedSamples:
     """The samples :func:`render_fixed` trains: the march into ``k S`` candidates, then
     without gradients their density and :func:`terminate_fixed` (``k > 1``), or the march
     straight into ``S`` (``k = 1``)."""
+    from .far import resolve_render_step
     from .renderer import autocast, ray_bounds
 
     n, dev = len(rays), rays.origins.device
     t_min, t_max = ray_bounds(rays.origins, rays.dirs, model.scene_bbox, rays.near, rays.far)
     jitter = torch.rand(n, generator=mode.generator, device=dev)
     occ = model.occupancy
-    grid = MarchGrid(float(cfg.render_step), occ.mask, occ.bbox)
+    grid = MarchGrid(resolve_render_step(cfg), occ.mask, occ.bbox)
     k = candidate_factor(cfg, mode.stop_thresh)
     s = march_fixed(MarchRays(rays.origins, rays.dirs, t_min, t_max, jitter), grid,
                     k * capacity)
@@ -304,26 +305,24 @@ def render_fixed(model, rays, cfg, mode, capacity: int) -> dict:
         also past the buffer), ``kept`` (:func:`kept_figures`) and with ``mode.distortion``
         ``distortion [R]``.
     """
-    from .far import composite_far, render_far
+    from .composite import composite_rays
+    from .far import composite_far, render_far, resolve_render_step
     from .renderer import autocast
-    from .volrend import composite_packed, distortion_packed, render_weights_packed
 
     n = len(rays)
     dev = rays.origins.device
-    step = float(cfg.render_step)
+    step = resolve_render_step(cfg)
     s = _sample_fixed(model, rays, cfg, mode, capacity)
     d = rays.dirs.index_select(0, s.ray_idx.clamp(max=n - 1))
     with autocast(dev, mode.amp):
         sigma, coeffs = model.fine(s.points, d)
     color = model.fine.colors(coeffs, d)
-    w, _ = render_weights_packed(sigma, step, s.ray_idx, s.offsets)
-    vals = torch.cat([color.float(), torch.ones_like(s.t)[:, None], s.t[:, None]], 1)
-    sums = composite_packed(w, vals, s.ray_idx, n + 1)[:n]          # the dummy ray dropped
-    r = {"rgb": sums[:, :3], "acc": sums[:, 3], "dsum": sums[:, 4]}
+    # one fused launch each way (.composite); the dummy ray's slots lie past offsets[n]
+    r = composite_rays(sigma, color, s.t, s.offsets[:n + 1], step, mode.distortion)
     out = {"complete": s.complete, "n_samples": int(capacity), "total": s.total,
            "kept": kept_figures(s)}
     if mode.distortion:
-        out["distortion"] = distortion_packed(w, s.t, step, s.ray_idx, s.offsets, n + 1)[:n]
+        out["distortion"] = r.pop("distortion")
     if model.far is not None:           # the world beyond the box (nerf.far): fixed samples
         with autocast(dev, mode.amp):
             f = render_far(model.far, rays.origins, rays.dirs, rays.near, model.scene_bbox,

@@ -29,7 +29,7 @@ import torch
 
 from ..datasets import Dataset
 from .config import TrainConfig
-from .far import composite_far, render_far
+from .far import composite_far, render_far, resolve_render_step
 from .model import NeRFModel, RadianceField
 from .occupancy import OccupancyGrid
 from .sampling import MarchGrid, MarchRays, march_rays, pdf_samples, ray_aabb, \
@@ -311,7 +311,7 @@ def render_rays_occupancy(model: NeRFModel, rays: RayBatch, cfg: TrainConfig,
                                    else cfg.eval_stop_thresh)
     occ: OccupancyGrid = model.occupancy
     r = _march_waves(model.fine, MarchRays(rays.origins, rays.dirs, t_min, t_max, jitter),
-                     MarchGrid(float(cfg.render_step), occ.mask, occ.bbox), mode)
+                     MarchGrid(resolve_render_step(cfg), occ.mask, occ.bbox), mode)
     if model.far is not None:           # the world beyond the box, in ray order (nerf.far)
         with autocast(dev, mode.amp):
             f = render_far(model.far, rays.origins, rays.dirs, rays.near, model.scene_bbox,

@@ -37,7 +37,7 @@ from .checkpoint import CHECKPOINT_NAME, CheckpointError, TrainProgress, \
     model_from_checkpoint, read_checkpoint, save_checkpoint
 from .config import TrainConfig, config_json, validate
 from .encoding import HashGridEncoding
-from .far import resolve_far_levels
+from .far import resolve_far_levels, resolve_render_step
 from .fixed import FixedBatch, candidate_factor, fixed_loss, render_fixed
 from .preview import LiveView
 from .trainer_state import LogWindow, StepFigures, TrainerState
@@ -160,8 +160,10 @@ class Trainer:
         self.data = load_dataset(cfg.data, "train", format=cfg.format, downscale=cfg.downscale,
                                  background=cfg.background)
         self.val = load_val_views(cfg)
-        cfg = self.cfg = dataclasses.replace(cfg, far_levels=resolve_far_levels(
-            cfg, self.data, announce=self.dctx.is_main))
+        main = self.dctx.is_main
+        cfg = self.cfg = dataclasses.replace(
+            cfg, far_levels=resolve_far_levels(cfg, self.data, announce=main),
+            render_step=resolve_render_step(cfg, self.data, announce=main))
         self._build_model(ck)
         wall_before = self._restore(ck) if ck is not None else self._fresh_state()
         if self.dctx.is_main:
