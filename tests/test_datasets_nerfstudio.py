@@ -176,6 +176,8 @@ def test_prescaled_image_folders(ns_root, tmp_path):
     (lambda o: o["frames"][6].pop("file_path"), r"frames\[6\]: missing key 'file_path'"),
     (lambda o: o.update(frames=[]), "empty 'frames'"),
     (lambda o: o.update(aabb_scale=-1), "aabb_scale"),
+    (lambda o: o.update(plenoctree_bounds=[2.0]), r"plenoctree_bounds must be \[near, far\]"),
+    (lambda o: o.update(plenoctree_bounds=[3.0, 1.0]), "0 < near <= far"),
 ])
 def test_bad_transforms_name_the_file(ns_root, tmp_path, edit, match):
     root = _copy(ns_root, tmp_path)

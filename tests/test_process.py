@@ -407,6 +407,20 @@ def test_dataset_writing_from_a_reconstruction(tmp_path, scene):
         d0 = np.linalg.norm(c[:, None] - c[None], axis=-1)
         d1 = np.linalg.norm(got[:, None] - got[None], axis=-1)
         np.testing.assert_allclose(d1 / d1.max(), d0 / d0.max(), atol=1e-4)
+        # the content's depths (points seen by >= 3 photos), in the normalised units: the
+        # near plane of the loaded cameras (their rays start before the content, not at them)
+        tj = json.loads((stage / "transforms.json").read_text())
+        lo, hi = tj["plenoctree_bounds"]
+        scale = d1.max() / d0.max()
+        per = {}
+        for i in rec.images:
+            zz = [(rec.images[i].cam_from_world() * rec.points3D[q.point3D_id].xyz)[2]
+                  for q in rec.images[i].points2D if q.has_point3D()
+                  and rec.points3D[q.point3D_id].track.length() >= 3]
+            per[i] = np.percentile(zz, [0.1, 99.9])
+        assert lo == pytest.approx(min(b[0] for b in per.values()) * scale, rel=1e-5)
+        assert hi == pytest.approx(max(b[1] for b in per.values()) * scale, rel=1e-5)
+        assert data.near == pytest.approx(0.9 * lo) and data.far >= hi
 
 
 def test_working_downscale_on_synthetic_sizes():

@@ -135,6 +135,11 @@ def load_masks(paths: Sequence[Path | None], size: tuple[int, int], downscale: i
     return out
 
 
+#: The near plane of a capture with content depths (LLFF's ``poses_bounds.npy``, the bounds
+#: ``process`` writes for a 360° capture): this fraction of the smallest depth.
+CONTENT_NEAR = 0.9
+
+
 def near_far_from_box(c2w: np.ndarray, bbox: np.ndarray) -> tuple[float, float]:
     """Ray bounds for cameras ``c2w [N, 4, 4]`` looking at the content box ``bbox [2, 3]``.
 

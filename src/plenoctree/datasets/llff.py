@@ -45,7 +45,7 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
-from ._images import image_files, load_images, probe_size
+from ._images import CONTENT_NEAR, image_files, load_images, probe_size
 from ._files import HOLDOUT, check_load_options, holdout_split, take_views
 from .base import Dataset, DatasetFormat
 from .cameras import Cameras
@@ -404,7 +404,7 @@ def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
                                f"recentring, NDC impossible ({e}); try spherify=True") from None
         near = 0.0
     else:
-        near, far = float(scene.bounds.min() * 0.9), float(scene.bounds.max())
+        near, far = float(scene.bounds.min() * CONTENT_NEAR), float(scene.bounds.max())
         if spherify:
             bbox = np.array([[-1.0] * 3, [1.0] * 3])
         else:

@@ -31,7 +31,12 @@ present; otherwise every 8th frame sorted by file name (0, 8, ...) is both val a
 others train (``_files.HOLDOUT``: LLFF's rule, as the LLFF and COLMAP formats; nerfstudio's
 own default is a 90 % / 10 % split). ``"all"`` takes every frame.
 A file ``plenoctree process`` wrote (its ``plenoctree_transform`` key: a 360° capture of
-photos) is a capture of a place, ``Dataset.unbounded``: training adds the far field.
+photos) is a capture of a place, ``Dataset.unbounded``: training adds the far field; its
+``plenoctree_bounds`` (the sparse points' smallest and largest depth) set the near plane
+(``CONTENT_NEAR`` of the smallest, as LLFF's) and the far bound. Without a near plane the
+rays of cameras standing inside the box start at the camera, and training puts fog right in
+front of each camera that explains its photo alone (the lounge's frames: 15.2 dB on held-out
+frames at step 300 against 23.0 with it).
 Optional ``mask_path`` images become ``Dataset.masks`` (non-zero = pixel valid). Every
 problem raises :class:`~plenoctree.errors.DatasetError` naming the file.
 """
@@ -47,7 +52,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
-from ._images import focus_point, load_images, load_masks, near_far_from_box
+from ._images import (CONTENT_NEAR, focus_point, load_images, load_masks,
+                      near_far_from_box)
 from ._files import (check_frame_count, check_inside_dataset, check_load_options, finite_number,
                      frame_file_path, holdout_split, image_path, parse_matrix,
                      read_json_object, take_views)
@@ -289,10 +295,27 @@ def load_nerfstudio(root: str | os.PathLike, split: str = "train", downscale: in
     except ConfigError as e:
         raise DatasetError(f"{path}: {e}") from None
     near, far = near_far_from_box(all_c2w, bbox)
+    if "plenoctree_bounds" in obj:      # a 360° capture by process: its content's depths
+        lo, hi = _content_bounds(obj["plenoctree_bounds"], path)
+        near, far = max(near, CONTENT_NEAR * lo), max(far, hi)
     return Dataset(images=images, cameras=cams, near=near, far=far, scene_bbox=bbox,
                    split=split, root=root, background=tuple(float(v) for v in bg),
                    names=[Path(frames[i]["file_path"]).stem for i in idx], alphas=alphas,
                    masks=masks, unbounded="plenoctree_transform" in obj)
+
+
+def _content_bounds(val: Any, path: Path) -> tuple[float, float]:
+    """``plenoctree_bounds`` (``[near, far]``: the smallest and largest depth of the sparse
+    points, world units), checked."""
+    try:
+        lo, hi = (float(v) for v in val)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{path}: plenoctree_bounds must be [near, far], got {val!r}") \
+            from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+        raise DatasetError(f"{path}: plenoctree_bounds must satisfy 0 < near <= far, got "
+                           f"{val!r}")
+    return lo, hi
 
 
 def _undistort(images: np.ndarray, intr: np.ndarray, dists: list, paths: list[Path]

@@ -268,6 +268,7 @@ def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Pa
                 im.resize((w // f, h // f), Image.BOX).save(
                     stage / f"images_{f}" / out_names[j], fmt, quality=95)
     k = np.array([v[:4] for v in intr])
+    bounds = depth_bounds(raw_c2w, observed_points(res.reconstruction, reg))  # as LLFF
     if forward:
         square = np.abs(k[:, 0] - k[:, 1]).max() <= 1e-3 * k[:, 0].max()
         if not square or np.ptp(k[:, 0]) > 1e-6 * k[0, 0]:
@@ -278,7 +279,6 @@ def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Pa
         m[:, :, 0], m[:, :, 1] = -raw_c2w[:, :3, 1], raw_c2w[:, :3, 0]
         m[:, :, 2], m[:, :, 3] = raw_c2w[:, :3, 2], raw_c2w[:, :3, 3]
         m[:, :, 4] = [h, w, k[0, 0]]
-        bounds = depth_bounds(raw_c2w, observed_points(res.reconstruction, reg))  # as LLFF
         np.save(stage / POSES_FILE, np.concatenate([m.reshape(len(reg), 15), bounds], 1))
         fmt_name = "llff"
     else:
@@ -298,6 +298,9 @@ def _write_dataset(res, image_dir: Path, names: list[str], stage: Path, work: Pa
         top["frames"] = frames
         top.update(_holdout_lists(names, reg, [f["file_path"] for f in frames]))
         top["plenoctree_transform"] = frame.transform.tolist()
+        # the content's depths (LLFF's rule, normalised units): the loader's near plane
+        top["plenoctree_bounds"] = [float(bounds[:, 0].min() * frame.scale),
+                                    float(bounds[:, 1].max() * frame.scale)]
         (stage / "transforms.json").write_text(json.dumps(top, indent=1))
         fmt_name = "nerfstudio"
     model_out = stage / "colmap" / "sparse" / "0"
