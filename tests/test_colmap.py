@@ -220,7 +220,16 @@ def test_forward_facing_model_gets_ndc(tmp_path):
     got = load_colmap(root, "all")
     assert got.cameras.ndc and got.near == 0.0
     assert got.scene_bbox[0, 2] == pytest.approx(-1.0) and got.scene_bbox[1, 2] == pytest.approx(1.0)
-    assert load_colmap(root, "all", options=ColmapOptions(scene="360")).cameras.ndc is False
+    as360 = load_colmap(root, "all", options=ColmapOptions(scene="360"))
+    assert as360.cameras.ndc is False
+    # loaded as 360°, the rays start before the content (0.9 of the nearest point depth, in
+    # the normalised units), not at the cameras
+    from plenoctree.datasets.colmap import normalize_scene
+
+    scale = normalize_scene(c2w, pts, "360").scale
+    depth = ((pts[None] - c2w[:, None, :3, 3]) * -c2w[:, None, :3, 2]).sum(-1)
+    lo = min(np.percentile(d[d > 0], 0.1) for d in depth)
+    assert as360.near == pytest.approx(0.9 * lo * scale, rel=1e-4) and as360.near > 0
 
 
 def test_distorted_model_is_undistorted_on_load(blender_scene, tmp_path):

@@ -46,7 +46,7 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
-from ._images import focus_point, load_images, near_far_from_box
+from ._images import CONTENT_NEAR, focus_point, load_images, near_far_from_box
 from ._files import check_inside_dataset, check_load_options, confined, holdout_split, take_views
 from .base import Dataset, DatasetFormat
 from .camera_sets import FORWARD_THRESHOLD, capture_kind
@@ -107,6 +107,18 @@ def depth_bounds(c2w: np.ndarray, points: np.ndarray | Sequence[np.ndarray]) -> 
     med = np.nanmedian(out, axis=0)
     out[np.isnan(out[:, 0])] = med
     return out
+
+
+def _content_near_far(raw_c2w: np.ndarray, points: np.ndarray, scale: float, near: float,
+                      far: float) -> tuple[float, float]:
+    """``(near, far)`` of a 360° capture widened by its sparse points' depths (normalised
+    units ``scale`` × raw): near ``CONTENT_NEAR`` of the smallest, far the largest; the box's
+    ``near, far`` kept when no point lies in front of a camera."""
+    try:
+        b = depth_bounds(raw_c2w, points) * scale
+    except DatasetError:
+        return near, far
+    return max(near, CONTENT_NEAR * float(b[:, 0].min())), max(far, float(b.max()))
 
 
 def normalize_scene(c2w: np.ndarray, points: np.ndarray | None = None, kind: str = "auto"
@@ -262,6 +274,8 @@ def load_colmap(root: str | os.PathLike, split: str = "train", downscale: int = 
     else:
         bbox = frame.bbox
         near, far = near_far_from_box(frame.c2w, bbox)
+        if len(model.points):       # the content's depths set the near plane (as LLFF's)
+            near, far = _content_near_far(raw_c2w, model.points, frame.scale, near, far)
     return Dataset(images=imgs, cameras=cameras, near=near, far=far, scene_bbox=bbox,
                    split=split, root=root, background=tuple(float(v) for v in bg),
                    names=[Path(names[i]).stem for i in sel], alphas=alphas, unbounded=not ndc)
