@@ -46,7 +46,8 @@ import torch
 from .sampling import MarchGrid, MarchRays, PackedSamples, _march_torch
 
 __all__ = ["FixedSamples", "march_fixed", "fixed_buffers", "finish_fixed", "candidate_factor",
-           "terminate_fixed", "kept_figures", "FixedBatch", "render_fixed", "fixed_loss", "RAY_QUANTUM"]
+           "terminate_fixed", "kept_figures", "FixedBatch", "render_fixed", "fixed_loss",
+           "RAY_QUANTUM"]
 
 #: The adaptive ray count of a fixed-shape step is a multiple of this.
 RAY_QUANTUM = 256
