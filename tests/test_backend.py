@@ -9,8 +9,8 @@ import torch
 from plenoctree import _triton, backend
 from plenoctree.errors import BackendError
 
-BUILTIN_OPS = ["finetune", "hashgrid", "march", "march_fixed", "render", "render_grad",
-               "sh_colors", "visibility"]
+BUILTIN_OPS = ["composite", "finetune", "hashgrid", "march", "march_fixed", "ray_batch",
+               "render", "render_grad", "sh_colors", "visibility"]
 TRITON_OPS = {op for op, _ in _triton.TRITON_IMPLS}
 
 

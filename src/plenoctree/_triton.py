@@ -13,7 +13,8 @@ They run
   block): for tiny inputs only.
 
 :mod:`plenoctree.backend` registers backend ``"triton"`` for the ops listed in
-:data:`TRITON_IMPLS` (``render``, ``render_grad``, ``finetune``, ``hashgrid``, ``march``) with
+:data:`TRITON_IMPLS` (``render``, ``render_grad``, ``finetune``, ``hashgrid``, ``march``,
+``march_fixed``, ``sh_colors``, ``composite``, ``ray_batch``) with
 :data:`TRITON_PRIORITY`, between numba (CPU) and the torch twin, and :func:`usable_anywhere` as
 its availability probe: ``backend="auto"`` then picks Triton for CUDA tensors when it is usable
 and keeps numba for CPU tensors; CPU tensors reach Triton only when asked for by name (in
@@ -47,6 +48,7 @@ TRITON_IMPLS = (
     ("march_fixed", "plenoctree.nerf._march_triton:march_fixed_backend"),
     ("sh_colors", "plenoctree._sh_triton:sh_colors_backend"),
     ("composite", "plenoctree.nerf.composite:_composite_triton"),
+    ("ray_batch", "plenoctree.nerf._raygen_triton:ray_batch_backend"),
 )
 
 

@@ -31,6 +31,8 @@ Ops and the signature of their implementations (each call site documents the sha
                  :func:`plenoctree.nerf.model.sh_colors`
 ``composite``    ``fn(sigma [M], color [M,3], t [M], offsets [R+1], step, dist) -> [R,6]``,
                  differentiable — :func:`plenoctree.nerf.composite.composite_rays`
+``ray_batch``    ``fn(source: RaySource, u [R,4] float64, bbox [2,3]) -> TrainRays`` —
+                 :func:`plenoctree.nerf.raygen.ray_batch`
 ===============  ==========================================================================
 
 Adding a kernel (e.g. a Triton or CUDA renderer for CUDA tensors) is one registration, made
@@ -206,6 +208,8 @@ for _op, _numba, _torch in (
      "plenoctree.nerf.model:_sh_colors_torch"),
     ("composite", "plenoctree.nerf.composite:_composite_numba",
      "plenoctree.nerf.composite:_composite_torch"),
+    ("ray_batch", "plenoctree.nerf.raygen:_ray_batch_numba",
+     "plenoctree.nerf.raygen:_ray_batch_torch"),
 ):
     register_backend(_op, "numba", _numba, devices=("cpu",), priority=_NUMBA)
     register_backend(_op, "torch", _torch, devices=("cpu", "cuda"), priority=_TORCH)

@@ -267,7 +267,7 @@ class FixedBatch:
             state.n_rays = float(min(self.max_rays, max(RAY_QUANTUM, min(fits))))
 
 
-def _sample_fixed(model, rays, cfg, mode, capacity: int) -> FixedSamples:
+def _sample_fixed(model, rays, cfg, mode, capacity: int, bounds=None) -> FixedSamples:
     """The samples :func:`render_fixed` trains: the march into ``k S`` candidates, then
     without gradients their density and :func:`terminate_fixed` (``k > 1``), or the march
     straight into ``S`` (``k = 1``)."""
@@ -275,7 +275,8 @@ def _sample_fixed(model, rays, cfg, mode, capacity: int) -> FixedSamples:
     from .renderer import autocast, ray_bounds
 
     n, dev = len(rays), rays.origins.device
-    t_min, t_max = ray_bounds(rays.origins, rays.dirs, model.scene_bbox, rays.near, rays.far)
+    t_min, t_max = bounds if bounds is not None else ray_bounds(
+        rays.origins, rays.dirs, model.scene_bbox, rays.near, rays.far)
     jitter = torch.rand(n, generator=mode.generator, device=dev)
     occ = model.occupancy
     grid = MarchGrid(resolve_render_step(cfg), occ.mask, occ.bbox)
@@ -290,7 +291,7 @@ def _sample_fixed(model, rays, cfg, mode, capacity: int) -> FixedSamples:
     return terminate_fixed(s, sigma, grid, thresh, capacity)
 
 
-def render_fixed(model, rays, cfg, mode, capacity: int) -> dict:
+def render_fixed(model, rays, cfg, mode, capacity: int, bounds=None) -> dict:
     """Training render of ``R`` rays in a fixed sample budget (the fixed-shape counterpart of
     :func:`.renderer.render_rays_occupancy` with ``mode.train``).
 
@@ -301,6 +302,9 @@ def render_fixed(model, rays, cfg, mode, capacity: int) -> dict:
             samples). mode: a training :class:`~.renderer.RenderMode` (``generator``,
             ``amp``, ``distortion``; ``stop_thresh``: None for the config's).
         capacity: the sample budget ``S``.
+        bounds: ``(t_min, t_max)`` float32 ``[R]`` of the rays in ``model.scene_bbox`` and
+            ``[rays.near, rays.far]`` when known (op ``ray_batch`` makes them with the rays);
+            None: :func:`.renderer.ray_bounds`.
 
     Returns:
         ``rgb [R, 3]`` (over ``rays``' background), ``acc [R]``, ``complete [R]`` bool,
@@ -316,7 +320,7 @@ def render_fixed(model, rays, cfg, mode, capacity: int) -> dict:
     n = len(rays)
     dev = rays.origins.device
     step = resolve_render_step(cfg)
-    s = _sample_fixed(model, rays, cfg, mode, capacity)
+    s = _sample_fixed(model, rays, cfg, mode, capacity, bounds)
     d = rays.dirs.index_select(0, s.ray_idx.clamp(max=n - 1))
     with autocast(dev, mode.amp):
         sigma, coeffs = model.fine(s.points, d)

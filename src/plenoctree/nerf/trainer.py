@@ -39,6 +39,7 @@ from .config import TrainConfig, config_json, validate
 from .encoding import HashGridEncoding
 from .far import resolve_far_levels, resolve_render_step
 from .fixed import FixedBatch, candidate_factor, fixed_loss, render_fixed
+from .raygen import draw_uniforms, ray_batch
 from .preview import LiveView
 from .trainer_state import LogWindow, StepFigures, TrainerState
 from .evaluate import evaluate_views
@@ -289,15 +290,19 @@ class Trainer:
     def _render_loss(self):
         """``(loss, mse, rays used, samples)`` of a random batch of rays (this rank's shard)."""
         cfg, dctx, data = self.cfg, self.dctx, self.data
-        n_rays = int(self.state.n_rays) if self.occ else cfg.batch_rays
-        if self.fixed is not None:
+        if self.fixed is not None:      # nerf.fixed: rays in one launch (one process only)
             n_rays = self.fixed.rays(self.state.n_rays)
-        o, d, target, bg = (dctx.shard(x) for x in self.rays.sample(n_rays, self.gen))
-        batch = RayBatch(o, d, data.near, data.far, bg)
-        if self.fixed is not None:      # nerf.fixed: nothing read back inside the step
+            rays = ray_batch(self.rays, draw_uniforms(n_rays, self.gen, self.device),
+                             self.model.scene_bbox)
+            batch, target = rays.batch(data.near, data.far), rays.target
+        else:
+            n_rays = int(self.state.n_rays) if self.occ else cfg.batch_rays
+            o, d, target, bg = (dctx.shard(x) for x in self.rays.sample(n_rays, self.gen))
+            batch = RayBatch(o, d, data.near, data.far, bg)
+        if self.fixed is not None:      # nothing read back inside the step
             mode = RenderMode(train=True, generator=self.rgen, amp=self.amp,
                               distortion=self.dist_weight > 0)
-            r = render_fixed(self.model, batch, cfg, mode, cfg.target_samples)
+            r = render_fixed(self.model, batch, cfg, mode, cfg.target_samples, rays.bounds)
             loss, mse = fixed_loss(r, target, self.dist_weight, self.extent)
             self.fixed.add(n_rays, r["total"], r["kept"])
             used = n_rays

@@ -13,6 +13,7 @@ from ..datasets import Dataset, load_dataset
 from ..datasets.dataset import holds_photos
 from ..errors import PlenOctreeError
 from .config import PHOTO_DISTORTION, TrainConfig
+from .raygen import BG_ALPHA, BG_DATA, BG_OPAQUE, ray_constants
 
 __all__ = ["opaque_photos", "distortion_weight", "TrainingError", "learning_rate", "flush_tiny_moments", "sparsity_loss", "RaySource",
            "load_val_views", "VAL_SHARE", "VAL_PIXELS", "val_row_stride"]
@@ -98,7 +99,8 @@ class RaySource:
 
     Rays are made on the fly by :meth:`plenoctree.datasets.Cameras.pixel_rays` (so per-camera
     intrinsics and NDC rays of forward-facing scenes are honoured, identical to
-    ``cameras.rays(i)``); only the images are held in memory.
+    ``cameras.rays(i)``); only the images are held in memory. :meth:`pixels` is the torch
+    twin of op ``ray_batch`` (:mod:`.raygen`), the fixed step's rays in one launch.
     """
 
     def __init__(self, data: Dataset, device: torch.device, random_background: bool,
@@ -118,6 +120,21 @@ class RaySource:
         self.opaque_photos = opaque_photos and data.alphas is None
         if random_background and data.alphas is not None:
             self.alphas = torch.from_numpy(np.ascontiguousarray(data.alphas)).reshape(-1).to(device)
+        self.near, self.far = float(data.near), float(data.far)
+        if cams.ndc and not cams.ndc_clip:    # NeRF's NDC rays: every pixel's points down -z
+            _check_ndc_corners(cams)
+        # what op ray_batch's kernels read besides the tables (nerf.raygen), uploaded once
+        self.constants = ray_constants(cams, self.near, self.far, device)
+
+    @property
+    def background_mode(self) -> int:
+        """How a ray's background and target are made: :data:`~.raygen.BG_DATA` (the
+        dataset's colour), :data:`~.raygen.BG_ALPHA` (pixels with alpha re-composited over a
+        random colour) or :data:`~.raygen.BG_OPAQUE` (opaque photos predicted over a random
+        colour, their targets as they are)."""
+        if self.opaque_photos:
+            return BG_OPAQUE
+        return BG_DATA if self.alphas is None else BG_ALPHA
 
     def rays_of(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(origins [B, 3], unit dirs [B, 3])`` float32 of flat pixel indices ``idx [B]``
@@ -127,18 +144,38 @@ class RaySource:
         return self.cameras.pixel_rays(img, pix % self.w, pix // self.w, self.tables)
 
     def sample(self, n: int, generator: torch.Generator):
-        """``(origins, dirs, target [n, 3], background [n, 3])`` of ``n`` random pixels."""
+        """``(origins, dirs, target [n, 3], background [n, 3])`` of ``n`` random pixels (the
+        waves' step; the fixed step draws its pixels with :func:`.raygen.draw_uniforms`)."""
         idx = torch.randint(self.n * self.h * self.w, (n,), generator=generator,
                             device=self.device)
+        bg = None
+        if self.background_mode != BG_DATA:
+            bg = torch.rand((n, 3), generator=generator, device=self.device)
+        return self.pixels(idx, bg)
+
+    def pixels(self, idx: torch.Tensor, bg: torch.Tensor | None = None):
+        """``(origins, dirs, target [B, 3], background [B, 3])`` float32 of flat pixel indices
+        ``idx [B]``; ``bg``: float32 ``[B, 3]`` random colours in [0, 1] (used, and needed,
+        unless :attr:`background_mode` is :data:`~.raygen.BG_DATA`)."""
         o, d = self.rays_of(idx)
         rgb = self.images[idx]
-        if self.opaque_photos:
-            return o, d, rgb, torch.rand((n, 3), generator=generator, device=self.device)
-        if self.alphas is None:
-            return o, d, rgb, self.bg.expand(n, 3)
+        mode = self.background_mode
+        if mode == BG_OPAQUE:
+            return o, d, rgb, bg
+        if mode == BG_DATA:
+            return o, d, rgb, self.bg.expand(idx.shape[0], 3)
         a = self.alphas[idx][:, None]
-        bg = torch.rand((n, 3), generator=generator, device=self.device)
         return o, d, rgb - (1.0 - a) * self.bg + (1.0 - a) * bg, bg
+
+
+def _check_ndc_corners(cams) -> None:
+    """ConfigError unless every pixel ray of ``cams`` points down the world -z axis (NDC
+    without clipping): the raw direction is affine in the pixel position, so the four corner
+    pixels of each camera decide it (the fused kernels of op ``ray_batch`` do not check)."""
+    n, w, h = len(cams), cams.width, cams.height
+    cols = np.tile(np.array([0, w - 1, 0, w - 1], dtype=np.float64), n)
+    rows = np.tile(np.array([0, 0, h - 1, h - 1], dtype=np.float64), n)
+    cams.pixel_rays(np.repeat(np.arange(n), 4), cols, rows)     # to_ndc_rays raises
 
 
 def load_val_views(cfg: TrainConfig) -> Dataset | None:
