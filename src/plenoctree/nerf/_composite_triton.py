@@ -52,6 +52,18 @@ def _fwd_kernel(sig_ptr, col_ptr, t_ptr, off_ptr, out_ptr, step, third, n,
 
 
 @triton.jit
+def _sample(sig_ptr, col_ptr, t_ptr, i, active, trans, step, gr, gg, gb, ga, gd):
+    """One sample of each lane: ``(e^{-τ}, t, w, ∂L/∂w without the distortion's term)``."""
+    att = tl.exp(-tl.load(sig_ptr + i, mask=active, other=0.0) * step)
+    ti = tl.load(t_ptr + i, mask=active, other=0.0)
+    w = trans * (1.0 - att)
+    g = (gr * tl.load(col_ptr + i * 3 + 0, mask=active, other=0.0)
+         + gg * tl.load(col_ptr + i * 3 + 1, mask=active, other=0.0)
+         + gb * tl.load(col_ptr + i * 3 + 2, mask=active, other=0.0) + ga + gd * ti)
+    return att, ti, w, g
+
+
+@triton.jit
 def _bwd_kernel(sig_ptr, col_ptr, t_ptr, off_ptr, gout_ptr, gsig_ptr, gcol_ptr, step, third, n,
                 BLOCK: tl.constexpr):
     r = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
@@ -71,14 +83,9 @@ def _bwd_kernel(sig_ptr, col_ptr, t_ptr, off_ptr, gout_ptr, gsig_ptr, gcol_ptr, 
     i = start
     active = valid & (i < end)
     while tl.sum(active.to(tl.int32), axis=0) > 0:
-        att = tl.exp(-tl.load(sig_ptr + i, mask=active, other=0.0) * step)
-        ti = tl.load(t_ptr + i, mask=active, other=0.0)
-        w = trans * (1.0 - att)
-        g = (gr * tl.load(col_ptr + i * 3 + 0, mask=active, other=0.0)
-             + gg * tl.load(col_ptr + i * 3 + 1, mask=active, other=0.0)
-             + gb * tl.load(col_ptr + i * 3 + 2, mask=active, other=0.0) + ga + gd * ti
-             + gl * (4.0 * (ti * w_sum - wt_sum) + 2.0 * third * w))
-        big_g += w * g
+        att, ti, w, g = _sample(sig_ptr, col_ptr, t_ptr, i, active, trans, step, gr, gg, gb,
+                                ga, gd)
+        big_g += w * (g + gl * (4.0 * (ti * w_sum - wt_sum) + 2.0 * third * w))
         w_sum += w
         wt_sum += w * ti
         trans = tl.where(active, trans * att, trans)
@@ -90,14 +97,9 @@ def _bwd_kernel(sig_ptr, col_ptr, t_ptr, off_ptr, gout_ptr, gsig_ptr, gcol_ptr, 
     i = start
     active = valid & (i < end)
     while tl.sum(active.to(tl.int32), axis=0) > 0:
-        att = tl.exp(-tl.load(sig_ptr + i, mask=active, other=0.0) * step)
-        ti = tl.load(t_ptr + i, mask=active, other=0.0)
-        w = trans * (1.0 - att)
-        g = (gr * tl.load(col_ptr + i * 3 + 0, mask=active, other=0.0)
-             + gg * tl.load(col_ptr + i * 3 + 1, mask=active, other=0.0)
-             + gb * tl.load(col_ptr + i * 3 + 2, mask=active, other=0.0) + ga + gd * ti
-             + gl * (2.0 * (2.0 * (ti * w_sum - wt_sum) + wt_tot - ti * w_tot)
-                     + 2.0 * third * w))
+        att, ti, w, g = _sample(sig_ptr, col_ptr, t_ptr, i, active, trans, step, gr, gg, gb,
+                                ga, gd)
+        g += gl * (2.0 * (2.0 * (ti * w_sum - wt_sum) + wt_tot - ti * w_tot) + 2.0 * third * w)
         done += w * g
         trans = tl.where(active, trans * att, trans)
         tl.store(gsig_ptr + i, step * (trans * g - (big_g - done)), mask=active)
