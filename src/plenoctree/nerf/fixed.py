@@ -27,9 +27,9 @@ op count that grows with the batch). Here instead, as in nerfacc and instant-ngp
 ``k = 1`` (or ``train_stop_thresh = 0``) is the step without early termination: the march
 goes straight into ``S`` and every marched sample is trained (the samples behind a surface get
 weights ~0, the same image, but fill the budget). Lego 400², 2^17 samples, 300 steps
-(``benchmarks/fixed_vs_waves.py``): the waves 22.42 dB with 8,102 rays a step; ``k = 1``
-21.91 dB, 5,120 rays (25.6 marched samples a ray); ``k = 4`` 22.20 dB, 8,448 rays (16 kept
-of 24.5 marched), the same at ``k = 8`` (docs/performance.md).
+(``benchmarks/fixed_vs_waves.py``, seeds 0–2): ``k = 4`` 0.58 dB under the waves on average
+(22.54 against 23.12 dB), ~8,500–9,000 rays a step against the waves' ~8,100 (16 kept of
+~24.5 marched samples a ray); ``k = 8`` trains the same as 4 (docs/performance.md).
 
 Backends of op ``march_fixed`` (:mod:`plenoctree.backend`): numba on the CPU, Triton on CUDA
 (the two passes of :mod:`._march_triton` into the fixed buffers), and the torch twin
