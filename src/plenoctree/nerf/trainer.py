@@ -287,49 +287,59 @@ class Trainer:
                 self.dctx.broadcast_module(model.occupancy)
         return time.perf_counter() - t
 
-    def _render_loss(self):
-        """``(loss, mse, rays used, samples)`` of a random batch of rays (this rank's shard)."""
+    def _fixed_loss(self):
+        """``(loss, mse, rays, samples)`` of a fixed-shape step (:mod:`.fixed`; one process
+        only): the rays in one launch (op ``ray_batch``), nothing read back inside the step."""
+        cfg = self.cfg
+        n_rays = self.fixed.rays(self.state.n_rays)
+        rays = ray_batch(self.rays, draw_uniforms(n_rays, self.gen, self.device),
+                         self.model.scene_bbox)
+        mode = RenderMode(train=True, generator=self.rgen, amp=self.amp,
+                          distortion=self.dist_weight > 0)
+        r = render_fixed(self.model, rays.batch(self.data.near, self.data.far), cfg, mode,
+                         cfg.target_samples, rays.bounds)
+        loss, mse = fixed_loss(r, rays.target, self.dist_weight, self.extent)
+        self.fixed.add(n_rays, r["total"], r["kept"])
+        return loss, mse, n_rays, int(r["n_samples"])
+
+    def _sampled_loss(self):
+        """``(loss, mse, rays used, samples)`` of the waves (occupancy sampler) or the
+        hierarchical sampler on random pixels (this rank's shard)."""
         cfg, dctx, data = self.cfg, self.dctx, self.data
-        if self.fixed is not None:      # nerf.fixed: rays in one launch (one process only)
-            n_rays = self.fixed.rays(self.state.n_rays)
-            rays = ray_batch(self.rays, draw_uniforms(n_rays, self.gen, self.device),
-                             self.model.scene_bbox)
-            batch, target = rays.batch(data.near, data.far), rays.target
-        else:
-            n_rays = int(self.state.n_rays) if self.occ else cfg.batch_rays
-            o, d, target, bg = (dctx.shard(x) for x in self.rays.sample(n_rays, self.gen))
-            batch = RayBatch(o, d, data.near, data.far, bg)
-        if self.fixed is not None:      # nothing read back inside the step
-            mode = RenderMode(train=True, generator=self.rgen, amp=self.amp,
-                              distortion=self.dist_weight > 0)
-            r = render_fixed(self.model, batch, cfg, mode, cfg.target_samples, rays.bounds)
-            loss, mse = fixed_loss(r, target, self.dist_weight, self.extent)
-            self.fixed.add(n_rays, r["total"], r["kept"])
-            used = n_rays
-        elif self.occ:
-            mode = RenderMode(train=True, generator=self.rgen, amp=self.amp,
-                              max_samples=2 * cfg.target_samples // dctx.world,
-                              distortion=self.dist_weight > 0)
-            r = render_rays_occupancy(self.model, batch, cfg, mode)
-            rgb, dist = r["rgb"], r.get("distortion")
-            if r["capped"]:         # only the complete rays (one host round trip)
-                ok = r["complete"].nonzero()[:, 0]
-                used = int(ok.shape[0])
-                rgb, target = rgb.index_select(0, ok), target.index_select(0, ok)
-                dist = None if dist is None else dist.index_select(0, ok)
-            else:
-                used = int(rgb.shape[0])
-            # (used == 0 only if the sample cap cut off every ray: skip the photometric term)
-            mse = torch.mean((rgb - target) ** 2) if used else r["rgb"].sum() * 0
-            loss = mse
-            if dist is not None and used:
-                loss = loss + self.dist_weight / self.extent * dist.mean()
-        else:
+        n_rays = int(self.state.n_rays) if self.occ else cfg.batch_rays
+        o, d, target, bg = (dctx.shard(x) for x in self.rays.sample(n_rays, self.gen))
+        batch = RayBatch(o, d, data.near, data.far, bg)
+        if not self.occ:
             mode = RenderMode(train=True, generator=self.rgen, amp=self.amp)
             r = render_rays_hierarchical(self.model, batch, cfg, mode)
-            used = int(o.shape[0])
             mse = torch.mean((r["rgb"] - target) ** 2)
             loss = mse + torch.mean((r["rgb_coarse"] - target) ** 2)
+            return loss, mse, int(o.shape[0]), int(r["n_samples"])
+        mode = RenderMode(train=True, generator=self.rgen, amp=self.amp,
+                          max_samples=2 * cfg.target_samples // dctx.world,
+                          distortion=self.dist_weight > 0)
+        r = render_rays_occupancy(self.model, batch, cfg, mode)
+        rgb, dist = r["rgb"], r.get("distortion")
+        if r["capped"]:         # only the complete rays (one host round trip)
+            ok = r["complete"].nonzero()[:, 0]
+            used = int(ok.shape[0])
+            rgb, target = rgb.index_select(0, ok), target.index_select(0, ok)
+            dist = None if dist is None else dist.index_select(0, ok)
+        else:
+            used = int(rgb.shape[0])
+        # (used == 0 only if the sample cap cut off every ray: skip the photometric term)
+        mse = torch.mean((rgb - target) ** 2) if used else r["rgb"].sum() * 0
+        loss = mse
+        if dist is not None and used:
+            loss = loss + self.dist_weight / self.extent * dist.mean()
+        return loss, mse, used, int(r["n_samples"])
+
+    def _render_loss(self):
+        """``(loss, mse, rays used, samples)`` of a random batch of rays (this rank's shard),
+        with the sparsity prior."""
+        cfg = self.cfg
+        loss, mse, used, samples = (self._fixed_loss() if self.fixed is not None
+                                    else self._sampled_loss())
         if cfg.sparsity_weight > 0 and cfg.sparsity_points > 0:
             bbox = self.model.scene_bbox
             pts = bbox[0] + (bbox[1] - bbox[0]) * torch.rand(
@@ -337,7 +347,7 @@ class Trainer:
             with autocast(self.device, self.amp):
                 sig = self.model.fine.density(pts)
             loss = loss + cfg.sparsity_weight * sparsity_loss(sig, cfg.sparsity_length)
-        return loss, mse, used, int(r["n_samples"])
+        return loss, mse, used, samples
 
     def _check_finite(self, loss: float, step: int) -> None:
         if math.isfinite(loss):
