@@ -40,3 +40,15 @@ def tiny_scene(tmp_path_factory):
     write_procedural_dataset(root / "data", n_train=2, n_val=1, n_test=3, width=16, height=16)
     save_tree(procedural_tree(32), root / "tree.npz", precision="fp32")
     return root
+
+
+@pytest.fixture
+def triton_cpu(monkeypatch):
+    """Triton's GPU kernels on CPU tensors for one test (``PLENOCTREE_TRITON_CPU=1`` in the
+    interpreter chosen above; with a CUDA device nothing changes); skipped without triton or
+    without the interpreter."""
+    pytest.importorskip("triton")
+    if _no_cuda():
+        if os.environ.get("TRITON_INTERPRET") != "1":
+            pytest.skip("TRITON_INTERPRET=1 must be set before triton is imported (conftest.py)")
+        monkeypatch.setenv("PLENOCTREE_TRITON_CPU", "1")

@@ -7,7 +7,6 @@ and a run with it learns."""
 from __future__ import annotations
 
 import math
-import os
 import sys
 from pathlib import Path
 
@@ -56,18 +55,11 @@ def test_march_fixed_numba_equals_twin_and_the_packed_march(capacity):
     assert (a.points[m:] == centre).all() and (a.t[m:] == 0).all()
 
 
-def test_march_fixed_triton_equals_twin():
-    pytest.importorskip("triton")
-    if os.environ.get("TRITON_INTERPRET") != "1":
-        pytest.skip("TRITON_INTERPRET=1 must be set before triton is imported (conftest.py)")
+def test_march_fixed_triton_equals_twin(triton_cpu):
     rays, grid = _case(2, n=96)
-    os.environ["PLENOCTREE_TRITON_CPU"] = "1"
-    try:
-        for capacity in (300, 100000):
-            a = march_fixed(rays, grid, capacity, backend="triton")
-            _assert_fixed_equal(a, march_fixed(rays, grid, capacity, backend="torch"))
-    finally:
-        os.environ.pop("PLENOCTREE_TRITON_CPU", None)
+    for capacity in (300, 100000):
+        a = march_fixed(rays, grid, capacity, backend="triton")
+        _assert_fixed_equal(a, march_fixed(rays, grid, capacity, backend="torch"))
 
 
 def _slab_sigma(points: torch.Tensor) -> torch.Tensor:
@@ -201,13 +193,10 @@ def test_render_fixed_with_early_termination_equals_the_waves(data, tmp_path):
                                    atol=2e-6, rtol=1e-5)
 
 
-def test_the_fixed_step_reads_nothing_back(data, tmp_path):
+def test_the_fixed_step_reads_nothing_back(data, tmp_path, triton_cpu):
     """A whole training step (rays, march, network, loss, backward, Adam) on the CUDA path's
     code (Triton in its interpreter, counted with CPU tensors): no host round trip, no
     upload, and the same op count at any batch."""
-    pytest.importorskip("triton")
-    if os.environ.get("TRITON_INTERPRET") != "1":
-        pytest.skip("TRITON_INTERPRET=1 must be set before triton is imported (conftest.py)")
     sys.path.insert(0, str(_BENCH))
     import step_ops
 
@@ -218,18 +207,14 @@ def test_the_fixed_step_reads_nothing_back(data, tmp_path):
     for _ in range(3):
         tr.iteration(bar)
     counter, seen = step_ops.Recorder(), []
-    os.environ["PLENOCTREE_TRITON_CPU"] = "1"
-    try:
-        with step_ops.backends_of("cuda"):
-            tr.iteration(bar)                    # once per process: the hash grid's layout
-            for batch in (256, 1024, 256):
-                tr.step = step_ops._step_number(tr.step, tr.cfg, False)
-                tr.state.n_rays = float(batch)
-                with counter.region() as c:
-                    tr.iteration(bar)
-                seen.append(c)
-    finally:
-        os.environ.pop("PLENOCTREE_TRITON_CPU", None)
+    with step_ops.backends_of("cuda"):
+        tr.iteration(bar)                    # once per process: the hash grid's layout
+        for batch in (256, 1024, 256):
+            tr.step = step_ops._step_number(tr.step, tr.cfg, False)
+            tr.state.n_rays = float(batch)
+            with counter.region() as c:
+                tr.iteration(bar)
+            seen.append(c)
     for c in seen:
         assert sum(c.syncs.values()) == 0, dict(c.sites)
         assert c.triton >= 4                    # march (2 passes), hash grid (2 passes)

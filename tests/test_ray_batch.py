@@ -7,7 +7,6 @@ colours; the twin against the cameras' own rays; the waves' draw left as it was.
 from __future__ import annotations
 
 import dataclasses
-import os
 import sys
 from pathlib import Path
 
@@ -106,24 +105,6 @@ def test_numba_kernel_equals_the_twin(kind, mode):
     twin = ray_batch(src, u, bbox, backend="torch")
     _assert_same(ray_batch(src, u, bbox, backend="numba"), twin, bbox, src)
     assert backend.resolve("ray_batch", "auto", "cpu") == "numba"
-
-
-@pytest.fixture
-def triton_cpu():
-    """Triton on CPU tensors for one test (no GPU: its interpreter, see conftest.py)."""
-    pytest.importorskip("triton")
-    if ON_GPU:
-        yield
-        return
-    if os.environ.get("TRITON_INTERPRET") != "1":
-        pytest.skip("TRITON_INTERPRET=1 must be set before triton is imported (conftest.py)")
-    old = os.environ.get("PLENOCTREE_TRITON_CPU")
-    os.environ["PLENOCTREE_TRITON_CPU"] = "1"
-    yield
-    if old is None:
-        os.environ.pop("PLENOCTREE_TRITON_CPU", None)
-    else:
-        os.environ["PLENOCTREE_TRITON_CPU"] = old
 
 
 @pytest.mark.gpu_sim
