@@ -16,7 +16,10 @@ must issue. Both can be counted on a machine without a GPU, with CPU tensors:
   (``torch.tensor``/``as_tensor`` of host data, ``from_numpy``: a blocking host-to-device copy
   on CUDA); each with the line of the package it came from (``sites`` in the JSON);
 - a Triton kernel launch counts as one op (``triton``); the ops inside Triton's interpreter
-  are not counted.
+  are not counted;
+- every op is also counted by the package function it came from (``op_sites`` in the JSON,
+  ``file function``; the backward's ops are the line that calls ``backward``): where a
+  step's count goes.
 
 Paths: ``cpu`` is what runs on the CPU (numba kernels for the march, the hash grid and the
 whole fine-tuning step: those are not torch ops); ``cuda`` is what ``backend="auto"`` runs on
@@ -64,6 +67,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import re
 import sys
 import tempfile
 import time
@@ -108,6 +112,7 @@ class Counts:
         self.syncs: Counter = Counter()
         self.sites: Counter = Counter()
         self.by_op: Counter = Counter()
+        self.op_sites: Counter = Counter()
 
     def sync(self, kind: str, what: str) -> None:
         self.syncs[kind] += 1
@@ -119,6 +124,7 @@ class Counts:
         d.update({f"sync_{k}": self.syncs[k] / per for k in SYNC_KINDS})
         d["sites"] = {k: v / per for k, v in self.sites.most_common()}
         d["top_ops"] = {k: v / per for k, v in self.by_op.most_common(15)}
+        d["op_sites"] = {k: v / per for k, v in self.op_sites.most_common()}
         return d
 
 
@@ -143,6 +149,7 @@ def _dispatch_mode():
                 name = func.overloadpacket.__name__
                 c.ops += 1
                 c.by_op[name] += 1
+                c.op_sites[re.sub(r":\d+ ", " ", _site())] += 1
                 if func.is_view:
                     c.views += 1
                 if name == "_local_scalar_dense":
@@ -450,6 +457,7 @@ def _merge(total: Counts, c: Counts) -> None:
     total.syncs.update(c.syncs)
     total.sites.update(c.sites)
     total.by_op.update(c.by_op)
+    total.op_sites.update(c.op_sites)
 
 
 # --- the fine-tuning step ------------------------------------------------------------------
