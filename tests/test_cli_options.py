@@ -13,6 +13,7 @@ import pytest
 
 from plenoctree.cli import build_parser, main
 from plenoctree.datasets.procedural import procedural_tree, write_procedural_dataset
+from plenoctree.pipeline_config import PipelineConfig
 from plenoctree.octree import save_tree
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -109,7 +110,11 @@ def test_run_nested_stage_flags_presets_and_saved_config(tmp_path, capsys):
             "0", "--print-config"]
     assert main(args) == 0
     cfg = json.loads(capsys.readouterr().out)
-    assert cfg["extract"]["grid"] == 128 and cfg["video_frames"] == 0      # the quick preset
+    # the quick preset: the frontier's 10-minute NeRF-SH, the default stages after it, no video
+    assert cfg["train"]["minutes"] == 10.0 and cfg["video_frames"] == 0
+    defaults = PipelineConfig()
+    assert (cfg["extract"]["grid"], cfg["extract"]["samples"]) == (
+        defaults.extract.grid, defaults.extract.samples) and cfg["eval_views"] == 5
     assert (cfg["finetune"]["epochs"], cfg["train"]["model"]["net_width"],
             cfg["extract"]["center"]) == (3, 32, [0.0, 0.0, 0.0])
     saved = tmp_path / "config.json"

@@ -69,14 +69,23 @@ def working_downscale(width: int, height: int, forward: bool, gpu: bool,
                 max(d for d in range(1, factor) if width % d == 0 and height % d == 0))
 
 
+QUICK_MINUTES = 10.0
+"""NeRF-SH budget of the ``quick`` preset: the 10-minute point of the time-quality frontier
+measured on flower's photos (docs/capture_records.md "Time against quality"): 28.89 dB
+compressed in 17.1 minutes of ``run --images`` against 29.70 in 36.6 at the 30-minute default;
+5 minutes gave a foggier NeRF-SH whose 2.5x the leaves made the whole chain no shorter
+(27.21 dB, 17.8 min), and 3 minutes with a 128³ grid 21.85 dB."""
+
+
 def train_preset(name: str) -> TrainConfig:
     """The NeRF-SH training settings of preset ``name``: ``cpu``, ``gpu`` and ``paper`` (the
-    trainer's presets) or ``quick`` (cpu with a 3-minute budget). ``plenoctree train --preset`` and
-    ``run --preset`` take the same names."""
+    trainer's presets) or ``quick`` (cpu with a :data:`QUICK_MINUTES` budget). ``plenoctree
+    train --preset`` and ``run --preset`` take the same names."""
     from .nerf.config import preset
 
     if name == "quick":
-        return dataclasses.replace(preset("cpu"), minutes=3.0, max_steps=UNLIMITED_STEPS)
+        return dataclasses.replace(preset("cpu"), minutes=QUICK_MINUTES,
+                                   max_steps=UNLIMITED_STEPS)
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
     return preset(name)
@@ -191,10 +200,10 @@ def _preset_paper() -> PipelineConfig:
 
 
 def _preset_quick() -> PipelineConfig:
-    cfg = PipelineConfig(train=train_preset("quick"), nerf_eval_views=1, eval_views=5,
-                         video_frames=0)
-    cfg.extract.grid, cfg.extract.samples, cfg.finetune.epochs = 128, 4, 2
-    return cfg
+    # the stages after training as the defaults (256³, 12 epochs: the frontier's 10-minute
+    # point was measured with them); fewer views scored, no video
+    return PipelineConfig(train=train_preset("quick"), nerf_eval_views=1, eval_views=5,
+                          video_frames=0)
 
 
 def _preset_gpu() -> PipelineConfig:
@@ -206,7 +215,8 @@ PRESETS: dict[str, Callable[[], PipelineConfig]] = {
 """``plenoctree run --preset NAME``: ``cpu`` (the defaults: cpu NeRF-SH preset for 30 minutes,
 256³), ``gpu`` (the gpu NeRF-SH preset: fixed-shape steps of 2^18 samples, 20,000 steps, then
 the cpu pipeline's stages), ``paper`` (the paper's NeRF-SH, 512³, 256 samples per voxel; for
-GPUs), ``quick`` (a few minutes end to end, to try a dataset)."""
+GPUs), ``quick`` (a 10-minute NeRF-SH, 5 test views scored, no video: about 17 minutes end to
+end on 2 cores)."""
 
 
 def pipeline_preset(name: str) -> PipelineConfig:
