@@ -17,8 +17,8 @@ from plenoctree.datasets.cameras import Cameras
 from plenoctree.nerf.checkpoint import load_nerf, save_checkpoint
 from plenoctree.nerf.config import ModelConfig, TrainConfig
 from plenoctree.nerf.far import (CONTRACTED_BOX, MAX_LEVELS, MIN_LEVELS, FarField,
-                                 composite_far, contract, far_levels_for, render_far,
-                                 resolve_far_levels, resolve_render_step)
+                                 composite_far, contract, far_distortion, far_levels_for,
+                                 render_far, resolve_far_levels, resolve_render_step)
 from plenoctree.nerf.model import NeRFModel, RadianceField
 from plenoctree.nerf.renderer import RayBatch, RenderMode, render_rays_occupancy
 from plenoctree.nerf.volrend import render_weights
@@ -163,6 +163,47 @@ def test_training_rays_reach_the_far_field_with_gradients():
     assert model.fine.encoder.table.grad.abs().sum() > 0
     assert out["n_samples"] > 4 * 24
     assert (out["acc"] > 0).all() and (out["acc"] <= 1).all()
+
+
+def test_far_distortion_is_mip_nerf_360s_sum_in_normalised_inverse_distance():
+    """The O(S) form equals eq. 15 summed directly over every pair, with distances mapped to
+    s = (1/t0 - 1/t) / (1/t0 - 1/t1); a fog over the whole far interval costs more than the
+    same weight in one place, and the gradient reaches the weights."""
+    g = torch.Generator().manual_seed(3)
+    edges = torch.sort(0.5 + 40.0 * torch.rand(5, 13, generator=g, dtype=torch.float64), -1).values
+    w = (0.2 * torch.rand(5, 12, generator=g, dtype=torch.float64)).requires_grad_()
+    inv = 1.0 / edges
+    s = (inv[:, :1] - inv) / (inv[:, :1] - inv[:, -1:])
+    m, width = 0.5 * (s[:, 1:] + s[:, :-1]), s[:, 1:] - s[:, :-1]
+    direct = ((w[:, :, None] * w[:, None, :] * (m[:, :, None] - m[:, None, :]).abs()).sum((1, 2))
+              + (w * w * width).sum(-1) / 3.0)
+    got = far_distortion(w, edges)
+    assert torch.allclose(got, direct, rtol=1e-12, atol=1e-15)
+    got.sum().backward()
+    assert w.grad.abs().sum() > 0
+    fog = torch.full((1, 12), 0.9 / 12, dtype=torch.float64)
+    wall = torch.zeros((1, 12), dtype=torch.float64)
+    wall[0, 6] = 0.9
+    assert far_distortion(wall, edges[:1]) < 0.5 * far_distortion(fog, edges[:1])
+
+
+def test_training_penalises_the_far_fields_spread_only_with_the_distortion_loss():
+    """A training render with the distortion on returns the far samples' distortion (one per
+    ray, >= 0, with a gradient to the far network); without it, none."""
+    torch.manual_seed(0)
+    model = NeRFModel(TINY, BOX, occ_res=8, far_levels=4)
+    cfg = TrainConfig(model=TINY, occ_res=8, render_step=0.05, far_samples=8, far_fine=8)
+    d = torch.nn.functional.normalize(torch.randn(4, 3), dim=-1)
+    rays = RayBatch(torch.zeros(4, 3), d, 0.05, 30.0, torch.zeros(3))
+    with_it = render_rays_occupancy(model, rays, cfg, RenderMode(
+        train=True, generator=torch.Generator(), distortion=True))
+    fd = with_it["far_distortion"]
+    assert fd.shape == (4,) and (fd >= 0).all() and fd.sum() > 0
+    fd.sum().backward()
+    assert model.far.net.encoder.table.grad.abs().sum() > 0
+    without = render_rays_occupancy(model, rays, cfg, RenderMode(
+        train=True, generator=torch.Generator()))
+    assert "far_distortion" not in without
 
 
 # ------------------------------------------------------------------ octree

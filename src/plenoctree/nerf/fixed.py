@@ -314,7 +314,7 @@ def render_fixed(model, rays, cfg, mode, capacity: int, bounds=None) -> dict:
         ``distortion [R]``.
     """
     from .composite import composite_rays
-    from .far import composite_far, render_far, resolve_render_step
+    from .far import composite_far, far_distortion, render_far, resolve_render_step
     from .renderer import autocast
 
     n = len(rays)
@@ -337,6 +337,8 @@ def render_fixed(model, rays, cfg, mode, capacity: int, bounds=None) -> dict:
                            cfg.far_samples, cfg.far_fine, True, mode.generator)
         r = {**r, **composite_far(f, r["rgb"], r["acc"], r["dsum"])}
         out["n_samples"] += n * (cfg.far_samples + cfg.far_fine)
+        if mode.distortion:
+            out["far_distortion"] = far_distortion(r["weights"], f["edges"])
     out.update(rgb=r["rgb"] + (1.0 - r["acc"])[:, None] * rays.bg(), acc=r["acc"])
     return out
 
@@ -345,11 +347,14 @@ def fixed_loss(r: dict, target: torch.Tensor, dist_weight: float, extent: float
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """``(loss, mse)`` of :func:`render_fixed`'s output ``r`` against ``target [R, 3]``: the
     mean squared error over the complete rays (a mask; 0 when none is complete) plus
-    ``dist_weight / extent`` times their mean distortion, as the waves path's loss."""
+    ``dist_weight / extent`` times their mean distortion and ``dist_weight`` times their far
+    field's (:func:`~.far.far_distortion`), as the waves path's loss."""
     mask = r["complete"].to(target.dtype)
     used = mask.sum().clamp(min=1.0)
     mse = (((r["rgb"] - target) ** 2).mean(-1) * mask).sum() / used
     loss = mse
     if "distortion" in r and dist_weight > 0:
         loss = loss + dist_weight / extent * (r["distortion"] * mask).sum() / used
+    if "far_distortion" in r and dist_weight > 0:     # normalised distances already
+        loss = loss + dist_weight * (r["far_distortion"] * mask).sum() / used
     return loss, mse

@@ -29,7 +29,7 @@ import torch
 
 from ..datasets import Dataset
 from .config import TrainConfig
-from .far import composite_far, render_far, resolve_render_step
+from .far import composite_far, far_distortion, render_far, resolve_render_step
 from .model import NeRFModel, RadianceField
 from .occupancy import OccupancyGrid
 from .sampling import MarchGrid, MarchRays, march_rays, pdf_samples, ray_aabb, \
@@ -318,10 +318,12 @@ def render_rays_occupancy(model: NeRFModel, rays: RayBatch, cfg: TrainConfig,
                            cfg.far_samples, cfg.far_fine, mode.train, mode.generator)
         r = {**r, **composite_far(f, r["rgb"], r["acc"], r["dsum"]),
              "n_samples": r["n_samples"] + f["n_samples"]}
+        if mode.train and mode.distortion:
+            r["far_distortion"] = far_distortion(r["weights"], f["edges"])
     acc = r["acc"]
     out = {"rgb": r["rgb"] + (1.0 - acc)[:, None] * rays.bg(), "acc": acc,
            "depth": r["dsum"] / acc.clamp(min=1e-10), "n_samples": r["n_samples"]}
-    for key in ("complete", "capped", "distortion"):    # training only (see _march_waves)
+    for key in ("complete", "capped", "distortion", "far_distortion"):   # training only
         if key in r:
             out[key] = r[key]
     return out

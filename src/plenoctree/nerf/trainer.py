@@ -319,12 +319,13 @@ class Trainer:
                           max_samples=2 * cfg.target_samples // dctx.world,
                           distortion=self.dist_weight > 0)
         r = render_rays_occupancy(self.model, batch, cfg, mode)
-        rgb, dist = r["rgb"], r.get("distortion")
+        rgb, dist, far_dist = r["rgb"], r.get("distortion"), r.get("far_distortion")
         if r["capped"]:         # only the complete rays (one host round trip)
             ok = r["complete"].nonzero()[:, 0]
             used = int(ok.shape[0])
             rgb, target = rgb.index_select(0, ok), target.index_select(0, ok)
             dist = None if dist is None else dist.index_select(0, ok)
+            far_dist = None if far_dist is None else far_dist.index_select(0, ok)
         else:
             used = int(rgb.shape[0])
         # (used == 0 only if the sample cap cut off every ray: skip the photometric term)
@@ -332,6 +333,8 @@ class Trainer:
         loss = mse
         if dist is not None and used:
             loss = loss + self.dist_weight / self.extent * dist.mean()
+        if far_dist is not None and used:       # in normalised distances (nerf.far)
+            loss = loss + self.dist_weight * far_dist.mean()
         return loss, mse, used, int(r["n_samples"])
 
     def _render_loss(self):
