@@ -206,6 +206,26 @@ def test_training_penalises_the_far_fields_spread_only_with_the_distortion_loss(
     assert "far_distortion" not in without
 
 
+def test_fixed_steps_add_the_far_distortion_to_their_loss():
+    """The fixed-shape step's render carries the far samples' distortion and its loss adds it
+    at the photos' weight (normalised distances: no division by the box's extent)."""
+    from plenoctree.nerf.fixed import fixed_loss, render_fixed
+
+    torch.manual_seed(0)
+    model = NeRFModel(TINY, BOX, occ_res=8, far_levels=4)
+    cfg = TrainConfig(model=TINY, occ_res=8, render_step=0.05, far_samples=8, far_fine=8)
+    d = torch.nn.functional.normalize(torch.randn(6, 3), dim=-1)
+    rays = RayBatch(torch.zeros(6, 3), d, 0.05, 30.0, torch.zeros(3))
+    r = render_fixed(model, rays, cfg, RenderMode(train=True, generator=torch.Generator(),
+                                                  distortion=True), 4096)
+    assert r["complete"].all() and r["far_distortion"].shape == (6,)
+    target = torch.rand(6, 3)
+    with_it, _ = fixed_loss(r, target, 0.01, 2.0)
+    without, _ = fixed_loss(r, target, 0.0, 2.0)
+    expected = 0.01 * (r["distortion"].mean() / 2.0 + r["far_distortion"].mean())
+    torch.testing.assert_close(with_it - without, expected, rtol=1e-5, atol=1e-9)
+
+
 # ------------------------------------------------------------------ octree
 
 

@@ -311,7 +311,7 @@ def render_fixed(model, rays, cfg, mode, capacity: int, bounds=None) -> dict:
         ``n_samples`` (int, = ``S``: every slot is evaluated with gradients; the density pass
         evaluates ``k S`` more without), ``total`` (int64 ``[]``, the samples the march made,
         also past the buffer), ``kept`` (:func:`kept_figures`) and with ``mode.distortion``
-        ``distortion [R]``.
+        ``distortion [R]`` (and ``far_distortion [R]`` with a far field).
     """
     from .composite import composite_rays
     from .far import composite_far, far_distortion, render_far, resolve_render_step
