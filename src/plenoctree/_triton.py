@@ -1,8 +1,9 @@
 """When the Triton GPU kernels can run, and the one place that decides it.
 
 The GPU kernels (``render/_triton_impl.py``, ``optim/_triton_grad.py``,
-``nerf/_hashgrid_triton.py``, ``nerf/_march_triton.py``) are written in Triton, which ships with
-the CUDA builds of torch and compiles the kernels at first use (no build step, no CUDA toolkit).
+``nerf/_hashgrid_triton.py``, ``nerf/_march_triton.py``, ``convert/_visibility_triton.py``)
+are written in Triton, which ships with the CUDA builds of torch and compiles the kernels at
+first use (no build step, no CUDA toolkit).
 They run
 
 * on CUDA tensors when ``triton`` is importable and a CUDA device is present, and
@@ -14,7 +15,7 @@ They run
 
 :mod:`plenoctree.backend` registers backend ``"triton"`` for the ops listed in
 :data:`TRITON_IMPLS` (``render``, ``render_grad``, ``finetune``, ``hashgrid``, ``march``,
-``march_fixed``, ``sh_colors``, ``composite``, ``ray_batch``) with
+``march_fixed``, ``sh_colors``, ``composite``, ``ray_batch``, ``visibility``) with
 :data:`TRITON_PRIORITY`, between numba (CPU) and the torch twin, and :func:`usable_anywhere` as
 its availability probe: ``backend="auto"`` then picks Triton for CUDA tensors when it is usable
 and keeps numba for CPU tensors; CPU tensors reach Triton only when asked for by name (in
@@ -49,6 +50,7 @@ TRITON_IMPLS = (
     ("sh_colors", "plenoctree._sh_triton:sh_colors_backend"),
     ("composite", "plenoctree.nerf.composite:_composite_triton"),
     ("ray_batch", "plenoctree.nerf._raygen_triton:ray_batch_backend"),
+    ("visibility", "plenoctree.convert.visibility:_max_weights_triton_run"),
 )
 
 

@@ -10,8 +10,11 @@ piecewise-constant cells) and stop once ``T < τ_w``. Only *candidate* cells are
 can reach weight ``τ_w`` only if ``1 - exp(-σ δ_max) ≥ τ_w`` (``δ_max``: the cell diagonal),
 so the running maxima need ``M`` (candidates) floats per thread instead of ``R³``.
 
-Backends: ``"numba"`` (:mod:`._visibility_numba`, imported on first use, parallel over rays)
-and ``"torch"`` (:func:`_max_weights_torch`, vectorised, the spec the kernel is tested against).
+Backends: ``"numba"`` (:mod:`._visibility_numba`, imported on first use, parallel over rays),
+``"triton"`` (:mod:`._visibility_triton`: the same kernel on the GPU, one ray per lane, maxima
+by atomics; :func:`visibility_weights` keeps σ, the candidates, the rays and the maxima on the
+device and reads back once) and ``"torch"`` (:func:`_max_weights_torch`, vectorised, the spec
+the kernels are tested against).
 """
 
 from __future__ import annotations
@@ -151,10 +154,11 @@ def max_ray_weights(sigma: np.ndarray, spec: GridSpec, cand: Candidates, origins
 
     Args:
         sigma: float32 ``[R, R, R]``. spec: its grid. cand: from :func:`candidates`.
-        backend: "auto" | "numba" | "torch" (the torch twin needs ``O(rays · R)`` memory; it
-            is processed in ``ray_chunk`` / R rays at a time).
-        out: running maxima to update in place (numba: float32 ``[n_threads, M]``; torch:
-            float32 ``[1, M]``), to accumulate over many views; allocated when ``None``.
+        backend: "auto" | "numba" | "torch" | "triton" (the torch twin needs ``O(rays · R)``
+            memory; it is processed in ``ray_chunk`` / R rays at a time; triton: the CPU
+            arrays are uploaded at each call, see :func:`_max_weights_triton_run`).
+        out: running maxima to update in place (numba: float32 ``[n_threads, M]``; torch and
+            triton: float32 ``[1, M]``), to accumulate over many views; allocated when ``None``.
 
     Returns:
         ``out`` (reduce with ``out.max(0)`` for the per-cell maxima ``[M]``).
@@ -194,9 +198,108 @@ def _max_weights_torch_run(sigma: np.ndarray, spec: GridSpec, cand: Candidates, 
     return out
 
 
+def _triton_device(*tensors: Any) -> Any:
+    """Where the Triton backend runs: the device of the first torch tensor given, else CUDA
+    (the CPU in Triton's interpreter, for tests)."""
+    import torch
+
+    from .._triton import interpret_mode
+
+    for t in tensors:
+        if isinstance(t, torch.Tensor):
+            return t.device
+    return torch.device("cpu" if interpret_mode() or not torch.cuda.is_available() else "cuda")
+
+
+def _max_weights_triton_run(sigma: Any, spec: GridSpec, cand: Candidates, o: Any, d: Any,
+                            out: Any, ray_chunk: int) -> Any:
+    """Triton kernel on the device (:mod:`._visibility_triton`), ``out`` float32 ``[1, M]``.
+
+    ``sigma``, ``o``, ``d`` numpy arrays or torch tensors; ``out`` ``None`` (a torch tensor is
+    made on the device), a torch tensor on the device (raised in place, no read-back) or a
+    numpy array (raised in place: one upload, one read-back). Runs on ``out``'s (else
+    ``sigma``'s) device, CUDA for numpy inputs. ``ray_chunk`` is not used (one launch).
+    """
+    import torch
+
+    from ._visibility_triton import geometry, max_weights_triton
+
+    dev = _triton_device(out, sigma, o)
+    host_out = out if isinstance(out, np.ndarray) else None
+    if out is None or host_out is not None:
+        out_t = (torch.zeros((1, cand.flat.size), dtype=torch.float32, device=dev)
+                 if host_out is None else torch.as_tensor(host_out).to(dev).contiguous())
+    else:
+        out_t = out
+    sig = torch.as_tensor(sigma).to(dev, torch.float32).contiguous()
+    idx = torch.as_tensor(cand.index).to(dev, torch.int32).contiguous()
+    geom = geometry(spec.lo, spec.cell, spec.res, cand.min_weight, dev)
+    o_t = torch.as_tensor(o).to(dev, torch.float32).reshape(-1, 3)
+    d_t = torch.as_tensor(d).to(dev, torch.float32).reshape(-1, 3)
+    max_weights_triton(sig, idx, geom, o_t, d_t, out_t)
+    if host_out is not None:
+        host_out[...] = out_t.cpu().numpy()
+        return host_out
+    return out_t
+
+
+def _pinhole_rays(cameras: Any, i: int, c2w: Any, rows: slice) -> tuple[Any, Any]:
+    """Rays of pixel rows ``rows`` of pinhole camera ``i`` on ``c2w``'s device, no host read:
+    ``(origin [3], unit dirs [h * W, 3])`` float32, made as
+    :func:`~plenoctree.datasets.cameras.generate_rays` makes them (float64, then rounded).
+    ``c2w``: float64 ``[N, 4, 4]`` on the device."""
+    import torch
+
+    fx, fy, cx, cy = cameras.intrinsics(i)
+    dev, f64 = c2w.device, torch.float64
+    m = c2w[i]
+    u = (torch.arange(cameras.width, dtype=f64, device=dev) + 0.5 - cx) / fx
+    v = -(torch.arange(rows.start, rows.stop, dtype=f64, device=dev) + 0.5 - cy) / fy
+    h, w = v.shape[0], u.shape[0]
+    d_cam = torch.stack([u[None, :].expand(h, w), v[:, None].expand(h, w),
+                         torch.full((h, w), -1.0, dtype=f64, device=dev)], -1)
+    dirs = d_cam @ m[:3, :3].T
+    dirs = dirs / torch.linalg.vector_norm(dirs, dim=-1, keepdim=True)
+    return m[:3, 3].float(), dirs.reshape(-1, 3).float()
+
+
+def _visibility_triton(sigma: np.ndarray, spec: GridSpec, cand: Candidates, cameras: Any,
+                       device: Any, show_progress: bool | None,
+                       pixels: int = 1 << 20) -> np.ndarray:
+    """:func:`visibility_weights`' loop on the device: σ (float32), the candidate index
+    (int32) and the cameras uploaded once, the maxima ``[M]`` kept there, every view's rays
+    made there (pinhole; NDC views: made on the host and uploaded, ``to_ndc_rays`` checks its
+    rays on the host) ``pixels`` at a time and marched by one launch each; one read-back at
+    the end. Returns float32 ``[M]``."""
+    import torch
+
+    from ._visibility_triton import geometry, max_weights_triton
+
+    dev = torch.device(device)
+    sig = torch.as_tensor(sigma).to(dev, torch.float32).contiguous()
+    idx = torch.as_tensor(cand.index).to(dev, torch.int32).contiguous()
+    geom = geometry(spec.lo, spec.cell, spec.res, cand.min_weight, dev)
+    out = torch.zeros(cand.flat.size, dtype=torch.float32, device=dev)
+    ndc = bool(getattr(cameras, "ndc", False))
+    c2w = None if ndc else torch.as_tensor(cameras.c2w, dtype=torch.float64).to(dev)
+    step = max(1, pixels // max(1, cameras.width))
+    for i in progress(range(len(cameras)), desc="visibility", unit="view",
+                      disable=None if show_progress is None else not show_progress):
+        if ndc:
+            o, d = cameras.rays(i)
+            max_weights_triton(sig, idx, geom, torch.as_tensor(o.reshape(-1, 3)).to(dev),
+                               torch.as_tensor(d.reshape(-1, 3)).to(dev), out)
+            continue
+        for r0 in range(0, cameras.height, step):
+            o, d = _pinhole_rays(cameras, i, c2w, slice(r0, min(cameras.height, r0 + step)))
+            max_weights_triton(sig, idx, geom, o, d, out)
+    return out.cpu().numpy()
+
+
 def visibility_weights(sigma: np.ndarray, spec: GridSpec, cameras: Any, min_weight: float,
                        backend: str = "auto", show_progress: bool | None = None,
-                       memory_limit: int | None = None) -> tuple[Candidates, np.ndarray]:
+                       memory_limit: int | None = None, device: Any = None
+                       ) -> tuple[Candidates, np.ndarray]:
     """Render every camera through the grid; max ray weight of each candidate cell.
 
     Args:
@@ -204,7 +307,14 @@ def visibility_weights(sigma: np.ndarray, spec: GridSpec, cameras: Any, min_weig
         cameras: a :class:`~plenoctree.datasets.Cameras` (the training views).
         min_weight: τ_w; only cells that could reach it are tracked (use the smallest τ_w you
             will threshold with).
+        backend: "auto" | "numba" | "torch" | "triton" (see the module docstring).
         memory_limit: bytes allowed for the per-thread maxima (``n_threads · M · 4``).
+        device: where the filter runs. ``None``: the CPU (``"auto"`` is numba), except that
+            ``"triton"`` runs on CUDA (the CPU in Triton's interpreter). A CUDA device: ``"auto"``
+            is ``"triton"`` where Triton is usable (:mod:`plenoctree.backend`'s rule), and the
+            grid, the candidates and the rays live there (one read-back at the end);
+            ``"numba"`` there raises :class:`~plenoctree.errors.BackendError`, ``"torch"``
+            runs on the host arrays.
 
     Returns:
         ``(cand, weights [M] float32)``: candidates and their max weights (0: never reached).
@@ -216,7 +326,13 @@ def visibility_weights(sigma: np.ndarray, spec: GridSpec, cameras: Any, min_weig
             f"reach the weight threshold {min_weight:g} (largest σ {float(sigma.max()):.4g}, "
             f"needs {-np.log1p(-min_weight) / float(np.linalg.norm(spec.cell)):.4g}); lower "
             f"--weight-thresh, or check the box (--bbox, --center/--radius) holds the content")
-    name = _backend(backend)
+    if device is not None or str(backend).lower() == "triton":
+        from ..backend import resolve
+
+        dev = _triton_device() if device is None else device
+        name = resolve("visibility", backend, dev)
+    else:
+        name = _backend(backend)
     if name == "numba":
         import numba
 
@@ -229,6 +345,8 @@ def visibility_weights(sigma: np.ndarray, spec: GridSpec, cameras: Any, min_weig
                           f"need {need / 2**30:.2f} GiB (budget {memory_limit / 2**30:.2f} GiB); "
                           f"use fewer threads (--threads), a smaller --grid or a higher "
                           f"--weight-thresh")
+    if name == "triton":
+        return cand, _visibility_triton(sigma, spec, cand, cameras, dev, show_progress)
     out = np.zeros((rows, cand.flat.size), dtype=np.float32)
     for i in progress(range(len(cameras)), desc="visibility", unit="view",
                       disable=None if show_progress is None else not show_progress):
