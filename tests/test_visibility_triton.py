@@ -119,3 +119,16 @@ def test_visibility_weights_triton_reads_back_once(triton_cpu):
     assert (launch1, launch3) == (1, 3)
     assert sync1 == sync3, rows
     assert sync1.get("host", 0) == 1 and sync1.get("item", 0) == 0, rows
+
+
+def test_visibility_weights_triton_ndc_views_equal_numba(triton_cpu):
+    """Forward-facing views: NDC rays (made on the host, uploaded per view) in the NDC cube."""
+    spec, sigma, _, _ = _blobs_case(6)
+    spec = GridSpec.make(0.0, 1.0, spec.res)
+    c2w = np.tile(np.eye(4, dtype=np.float32), (3, 1, 1))
+    c2w[:, :3, 3] = [[0.0, 0.0, 0.0], [0.1, -0.05, 0.0], [-0.08, 0.1, 0.05]]
+    cams = Cameras(c2w, 10.0, 10.0, 5.0, 4.0, 10, 8, ndc=True)
+    _, want = visibility_weights(sigma, spec, cams, 1e-3, backend="numba", show_progress=False)
+    _, got = visibility_weights(sigma, spec, cams, 1e-3, backend="triton", show_progress=False)
+    assert (want > 0).sum() > 50
+    np.testing.assert_allclose(got, want, rtol=0, atol=ATOL)
