@@ -403,7 +403,8 @@ def _filter(cfg: ExtractConfig, sigma: np.ndarray, spec: GridSpec, train: Any,
         vis_info = {"vis_views": len(cams), "vis_size": [cams.width, cams.height],
                     "vis_scale": ray_scale}
         cand, weights = visibility_weights(sigma, spec, cams, cfg.weight_thresh,
-                                           cfg.backend, cfg.show_progress, limit)
+                                           cfg.backend, cfg.show_progress, limit,
+                                           device=cfg.device)
         n_cand = int(cand.flat.size)
         mask = weight_mask(spec, cand, weights, cfg.weight_thresh)
         max_w = float(weights.max()) if weights.size else 0.0
@@ -452,7 +453,7 @@ def _shells(cfg: ExtractConfig, inp: _Inputs, tree: Any, grid: int, limit: int
         cams = _load_split(inp.data_root, "train", inp.downscale, inp.background).cameras
     opts = ShellOptions(grid=cfg.far_grid or max(4, grid // 2),
                         weight_thresh=cfg.weight_thresh, backend=cfg.backend,
-                        show_progress=cfg.show_progress,
+                        device=cfg.device, show_progress=cfg.show_progress,
                         samples=SampleOptions(samples=cfg.samples, chunk=cfg.chunk,
                                               seed=cfg.seed + 1, averaging=cfg.averaging,
                                               show_progress=cfg.show_progress))

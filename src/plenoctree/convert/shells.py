@@ -42,7 +42,9 @@ class ShellOptions:
             ``1 - exp(-σ ℓ)`` is below this are left empty (the far field's fog: on lounge,
             0.01 drops 22 % of the leaves and 30 % of the leaves a ray visits at the same
             PSNR). samples: the :class:`SampleOptions` of
-            the kept cells. backend: of the visibility filter. show_progress: progress bars.
+            the kept cells. backend, device: of the visibility filter
+            (:func:`~.visibility.visibility_weights`; None: the CPU). show_progress: progress
+            bars.
     """
 
     grid: int = 256
@@ -50,6 +52,7 @@ class ShellOptions:
     min_alpha: float = 0.01
     samples: SampleOptions = SampleOptions()
     backend: str = "auto"
+    device: str | None = None
     show_progress: bool | None = None
 
 
@@ -105,7 +108,7 @@ def _shell(field: Any, cams: Any, centre: np.ndarray, radius: np.ndarray, level:
         return np.zeros(0, np.int64), np.zeros((0, 3), np.int64), None
     try:
         cand, weights = visibility_weights(sigma, spec, cams, opts.weight_thresh, opts.backend,
-                                           opts.show_progress, limit)
+                                           opts.show_progress, limit, device=opts.device)
     except ConfigError:             # nothing dense enough to be seen: an empty shell
         return np.zeros(0, np.int64), np.zeros((0, 3), np.int64), None
     del sigma
