@@ -271,7 +271,7 @@ def far_distortion(weights: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     computed in ``O(S)`` (``2 Σ_i w_i (m_i W_i - M_i)``, ``W``, ``M``: exclusive prefix sums of
     ``w`` and ``w m``). Without it the far network may spread a wall or the sky over several
     shells; with it, on the lounge's frames, the extracted shells held a third fewer leaves
-    and the fine-tuned tree scored 0.8 dB better held out (its NeRF-SH 0.4 dB worse;
+    and the fine-tuned tree scored 0.9 dB better held out (its NeRF-SH 0.4 dB worse;
     docs/results.md).
 
     Args:
