@@ -243,33 +243,13 @@ def _max_weights_triton_run(sigma: Any, spec: GridSpec, cand: Candidates, o: Any
     return out_t
 
 
-def _pinhole_rays(cameras: Any, i: int, c2w: Any, rows: slice) -> tuple[Any, Any]:
-    """Rays of pixel rows ``rows`` of pinhole camera ``i`` on ``c2w``'s device, no host read:
-    ``(origin [3], unit dirs [h * W, 3])`` float32, made as
-    :func:`~plenoctree.datasets.cameras.generate_rays` makes them (float64, then rounded).
-    ``c2w``: float64 ``[N, 4, 4]`` on the device."""
-    import torch
-
-    fx, fy, cx, cy = cameras.intrinsics(i)
-    dev, f64 = c2w.device, torch.float64
-    m = c2w[i]
-    u = (torch.arange(cameras.width, dtype=f64, device=dev) + 0.5 - cx) / fx
-    v = -(torch.arange(rows.start, rows.stop, dtype=f64, device=dev) + 0.5 - cy) / fy
-    h, w = v.shape[0], u.shape[0]
-    d_cam = torch.stack([u[None, :].expand(h, w), v[:, None].expand(h, w),
-                         torch.full((h, w), -1.0, dtype=f64, device=dev)], -1)
-    dirs = d_cam @ m[:3, :3].T
-    dirs = dirs / torch.linalg.vector_norm(dirs, dim=-1, keepdim=True)
-    return m[:3, 3].float(), dirs.reshape(-1, 3).float()
-
-
 def _visibility_triton(sigma: np.ndarray, spec: GridSpec, cand: Candidates, cameras: Any,
                        device: Any, show_progress: bool | None,
                        pixels: int = 1 << 20) -> np.ndarray:
     """:func:`visibility_weights`' loop on the device: σ (float32), the candidate index
     (int32) and the cameras uploaded once, the maxima ``[M]`` kept there, every view's rays
-    made there (pinhole; NDC views: made on the host and uploaded, ``to_ndc_rays`` checks its
-    rays on the host) ``pixels`` at a time and marched by one launch each; one read-back at
+    made there by :meth:`~plenoctree.datasets.Cameras.pixel_rays` (pinhole; NDC views: made on
+    the host and uploaded, ``to_ndc_rays`` checks its rays on the host) ``pixels`` at a time and marched by one launch each; one read-back at
     the end. Returns float32 ``[M]``."""
     import torch
 
@@ -281,8 +261,9 @@ def _visibility_triton(sigma: np.ndarray, spec: GridSpec, cand: Candidates, came
     geom = geometry(spec.lo, spec.cell, spec.res, cand.min_weight, dev)
     out = torch.zeros(cand.flat.size, dtype=torch.float32, device=dev)
     ndc = bool(getattr(cameras, "ndc", False))
-    c2w = None if ndc else torch.as_tensor(cameras.c2w, dtype=torch.float64).to(dev)
-    step = max(1, pixels // max(1, cameras.width))
+    tables = None if ndc else cameras.device_tables(dev)
+    w = cameras.width
+    step = max(1, pixels // max(1, w)) * w
     for i in progress(range(len(cameras)), desc="visibility", unit="view",
                       disable=None if show_progress is None else not show_progress):
         if ndc:
@@ -290,8 +271,9 @@ def _visibility_triton(sigma: np.ndarray, spec: GridSpec, cand: Candidates, came
             max_weights_triton(sig, idx, geom, torch.as_tensor(o.reshape(-1, 3)).to(dev),
                                torch.as_tensor(d.reshape(-1, 3)).to(dev), out)
             continue
-        for r0 in range(0, cameras.height, step):
-            o, d = _pinhole_rays(cameras, i, c2w, slice(r0, min(cameras.height, r0 + step)))
+        for p0 in range(0, w * cameras.height, step):     # whole pixel rows at a time
+            pix = torch.arange(p0, min(w * cameras.height, p0 + step), device=dev)
+            o, d = cameras.pixel_rays(torch.full_like(pix, i), pix % w, pix // w, tables)
             max_weights_triton(sig, idx, geom, o, d, out)
     return out.cpu().numpy()
 
