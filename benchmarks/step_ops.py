@@ -18,8 +18,8 @@ must issue. Both can be counted on a machine without a GPU, with CPU tensors:
 - a Triton kernel launch counts as one op (``triton``); the ops inside Triton's interpreter
   are not counted;
 - every op is also counted by the package function it came from (``op_sites`` in the JSON,
-  ``file function``; the backward's ops are the line that calls ``backward``): where a
-  step's count goes.
+  ``file function``; the backward's ops are the line that calls ``backward``; ``site_ops``:
+  by function and op): where a step's count goes.
 
 Paths: ``cpu`` is what runs on the CPU (numba kernels for the march, the hash grid and the
 whole fine-tuning step: those are not torch ops); ``cuda`` is what ``backend="auto"`` runs on
@@ -113,6 +113,7 @@ class Counts:
         self.sites: Counter = Counter()
         self.by_op: Counter = Counter()
         self.op_sites: Counter = Counter()
+        self.site_ops: Counter = Counter()
 
     def sync(self, kind: str, what: str) -> None:
         self.syncs[kind] += 1
@@ -125,6 +126,7 @@ class Counts:
         d["sites"] = {k: v / per for k, v in self.sites.most_common()}
         d["top_ops"] = {k: v / per for k, v in self.by_op.most_common(15)}
         d["op_sites"] = {k: v / per for k, v in self.op_sites.most_common()}
+        d["site_ops"] = {k: v / per for k, v in self.site_ops.most_common()}
         return d
 
 
@@ -149,7 +151,9 @@ def _dispatch_mode():
                 name = func.overloadpacket.__name__
                 c.ops += 1
                 c.by_op[name] += 1
-                c.op_sites[re.sub(r":\d+ ", " ", _site())] += 1
+                site = re.sub(r":\d+ ", " ", _site())
+                c.op_sites[site] += 1
+                c.site_ops[f"{site}: {name}"] += 1
                 if func.is_view:
                     c.views += 1
                 if name == "_local_scalar_dense":
@@ -250,7 +254,8 @@ class Recorder:
 def _hashgrid_stand_in(ex: Any, *a: Any, **k: Any) -> None:
     from plenoctree.nerf import _hashgrid_numba as K
 
-    x, table, res, off, hashed, out, grad, gtable = a[:8]
+    pts, box, table, res, off, hashed, out, grad, gtable = a[:9]
+    x = ((pts.float() - box[0]) / (box[1] - box[0])).clamp(0.0, 1.0).contiguous()
     lay = (res.numpy(), off.numpy(), hashed.numpy().astype(bool))
     if k["BACKWARD"]:
         K.hashgrid_backward(x.numpy(), grad.numpy(), *lay, gtable.numpy())
@@ -280,8 +285,45 @@ def _march_stand_in(ex: Any, *a: Any, **k: Any) -> None:
                       done.numpy().view(np.bool_))
 
 
+def _mlp_stand_in(ex: Any, *a: Any, **k: Any) -> None:
+    """The fused network kernel (forward or backward) by torch ops on the CPU (the kernel's
+    contract: ``_mlp_triton.FusedField``; the interpreter takes minutes at 2^18 rows)."""
+    import torch
+
+    from plenoctree.nerf.model import _sh_colors_torch, trunc_exp
+
+    x, dirs = a[0], a[1]
+    ws = [t.detach().clone().requires_grad_() for t in a[2:10]]
+    sig, rgb, gsig, grgb, gx = a[10:15]
+    grads, n = a[15:23], a[23]
+    depth, density = k["DEPTH"], k["DENSITY"]
+    xg = x[:n].detach().clone().requires_grad_()
+    with torch.enable_grad():
+        h = xg
+        for i in range(depth):
+            h = torch.relu(h @ ws[2 * i].T + ws[2 * i + 1])
+        wh, bh = (ws[6][:1], ws[7][:1]) if density else (ws[6], ws[7])
+        out = h @ wh.T + bh
+        raw = out[:, 0]
+        s = trunc_exp(raw - 1.0) if k["ACT"] == 1 else torch.relu(raw)
+        c = None if density else _sh_colors_torch(out[:, 1:], dirs[:n], k["DEG"])
+    if not k["BACKWARD"]:
+        sig[:n] = s.detach()
+        if c is not None:
+            rgb[:n] = c.detach()
+        return
+    outs = [s] if density else [s, c]
+    gouts = [gsig[:n]] if density else [gsig[:n], grgb[:n]]
+    used = [2 * i + j for i in range(depth) for j in (0, 1)] + [6, 7]
+    got = torch.autograd.grad(outs, [xg] + [ws[i] for i in used], gouts)
+    gx[:n] = got[0]
+    for i, g in zip(used, got[1:]):
+        grads[i].add_(g)
+
+
 _STAND_INS = {("plenoctree.nerf._hashgrid_triton", "_hashgrid_kernel"): _hashgrid_stand_in,
-              ("plenoctree.nerf._march_triton", "_march_kernel"): _march_stand_in}
+              ("plenoctree.nerf._march_triton", "_march_kernel"): _march_stand_in,
+              ("plenoctree.nerf._mlp_triton", "_mlp_kernel"): _mlp_stand_in}
 
 
 # --- paths ---------------------------------------------------------------------------------

@@ -9,8 +9,10 @@ import torch
 from plenoctree import _triton, backend
 from plenoctree.errors import BackendError
 
-BUILTIN_OPS = ["composite", "finetune", "hashgrid", "march", "march_fixed", "ray_batch",
-               "render", "render_grad", "sh_colors", "visibility"]
+BUILTIN_OPS = ["composite", "finetune", "hashgrid", "march", "march_fixed", "mlp", "ray_batch",
+               "render", "render_grad", "sh_colors", "terminate", "visibility"]
+#: GPU-step ops without a numba kernel: on the CPU their torch twin runs
+NO_NUMBA = {"mlp", "terminate"}
 TRITON_OPS = {op for op, _ in _triton.TRITON_IMPLS}
 
 
@@ -24,12 +26,13 @@ def _triton_if_usable(op: str) -> list[str]:
 def test_every_op_has_numba_and_torch_and_auto_follows_the_device():
     assert backend.ops() == BUILTIN_OPS
     for op in BUILTIN_OPS:
-        assert backend.backends(op) == ["numba", *_triton_if_usable(op), "torch"]
-        assert backend.resolve(op, "auto", "cpu") == "numba"
+        cpu = [] if op in NO_NUMBA else ["numba"]
+        assert backend.backends(op) == [*cpu, *_triton_if_usable(op), "torch"]
+        assert backend.resolve(op, "auto", "cpu") == (cpu or ["torch"])[0]
         on_cuda = [*_triton_if_usable(op), "torch"][0]
         assert backend.resolve(op, "AUTO", torch.device("cuda", 0)) == on_cuda
         assert backend.resolve(op, "torch", "cuda:1") == "torch"
-        for name in ("numba", "torch"):
+        for name in (*cpu, "torch"):
             assert callable(backend.implementation(op, name)), (op, name)
 
 

@@ -15,7 +15,8 @@ They run
 
 :mod:`plenoctree.backend` registers backend ``"triton"`` for the ops listed in
 :data:`TRITON_IMPLS` (``render``, ``render_grad``, ``finetune``, ``hashgrid``, ``march``,
-``march_fixed``, ``sh_colors``, ``composite``, ``ray_batch``, ``visibility``) with
+``march_fixed``, ``sh_colors``, ``composite``, ``ray_batch``, ``mlp``, ``terminate``,
+``visibility``) with
 :data:`TRITON_PRIORITY`, between numba (CPU) and the torch twin, and :func:`usable_anywhere` as
 its availability probe: ``backend="auto"`` then picks Triton for CUDA tensors when it is usable
 and keeps numba for CPU tensors; CPU tensors reach Triton only when asked for by name (in
@@ -50,6 +51,8 @@ TRITON_IMPLS = (
     ("sh_colors", "plenoctree._sh_triton:sh_colors_backend"),
     ("composite", "plenoctree.nerf.composite:_composite_triton"),
     ("ray_batch", "plenoctree.nerf._raygen_triton:ray_batch_backend"),
+    ("mlp", "plenoctree.nerf._mlp_triton:mlp_backend"),
+    ("terminate", "plenoctree.nerf._terminate_triton:terminate_backend"),
     ("visibility", "plenoctree.convert.visibility:_max_weights_triton_run"),
 )
 

@@ -21,7 +21,7 @@ Ops and the signature of their implementations (each call site documents the sha
                  :func:`plenoctree.optim._steppers.make_stepper`
 ``visibility``   ``fn(sigma, spec, cand, origins, dirs, out, ray_chunk) -> out`` —
                  :func:`plenoctree.convert.visibility.max_ray_weights`
-``hashgrid``     ``fn(encoding, x [N,3] unit cube) -> features [N, L*F]`` —
+``hashgrid``     ``fn(encoding, points [N,3] world) -> features [N, L*F]`` —
                  :class:`plenoctree.nerf.encoding.HashGridEncoding`
 ``march``        ``fn(rays: MarchRays, grid: MarchGrid, max_per_ray) -> PackedSamples`` —
                  :func:`plenoctree.nerf.sampling.march_rays`
@@ -33,6 +33,11 @@ Ops and the signature of their implementations (each call site documents the sha
                  differentiable — :func:`plenoctree.nerf.composite.composite_rays`
 ``ray_batch``    ``fn(source: RaySource, u [R,4] float64, bbox [2,3]) -> TrainRays`` —
                  :func:`plenoctree.nerf.raygen.ray_batch`
+``mlp``          ``fn(field, points [N,3], dirs [N,3] | None) -> sigma [N] | (sigma, rgb)``,
+                 differentiable — :meth:`plenoctree.nerf.model.RadianceField.radiance`
+                 (no numba kernel: the twin is the eager network, numba inside on the CPU)
+``terminate``    ``fn(cand: FixedSamples, sigma [k S], grid, stop_thresh, S) -> FixedSamples`` —
+                 :func:`plenoctree.nerf.fixed.terminate_fixed` (no numba kernel)
 ===============  ==========================================================================
 
 Adding a kernel (e.g. a Triton or CUDA renderer for CUDA tensors) is one registration, made
@@ -153,6 +158,8 @@ def resolve(op: str, requested: str = "auto", device: Any = "cpu") -> str:
     dev = device_type(device)
     here = backends(op, dev)
     if name == "auto":
+        if dev == "cpu":        # CPU tensors reach Triton (its interpreter) only by name
+            here = [b for b in here if b != "triton"]
         if not here:
             raise BackendError(f"{op}: no backend runs on {dev}; registered: "
                                f"{', '.join(_entries(op))}")
@@ -214,6 +221,11 @@ for _op, _numba, _torch in (
     register_backend(_op, "numba", _numba, devices=("cpu",), priority=_NUMBA)
     register_backend(_op, "torch", _torch, devices=("cpu", "cuda"), priority=_TORCH)
 del _op, _numba, _torch
+# no numba kernel: on the CPU the twin runs (the eager network; torch prefix sums)
+register_backend("mlp", "torch", "plenoctree.nerf.model:_mlp_torch", devices=("cpu", "cuda"),
+                 priority=_TORCH)
+register_backend("terminate", "torch", "plenoctree.nerf.fixed:_terminate_torch",
+                 devices=("cpu", "cuda"), priority=_TORCH)
 
 # GPU kernels (Triton; CUDA tensors, or CPU tensors in Triton's interpreter): see _triton.py.
 for _op, _impl in _triton.TRITON_IMPLS:

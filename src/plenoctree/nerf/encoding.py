@@ -169,12 +169,14 @@ class _HashGridNumba(torch.autograd.Function):
         return None, grad_table, None, None, None, None
 
 
-def _hashgrid_numba_run(enc: "HashGridEncoding", x: torch.Tensor) -> torch.Tensor:
+def _hashgrid_numba_run(enc: "HashGridEncoding", points: torch.Tensor) -> torch.Tensor:
+    x = enc.normalize(points)
     return _HashGridNumba.apply(x, enc.table, enc.res, enc.offsets, enc.hashed,
                                 enc.grad_in_place and torch.is_grad_enabled())
 
 
-def _hashgrid_torch_run(enc: "HashGridEncoding", x: torch.Tensor) -> torch.Tensor:
+def _hashgrid_torch_run(enc: "HashGridEncoding", points: torch.Tensor) -> torch.Tensor:
+    x = enc.normalize(points)
     return _hashgrid_encode_torch(x, enc.table, enc.res, enc.offsets, enc.hashed)
 
 
@@ -242,5 +244,7 @@ class HashGridEncoding(nn.Module):
         return ((points.float() - lo) / (hi - lo)).clamp(0.0, 1.0)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        x = self.normalize(points)
-        return _backend.implementation("hashgrid", self.resolve_backend(x.device))(self, x)
+        # op "hashgrid" takes the world points: each backend maps them to the unit cube
+        # (normalize; the Triton kernel in its own launch)
+        return _backend.implementation("hashgrid", self.resolve_backend(points.device))(
+            self, points)

@@ -160,7 +160,7 @@ def candidate_factor(cfg, stop_thresh: float | None = None) -> int:
 
 
 def terminate_fixed(cand: FixedSamples, sigma: torch.Tensor, grid: MarchGrid,
-                    stop_thresh: float, capacity: int) -> FixedSamples:
+                    stop_thresh: float, capacity: int, backend: str = "auto") -> FixedSamples:
     """Early ray termination of marched candidates, compacted into a budget, in fixed shapes.
 
     With ``τ_i = σ_i δ`` (``δ = grid.step``) and the optical depth before candidate ``i`` of
@@ -178,10 +178,23 @@ def terminate_fixed(cand: FixedSamples, sigma: torch.Tensor, grid: MarchGrid,
         grid: the march's grid (``step``, ``bbox``). stop_thresh: in ``(0, 1)``.
         capacity: the budget ``S``.
 
+        backend: op ``terminate``: "auto" (Triton on CUDA: each ray walks its candidates,
+            :mod:`._terminate_triton`), "triton" or "torch" (this docstring's prefix sums).
+
     Returns:
         :class:`FixedSamples` in ``S`` slots; ``complete``: the ray's candidates fit in
         ``M`` and its kept samples in ``S``; ``total``: the candidates' (``cand.total``).
     """
+    from .. import backend as _backend
+
+    name = _backend.resolve("terminate", backend, cand.t.device)
+    return _backend.implementation("terminate", name)(cand, sigma, grid, stop_thresh,
+                                                      int(capacity))
+
+
+def _terminate_torch(cand: FixedSamples, sigma: torch.Tensor, grid: MarchGrid,
+                     stop_thresh: float, capacity: int) -> FixedSamples:
+    """Op ``terminate``'s twin (see :func:`terminate_fixed`): batch-wide prefix sums."""
     n, m = cand.complete.shape[0], cand.t.shape[0]
     tau = sigma.detach().double() * float(grid.step)
     excl = torch.cumsum(tau, 0) - tau
@@ -322,9 +335,8 @@ def render_fixed(model, rays, cfg, mode, capacity: int, bounds=None) -> dict:
     step = resolve_render_step(cfg)
     s = _sample_fixed(model, rays, cfg, mode, capacity, bounds)
     d = rays.dirs.index_select(0, s.ray_idx.clamp(max=n - 1))
-    with autocast(dev, mode.amp):
-        sigma, coeffs = model.fine(s.points, d)
-    color = model.fine.colors(coeffs, d)
+    with autocast(dev, mode.amp):       # op "mlp": on CUDA one fused launch each way
+        sigma, color = model.fine.radiance(s.points, d)
     # one fused launch each way (.composite); the dummy ray's slots lie past offsets[n]
     r = composite_rays(sigma, color, s.t, s.offsets[:n + 1], step, mode.distortion)
     out = {"complete": s.complete, "n_samples": int(capacity), "total": s.total,

@@ -21,6 +21,7 @@ the scene box — what a checkpoint stores and what :func:`plenoctree.nerf.load_
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -33,7 +34,8 @@ from .encoding import HashGridEncoding, HashGridLayout, PositionalEncoding
 from .far import CONTRACTED_BOX, FarField
 from .occupancy import OccupancyGrid
 
-__all__ = ["RadianceField", "NeRFModel", "trunc_exp", "fibonacci_sphere", "sh_colors"]
+__all__ = ["RadianceField", "NeRFModel", "trunc_exp", "fibonacci_sphere", "sh_colors",
+           "MLPSpec", "mlp_spec"]
 
 
 class _TruncExp(torch.autograd.Function):
@@ -124,6 +126,48 @@ def _bucket(n: int) -> int:
     return -(-n // q) * q
 
 
+@dataclass(frozen=True)
+class MLPSpec:
+    """A network's shape as the fused kernels' constants (:mod:`._mlp_triton`): encoding
+    width ``din``, trunk ``width`` and ``depth``, head outputs ``n_out = 1 + 3 B``, SH
+    ``degree``, σ activation ``act`` (1: ``trunc_exp(raw - 1)``, 0: relu)."""
+
+    din: int
+    width: int
+    depth: int
+    n_out: int
+    degree: int
+    act: int
+
+
+def _pow2(v: int) -> bool:
+    return 16 <= v <= 128 and v & (v - 1) == 0
+
+
+def mlp_spec(field: "RadianceField") -> MLPSpec | None:
+    """The fused kernels' :class:`MLPSpec` of ``field``, or None outside their family: a
+    hash-grid SH network of 1–3 trunk layers of one power-of-two width in ``16..128``, a
+    power-of-two encoding width in ``16..128``, no skip connection, SH degree ≤ 4."""
+    cfg = field.cfg
+    if (field.basis != "sh" or cfg.encoding != "hashgrid" or cfg.skip_layer
+            or not 1 <= cfg.net_depth <= 3 or field.sh_degree > 4):
+        return None
+    din = field.encoder.out_dim
+    if not (_pow2(din) and _pow2(cfg.net_width)):
+        return None
+    return MLPSpec(din, cfg.net_width, cfg.net_depth, 1 + 3 * field.basis_dim,
+                   field.sh_degree, 1 if cfg.sigma_activation == "trunc_exp" else 0)
+
+
+def _mlp_torch(field: "RadianceField", points: torch.Tensor, dirs: torch.Tensor | None):
+    """Op ``mlp``'s twin, the eager network layer by layer (on the CPU its encoding and
+    colours are numba kernels): ``σ [N]`` (``dirs`` None) or ``(σ [N], rgb [N, 3])``."""
+    if dirs is None:
+        return field._density_eager(points)
+    sigma, coeffs = field.forward(points, dirs)
+    return sigma, field.colors(coeffs, dirs)
+
+
 def fibonacci_sphere(n: int) -> np.ndarray:
     """``[n, 3]`` unit vectors spread evenly over the sphere (initial SG lobe axes)."""
     i = np.arange(n, dtype=np.float64) + 0.5
@@ -158,6 +202,8 @@ class RadianceField(nn.Module):
         else:
             raise ConfigError(f"basis must be sh, sg or plain, got {cfg.basis!r}")
         self.sh_degree = cfg.sh_degree if cfg.basis == "sh" else -1
+        self.mlp_backend = "auto"      # op "mlp" (density, radiance): "auto", "triton", "torch"
+        self.grad_in_place = False     # the fused kernels' in-place gradients (_mlp_triton)
         if cfg.encoding == "hashgrid":
             self.encoder = HashGridEncoding(bbox, HashGridLayout(
                 cfg.grid_levels, cfg.grid_features, cfg.grid_base_res, cfg.grid_max_res,
@@ -267,8 +313,22 @@ class RadianceField(nn.Module):
         out = self.head(h)[:points.shape[0]]
         return self._sigma(out[:, 0]), out[:, 1:].float()
 
+    def _mlp(self, points: torch.Tensor, dirs: torch.Tensor | None):
+        """Op ``mlp`` (:mod:`plenoctree.backend`): the fused kernels (:mod:`._mlp_triton`)
+        where ``mlp_backend`` resolves to them for ``points``' device and the network is in
+        :func:`mlp_spec`'s family, else the eager network."""
+        from .. import backend as _backend
+
+        name = "torch"
+        if mlp_spec(self) is not None:
+            name = _backend.resolve("mlp", self.mlp_backend, points.device)
+        return _backend.implementation("mlp", name)(self, points, dirs)
+
     def density(self, points: torch.Tensor) -> torch.Tensor:
         """σ ``[N]`` at world points ``[N, 3]`` (no view direction needed for any basis)."""
+        return self._mlp(points, None)
+
+    def _density_eager(self, points: torch.Tensor) -> torch.Tensor:
         h = self._features(points)
         n = points.shape[0]
         if self.basis == "plain":
@@ -289,9 +349,11 @@ class RadianceField(nn.Module):
 
     def radiance(self, points: torch.Tensor, dirs: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(sigma [N], rgb [N, 3])`` at points ``[N, 3]`` seen along unit ``dirs [N, 3]``."""
-        sigma, coeffs = self.forward(points, dirs)
-        return sigma, self.colors(coeffs, dirs)
+        """``(sigma [N], rgb [N, 3])`` at points ``[N, 3]`` seen along unit ``dirs [N, 3]``
+        (op ``mlp``: on CUDA one fused launch each way after the encoding)."""
+        if self.basis == "plain" or dirs.requires_grad:
+            return _mlp_torch(self, points, dirs)
+        return self._mlp(points, dirs)
 
 
 class NeRFModel(nn.Module):

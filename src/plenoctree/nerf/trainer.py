@@ -43,7 +43,7 @@ from .raygen import draw_uniforms, ray_batch
 from .preview import LiveView
 from .trainer_state import LogWindow, StepFigures, TrainerState
 from .evaluate import evaluate_views
-from .model import NeRFModel
+from .model import NeRFModel, RadianceField
 from .renderer import ImageOptions, RayBatch, RenderMode, autocast, render_rays_hierarchical, \
     render_rays_occupancy
 from .runlog import RunLog
@@ -212,7 +212,7 @@ class Trainer:
         self.dctx.broadcast_module(model)
         model.train()
         for mod in model.modules():
-            if isinstance(mod, HashGridEncoding):
+            if isinstance(mod, (HashGridEncoding, RadianceField)):
                 mod.grad_in_place = True
         fused = device.type == "cpu" or device.type == "cuda"
         self.opt = torch.optim.Adam(model.parameters(), lr=cfg.lr_init,
@@ -397,7 +397,9 @@ class Trainer:
             self._check_finite(loss_v, self.step)
         else:                 # read back with the next log row (read_losses)
             loss_v, mse_v = loss.detach(), mse.detach()
-        self.opt.zero_grad(set_to_none=True)
+        # the fixed step keeps its gradient buffers (one zeroing launch for all, and the
+        # kernels add into them) where the waves' step frees them
+        self.opt.zero_grad(set_to_none=self.fixed is None)
         loss.backward()
         dctx.average_gradients(self.model.parameters())
         self.opt.step()
