@@ -46,7 +46,8 @@ means a Python loop over data):
 - ``fixed``: ``Trainer.iteration`` with ``fixed_step`` (the ``gpu`` preset's step of fixed
   shape, :mod:`plenoctree.nerf.fixed`) at ``--batches`` rays in a budget of ``--budget``
   samples, on a step without a log row, occupancy update or ray-count adaptation: its count
-  must not depend on the batch or the budget.
+  must not depend on the batch or the budget; with ``occupancy`` among the kinds also row
+  ``fixed occupancy``, that trainer's grid update (read-back free).
 
 Scenes: ``procedural`` (the analytic scene, written at 64², a CPU-preset model warmed up for
 ``--warm-steps`` steps, the tree ``procedural_tree(128)``) and ``lego`` (the trained NeRF-SH
@@ -500,6 +501,7 @@ def _merge(total: Counts, c: Counts) -> None:
     total.sites.update(c.sites)
     total.by_op.update(c.by_op)
     total.op_sites.update(c.op_sites)
+    total.site_ops.update(c.site_ops)
 
 
 # --- the fine-tuning step ------------------------------------------------------------------
@@ -606,6 +608,8 @@ def run_scene(scene: str, args: argparse.Namespace, counter: Recorder, root: Pat
             for batch in args.batches:
                 add("fixed", path, count_train(tr, counter, path, batch, False, args.repeat,
                                                args.budget))
+            if "occupancy" in args.kinds:
+                add("fixed occupancy", path, count_occupancy(tr, counter, path))
         del tr
     if "finetune" in args.kinds:
         tree, views = finetune_setup(scene, args, root)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -146,6 +149,34 @@ def test_occupancy_update_marks_dense_cells():
     for _ in range(3):
         grid.update(lambda p: torch.zeros(len(p)), threshold=1.0, all_cells=True, generator=g)
     assert not grid.mask.any() or grid.density.max() < 50.0 * 0.95 ** 3 + 1e-4
+
+
+def test_sync_free_occupancy_update_reads_nothing_back_and_finds_the_same_cells():
+    """The fixed-shape step's update (``sync_free``): occupied cells drawn by
+    ``multinomial`` over the mask, the threshold kept on the device — no read-back, and
+    the same occupied cells as the update with ``nonzero`` (the ball, sampled densely)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import step_ops
+
+    ball = lambda p: 50.0 * (p.norm(dim=-1) < 0.6).float()        # noqa: E731
+    masks = []
+    for sync_free in (False, True):
+        grid = OccupancyGrid(BBOX, 16)
+        g = torch.Generator().manual_seed(0)
+        grid.update(ball, threshold=1.0, all_cells=True, generator=g)
+        with step_ops.Recorder().region() as c:
+            for _ in range(6):
+                grid.update(ball, threshold=1.0, decay=0.5, fraction=0.5, generator=g,
+                            sync_free=sync_free)
+        assert (sum(c.syncs.values()) == 0) == sync_free, dict(c.sites)
+        masks.append(grid.mask.clone())
+    assert masks[1].any() and (masks[0] != masks[1]).float().mean() < 0.02
+    empty = OccupancyGrid(BBOX, 4)                # nothing occupied: the draw is uniform
+    empty.mask.zero_()
+    empty.update(ball, threshold=1.0, fraction=1.0, generator=torch.Generator().manual_seed(1),
+                 sync_free=True)
+    inner = empty.mask[1:3, 1:3, 1:3]
+    assert inner.any() and int(empty.mask.sum()) == int(inner.sum())
 
 
 def test_learning_rate_schedule():

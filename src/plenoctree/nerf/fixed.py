@@ -243,8 +243,9 @@ class FixedBatch:
                  candidates: int = 1):
         self.capacity, self.max_rays = int(capacity), int(max_rays)
         self.candidates = int(candidates)
-        # rays, marched samples; complete rays, their kept samples
-        self.sums = torch.zeros(4, dtype=torch.float64, device=device)
+        # marched samples; complete rays, their kept samples (the rays: a host count)
+        self.sums = torch.zeros(3, dtype=torch.float64, device=device)
+        self.n_rays = 0
         self.steps = 0                  # in the window (a host count)
 
     def rays(self, n_rays: float) -> int:
@@ -255,15 +256,15 @@ class FixedBatch:
     def add(self, n_rays: int, total: torch.Tensor, kept: torch.Tensor) -> None:
         """Count a step of ``n_rays`` rays that marched ``total`` (device int64) samples and
         kept ``kept`` (:func:`kept_figures`)."""
-        self.sums[0] += n_rays
-        self.sums[1] += total
-        self.sums[2:] += kept
+        self.sums += torch.cat([total.reshape(1), kept])        # one add, no read-back
+        self.n_rays += n_rays
         self.steps += 1
 
     def adapt(self, state) -> None:
         """Read the counters (one round trip) and set ``state.spr``, ``state.spr_marched``
         and ``state.n_rays`` (``state``: the trainer's :class:`~.trainer.TrainerState`)."""
-        rays, marched, done, kept = self.sums.tolist()
+        marched, done, kept = self.sums.tolist()
+        rays, self.n_rays = float(self.n_rays), 0
         self.sums.zero_()
         w, self.steps = 0.9 ** max(self.steps, 1), 0
         mean = (lambda old, new: new if old == 0 else w * old + (1.0 - w) * new)

@@ -54,7 +54,8 @@ class OccupancyGrid(nn.Module):
     @torch.no_grad()
     def update(self, density_fn: Callable[[torch.Tensor], torch.Tensor], threshold: float,
                decay: float = 0.95, all_cells: bool = False, fraction: float = 1 / 16,
-               generator: torch.Generator | None = None, chunk: int = 1 << 17) -> None:
+               generator: torch.Generator | None = None, chunk: int = 1 << 17,
+               sync_free: bool = False) -> None:
         """Re-evaluate cells and refresh the mask.
 
         Args:
@@ -65,6 +66,11 @@ class OccupancyGrid(nn.Module):
                 uniformly plus as many drawn from the occupied ones.
             generator: source of the random cells and points.
             chunk: points per call of ``density_fn``.
+            sync_free: read nothing back (the fixed-shape step, :mod:`.fixed`): the occupied
+                cells are drawn by ``torch.multinomial`` over the mask (uniform over all
+                cells when none is occupied) instead of from its ``nonzero`` list, and the
+                threshold ``min(threshold, mean density)`` stays on the device. The same
+                distribution of cells, another draw of the generator.
         """
         n = self.res ** 3
         dev = self.density.device
@@ -73,7 +79,14 @@ class OccupancyGrid(nn.Module):
         else:
             m = max(1, int(n * fraction))
             idx = torch.randint(n, (m,), generator=generator, device=dev)
-            occ = self.mask.flatten().nonzero()[:, 0]
+            if sync_free:
+                flat = self.mask.flatten()
+                weights = flat.float() + (~flat.any()).float()
+                idx = torch.cat([idx, torch.multinomial(weights, m, replacement=True,
+                                                        generator=generator)])
+                occ = idx[:0]
+            else:
+                occ = self.mask.flatten().nonzero()[:, 0]
             if occ.numel():
                 pick = torch.randint(occ.numel(), (min(m, occ.numel()),), generator=generator,
                                      device=dev)
@@ -84,6 +97,9 @@ class OccupancyGrid(nn.Module):
         dens = self.density.flatten() * decay
         dens = dens.scatter_reduce(0, idx, sig, reduce="amax", include_self=True)
         self.density.copy_(dens.view_as(self.density))
-        thresh = min(float(threshold), float(dens.mean()))
-        self.mask.copy_(self.density > thresh)
+        if sync_free:
+            self.mask.copy_(self.density > dens.mean().clamp(max=float(threshold)))
+        else:
+            thresh = min(float(threshold), float(dens.mean()))
+            self.mask.copy_(self.density > thresh)
         self.n_updates += 1

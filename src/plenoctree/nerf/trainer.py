@@ -282,7 +282,7 @@ class Trainer:
             with autocast(self.device, self.amp):
                 model.occupancy.update(model.fine.density, self.occ_thresh, cfg.occ_decay,
                                        all_cells=self.step < cfg.occ_warmup_steps,
-                                       generator=self.gen)
+                                       generator=self.gen, sync_free=self.fixed is not None)
             if self.dctx.active:     # identical on every rank already; keep it bit-identical
                 self.dctx.broadcast_module(model.occupancy)
         return time.perf_counter() - t
