@@ -30,7 +30,7 @@ BLOCK = 128
 
 @triton.jit
 def _terminate_kernel(off_ptr, sig_ptr, ray_ptr, t_ptr, pts_ptr, first_ptr, box_ptr,
-                      count_ptr, oray_ptr, ot_ptr, opts_ptr, step, limit, n, cap,
+                      count_ptr, oray_ptr, ot_ptr, opts_ptr, consts_ptr, n, cap,
                       FILL: tl.constexpr, BLOCK: tl.constexpr):
     pid = tl.program_id(0)
     n_ray_progs = tl.cdiv(n, BLOCK)
@@ -39,6 +39,8 @@ def _terminate_kernel(off_ptr, sig_ptr, ray_ptr, t_ptr, pts_ptr, first_ptr, box_
         valid = r < n
         i = tl.load(off_ptr + r, mask=valid, other=0)
         end = tl.load(off_ptr + r + 1, mask=valid, other=0)
+        step = tl.load(consts_ptr)                  # float64, as the twin's
+        limit = tl.load(consts_ptr + 1)
         depth = tl.zeros([BLOCK], dtype=tl.float64)
         cnt = tl.zeros([BLOCK], dtype=tl.int64)
         if FILL:
@@ -80,6 +82,19 @@ def _terminate_kernel(off_ptr, sig_ptr, ray_ptr, t_ptr, pts_ptr, first_ptr, box_
             tl.store(opts_ptr + s64 * 3 + a, tl.zeros([BLOCK], dtype=tl.float32) + c, mask=todo)
 
 
+_CONSTS: dict = {}
+
+
+def _consts(step: float, limit: float, dev: torch.device) -> torch.Tensor:
+    """float64 ``[step, limit]`` on ``dev``, uploaded once per value pair (a Triton float
+    argument would be rounded to float32; an upload per call is a host round trip)."""
+    key = (float(step), float(limit), str(dev))
+    out = _CONSTS.get(key)
+    if out is None:
+        out = _CONSTS[key] = torch.tensor([step, limit], dtype=torch.float64, device=dev)
+    return out
+
+
 def terminate_backend(cand, sigma: torch.Tensor, grid, stop_thresh: float, capacity: int):
     """Op ``terminate`` of :mod:`plenoctree.backend` (CUDA tensors, or the CPU in the
     interpreter): :func:`.fixed.terminate_fixed`'s contract in two launches and a prefix sum."""
@@ -101,7 +116,7 @@ def terminate_backend(cand, sigma: torch.Tensor, grid, stop_thresh: float, capac
     pts = torch.empty((capacity, 3), dtype=torch.float32, device=dev)
     block = 1024 if interpret_mode() else BLOCK
     args = (off, sig, cand.ray_idx, cand.t, cand.points, first, box, counts, ray_idx, ts, pts,
-            float(grid.step), -math.log(stop_thresh), n, int(capacity))
+            _consts(float(grid.step), -math.log(stop_thresh), dev), n, int(capacity))
     ray_progs = triton.cdiv(max(n, 1), block)
     _terminate_kernel[(ray_progs,)](*args, FILL=False, BLOCK=block)
     torch.cumsum(counts, 0, out=first[1:])
