@@ -21,6 +21,9 @@ Method (all on the lego scene of ``--data``; ``--data`` and ``--run`` default to
   of ``--ft-warm-views`` views: Triton compilation).
 - **train**: the ``cpu`` NeRF-SH preset on lego at 400² for ``--train-steps`` steps (CPU:
   ``--cpu-train-steps``); the trainer's mean samples/s (its log rows).
+- **train_gpu**: the same with the ``gpu`` preset (the fixed-shape step: rays, march, early
+  termination, the fused network and compositing in a fixed number of launches, 2^18
+  samples a step; ``nerf/fixed.py``).
 - **extract**: ``plenoctree extract`` of ``--run`` at ``--grid``³ without evaluation; seconds.
 
 Without a CUDA device the script says so and stops (exit status 0), writing a JSON whose
@@ -53,7 +56,7 @@ import torch
 from _bench import CACHE, Timing, add_data_root, add_out, data_path, machine_info, \
     markdown_table, write_json
 
-STAGES = ("render", "finetune", "train", "extract")
+STAGES = ("render", "finetune", "train", "train_gpu", "extract")
 
 
 def _sync(dev: torch.device) -> None:
@@ -150,12 +153,15 @@ def bench_finetune_stage(tree, train, dev: torch.device, batch: int, warm_views:
             "rays_per_s": state.train_rays / max(state.train_seconds, 1e-9)}
 
 
-def bench_train(data_root: str, dev: torch.device, steps: int, scratch: Path) -> dict:
+def bench_train(data_root: str, dev: torch.device, steps: int, scratch: Path,
+                name: str = "cpu") -> dict:
+    """The NeRF-SH preset ``name`` ("cpu": the marching waves; "gpu": the fixed-shape step
+    with its fused kernels, 2^18 samples a step) for ``steps`` steps on lego at 400²."""
     from plenoctree.nerf.config import preset
     from plenoctree.nerf.trainer import train
 
-    cfg = preset("cpu")
-    out = scratch / f"train_{dev.type}"
+    cfg = preset(name)
+    out = scratch / f"train_{name}_{dev.type}"
     cfg.data, cfg.out, cfg.downscale, cfg.device = data_root, str(out), 2, str(dev)
     cfg.max_steps, cfg.minutes, cfg.val_views = steps, 0.0, 0
     cfg.log_every = max(1, steps // 10)
@@ -189,6 +195,8 @@ def _table(results: dict) -> str:
             ("fine-tune M rays/s", "finetune", "rays_per_s", "{:.2f}", 1e-6),
             ("fine-tune stage M rays/s", "finetune_stage", "rays_per_s", "{:.2f}", 1e-6),
             ("NeRF-SH train M samples/s", "train", "samples_per_s", "{:.2f}", 1e-6),
+            ("NeRF-SH train, gpu preset, M samples/s", "train_gpu", "samples_per_s", "{:.2f}",
+             1e-6),
             ("extraction s", "extract", "seconds", "{:.1f}")]
     lines = []
     for name, stage, key, fmt, *mult in rows:
@@ -289,6 +297,11 @@ def main(argv: list[str] | None = None) -> int:
             steps = args.train_steps if dev.type == "cuda" else args.cpu_train_steps
             res["train"] = bench_train(args.data, dev, steps, scratch)
             print(f"  train {res['train']['samples_per_s'] / 1e6:.2f} M samples/s", flush=True)
+        if "train_gpu" not in args.skip:
+            steps = args.train_steps if dev.type == "cuda" else args.cpu_train_steps
+            res["train_gpu"] = bench_train(args.data, dev, steps, scratch, "gpu")
+            print(f"  train (gpu preset) {res['train_gpu']['samples_per_s'] / 1e6:.2f} "
+                  "M samples/s", flush=True)
         if "extract" not in args.skip:
             res["extract"] = bench_extract(args.run, args.data, dev, args.grid, scratch)
             print(f"  extract {res['extract']['seconds']:.1f} s", flush=True)
