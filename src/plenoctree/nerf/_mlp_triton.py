@@ -2,9 +2,9 @@
 
 The eager network (:meth:`.model.RadianceField.radiance` with the torch backend) runs the trunk
 layer by layer: per layer a matmul, a bias, a ReLU, under autocast a cast of the weights,
-then the head, σ's activation and the SH colours — ~30 ops forward and ~45 backward per pass,
-three passes a training step (the density of the candidates, the trained samples, the sparsity
-prior's points). Here one program takes ``TILES`` tiles of ``BLOCK_M`` rows through the whole
+then the head, σ's activation and the SH colours, three passes a training step (the density
+of the candidates, the trained samples, the sparsity prior's points): 61 ops forward and most
+of the backward's 101 in the fixed step (``benchmarks/step_ops.py`` at 95bf554). Here one program takes ``TILES`` tiles of ``BLOCK_M`` rows through the whole
 network in registers:
 
 * forward: ``h_1 = relu(x W_0ᵀ + b_0)``, ``h_{l+1} = relu(h_l W_lᵀ + b_l)`` (``DEPTH`` layers),
