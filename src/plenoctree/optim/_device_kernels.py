@@ -32,7 +32,8 @@ from ..render.options import KIND_RGBA, KIND_SG, KIND_SH
 from ..sh import SH_C0, SH_C1, SH_C2, SH_C3, SH_C4
 from ._rules import FIG_BAD, FIG_RAYS, FIG_ROWS, FIG_SSE, N_FIGS
 
-__all__ = ["GEO_COLS", "COL_OUTSIDE", "geometry_tensor", "batch_rays", "loss", "update"]
+__all__ = ["GEO_COLS", "COL_OUTSIDE", "geometry_tensor", "batch_rays", "camera_rays", "loss",
+           "update"]
 
 GEO_COLS = 14
 #: Column of the march kernel's geometry rows (unused by it) flagging a ray past the border.
@@ -187,7 +188,8 @@ def _slab(o, d, lo_prev, hi_prev):
 def _rays_kernel(tiles_ptr, cams_ptr, img_ptr, geom_ptr, unit_ptr, extra_ptr, geo_ptr,
                  basis_ptr, tgt_ptr, n_rays, base, k, width, height, ntx, nty, lo, hi,
                  CONTIG: tl.constexpr, U16: tl.constexpr, KIND: tl.constexpr,
-                 DEG: tl.constexpr, B: tl.constexpr, BP: tl.constexpr, BLOCK: tl.constexpr):
+                 DEG: tl.constexpr, B: tl.constexpr, BP: tl.constexpr, BLOCK: tl.constexpr,
+                 TARGETS: tl.constexpr = True):
     pid = tl.program_id(0)
     j = pid.to(tl.int64) * BLOCK + tl.arange(0, BLOCK).to(tl.int64)
     m = j < n_rays
@@ -208,16 +210,16 @@ def _rays_kernel(tiles_ptr, cams_ptr, img_ptr, geom_ptr, unit_ptr, extra_ptr, ge
     u = tl.minimum(u, width - 1)
     v = tl.minimum(v, height - 1)
     ox, oy, oz, dx, dy, dz = _camera_ray(cams_ptr, img, m, u, v)
-    # targets
-    px = ((img * height + v) * width + u) * 3
-    unit = tl.load(unit_ptr)
-    for ch in tl.static_range(3):
-        raw = tl.load(img_ptr + px + ch, mask=m, other=0)
-        if U16:
-            val = ((raw.to(tl.int32) & 0xFFFF).to(tl.float64) * unit).to(tl.float32)
-        else:
-            val = raw.to(tl.float32)
-        tl.store(tgt_ptr + j * 3 + ch, val, mask=m)
+    if TARGETS:                   # (a frame rendered from a camera alone has no photo)
+        px = ((img * height + v) * width + u) * 3
+        unit = tl.load(unit_ptr)
+        for ch in tl.static_range(3):
+            raw = tl.load(img_ptr + px + ch, mask=m, other=0)
+            if U16:
+                val = ((raw.to(tl.int32) & 0xFFFF).to(tl.float64) * unit).to(tl.float32)
+            else:
+                val = raw.to(tl.float32)
+            tl.store(tgt_ptr + j * 3 + ch, val, mask=m)
     # per-ray geometry (render._triton_impl.prepare_rays)
     x, y, z = ox.to(tl.float64), oy.to(tl.float64), oz.to(tl.float64)
     ex, ey, ez = dx.to(tl.float64), dy.to(tl.float64), dz.to(tl.float64)
@@ -303,6 +305,28 @@ def batch_rays(tiles: torch.Tensor | None, n_tiles: int, base: int, k: int, view
         int(hi), CONTIG=tiles is None, U16=views.images.dtype == torch.int16, KIND=kind,
         DEG=max(info.sh_degree, 0), B=b, BP=max(triton.next_power_of_2(b), 2), BLOCK=block)
     return n
+
+
+def camera_rays(cams: torch.Tensor, width: int, height: int, geom: torch.Tensor, info: Any,
+                extra: torch.Tensor | None, basis_range: tuple[int, int],
+                out: tuple[torch.Tensor, torch.Tensor]) -> None:
+    """One launch: the rays of every pixel of the camera ``cams`` (float64 ``[1, 20]``,
+    ``pack_cameras``; row-major) into ``out = (geo [H W, 14] float64, basis [H W, B])``, as
+    :func:`batch_rays` makes a view's (no photo, no targets): what
+    :func:`plenoctree.render.render_image` draws on the device."""
+    geo, basis = out
+    n = int(width) * int(height)
+    if n == 0:
+        return
+    block = 256 if _interp() else 128
+    b = info.basis_dim
+    lo, hi = basis_range
+    kind = {KIND_SH: 0, KIND_SG: 1, KIND_RGBA: 2}[info.kind]
+    _rays_kernel[(triton.cdiv(n, block),)](
+        geo, cams, cams, geom, geom, extra if extra is not None else geom, geo, basis, geo, n,
+        0, 1, int(width), int(height), int(width), int(height), int(lo), int(hi),
+        CONTIG=True, U16=False, KIND=kind, DEG=max(info.sh_degree, 0), B=b,
+        BP=max(triton.next_power_of_2(b), 2), BLOCK=block, TARGETS=False)
 
 
 @triton.jit
