@@ -6,6 +6,7 @@ their candidates (op ``terminate``, ``nerf/_terminate_triton.py``; twin: prefix 
 from __future__ import annotations
 
 import sys
+from dataclasses import fields
 from pathlib import Path
 
 import pytest
@@ -14,11 +15,18 @@ import torch
 from test_fixed_step import _assert_fixed_equal, _case, _slab_sigma
 
 from plenoctree.nerf.config import ModelConfig
-from plenoctree.nerf.fixed import march_fixed, terminate_fixed
+from plenoctree.nerf.fixed import FixedSamples, march_fixed, terminate_fixed
+from plenoctree.nerf.sampling import MarchGrid
 from plenoctree.nerf.model import RadianceField, mlp_spec
 
 pytest.importorskip("triton")
+pytestmark = pytest.mark.gpu_sim
 _BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+ON_GPU = torch.cuda.is_available()
+DEV = torch.device("cuda" if ON_GPU else "cpu")
+#: compiled on a GPU the kernel's dots run in TF32 (10-bit mantissas); the interpreter in fp32
+TOL = dict(atol=1e-2, rtol=1e-2) if ON_GPU else dict(atol=2e-6, rtol=1e-5)
+GTOL = dict(atol=2e-2, rtol=2e-2) if ON_GPU else dict(atol=1e-5, rtol=1e-4)
 
 
 def _field(**kw) -> RadianceField:
@@ -28,15 +36,21 @@ def _field(**kw) -> RadianceField:
     with torch.no_grad():                     # away from the zero init: every path non-zero
         for p in f.parameters():
             p.add_(0.2 * torch.randn_like(p))
-    return f
+    return f.to(DEV)
 
 
-def _run(f: RadianceField, backend: str, n: int, seed: int = 1):
-    """σ, rgb, density and every parameter's gradient of a loss that weighs all three."""
+def _inputs(n: int, seed: int):
+    """Points (some outside the box), unit directions and the loss weights, on ``DEV``."""
     g = torch.Generator().manual_seed(seed)
     pts = torch.rand(n, 3, generator=g) * 2.2 - 1.1
     d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
     ws = [torch.randn(n, generator=g), torch.randn(n, 3, generator=g), torch.randn(n, generator=g)]
+    return pts.to(DEV), d.to(DEV), [w.to(DEV) for w in ws]
+
+
+def _run(f: RadianceField, backend: str, n: int, seed: int = 1):
+    """σ, rgb, density and every parameter's gradient of a loss that weighs all three."""
+    pts, d, ws = _inputs(n, seed)
     f.mlp_backend = backend
     f.zero_grad(set_to_none=True)
     sigma, rgb = f.radiance(pts, d)
@@ -55,11 +69,12 @@ def test_fused_network_equals_the_eager_twin_forward_and_backward(triton_cpu, de
     fast, g_fast = _run(f, "triton", n)
     twin, g_twin = _run(f, "torch", n)
     for a, b in zip(fast, twin):
-        torch.testing.assert_close(a, b, atol=2e-6, rtol=1e-5)
+        torch.testing.assert_close(a, b, **TOL)
     assert set(g_fast) == set(g_twin) and len(g_twin) == 2 * depth + 3   # the table too
     for k in g_twin:
         assert float(g_twin[k].abs().max()) > 0, k
-        torch.testing.assert_close(g_fast[k], g_twin[k], atol=1e-5, rtol=1e-4, msg=k)
+        scale = float(g_twin[k].abs().max())
+        torch.testing.assert_close(g_fast[k] / scale, g_twin[k] / scale, **GTOL, msg=k)
 
 
 def test_fused_network_adds_into_the_gradients_in_place_as_the_trainer_runs_it(triton_cpu):
@@ -71,16 +86,13 @@ def test_fused_network_adds_into_the_gradients_in_place_as_the_trainer_runs_it(t
     for p in f.parameters():                     # a kept buffer from an earlier step
         p.grad = torch.full_like(p, 0.5)
     f.mlp_backend = "triton"
-    g = torch.Generator().manual_seed(1)
-    pts = torch.rand(120, 3, generator=g) * 2.2 - 1.1
-    d = torch.nn.functional.normalize(torch.randn(120, 3, generator=g), dim=-1)
-    ws = [torch.randn(120, generator=g), torch.randn(120, 3, generator=g),
-          torch.randn(120, generator=g)]
+    pts, d, ws = _inputs(120, 1)
     sigma, rgb = f.radiance(pts, d)
     dens = f.density(pts)
     ((sigma * ws[0]).sum() + (rgb * ws[1]).sum() + (dens * ws[2]).sum()).backward()
     for k, p in f.named_parameters():
-        torch.testing.assert_close(p.grad, g_twin[k] + 0.5, atol=1e-5, rtol=1e-4, msg=k)
+        scale = float(g_twin[k].abs().max()) + 0.5
+        torch.testing.assert_close(p.grad / scale, (g_twin[k] + 0.5) / scale, **GTOL, msg=k)
 
 
 def test_fused_network_covers_its_family_and_leaves_the_rest_to_the_twin(triton_cpu):
@@ -92,7 +104,7 @@ def test_fused_network_covers_its_family_and_leaves_the_rest_to_the_twin(triton_
     from plenoctree.nerf._mlp_triton import mlp_backend
 
     f = _field(net_width=48)
-    pts = torch.rand(4, 3)
+    pts = torch.rand(4, 3, device=DEV)
     f.mlp_backend = "triton"                  # outside the family: the eager network runs
     fast = f.density(pts)
     f.mlp_backend = "torch"
@@ -101,7 +113,7 @@ def test_fused_network_covers_its_family_and_leaves_the_rest_to_the_twin(triton_
         mlp_backend(f, pts, None)
     empty = _field()
     empty.mlp_backend = "triton"
-    assert empty.density(torch.zeros(0, 3)).shape == (0,)
+    assert empty.density(torch.zeros(0, 3, device=DEV)).shape == (0,)
 
 
 def test_fused_network_is_one_launch_each_way(triton_cpu):
@@ -113,17 +125,19 @@ def test_fused_network_is_one_launch_each_way(triton_cpu):
     f = _field()
     f.mlp_backend = "triton"
     f.encoder.backend = "triton"
-    pts = torch.rand(80, 3)
-    d = torch.nn.functional.normalize(torch.randn(80, 3), dim=-1)
+    pts, d, _ = _inputs(80, 2)
     f.radiance(pts, d)                        # the hash grid's layout, uploaded once
     counter = step_ops.Recorder()
     with counter.region() as c:
         sigma, rgb = f.radiance(pts, d)
         loss = sigma.sum() + rgb.sum()
-    assert c.triton == 2 and not any(k in c.by_op for k in ("mm", "addmm", "relu", "t"))
+    # (launches are counted where Triton interprets them: on a GPU only the torch ops)
+    assert c.triton == (0 if ON_GPU else 2)
+    assert not any(k in c.by_op for k in ("mm", "addmm", "relu", "t"))
     with counter.region() as c:
         loss.backward()
-    assert c.triton == 2 and not any(k in c.by_op for k in ("mm", "addmm", "t"))
+    assert c.triton == (0 if ON_GPU else 2)
+    assert not any(k in c.by_op for k in ("mm", "addmm", "t"))
     assert sum(c.syncs.values()) == 0
 
 
@@ -134,6 +148,10 @@ def test_terminate_kernel_equals_the_twin(triton_cpu, k, capacity):
     rays, grid = _case(3)
     cand = march_fixed(rays, grid, k * capacity, backend="torch")
     sigma = _slab_sigma(cand.points)
+    if ON_GPU:                                    # the kernels' inputs on the device
+        cand = FixedSamples(*(getattr(cand, f.name).to(DEV) for f in fields(FixedSamples)))
+        grid = MarchGrid(grid.step, grid.mask.to(DEV), grid.bbox.to(DEV))
+        sigma = sigma.to(DEV)
     twin = terminate_fixed(cand, sigma, grid, 1e-2, capacity, backend="torch")
     fast = terminate_fixed(cand, sigma, grid, 1e-2, capacity, backend="triton")
     _assert_fixed_equal(fast, twin)

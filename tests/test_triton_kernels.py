@@ -582,7 +582,8 @@ def test_render_image_on_the_device_matches_numba_without_read_backs(fmt):
             if backend == "triton":          # (the twin, the spec, reads back as it likes)
                 syncs = dict(c.syncs)
                 assert syncs.pop("upload", 0) == 1 and not any(syncs.values()), dict(c.sites)
-                assert c.triton == 2 and c.ops <= 20, (c.triton, c.ops, dict(c.op_sites))
+                # (launches are counted where Triton interprets them)
+                assert c.triton == (0 if ON_GPU else 2) and c.ops <= 20, (c.triton, c.ops)
 
 
 def test_composite_kernel_matches_numba_and_twin():
