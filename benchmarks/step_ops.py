@@ -247,11 +247,13 @@ class Recorder:
                 setattr(obj, name, fn)
 
 
-# --- the NeRF trainer's Triton kernels, computed by their numba twins ----------------------
+# --- the NeRF trainer's Triton kernels, computed by stand-ins ------------------------------
 # Triton's interpreter takes minutes for one training step (NumPy per block op). The counts
-# need the kernels' outputs, not their speed: a launch of the hash-grid or occupancy-march
-# kernel is counted as one launch, its wrapper's ops and syncs as they are, and its outputs
-# are computed by the numba kernel of the same op (tested equal in test_triton_kernels.py).
+# need the kernels' outputs, not their speed: a launch of the hash-grid, occupancy-march,
+# fused-network or early-termination kernel is counted as one launch, its wrapper's ops and
+# syncs as they are, and its outputs are computed by the numba kernel of the same op (hash
+# grid, march; tested equal in test_triton_kernels.py), the eager network in torch (mlp) or
+# the kernel's per-ray loops in numba (terminate) — with counting suspended.
 def _hashgrid_stand_in(ex: Any, *a: Any, **k: Any) -> None:
     from plenoctree.nerf import _hashgrid_numba as K
 
