@@ -5,9 +5,10 @@ kernels: per level ``l`` of resolution ``r``, ``p = x r``, ``i = clamp(floor(p),
 ``f = p - i``; the 8 corners ``i + c`` are looked up densely (``ix + iy (r+1) + iz (r+1)^2``)
 or hashed (``(ix ^ iy P1 ^ iz P2) & (size - 1)``) in the level's rows of the table and mixed
 with trilinear weights ``w = w_x w_y w_z``. The kernel maps the world points to the unit
-cube itself (``clamp((p - lo) / (hi - lo), 0, 1)``, the encoding's ``normalize``: six torch ops
-a call fewer). One program encodes ``BLOCK`` points over all levels; the backward scatters ``w g`` into the table gradient with atomic adds (the points
-are not learnable, as in the numba kernel).
+cube itself (``clamp((p - lo) / (hi - lo), 0, 1)`` in float32 with a correctly rounded
+division, the encoding's ``normalize``: six torch ops a call fewer). One program encodes
+``BLOCK`` points over all levels; the backward scatters ``w g`` into the table gradient with
+atomic adds (the points are not learnable, as in the numba kernel).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ def _unit(x_ptr, box_ptr, r64, valid, a: tl.constexpr):
     lo = tl.load(box_ptr + a)
     ext = tl.load(box_ptr + 3 + a) - lo
     p = tl.load(x_ptr + r64 * 3 + a, mask=valid, other=0.0).to(tl.float32)
-    return tl.minimum(tl.maximum((p - lo) / ext, 0.0), 1.0)
+    return tl.minimum(tl.maximum(tl.math.div_rn(p - lo, ext), 0.0), 1.0)
 
 
 @triton.jit
