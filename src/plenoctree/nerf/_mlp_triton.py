@@ -4,8 +4,8 @@ The eager network (:meth:`.model.RadianceField.radiance` with the torch backend)
 layer by layer: per layer a matmul, a bias, a ReLU, under autocast a cast of the weights,
 then the head, σ's activation and the SH colours, three passes a training step (the density
 of the candidates, the trained samples, the sparsity prior's points): 61 ops forward and most
-of the backward's 101 in the fixed step (``benchmarks/step_ops.py`` at 95bf554). Here one program takes ``TILES`` tiles of ``BLOCK_M`` rows through the whole
-network in registers:
+of the backward's 101 in the fixed step (``benchmarks/step_ops.py`` at 95bf554). Here one
+program takes ``tiles`` tiles of ``BLOCK_M`` rows through the whole network in registers:
 
 * forward: ``h_1 = relu(x W_0ᵀ + b_0)``, ``h_{l+1} = relu(h_l W_lᵀ + b_l)`` (``DEPTH`` layers),
   ``out = h W_hᵀ + b_h``; ``σ = exp(out_0 - 1)`` (``trunc_exp``, ACT 1) or ``relu(out_0)``
@@ -288,8 +288,9 @@ class FusedField(torch.autograd.Function):
 def mlp_backend(field, points: torch.Tensor, dirs: torch.Tensor | None):
     """Op ``mlp`` of :mod:`plenoctree.backend` (CUDA tensors, or the CPU in the interpreter):
     ``(σ [N], rgb [N, 3])`` of a :class:`~.model.RadianceField` at world ``points [N, 3]``
-    seen along unit ``dirs [N, 3]`` (``dirs`` None: ``σ [N]``): its encoding, then the kernel
-    (a network outside :func:`~.model.mlp_spec`'s family: :class:`~plenoctree.errors.BackendError`)."""
+    seen along unit ``dirs [N, 3]`` (``dirs`` None: ``σ [N]``): its encoding, then the
+    kernel (a network outside :func:`~.model.mlp_spec`'s family:
+    :class:`~plenoctree.errors.BackendError`)."""
     from .._triton import require_triton
     from ..errors import BackendError
     from .model import mlp_spec
