@@ -17,8 +17,10 @@ nothing else on the machine meanwhile (the figure is a wall time).
     python benchmarks/frontier.py --scene lego --budgets 2 5 20 --work /tmp/frontier/lego
     python benchmarks/frontier.py --scene lego --budgets 10 -- --eval-views 5   # flags for run
     python benchmarks/frontier.py --plot docs/frontier.png --plot-from \\
-        benchmarks/results/frontier_flower.json benchmarks/results/frontier_lego.json \\
-        benchmarks/results/frontier_earlier.json
+        benchmarks/frontier_points/flower.json benchmarks/frontier_points/earlier.json
+
+(``benchmarks/frontier_points/``: the docs' points, kept in the repository; a new run writes
+``benchmarks/results/frontier_<scene>.json``, to be copied there with the docs' table.)
 
 How long: the sum of the chains, one after the other: on the 2-core CPU flower took 40 min at
 B = 2 (a foggy NeRF-SH: 23 M leaves, 21 min of fine-tuning), 17-18 min at 5 and 10, 31 min at
