@@ -293,10 +293,9 @@ def mlp_backend(field, points: torch.Tensor, dirs: torch.Tensor | None):
     :class:`~plenoctree.errors.BackendError`)."""
     from .._triton import require_triton
     from ..errors import BackendError
-    from .model import mlp_spec
 
     require_triton(points.device, "mlp")
-    spec = mlp_spec(field)
+    spec = field.spec
     if spec is None:
         raise BackendError("mlp: backend 'triton' covers hash-grid SH networks of 1-3 "
                            "power-of-two layers without a skip connection; use 'torch'")

@@ -237,6 +237,7 @@ class RadianceField(nn.Module):
             if isinstance(mod, nn.Linear):
                 nn.init.xavier_uniform_(mod.weight)
                 nn.init.zeros_(mod.bias)
+        self.spec = mlp_spec(self)      # the fused kernels' constants, None: the eager network
 
     # ---------------------------------------------------------------- basis
     @property
@@ -320,7 +321,7 @@ class RadianceField(nn.Module):
         from .. import backend as _backend
 
         name = "torch"
-        if mlp_spec(self) is not None:
+        if self.spec is not None:
             name = _backend.resolve("mlp", self.mlp_backend, points.device)
         return _backend.implementation("mlp", name)(self, points, dirs)
 

@@ -51,6 +51,23 @@ class OccupancyGrid(nn.Module):
         u = torch.rand(ijk.shape, generator=generator, device=flat_idx.device)
         return self.bbox[0] + (ijk.float() + u) * self.cell_size
 
+    def _occupied_cells(self, m: int, generator: torch.Generator | None,
+                        sync_free: bool) -> torch.Tensor:
+        """Up to ``m`` cells (int64 flat indices) drawn uniformly from the occupied ones: from
+        the mask's ``nonzero`` list (a read-back; none when nothing is occupied), or with
+        ``sync_free`` exactly ``m`` by ``multinomial`` over the mask (uniform over all cells
+        when nothing is occupied)."""
+        flat = self.mask.flatten()
+        if sync_free:
+            weights = flat.float() + (~flat.any()).float()
+            return torch.multinomial(weights, m, replacement=True, generator=generator)
+        occ = flat.nonzero()[:, 0]
+        if not occ.numel():
+            return occ
+        pick = torch.randint(occ.numel(), (min(m, occ.numel()),), generator=generator,
+                             device=occ.device)
+        return occ[pick]
+
     @torch.no_grad()
     def update(self, density_fn: Callable[[torch.Tensor], torch.Tensor], threshold: float,
                decay: float = 0.95, all_cells: bool = False, fraction: float = 1 / 16,
@@ -78,19 +95,8 @@ class OccupancyGrid(nn.Module):
             idx = torch.arange(n, device=dev)
         else:
             m = max(1, int(n * fraction))
-            idx = torch.randint(n, (m,), generator=generator, device=dev)
-            if sync_free:
-                flat = self.mask.flatten()
-                weights = flat.float() + (~flat.any()).float()
-                idx = torch.cat([idx, torch.multinomial(weights, m, replacement=True,
-                                                        generator=generator)])
-                occ = idx[:0]
-            else:
-                occ = self.mask.flatten().nonzero()[:, 0]
-            if occ.numel():
-                pick = torch.randint(occ.numel(), (min(m, occ.numel()),), generator=generator,
-                                     device=dev)
-                idx = torch.cat([idx, occ[pick]])
+            idx = torch.cat([torch.randint(n, (m,), generator=generator, device=dev),
+                             self._occupied_cells(m, generator, sync_free)])
         pts = self.cell_points(idx, generator)
         sig = torch.cat([density_fn(p).float() for p in pts.split(chunk)]) if len(pts) else pts[:, 0]
         sig = torch.nan_to_num(sig, nan=0.0, posinf=1e6).clamp(min=0.0)
