@@ -137,7 +137,7 @@ def test_rays_kernel_matches_its_twin(scene, tmp_path, triton_cpu, fmt, cam, sra
     """One launch makes what the twins and ``prepare_rays`` + ``ray_basis_torch`` make: the
     march kernel's geometry rows (a miss and the border flag past the border), the basis
     values (SH 0-4, SG, RGBA, a basis range) and the targets."""
-    from plenoctree.optim._device_kernels import COL_OUTSIDE, batch_rays, geometry_tensor
+    from plenoctree.render._rays_triton import COL_OUTSIDE, batch_rays, geometry_tensor
     from plenoctree.optim._device_stepper import DeviceViews
     from plenoctree.optim._device_twins import (batch_pixels_torch, camera_rays_torch,
                                                 pixel_targets_torch)

@@ -94,10 +94,6 @@ EXCEPTIONS: dict[tuple[str, str], str] = {
     ("plenoctree._config", "nerf"):
         "_config.field_docs reads nerf.config's field docstrings; to move into _config "
         "(code review 2026-12 §2.6.4) with the pipeline configs",
-    ("plenoctree.render._device", "optim"):
-        "render_image on CUDA uses the fine-tuning loop's rays kernel (camera_rays, "
-        "geometry_tensor; deferred imports); to move that kernel into render, which both "
-        "serve (2026-12-07)",
 }
 
 ALLOWED["cli"] = set(ALLOWED) - {"cli", "__main__"}

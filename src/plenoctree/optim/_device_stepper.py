@@ -319,7 +319,7 @@ class TritonStepper(_DeviceStepper):
 
         super().__init__(*args, **kw)
         require_triton(self.device, "fine-tuning")
-        from ._device_kernels import geometry_tensor
+        from ..render._rays_triton import geometry_tensor
 
         t, dev = self.tree, self.device
         self._child = torch.from_numpy(np.ascontiguousarray(t.child, np.int32).reshape(-1)
@@ -351,7 +351,7 @@ class TritonStepper(_DeviceStepper):
 
     def _batch(self, views: DeviceViews, tiles: torch.Tensor | None, n_tiles: int, base: int,
                k: int) -> int:
-        from ._device_kernels import batch_rays
+        from ..render._rays_triton import batch_rays
 
         b = self._buffers(n_tiles * k * k)
         return batch_rays(tiles, n_tiles, base, k, views, self._geom, self.info, self._extra,

@@ -13,7 +13,7 @@ torch ops (105 a frame). Here, for a tree prepared once
 * they are checked as the numba path checks them: the four corner rays, made on the host,
   bound every other one;
 * one launch makes every pixel's ray, the march kernel's per-ray geometry and the basis
-  values (the fine-tuning loop's rays kernel, ``optim._device_kernels.camera_rays``);
+  values (the rays kernel the fine-tuning loop uses too, ``render._rays_triton.camera_rays``);
 * then the march kernel. 11 ops a frame, nothing read back (``benchmarks/render_ops.py``);
   the caller waits for the GPU at the end.
 
@@ -46,7 +46,7 @@ def _tree_constants(tree: Any, step_eps: float, dev: torch.device
                     ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """The tree's float64 box and ``step_eps`` (``geometry_tensor``) and its SG lobes on
     ``dev``, uploaded once per tree and ``step_eps`` (kept on the tree object)."""
-    from ..optim._device_kernels import geometry_tensor
+    from ._rays_triton import geometry_tensor
 
     cache = tree.__dict__.setdefault("_device_constants", {})
     key = (float(step_eps), str(dev))
@@ -61,9 +61,9 @@ def _tree_constants(tree: Any, step_eps: float, dev: torch.device
 def _camera_geometry(tree: Any, info: Any, cameras: Any, index: int, opts: RenderOptions,
                      dev: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     """``(geo [H W, 14] float64, basis [H W, B])`` of camera ``index``'s pixels in one launch
-    (the fine-tuning loop's rays kernel, ``optim._device_kernels.camera_rays``): the camera
+    (the rays kernel the fine-tuning loop uses too, ``render._rays_triton.camera_rays``): the camera
     packed on the host and uploaded (20 numbers), the tree's constants once per tree."""
-    from ..optim._device_kernels import camera_rays
+    from ._rays_triton import camera_rays
     from ._render_numba import pack_cameras
 
     cams = torch.from_numpy(pack_cameras(cameras, [index])).to(dev)
