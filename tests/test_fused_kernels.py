@@ -5,6 +5,7 @@ their candidates (op ``terminate``, ``nerf/_terminate_triton.py``; twin: prefix 
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from dataclasses import fields
 from pathlib import Path
@@ -160,3 +161,35 @@ def test_terminate_kernel_equals_the_twin(triton_cpu, k, capacity):
                              backend="triton")
     _assert_fixed_equal(opaque, terminate_fixed(cand, torch.full_like(sigma, 1e4), grid,
                                                 1e-2, capacity, backend="torch"))
+
+
+@pytest.mark.skipif(ON_GPU, reason="the stand-ins replace Triton's interpreter on the CPU")
+def test_step_ops_stand_ins_compute_what_the_kernels_compute(triton_cpu, monkeypatch):
+    """``benchmarks/step_ops.py`` counts a training step with stand-ins for the fused network
+    (torch) and early termination (numba loops): they must give the kernels' outputs, or the
+    counted step would train on something else."""
+    sys.path.insert(0, str(_BENCH))
+    import step_ops
+
+    ran = []                                      # the stand-ins did run
+    for key, fn in list(step_ops._STAND_INS.items()):
+        monkeypatch.setitem(step_ops._STAND_INS, key,
+                            lambda *a, _fn=fn, _k=key, **k: (ran.append(_k[1]), _fn(*a, **k)))
+    f = _field()
+    res = []
+    for stand_in in (False, True):
+        with step_ops.backends_of("cuda") if stand_in else contextlib.nullcontext():
+            out, grads = _run(f, "triton", 100)
+        res.append((out, grads))
+    for a, b in zip(res[0][0], res[1][0]):
+        torch.testing.assert_close(a, b, atol=2e-6, rtol=1e-5)
+    for k in res[0][1]:
+        torch.testing.assert_close(res[0][1][k], res[1][1][k], atol=1e-5, rtol=1e-4, msg=k)
+    rays, grid = _case(3)
+    cand = march_fixed(rays, grid, 4 * 300, backend="torch")
+    sigma = _slab_sigma(cand.points).float()
+    fast = terminate_fixed(cand, sigma, grid, 1e-2, 300, backend="triton")
+    with step_ops.backends_of("cuda"):
+        _assert_fixed_equal(terminate_fixed(cand, sigma, grid, 1e-2, 300, backend="triton"),
+                            fast)
+    assert {"_mlp_kernel", "_terminate_kernel"} <= set(ran), set(ran)
