@@ -115,15 +115,18 @@ class Counts:
         self.by_op: Counter = Counter()
         self.op_sites: Counter = Counter()
         self.site_ops: Counter = Counter()
+        self.bytes: Counter = Counter()         # bytes of the host and upload copies
 
-    def sync(self, kind: str, what: str) -> None:
+    def sync(self, kind: str, what: str, nbytes: int = 0) -> None:
         self.syncs[kind] += 1
         self.sites[f"{kind}: {what} @ {_site()}"] += 1
+        self.bytes[kind] += int(nbytes)
 
     def as_dict(self, per: int = 1) -> dict:
         d = {"ops": self.ops / per, "views": self.views / per, "triton": self.triton / per,
              "syncs": sum(self.syncs.values()) / per}
         d.update({f"sync_{k}": self.syncs[k] / per for k in SYNC_KINDS})
+        d.update({f"bytes_{k}": self.bytes[k] / per for k in ("host", "upload")})
         d["sites"] = {k: v / per for k, v in self.sites.most_common()}
         d["top_ops"] = {k: v / per for k, v in self.by_op.most_common(15)}
         d["op_sites"] = {k: v / per for k, v in self.op_sites.most_common()}
@@ -199,7 +202,7 @@ class Recorder:
                 c = me.counts
                 if c is not None and not (what == "numpy" and
                                           getattr(t, "_step_ops_copy", None) == id(c)):
-                    c.sync("host", what)
+                    c.sync("host", what, t.nelement() * t.element_size())
                 out = me._suspended(orig)(t, *a, **k)
                 if what == "cpu" and c is not None:
                     out._step_ops_copy = id(c)
@@ -210,7 +213,7 @@ class Recorder:
             def wrapped(data, *a, **k):
                 c = me.counts
                 if c is not None and not isinstance(data, torch.Tensor):
-                    c.sync("upload", what)
+                    c.sync("upload", what, getattr(data, "nbytes", 0))
                 return orig(data, *a, **k)
             return wrapped
 

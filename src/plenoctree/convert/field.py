@@ -168,7 +168,11 @@ class NeRFField:
         occ = getattr(model, "occupancy", None)
         self._occ = None
         if use_occupancy and occ is not None:
-            self._occ = (occ.mask.detach().to(self.device), occ.bbox.detach().to(self.device))
+            mask = occ.mask.detach().to(self.device)
+            self._occ = (mask, occ.bbox.detach().to(self.device),
+                         torch.tensor(mask.shape, device=self.device))
+        # on the device once, not uploaded at every query
+        self._box = torch.as_tensor(self.scene_bbox, dtype=torch.float32, device=self.device)
 
     def _ctx(self):
         import contextlib
@@ -183,13 +187,11 @@ class NeRFField:
         """Bool ``[N]``: the NeRF's renderer may sample world points ``p [N, 3]`` (torch)."""
         import torch
 
-        lo = torch.as_tensor(self.scene_bbox[0], dtype=p.dtype, device=p.device)
-        hi = torch.as_tensor(self.scene_bbox[1], dtype=p.dtype, device=p.device)
-        in_box = ((p >= lo) & (p <= hi)).all(-1)
+        box = self._box.to(p.dtype)
+        in_box = ((p >= box[0]) & (p <= box[1])).all(-1)
         ok = in_box
         if self._occ is not None:
-            mask, bbox = self._occ
-            res = torch.tensor(mask.shape, device=p.device)
+            mask, bbox, res = self._occ
             g = ((p - bbox[0]) / (bbox[1] - bbox[0]) * res).floor().long()
             inside = ((g >= 0) & (g < res)).all(-1)
             g = torch.minimum(torch.clamp(g, min=0), res - 1)
@@ -200,10 +202,11 @@ class NeRFField:
             ok = ok | (~in_box & ((p >= outer[0]) & (p <= outer[1])).all(-1))
         return ok
 
-    def density(self, points: np.ndarray) -> np.ndarray:
+    def density_torch(self, p: Any) -> Any:
+        """σ ``[N]`` (float32 tensor, 0 where the NeRF never samples) at world points
+        ``p [N, 3]`` (float32 tensor on :attr:`device`)."""
         import torch
 
-        p = torch.from_numpy(_points(points)).to(self.device)
         vis = self._visible(p)
         sigma = torch.zeros(p.shape[0], dtype=torch.float32, device=p.device)
         idx = vis.nonzero()[:, 0]
@@ -213,13 +216,35 @@ class NeRFField:
                 s = self.model.density(pv) if hasattr(self.model, "density") else \
                     self.model.query(pv)[0]
             sigma[idx] = s.float()
-        return sigma.cpu().numpy()
+        return sigma
+
+    def query_torch(self, p: Any) -> tuple[Any, Any]:
+        """``(σ [N], coefficients [N, 3·B])`` float32 tensors at world points ``p [N, 3]``
+        (float32 tensor on :attr:`device`; NeRF-SH / NeRF-SG: no view directions): what
+        :meth:`query` returns, left on the device (:mod:`.device_sampling`)."""
+        import torch
+
+        if self.basis == "plain":
+            raise ConfigError("a plain NeRF (basis 'plain') needs view directions")
+        with torch.no_grad(), self._ctx():
+            sigma, coeffs = self.model.query(p, None)
+        sigma = torch.where(self._visible(p), sigma.float(), torch.zeros((), device=p.device))
+        return sigma, coeffs.float()
+
+    def density(self, points: np.ndarray) -> np.ndarray:
+        import torch
+
+        p = torch.from_numpy(_points(points)).to(self.device)
+        return self.density_torch(p).cpu().numpy()
 
     def query(self, points: np.ndarray, dirs: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
         import torch
 
         p = torch.from_numpy(_points(points)).to(self.device)
+        if dirs is None and self.basis != "plain":
+            sigma, coeffs = self.query_torch(p)
+            return sigma.cpu().numpy(), coeffs.cpu().numpy()
         d = None if dirs is None else torch.from_numpy(_points(dirs, "dirs")).to(self.device)
         if self.basis == "plain" and d is None:
             raise ConfigError("a plain NeRF (basis 'plain') needs view directions")

@@ -20,6 +20,7 @@ import numpy as np
 
 from .._util import progress
 from ..errors import ConfigError
+from . import device_sampling
 
 __all__ = ["GridSpec", "evaluate_density_grid", "cell_points", "check_resolution"]
 
@@ -122,6 +123,9 @@ def evaluate_density_grid(field: Any, spec: GridSpec, chunk: int = 1 << 16,
     n = r ** 3
     with progress(total=n, desc=desc, disable=None if show_progress is None
                   else not show_progress, unit="pt", unit_scale=True) as bar:
+        if device_sampling.sampling_device(field) is not None:    # points made on the device
+            device_sampling.density_grid_device(field, spec, flat_out, chunk, bar)
+            return out
         for s in range(0, n, chunk):
             e = min(n, s + chunk)
             idx = np.arange(s, e, dtype=np.int64)

@@ -40,6 +40,7 @@ from .._util import atomic_save_json, progress
 from ..errors import ConfigError
 from ..sh import SH_C0
 from ..octree.limits import MAX_DEPTH
+from . import device_sampling
 from .sampling import AVERAGING, SampleOptions, average_samples
 
 __all__ = ["RefineConfig", "RefineOptions", "RefineResult", "refine", "refine_tree",
@@ -63,12 +64,15 @@ def _base_colour(coeffs: np.ndarray, data_format: str, basis_dim: int) -> np.nda
 
 
 def _box_stats(field_: Any, lo: np.ndarray, size: np.ndarray, tree: Any, samples: int,
-               rng: np.random.Generator, averaging: str = "mean"
-               ) -> tuple[np.ndarray, np.ndarray]:
+               rng: Any, averaging: str = "mean") -> tuple[np.ndarray, np.ndarray]:
     """Average field value ``[M, D]`` (σ ≥ 0 last; ``averaging`` as in
     :func:`~plenoctree.convert.sampling.average_samples`) and spread ``[M]`` of ``samples``
     uniform random points in each world box ``lo [M, 3] + [0, size [M, 3]]``; ``tree`` gives
-    the value layout (``data_format``, ``basis_dim``, ``data_dim``)."""
+    the value layout (``data_format``, ``basis_dim``, ``data_dim``). ``rng``
+    (:func:`~.device_sampling.make_rng`): numpy's on the host, a torch generator where the
+    field is sampled on its device (:mod:`.device_sampling`)."""
+    if not isinstance(rng, np.random.Generator):
+        return device_sampling.box_stats_device(field_, lo, size, samples, rng, tree, averaging)
     fmt, basis_dim, dim = tree.data_format, tree.basis_dim, tree.data_dim
     m = lo.shape[0]
     pts = (lo[:, None, :] + rng.random((m, samples, 3)) * size[:, None, :]).astype(np.float32)
@@ -119,7 +123,7 @@ def leaf_spread(tree: Any, field_: Any, samples: int = 8, seed: int = 0, chunk: 
     into :meth:`~plenoctree.octree.Octree.leaf_indices` order; default all)."""
     _, lo, size, _ = _leaf_boxes(tree)
     sel = np.arange(lo.shape[0]) if leaves is None else np.asarray(leaves, np.int64)
-    rng = np.random.default_rng(seed)
+    rng = device_sampling.make_rng(field_, seed)
     out = np.zeros(sel.size, np.float32)
     with progress(total=sel.size, desc="scoring", unit="leaf", unit_scale=True,
                   disable=None if show_progress is None else not show_progress) as bar:
@@ -234,7 +238,7 @@ def _child_values(tree: Any, lo: np.ndarray, size: np.ndarray, field_: Any,
     chalf = np.repeat(half, 8, axis=0)
     vals = np.empty((8 * m, dim), np.float32)
     spread = np.empty(8 * m, np.float32)
-    rng = np.random.default_rng(opts.seed)
+    rng = device_sampling.make_rng(field_, opts.seed)
     with progress(total=8 * m, desc="subdividing", unit="cell", unit_scale=True,
                   disable=None if show_progress is None else not show_progress) as bar:
         for s, e in _blocks(8 * m, samples, opts.chunk):

@@ -32,6 +32,7 @@ from .._util import progress
 from ..errors import ConfigError
 from ..octree.check import expected_data_dim
 from ..sh import num_sh_bases
+from . import device_sampling
 from .grid import GridSpec, cell_points
 from .projection import project_sh
 
@@ -150,13 +151,23 @@ def sample_cells(field: Any, spec: GridSpec, flat: np.ndarray,
     out = np.empty((m, dim), dtype=np.float32)
     pts_per_call = max(1, chunk // projection_dirs) if plain else chunk
     cells_per_block = max(1, pts_per_call // samples)
-    rng = np.random.default_rng(opts.seed)
     st = stats if stats is not None else SamplingStats()
     show = opts.show_progress
+    on_device = not plain and device_sampling.sampling_device(field) is not None
+    rng = device_sampling.make_rng(field, opts.seed) if on_device else \
+        np.random.default_rng(opts.seed)
+    bad_dev = []                     # the device path's non-finite counts, read at the end
     with progress(total=m, desc="sampling", unit="voxel", unit_scale=True,
                   disable=None if show is None else not show) as bar:
         for s in range(0, m, cells_per_block):
             block = flat[s:s + cells_per_block]
+            if on_device:            # points, field, average on the device (.device_sampling)
+                out[s:s + len(block)], bad = device_sampling.cell_stats_device(
+                    field, spec, block, samples, rng, dim, averaging, h)
+                bad_dev.append(bad)
+                st.points += len(block) * samples
+                bar.update(len(block))
+                continue
             pts = cell_points(spec, block, samples, rng).reshape(-1, 3)
             if plain:
                 sigma, coeffs = project_sh(field, pts, projection_degree, projection_dirs, rng)
@@ -178,4 +189,8 @@ def sample_cells(field: Any, spec: GridSpec, flat: np.ndarray,
             out[s:s + len(block)] = average_samples(vals.reshape(len(block), samples, dim), h,
                                                     averaging)
             bar.update(len(block))
+    if bad_dev:                      # one read-back for the whole pass
+        import torch
+
+        st.nonfinite += int(torch.stack(bad_dev).sum())
     return out
