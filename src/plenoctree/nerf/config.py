@@ -158,6 +158,11 @@ class TrainConfig:
     gradients, trains the network on ``target_samples`` slots, and reads nothing back inside
     the step; the rays per step adapt every ``occ_update_every`` steps. Off: marching waves
     with early ray termination (host round trips each wave, the CPU's way)."""
+    cuda_graph: bool = False
+    """Fixed-shape steps: capture each ray count's step (network, loss, backward, Adam) in a
+    CUDA graph after a few eager steps and replay it, one launch instead of ~140
+    (``nerf.graph``). Off until measured on a GPU (``benchmarks/gpu_bench.py``, row
+    ``train_gpu_graph``); without CUDA the same step runs eagerly."""
     fixed_candidates: int = 4
     """Fixed-shape steps: candidate slots marched per trained slot, for early ray termination
     (nerfacc's and instant-ngp's way; the density of every candidate slot is evaluated, so
@@ -367,6 +372,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
          f"{cfg.far_levels}")
     need(not cfg.fixed_step or cfg.sampler == "occupancy",
          "fixed_step needs the occupancy sampler (--sampler occupancy)")
+    need(not cfg.cuda_graph or cfg.fixed_step,
+         "cuda_graph needs fixed-shape steps (--fixed-step, or --preset gpu)")
     need(1 <= cfg.fixed_candidates <= 64,
          f"fixed_candidates must be in 1..64, got {cfg.fixed_candidates}")
     need(cfg.preview_every_s >= 0, f"preview_every_s must be >= 0, got {cfg.preview_every_s}")

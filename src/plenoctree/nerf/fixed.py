@@ -255,8 +255,16 @@ class FixedBatch:
 
     def add(self, n_rays: int, total: torch.Tensor, kept: torch.Tensor) -> None:
         """Count a step of ``n_rays`` rays that marched ``total`` (device int64) samples and
-        kept ``kept`` (:func:`kept_figures`)."""
-        self.sums += torch.cat([total.reshape(1), kept])        # one add, no read-back
+        kept ``kept`` (:func:`kept_figures`): :meth:`add_device` and :meth:`count`."""
+        self.add_device(total, kept)
+        self.count(n_rays)
+
+    def add_device(self, total: torch.Tensor, kept: torch.Tensor) -> None:
+        """The device part of :meth:`add` (one add, no read-back; inside a captured step)."""
+        self.sums += torch.cat([total.reshape(1), kept])
+
+    def count(self, n_rays: int) -> None:
+        """The host part of :meth:`add`: a step of ``n_rays`` rays."""
         self.n_rays += n_rays
         self.steps += 1
 

@@ -39,6 +39,7 @@ from .config import TrainConfig, config_json, validate
 from .encoding import HashGridEncoding
 from .far import resolve_far_levels, resolve_render_step
 from .fixed import FixedBatch, candidate_factor, fixed_loss, render_fixed
+from .graph import StepGraphs, lr_tensor, make_capturable
 from .raygen import draw_uniforms, ray_batch
 from .preview import LiveView
 from .trainer_state import LogWindow, StepFigures, TrainerState
@@ -49,7 +50,7 @@ from .renderer import ImageOptions, RayBatch, RenderMode, autocast, render_rays_
 from .runlog import RunLog
 from .training import (VAL_SHARE, RaySource, TrainingError, distortion_weight,
                        flush_tiny_moments, learning_rate, load_val_views, opaque_photos,
-                       sparsity_loss, val_row_stride)
+                       val_row_stride, with_sparsity)
 
 # Runtime set-up (threads, malloc, device, AMP) is plenoctree.runtime's, not re-exported here.
 __all__ = ["TrainResult", "Trainer", "TrainerState", "train"]
@@ -180,6 +181,10 @@ class Trainer:
         self.dist_weight = distortion_weight(cfg)
         self.fixed = FixedBatch(cfg.target_samples, cfg.max_rays, self.device,
                                 candidate_factor(cfg)) if cfg.fixed_step else None
+        self.graphs = StepGraphs(self._graph_body, self.device, (self.gen,)) \
+            if cfg.cuda_graph else None
+        if self.graphs is not None:     # also after a checkpoint's optimiser state
+            make_capturable(self.opt, self.device)
         self.live = LiveView(self.out, cfg.preview_every_s, NDCSpace.from_cameras(
             self.data.cameras)) if self.dctx.is_main else None      # plenoctree view RUN
         self.occ_thresh = -math.log(1.0 - cfg.occ_threshold) / cfg.render_step
@@ -215,8 +220,11 @@ class Trainer:
             if isinstance(mod, (HashGridEncoding, RadianceField)):
                 mod.grad_in_place = True
         fused = device.type == "cpu" or device.type == "cuda"
-        self.opt = torch.optim.Adam(model.parameters(), lr=cfg.lr_init,
-                                    betas=(0.9, cfg.adam_beta2), eps=cfg.adam_eps, fused=fused)
+        # a step replayed from a CUDA graph (nerf.graph) reads its learning rate from the
+        # device and keeps Adam's step count there
+        lr = lr_tensor(cfg.lr_init, device) if cfg.cuda_graph else cfg.lr_init
+        self.opt = torch.optim.Adam(model.parameters(), lr=lr, betas=(0.9, cfg.adam_beta2),
+                                    eps=cfg.adam_eps, fused=fused, capturable=cfg.cuda_graph)
         self.gen = torch.Generator(device=device)
         self.gen.manual_seed(cfg.seed + 1)
         self.model = model
@@ -287,11 +295,13 @@ class Trainer:
                 self.dctx.broadcast_module(model.occupancy)
         return time.perf_counter() - t
 
-    def _fixed_loss(self):
+    def _fixed_loss(self, n_rays: int | None = None):
         """``(loss, mse, rays, samples)`` of a fixed-shape step (:mod:`.fixed`; one process
-        only): the rays in one launch (op ``ray_batch``), nothing read back inside the step."""
+        only) of ``n_rays`` rays (None: the state's): the rays in one launch (op
+        ``ray_batch``), nothing read back inside the step; the rays are counted on the device
+        only (:meth:`.FixedBatch.add_device`: the host's count is the caller's)."""
         cfg = self.cfg
-        n_rays = self.fixed.rays(self.state.n_rays)
+        n_rays = self.fixed.rays(self.state.n_rays) if n_rays is None else n_rays
         rays = ray_batch(self.rays, draw_uniforms(n_rays, self.gen, self.device),
                          self.model.scene_bbox)
         mode = RenderMode(train=True, generator=self.rgen, amp=self.amp,
@@ -299,8 +309,18 @@ class Trainer:
         r = render_fixed(self.model, rays.batch(self.data.near, self.data.far), cfg, mode,
                          cfg.target_samples, rays.bounds)
         loss, mse = fixed_loss(r, rays.target, self.dist_weight, self.extent)
-        self.fixed.add(n_rays, r["total"], r["kept"])
+        self.fixed.add_device(r["total"], r["kept"])
         return loss, mse, n_rays, int(r["n_samples"])
+
+    def _graph_body(self, n_rays: int):
+        """One whole fixed-shape step of ``n_rays`` rays as :class:`.graph.StepGraphs`
+        captures it: ``(stack(loss, mse), samples)``; zeroing, forward, backward, Adam."""
+        self.opt.zero_grad(set_to_none=False)
+        loss, mse, _, samples = self._fixed_loss(n_rays)
+        loss = self._with_sparsity(loss)
+        loss.backward()
+        self.opt.step()
+        return torch.stack([loss.detach(), mse.detach()]), samples
 
     def _sampled_loss(self):
         """``(loss, mse, rays used, samples)`` of the waves (occupancy sampler) or the
@@ -340,17 +360,16 @@ class Trainer:
     def _render_loss(self):
         """``(loss, mse, rays used, samples)`` of a random batch of rays (this rank's shard),
         with the sparsity prior."""
-        cfg = self.cfg
-        loss, mse, used, samples = (self._fixed_loss() if self.fixed is not None
-                                    else self._sampled_loss())
-        if cfg.sparsity_weight > 0 and cfg.sparsity_points > 0:
-            bbox = self.model.scene_bbox
-            pts = bbox[0] + (bbox[1] - bbox[0]) * torch.rand(
-                (cfg.sparsity_points, 3), generator=self.gen, device=self.device)
-            with autocast(self.device, self.amp):
-                sig = self.model.fine.density(pts)
-            loss = loss + cfg.sparsity_weight * sparsity_loss(sig, cfg.sparsity_length)
-        return loss, mse, used, samples
+        if self.fixed is not None:
+            loss, mse, used, samples = self._fixed_loss()
+            self.fixed.count(used)
+        else:
+            loss, mse, used, samples = self._sampled_loss()
+        return self._with_sparsity(loss), mse, used, samples
+
+    def _with_sparsity(self, loss: torch.Tensor) -> torch.Tensor:
+        """``loss`` plus the sparsity prior at random points of the box (eq. 6)."""
+        return with_sparsity(loss, self.model, self.cfg, self.gen, self.amp)
 
     def _check_finite(self, loss: float, step: int) -> None:
         if math.isfinite(loss):
@@ -386,8 +405,13 @@ class Trainer:
         cfg, dctx = self.cfg, self.dctx
         lr = learning_rate(cfg, self.step, self.progress_frac())
         for g in self.opt.param_groups:
-            g["lr"] = lr
+            if isinstance(g["lr"], torch.Tensor):
+                g["lr"].fill_(lr)           # read by a captured step (nerf.graph)
+            else:
+                g["lr"] = lr
         t_occ = self._update_occupancy()
+        if self.graphs is not None:
+            return self._graph_step(lr, t_occ)
         loss, mse, used, n_samples = self._render_loss()
         if dctx.active:       # global figures: every rank logs, adapts and stops alike
             g_loss, g_mse, g_used, g_samples = dctx.sum(
@@ -406,14 +430,28 @@ class Trainer:
         if self.step % 100 == 99:
             flush_tiny_moments(self.opt)
         if self.fixed is not None:
-            if self.step % cfg.occ_update_every == cfg.occ_update_every - 1:
-                self.fixed.adapt(self.state)
+            self._adapt_fixed()
         elif self.occ:
             st = self.state
             spr = max(n_samples, 1) / max(used, 1)
             st.spr = spr if st.spr == 0 else 0.9 * st.spr + 0.1 * spr
             st.n_rays = float(min(cfg.max_rays, max(256, round(cfg.target_samples / st.spr))))
         return StepFigures(lr, loss_v, mse_v, used, n_samples, t_occ)
+
+    def _adapt_fixed(self) -> None:
+        if self.step % self.cfg.occ_update_every == self.cfg.occ_update_every - 1:
+            self.fixed.adapt(self.state)
+
+    def _graph_step(self, lr: float, t_occ: float) -> StepFigures:
+        """:meth:`train_step`'s rest with ``cuda_graph``: the step of the state's ray count
+        from :class:`.graph.StepGraphs` (replayed on CUDA), then the host's bookkeeping."""
+        n_rays = self.fixed.rays(self.state.n_rays)
+        both, n_samples = self.graphs.step(n_rays)
+        self.fixed.count(n_rays)
+        if self.step % 100 == 99:
+            flush_tiny_moments(self.opt)
+        self._adapt_fixed()
+        return StepFigures(lr, both[0], both[1], n_rays, n_samples, t_occ)
 
     # ------------------------------------------------------------- around the step
     def iteration(self, bar) -> None:

@@ -5,6 +5,7 @@ views, and the error a diverging run raises."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import torch
@@ -91,6 +92,22 @@ def sparsity_loss(sigma: torch.Tensor, length: float) -> torch.Tensor:
     zero subgradient at σ = 0 would otherwise stop the prior exactly where it starts).
     """
     return (1.0 - torch.exp(-length * sigma)).mean()
+
+
+def with_sparsity(loss: torch.Tensor, model: Any, cfg: TrainConfig,
+                  generator: torch.Generator, amp: Any) -> torch.Tensor:
+    """``loss`` plus ``cfg.sparsity_weight`` times the prior (:func:`sparsity_loss`) at
+    ``cfg.sparsity_points`` uniform points of the model's box (drawn from ``generator``)."""
+    from .renderer import autocast
+
+    if cfg.sparsity_weight <= 0 or cfg.sparsity_points <= 0:
+        return loss
+    bbox = model.scene_bbox
+    pts = bbox[0] + (bbox[1] - bbox[0]) * torch.rand(
+        (cfg.sparsity_points, 3), generator=generator, device=bbox.device)
+    with autocast(bbox.device, amp):
+        sig = model.fine.density(pts)
+    return loss + cfg.sparsity_weight * sparsity_loss(sig, cfg.sparsity_length)
 
 
 # ------------------------------------------------------------------ data
