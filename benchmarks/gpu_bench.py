@@ -24,6 +24,10 @@ Method (all on the lego scene of ``--data``; ``--data`` and ``--run`` default to
 - **train_gpu**: the same with the ``gpu`` preset (the fixed-shape step: rays, march, early
   termination, the fused network and compositing in a fixed number of launches, 2^18
   samples a step; ``nerf/fixed.py``).
+- **train_gpu_graph** (CUDA only): ``train_gpu`` with ``--cuda-graph`` (each ray count's step
+  replayed from a CUDA graph, ``nerf/graph.py``); its ratio to ``train_gpu`` decides whether
+  the ``gpu`` preset turns it on. An error is recorded in the JSON, not raised (the capture has
+  never run on a GPU before).
 - **extract**: ``plenoctree extract`` of ``--run`` at ``--grid``³ without evaluation; seconds.
 
 Without a CUDA device the script says so and stops (exit status 0), writing a JSON whose
@@ -56,7 +60,7 @@ import torch
 from _bench import CACHE, Timing, add_data_root, add_out, data_path, machine_info, \
     markdown_table, write_json
 
-STAGES = ("render", "finetune", "train", "train_gpu", "extract")
+STAGES = ("render", "finetune", "train", "train_gpu", "train_gpu_graph", "extract")
 
 
 def _sync(dev: torch.device) -> None:
@@ -154,14 +158,16 @@ def bench_finetune_stage(tree, train, dev: torch.device, batch: int, warm_views:
 
 
 def bench_train(data_root: str, dev: torch.device, steps: int, scratch: Path,
-                name: str = "cpu") -> dict:
+                name: str = "cpu", graph: bool = False) -> dict:
     """The NeRF-SH preset ``name`` ("cpu": the marching waves; "gpu": the fixed-shape step
-    with its fused kernels, 2^18 samples a step) for ``steps`` steps on lego at 400²."""
+    with its fused kernels, 2^18 samples a step; ``graph``: replayed from CUDA graphs) for
+    ``steps`` steps on lego at 400²."""
     from plenoctree.nerf.config import preset
     from plenoctree.nerf.trainer import train
 
     cfg = preset(name)
-    out = scratch / f"train_{name}_{dev.type}"
+    cfg.cuda_graph = graph
+    out = scratch / f"train_{name}{'_graph' if graph else ''}_{dev.type}"
     cfg.data, cfg.out, cfg.downscale, cfg.device = data_root, str(out), 2, str(dev)
     cfg.max_steps, cfg.minutes, cfg.val_views = steps, 0.0, 0
     cfg.log_every = max(1, steps // 10)
@@ -197,6 +203,8 @@ def _table(results: dict) -> str:
             ("NeRF-SH train M samples/s", "train", "samples_per_s", "{:.2f}", 1e-6),
             ("NeRF-SH train, gpu preset, M samples/s", "train_gpu", "samples_per_s", "{:.2f}",
              1e-6),
+            ("the same from CUDA graphs, M samples/s", "train_gpu_graph", "samples_per_s",
+             "{:.2f}", 1e-6),
             ("extraction s", "extract", "seconds", "{:.1f}")]
     lines = []
     for name, stage, key, fmt, *mult in rows:
@@ -302,6 +310,16 @@ def main(argv: list[str] | None = None) -> int:
             res["train_gpu"] = bench_train(args.data, dev, steps, scratch, "gpu")
             print(f"  train (gpu preset) {res['train_gpu']['samples_per_s'] / 1e6:.2f} "
                   "M samples/s", flush=True)
+        if "train_gpu_graph" not in args.skip and dev.type == "cuda":
+            try:
+                res["train_gpu_graph"] = bench_train(args.data, dev, args.train_steps, scratch,
+                                                     "gpu", graph=True)
+                print(f"  train (gpu preset, CUDA graphs) "
+                      f"{res['train_gpu_graph']['samples_per_s'] / 1e6:.2f} M samples/s",
+                      flush=True)
+            except Exception as exc:         # recorded for the next session, not fatal
+                res["train_gpu_graph"] = {"error": repr(exc)}
+                print(f"  train (gpu preset, CUDA graphs) failed: {exc!r}", flush=True)
         if "extract" not in args.skip:
             res["extract"] = bench_extract(args.run, args.data, dev, args.grid, scratch)
             print(f"  extract {res['extract']['seconds']:.1f} s", flush=True)
