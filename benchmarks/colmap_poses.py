@@ -32,8 +32,8 @@ far depth bounds (flower: in LLFF's units through the similarity's scale, and th
 
     python benchmarks/colmap_poses.py --real flower --out benchmarks/results/colmap_flower.json
 
-``--matcher``, ``--max-image-size``, ``--guided``, ``--overlap``, ``--retry`` set
-``process``'s options
+``--matcher``, ``--max-image-size``, ``--guided``, ``--overlap``, ``--retry``, ``--mapping``
+set ``process``'s options (``--mapping incremental global``: one run each, in turn)
 (default: its own). The lego scene is ``nerf_synthetic/lego`` of the data root
 (``--data-root``); the photos and ``process``'s outputs go under ``--work`` (default
 ``benchmarks/results/cache/colmap_poses``, kept: a second run reuses the photos).
@@ -222,6 +222,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="process's final bundle adjustment (default: process's off)")
     ap.add_argument("--guided", choices=("on", "off"), default=None)
     ap.add_argument("--matcher", default=None)
+    ap.add_argument("--mapping", nargs="+", default=None,
+                    choices=("incremental", "global"),
+                    help="process's mapper; several: one run of process each, in turn")
     ap.add_argument("--max-image-size", type=int, default=None)
     ap.add_argument("--overlap", type=int, default=None, help="sequential_overlap")
     ap.add_argument("--retry", choices=("on", "off"), default=None,
@@ -269,6 +272,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.retry:
         ours.retry = args.retry == "on"
     variants = [("process defaults", ours)]
+    if args.mapping:
+        from dataclasses import replace
+
+        variants = [(f"mapping {m}", replace(ours, mapping=m)) for m in args.mapping]
     if args.baseline:
         variants.append(("pycolmap defaults", SfmOptions(
             camera_model="SIMPLE_RADIAL", single_camera=False, guided_matching=False,

@@ -175,6 +175,15 @@ def test_matcher_choice_and_adaptive_chunks(monkeypatch):
     assert sizes == [4, 16, 20, 20, 20, 20] and done == sizes       # growth capped at 4x
 
 
+def test_mapping_option():
+    from plenoctree.errors import ConfigError
+    from plenoctree.process import sfm
+
+    assert sfm.SfmOptions().mapping == "incremental" and sfm.MAPPINGS == ("incremental", "global")
+    with pytest.raises(ConfigError, match="mapping must be one of"):
+        sfm.check_options(sfm.SfmOptions(mapping="auto"))
+
+
 def test_capture_order_from_thumbnails(tmp_path):
     from plenoctree.process.frames import in_capture_order
 
@@ -530,3 +539,33 @@ def test_final_bundle_adjustment_refines_the_principal_point_of_360_captures():
         cam.principal_point_x = 40.0               # the centre, where the mapper keeps it
         _global_ba(pycolmap, rec, refine)
         assert abs(next(iter(rec.cameras.values())).principal_point_x - want) < 0.05, refine
+
+
+FLOWER = LEGO.parent.parent / "real" / "flower"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (FLOWER / "poses_bounds.npy").is_file(), reason="flower not found")
+def test_global_mapping_of_photos_agrees_with_the_published_poses(tmp_path):
+    """``--mapping global`` on 12 of flower's photos (every pair matched): all registered,
+    within a degree of LLFF's published poses (the incremental mapper's figures on flower's 34:
+    docs/capture_records.md)."""
+    import shutil
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from colmap_poses import pose_errors, read_output, real_reference
+
+    from plenoctree.process import SfmOptions
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    names = sorted(p.name for p in (FLOWER / "images_8").iterdir())[::3][:12]
+    for n in names:
+        shutil.copy(FLOWER / "images_8" / n, photos / n)
+    s = process(ProcessConfig(images=str(photos), out=str(tmp_path / "data"),
+                              sfm=SfmOptions(mapping="global")))
+    assert s["n_registered"] == 12 and s["n_models"] == 1, s
+    c2w, got, _ = read_output(tmp_path / "data")
+    ref, _ = real_reference(FLOWER)
+    err = pose_errors(c2w, np.stack([ref[n] for n in got]))
+    assert err["outliers"] == 0 and err["rot_median_deg"] < 1.0, err
