@@ -7,7 +7,6 @@ against its torch twin; the twins against the CPU path's rays; a step on the CUD
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 import os
 from pathlib import Path
@@ -429,9 +428,14 @@ def test_numba_loop_steps_as_before(scene):
 
 def test_numba_fine_tuning_values_are_pinned(tmp_path):
     """A seeded numba fine-tuning run (one numba thread: the gradient slabs follow the thread
-    count) gives the values it gave before the device loop (digest taken at b959ca9, the
-    commit before it). A deliberate change of the numba kernels' numerics changes it: re-pin
-    it then and say why in the commit."""
+    count) gives the values it gave before the device loop (b959ca9, the commit before it), to
+    the rounding in which machines differ: the fine-tuning kernels' fast-math sums are
+    vectorised by the CPU's instruction set and by what numba's cache held when they were
+    compiled (an AMD EPYC and an AVX-512 Xeon, fresh or warm cache: values within 7.6e-6,
+    three different SHA-256 digests). Pinned are the non-zero count, the sum of |values| and
+    four fixed random projections (magnitudes 200-4,800; rounding moves them by ~2e-5, a
+    value wrong by 1e-3 moves them by that much). A deliberate change of the kernels'
+    numerics changes them: re-pin then and say why in the commit."""
     import numba
 
     from plenoctree.optim.finetuning import FinetuneConfig, finetune
@@ -452,10 +456,13 @@ def test_numba_fine_tuning_values_are_pinned(tmp_path):
             show_progress=False, verbose=False))
     finally:
         numba.set_num_threads(threads)
-    values = np.ascontiguousarray(load_tree(tmp_path / "ft.npz").data)
+    v = load_tree(tmp_path / "ft.npz").data.astype(np.float64).ravel()
     assert res.steps == 45 and res.best_epoch == 3
-    assert hashlib.sha256(values.tobytes()).hexdigest() == (
-        "29873fa728f0486ac52c25d159e3cd5d18ece71aa693f16d97903012fc6c845d")
+    w = np.random.default_rng(7).standard_normal((4, v.size))
+    assert int((v != 0).sum()) == 14836
+    np.testing.assert_allclose(np.abs(v).sum(), 42814.71766, rtol=0, atol=2e-3)
+    np.testing.assert_allclose(w @ v, [-234.936007, -4791.168428, -2055.04467, -3511.149099],
+                               rtol=0, atol=2e-3)
 
 
 def test_photos_too_large_for_the_device_train_on_host_batches(scene, monkeypatch):
