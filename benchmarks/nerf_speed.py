@@ -70,7 +70,7 @@ def bench_resume(run: str, data: str, steps: int, root: Path) -> dict:
         cfg, step0 = ck["config"], int(ck["step"])
         cfg.out, cfg.data = str(dst), data
         cfg.minutes, cfg.max_steps, cfg.val_views, cfg.log_every = 0.0, step0 + steps, 0, 5
-        cfg.ckpt_every_s, cfg.val_every_s = 1e9, 1e9
+        cfg.ckpt_every_s, cfg.val_every_s, cfg.preview_every_s = 0.0, 0.0, 0.0   # at the end only
         train(cfg, resume=True, quiet=True)
     except CheckpointError as e:
         raise SystemExit(f"nerf_speed.py --resume {run}: {e} (it needs a run that can resume: "
