@@ -233,6 +233,12 @@ def test_training_with_fixed_steps_learns_and_adapts_its_rays(data, tmp_path):
     assert all(r % 256 == 0 for r in rays) and len(rays) > 1      # adapted, in quanta
 
 
+def _add(fb: FixedBatch, n_rays: int, total: torch.Tensor, kept: torch.Tensor) -> None:
+    """A step's counts as the trainer adds them (device sums, host ray count)."""
+    fb.add_device(total, kept)
+    fb.count(n_rays)
+
+
 def test_fixed_batch_quantises_and_adapts():
     class State:
         n_rays, spr, spr_marched = 4096.0, 0.0, 0.0
@@ -240,20 +246,20 @@ def test_fixed_batch_quantises_and_adapts():
     fb = FixedBatch(1 << 14, 1 << 13, torch.device("cpu"))
     st = State()
     assert fb.rays(st.n_rays) == 4096 and fb.rays(100.0) == 256 and fb.rays(1e9) == 8192
-    fb.add(1000, torch.tensor(20000), torch.tensor([1000.0, 20000.0], dtype=torch.float64))
+    _add(fb, 1000, torch.tensor(20000), torch.tensor([1000.0, 20000.0], dtype=torch.float64))
     fb.adapt(st)
     assert st.spr == 20.0 and st.n_rays == (1 << 14) / 20.0 and fb.rays(st.n_rays) == 768
     assert fb.sums.sum() == 0
     # early termination (k = 8): 50 marched, 10 kept a ray; then the candidates bind
     fb, st = FixedBatch(1 << 14, 1 << 13, torch.device("cpu"), candidates=8), State()
-    fb.add(1000, torch.tensor(50000), torch.tensor([900.0, 9000.0], dtype=torch.float64))
+    _add(fb, 1000, torch.tensor(50000), torch.tensor([900.0, 9000.0], dtype=torch.float64))
     fb.adapt(st)
     assert (st.spr, st.spr_marched) == (10.0, 50.0) and st.n_rays == (1 << 14) / 10.0
-    fb.add(1000, torch.tensor(10**6), torch.tensor([900.0, 9000.0], dtype=torch.float64))
+    _add(fb, 1000, torch.tensor(10**6), torch.tensor([900.0, 9000.0], dtype=torch.float64))
     fb.adapt(st)
     assert st.spr_marched == pytest.approx(145.0)
     assert st.n_rays == pytest.approx(8 * (1 << 14) / 145.0)
     for _ in range(2):              # a window of two steps enters as two steps of the waves'
-        fb.add(1000, torch.tensor(245000), torch.tensor([900.0, 9000.0], dtype=torch.float64))
+        _add(fb, 1000, torch.tensor(245000), torch.tensor([900.0, 9000.0], dtype=torch.float64))
     fb.adapt(st)
     assert st.spr_marched == pytest.approx(0.81 * 145.0 + 0.19 * 245.0) and fb.steps == 0

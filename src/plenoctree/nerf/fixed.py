@@ -232,8 +232,9 @@ class FixedBatch:
     ``min(S / kept per ray, k S / marched per ray)``, rounded down to a multiple of
     :data:`RAY_QUANTUM` within ``[RAY_QUANTUM, max_rays]``.
 
-    Each step adds its rays, marched samples (all of them, also past the buffer) and
-    :func:`kept_figures` to device counters (:meth:`add`, no read-back); :meth:`adapt` reads
+    Each step adds its marched samples (all of them, also past the buffer) and
+    :func:`kept_figures` to device counters (:meth:`add_device`, no read-back) and its rays
+    to a host count (:meth:`count`); :meth:`adapt` reads
     them (one host round trip) and updates the trainer's state (``spr``: running mean of the
     kept samples per ray, ``spr_marched``: of the marched ones, ``n_rays``) as the waves path
     does every step, so a checkpoint keeps it: the waves' mean takes 0.1 of each step's figure,
@@ -253,18 +254,14 @@ class FixedBatch:
         top = max(RAY_QUANTUM, self.max_rays // RAY_QUANTUM * RAY_QUANTUM)
         return max(RAY_QUANTUM, min(int(n_rays) // RAY_QUANTUM * RAY_QUANTUM, top))
 
-    def add(self, n_rays: int, total: torch.Tensor, kept: torch.Tensor) -> None:
-        """Count a step of ``n_rays`` rays that marched ``total`` (device int64) samples and
-        kept ``kept`` (:func:`kept_figures`): :meth:`add_device` and :meth:`count`."""
-        self.add_device(total, kept)
-        self.count(n_rays)
-
     def add_device(self, total: torch.Tensor, kept: torch.Tensor) -> None:
-        """The device part of :meth:`add` (one add, no read-back; inside a captured step)."""
+        """Add a step's marched samples ``total`` (device int64, also those past the buffer)
+        and :func:`kept_figures` ``kept`` to the device counters (one add, no read-back; also
+        inside a captured step, :mod:`.graph`)."""
         self.sums += torch.cat([total.reshape(1), kept])
 
     def count(self, n_rays: int) -> None:
-        """The host part of :meth:`add`: a step of ``n_rays`` rays."""
+        """Count a step of ``n_rays`` rays on the host (outside a captured step)."""
         self.n_rays += n_rays
         self.steps += 1
 
