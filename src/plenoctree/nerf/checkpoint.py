@@ -42,7 +42,7 @@ from .model import NeRFModel
 
 __all__ = ["CheckpointError", "CHECKPOINT_NAME", "TrainProgress", "save_checkpoint",
            "read_checkpoint", "model_from_checkpoint", "NeRFRun", "load_run", "load_nerf",
-           "model_signature", "FORMAT", "FORMAT_VERSION"]
+           "model_signature", "FORMAT", "FORMAT_VERSION", "open_run_dir"]
 
 FORMAT = "plenoctree.nerf.checkpoint"
 FORMAT_VERSION = 1
@@ -216,3 +216,18 @@ def load_nerf(run_dir: str | os.PathLike, device: str | torch.device = "cpu") ->
     Its training configuration and step count: :func:`load_run`.
     """
     return load_run(run_dir, device).model
+
+
+def open_run_dir(out: str | os.PathLike, resume: bool) -> tuple[Path, dict | None]:
+    """The run folder ``out`` of a training: with ``resume`` its checkpoint (read, checked),
+    else created, refused (:class:`~plenoctree.errors.ConfigError`) when it already holds a
+    run. Returns ``(folder, checkpoint or None)``."""
+    out = Path(out)
+    ck_path = out / CHECKPOINT_NAME
+    if resume:
+        return out, read_checkpoint(ck_path)
+    if ck_path.exists():
+        raise ConfigError(f"{out}: already holds a training run ({CHECKPOINT_NAME}); pass "
+                          "--resume to continue it or choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    return out, None

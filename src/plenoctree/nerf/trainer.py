@@ -21,7 +21,6 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -34,7 +33,7 @@ from ..errors import ConfigError
 from ..octree.ndc import NDCSpace
 from ..runtime import ThreadTuner, resolve_amp, resolve_device, setup_threads
 from .checkpoint import CHECKPOINT_NAME, CheckpointError, TrainProgress, \
-    model_from_checkpoint, read_checkpoint, save_checkpoint
+    model_from_checkpoint, open_run_dir, save_checkpoint
 from .config import TrainConfig, config_json, validate
 from .encoding import HashGridEncoding
 from .far import resolve_far_levels, resolve_render_step
@@ -42,7 +41,7 @@ from .fixed import FixedBatch, candidate_factor, fixed_loss, render_fixed
 from .graph import StepGraphs, lr_tensor, make_capturable
 from .raygen import draw_uniforms, ray_batch
 from .preview import LiveView
-from .trainer_state import LogWindow, StepFigures, TrainerState
+from .trainer_state import LogWindow, StepFigures, TrainerState, TrainResult
 from .evaluate import evaluate_views
 from .model import NeRFModel, RadianceField
 from .renderer import ImageOptions, RayBatch, RenderMode, autocast, render_rays_hierarchical, \
@@ -54,31 +53,6 @@ from .training import (VAL_SHARE, RaySource, TrainingError, distortion_weight,
 
 # Runtime set-up (threads, malloc, device, AMP) is plenoctree.runtime's, not re-exported here.
 __all__ = ["TrainResult", "Trainer", "TrainerState", "train"]
-
-@dataclass
-class TrainResult:
-    """What :func:`train` returns."""
-
-    run_dir: Path
-    step: int
-    train_time_s: float
-    val_psnr: float
-    model: NeRFModel
-    log: dict = field(default_factory=dict)
-
-
-def _prepare_run_dir(cfg: TrainConfig, resume: bool):
-    out = Path(cfg.out)
-    ck_path = out / CHECKPOINT_NAME
-    if resume:
-        ck = read_checkpoint(ck_path)
-        return out, ck
-    if ck_path.exists():
-        raise ConfigError(f"{out}: already holds a training run ({CHECKPOINT_NAME}); pass "
-                          "--resume to continue it or choose another --out")
-    out.mkdir(parents=True, exist_ok=True)
-    return out, None
-
 
 def train(cfg: TrainConfig, resume: bool = False,
           on_step: Callable[[int], None] | None = None, quiet: bool | None = None
@@ -197,10 +171,10 @@ class Trainer:
         """Rank 0 checks / creates the run folder first; returns the checkpoint to resume."""
         dctx = self.dctx
         if dctx.is_main:
-            self.out, ck = _prepare_run_dir(self.cfg, self.resume)
+            self.out, ck = open_run_dir(self.cfg.out, self.resume)
         dctx.barrier()
         if not dctx.is_main:
-            self.out, ck = _prepare_run_dir(self.cfg, True) if self.resume else \
+            self.out, ck = open_run_dir(self.cfg.out, True) if self.resume else \
                 (Path(self.cfg.out), None)
         return ck
 

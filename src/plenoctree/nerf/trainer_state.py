@@ -4,6 +4,8 @@ keeps of a run besides its weights (:class:`TrainerState`) and what one step mea
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -71,3 +73,16 @@ class StepFigures:
     rays: int          # rays whose colour entered the loss
     samples: int       # network evaluations of the rendering
     occupancy_s: float  # seconds spent updating the occupancy grid
+
+
+@dataclass
+class TrainResult:
+    """What :func:`~.trainer.train` returns (``model``: the trained
+    :class:`~.model.NeRFModel`)."""
+
+    run_dir: Path
+    step: int
+    train_time_s: float
+    val_psnr: float
+    model: Any
+    log: dict = field(default_factory=dict)
