@@ -4,8 +4,8 @@ every rotation, then every position, then one bundle adjustment).
 
 Measured (``benchmarks/colmap_poses.py --mapping incremental global``, docs/capture_records.md
 "Global mapping"): on photo sets matched in every pair, global mapping took a third to a half
-of the incremental mapper's time with poses as good (flower's 34 photos 48 → 23-27 s, 0.45° →
-0.36-0.37° median rotation error in 4 of 4 runs; lego's 100 photos 29 → 10 s, 0.13° → 0.19°);
+of the incremental mapper's time with poses as good (flower's 34 photos 46 → 20 s, 0.44° →
+0.27° median rotation error, right in 5 of 5 runs; lego's 100 photos 29 → 10 s, 0.13° → 0.19°);
 on video frames it misplaced the cameras: lego's video, every one of 56 frames (19° median),
 and fox's frames in 3 of 5 runs (rotations right, positions flattened: 39 % centre error with a
 reprojection error as low as a right model's, so nothing in the model tells). Hence not the
