@@ -401,19 +401,21 @@ class Trainer:
         loss.backward()
         dctx.average_gradients(self.model.parameters())
         self.opt.step()
-        if self.step % 100 == 99:
-            flush_tiny_moments(self.opt)
-        if self.fixed is not None:
-            self._adapt_fixed()
-        elif self.occ:
+        self._after_step()
+        if self.fixed is None and self.occ:
             st = self.state
             spr = max(n_samples, 1) / max(used, 1)
             st.spr = spr if st.spr == 0 else 0.9 * st.spr + 0.1 * spr
             st.n_rays = float(min(cfg.max_rays, max(256, round(cfg.target_samples / st.spr))))
         return StepFigures(lr, loss_v, mse_v, used, n_samples, t_occ)
 
-    def _adapt_fixed(self) -> None:
-        if self.step % self.cfg.occ_update_every == self.cfg.occ_update_every - 1:
+    def _after_step(self) -> None:
+        """After the optimiser step, both paths: the moments' flush every 100 steps and, for
+        fixed-shape steps, the ray count's adaptation every ``occ_update_every``."""
+        if self.step % 100 == 99:
+            flush_tiny_moments(self.opt)
+        every = self.cfg.occ_update_every
+        if self.fixed is not None and self.step % every == every - 1:
             self.fixed.adapt(self.state)
 
     def _graph_step(self, lr: float, t_occ: float) -> StepFigures:
@@ -422,9 +424,7 @@ class Trainer:
         n_rays = self.fixed.rays(self.state.n_rays)
         both, n_samples = self.graphs.step(n_rays)
         self.fixed.count(n_rays)
-        if self.step % 100 == 99:
-            flush_tiny_moments(self.opt)
-        self._adapt_fixed()
+        self._after_step()
         return StepFigures(lr, both[0], both[1], n_rays, n_samples, t_occ)
 
     # ------------------------------------------------------------- around the step
