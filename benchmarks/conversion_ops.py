@@ -28,9 +28,10 @@ from _bench import add_data_root, add_out, data_path, machine_info, markdown_tab
 
 
 @contextmanager
-def _device_path():
-    """The device path on CPU tensors, drawing the host path's numpy uniforms (the same
-    points, so the two paths' averages can be compared)."""
+def device_path_on_cpu():
+    """Inside: NeRF fields take the device path (``convert/device_sampling.py``) on CPU
+    tensors, drawing the host path's numpy uniforms (the same points, so the two paths'
+    results can be compared; also ``tests/test_device_sampling.py``'s switch)."""
     import torch
 
     from plenoctree.convert import device_sampling as ds
@@ -93,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, (fn, per) in tasks.items():
         res = {}
         for path in ("host", "device"):
-            with _device_path() if path == "device" else nullcontext(), \
+            with device_path_on_cpu() if path == "device" else nullcontext(), \
                     step_ops.backends_of("cuda"):
                 with rec.region() as c:
                     res[path] = fn()

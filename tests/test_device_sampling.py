@@ -26,28 +26,19 @@ from plenoctree.nerf import ModelConfig, NeRFModel
 from plenoctree.octree import Octree
 
 BBOX = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
-_from_numpy = torch.from_numpy          # the stand-in's draws: not an upload the path makes
-
-
-class _HostDraws:
-    """The device path's generator, drawing the host path's numpy uniforms."""
-
-    device = torch.device("cpu")
-
-    def __init__(self, seed: int):
-        self.rng = np.random.default_rng(seed)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 
 @pytest.fixture
-def on_device(monkeypatch):
-    """Send NeRF fields down the device path on CPU tensors, with the host's draws."""
-    def enable():
-        monkeypatch.setattr(ds, "sampling_device", lambda f: torch.device("cpu")
-                            if hasattr(f, "query_torch") else None)
-        monkeypatch.setattr(ds, "make_rng", lambda f, seed: _HostDraws(seed))
-        monkeypatch.setattr(ds, "uniforms", lambda g, m, s: _from_numpy(
-            g.rng.random((m, s, 3))))
-    return enable
+def on_device():
+    """``enable()`` sends NeRF fields down the device path on CPU tensors, with the host's
+    numpy draws (``benchmarks/conversion_ops.device_path_on_cpu``), until the test ends."""
+    from contextlib import ExitStack
+
+    from conversion_ops import device_path_on_cpu
+
+    with ExitStack() as stack:
+        yield lambda: stack.enter_context(device_path_on_cpu())
 
 
 def _field(seed: int = 0) -> NeRFField:
@@ -126,7 +117,6 @@ def test_refinement_on_the_device_equals_the_host(on_device):
 def test_a_device_block_reads_back_one_row_per_cell(on_device):
     """Counted as benchmarks/step_ops.py counts: per block one upload (the cells) and one
     read-back of ``M`` rows, against the host path's points up and every sample down."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     import step_ops
 
     f = _field()

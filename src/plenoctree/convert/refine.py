@@ -68,10 +68,10 @@ def _box_stats(field_: Any, lo: np.ndarray, size: np.ndarray, tree: Any, samples
     """Average field value ``[M, D]`` (σ ≥ 0 last; ``averaging`` as in
     :func:`~plenoctree.convert.sampling.average_samples`) and spread ``[M]`` of ``samples``
     uniform random points in each world box ``lo [M, 3] + [0, size [M, 3]]``; ``tree`` gives
-    the value layout (``data_format``, ``basis_dim``, ``data_dim``). ``rng``
-    (:func:`~.device_sampling.make_rng`): numpy's on the host, a torch generator where the
-    field is sampled on its device (:mod:`.device_sampling`)."""
-    if not isinstance(rng, np.random.Generator):
+    the value layout (``data_format``, ``basis_dim``, ``data_dim``). On the field's device
+    where :func:`~.device_sampling.sampling_device` says so, with ``rng`` from
+    :func:`~.device_sampling.make_rng` (numpy's on the host, a torch generator there)."""
+    if device_sampling.sampling_device(field_) is not None:
         return device_sampling.box_stats_device(field_, lo, size, samples, rng, tree, averaging)
     fmt, basis_dim, dim = tree.data_format, tree.basis_dim, tree.data_dim
     m = lo.shape[0]
