@@ -72,11 +72,12 @@ def average_samples_torch(vals: Any, h: Any, averaging: str = "mean") -> Any:
         out = vals.mean(dim=1)
     else:
         m = vals.shape[0]
-        h = torch.as_tensor(h, dtype=torch.float64, device=vals.device).expand(m)[:, None]
+        # a tensor side per voxel, or one float for all (no upload)
+        h = h.double()[:, None] if isinstance(h, torch.Tensor) else float(h)
         sig = vals[..., -1].double().clamp(min=0.0)
         alpha = -torch.expm1(-sig * h)                                   # [M, S]
         a_mean = alpha.mean(dim=1)
-        s_op = -torch.log1p(-a_mean.clamp(max=1.0)) / h[:, 0]
+        s_op = (-torch.log1p(-a_mean.clamp(max=1.0))[:, None] / h)[:, 0]
         out = torch.empty((m, vals.shape[2]), dtype=torch.float32, device=vals.device)
         out[:, -1] = torch.where(torch.isfinite(s_op), torch.minimum(s_op, sig.mean(dim=1)),
                                  sig.amax(dim=1)).float()
