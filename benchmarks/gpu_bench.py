@@ -179,7 +179,10 @@ def bench_train(data_root: str, dev: torch.device, steps: int, scratch: Path,
     t0 = time.perf_counter()
     res = train(cfg, quiet=True)
     rows = res.log["train"][1:] or res.log["train"]      # the first window holds compilation
-    return {"steps": res.step, "wall_s": time.perf_counter() - t0,
+    import json
+
+    graphs = json.loads((out / "summary.json").read_text()).get("cuda_graphs")
+    return {"steps": res.step, "wall_s": time.perf_counter() - t0, "cuda_graphs": graphs,
             "samples_per_s": float(np.mean([r["samples_per_s"] for r in rows])),
             "rays_per_s": float(np.mean([r["rays_per_s"] for r in rows]))}
 

@@ -54,6 +54,21 @@ def test_the_graph_ready_step_trains_bit_for_bit_as_the_fixed_step(data, tmp_pat
     assert plain.state.win.loss == ready.state.win.loss
 
 
+def test_a_run_reports_its_graphs_in_its_summary(data, tmp_path):
+    """``summary.json`` says how many graphs were captured and replayed (none without CUDA,
+    where the step runs eagerly), so a GPU run's figures can be read with them."""
+    import json
+
+    from plenoctree.nerf import train
+
+    for graph in (False, True):
+        cfg = tiny_cpu_config(data, tmp_path / str(graph), steps=6)
+        cfg.fixed_step, cfg.cuda_graph, cfg.val_views = True, graph, 0
+        train(cfg, quiet=True)
+        got = json.loads((tmp_path / str(graph) / "summary.json").read_text())["cuda_graphs"]
+        assert got == ({"captures": 0, "replays": 0} if graph else None), got
+
+
 def _record_step(tr, bar) -> list:
     """The ops of one iteration (with ``cuda_graph``: of the body a graph captures): name,
     and per argument its shape and dtype (tensors; with the address for tensors made before

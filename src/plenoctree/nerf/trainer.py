@@ -577,7 +577,9 @@ class Trainer:
                    "mean_samples_per_s": _mean(log.train, "samples_per_s"),
                    "device": str(self.device), "amp": self.amp,
                    "threads": torch.get_num_threads(), "world_size": dctx.world,
-                   "preview_s": None if self.live is None else round(self.live.seconds, 3)}
+                   "preview_s": None if self.live is None else round(self.live.seconds, 3),
+                   "cuda_graphs": None if self.graphs is None else
+                   {"captures": self.graphs.captures, "replays": self.graphs.replays}}
         if dctx.is_main:
             atomic_save_json(self.out / "summary.json", summary)
         dctx.barrier()
