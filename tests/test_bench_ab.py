@@ -169,3 +169,38 @@ def test_capture_chain_tabulates_finished_chains(monkeypatch, tmp_path, capsys):
                                       tmp_path / "o", ["--train.minutes", "15"])
     assert cmd[3:5] == ["run", "--images"] and cmd[5].endswith("fox/images")
     assert cmd[-2:] == ["--train.minutes", "15"]
+
+
+def test_frontier_tabulates_a_finished_budget_and_plots_the_points(monkeypatch, tmp_path,
+                                                                   capsys):
+    """frontier.py: a budget whose folder holds its measurement is not run again; its row
+    takes the PSNR per stage, leaves and times from the run's summary, the first preview and
+    the gaps from the polled previews; the plot draws the measured and the earlier points."""
+    monkeypatch.syspath_prepend(str(_BENCH))
+    import frontier
+
+    run = tmp_path / "work" / "5"
+    run.mkdir(parents=True)
+    (run / "frontier.json").write_text(json.dumps({
+        "wall_s": 1200.0, "returncode": 0, "command": "plenoctree run …", "load_before": [0.5],
+        "previews": [{"s": 38.0, "tree": "nerf/preview.npz"},
+                     {"s": 191.0, "tree": "nerf/preview.npz"},
+                     {"s": 373.0, "tree": "tree.npz"}, {"s": 993.0, "tree": "tree_ft.npz"}]}))
+    stages = {"NeRF-SH": 29.76, "PlenOctree": 28.75, "PlenOctree refined": 29.34,
+              "PlenOctree fine-tuned": 31.25, "compressed": 31.24}
+    (run / "summary.json").write_text(json.dumps({
+        "rows": [{"stage": k, "psnr": v, "views": 200, "leaves": 7_010_000} for k, v in
+                 stages.items()], "times_s": {"train": 313.0, "finetune": 552.0},
+        "total_s": 1190.0}))
+    monkeypatch.setattr(frontier, "watch", None)                # no chain may run
+    out, png = tmp_path / "f.json", tmp_path / "f.png"
+    assert frontier.main(["--scene", "lego", "--budgets", "5", "--work", str(tmp_path / "work"),
+                          "--data-root", str(tmp_path), "--out", str(out), "--plot", str(png),
+                          "--plot-from", str(out),
+                          str(_BENCH / "frontier_points" / "earlier.json")]) == 0
+    row = json.loads(out.read_text())["rows"][0]
+    assert (row["compressed"], row["finetuned"], row["leaves"]) == (31.24, 31.25, 7_010_000)
+    assert row["wall_min"] == 20.0 and row["first_preview_s"] == 38.0 and row["scene"] == "lego"
+    assert frontier.gaps(row["previews"]) == "38 s, then 153 s (training); trees at 373, 993 s"
+    assert "31.24" in capsys.readouterr().out
+    assert png.is_file() and png.read_bytes()[:4] == b"\x89PNG"
