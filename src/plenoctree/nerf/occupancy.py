@@ -70,7 +70,7 @@ class OccupancyGrid(nn.Module):
 
     @torch.no_grad()
     def update(self, density_fn: Callable[[torch.Tensor], torch.Tensor], threshold: float,
-               decay: float = 0.95, all_cells: bool = False, fraction: float = 1 / 16,
+               decay: float, all_cells: bool = False, fraction: float = 1 / 16,
                generator: torch.Generator | None = None, chunk: int = 1 << 17,
                sync_free: bool = False) -> None:
         """Re-evaluate cells and refresh the mask.
@@ -78,7 +78,8 @@ class OccupancyGrid(nn.Module):
         Args:
             density_fn: world points ``[N, 3]`` -> σ ``[N]``.
             threshold: density above which a cell counts as occupied (1/world-length).
-            decay: multiplier applied to every cell's running density first.
+            decay: multiplier applied to every cell's running density first (the trainer's
+                ``TrainConfig.occ_decay``).
             all_cells: evaluate every cell (warm-up); otherwise ``fraction`` of the cells drawn
                 uniformly plus as many drawn from the occupied ones.
             generator: source of the random cells and points.
