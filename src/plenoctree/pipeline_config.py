@@ -69,12 +69,13 @@ def working_downscale(width: int, height: int, forward: bool, gpu: bool,
                 max(d for d in range(1, factor) if width % d == 0 and height % d == 0))
 
 
-QUICK_MINUTES = 10.0
-"""NeRF-SH budget of the ``quick`` preset: the 10-minute point of the time-quality frontier
-measured on flower's photos (docs/capture_records.md "Time against quality"): 28.89 dB
-compressed in 17.1 minutes of ``run --images`` against 29.70 in 36.6 at the 30-minute default;
-5 minutes gave a foggier NeRF-SH whose 2.5x the leaves made the whole chain no shorter
-(27.21 dB, 17.8 min), and 3 minutes with a 128³ grid 21.85 dB."""
+QUICK_MINUTES = 5.0
+"""NeRF-SH budget of the ``quick`` preset, from the time-quality frontier measured on flower's
+photos (docs/capture_records.md "Time against quality"): since the occupancy grid's decay of
+0.8 (2026-12-07) a 5-minute NeRF-SH is no longer fog, and ``run --images`` with it reaches
+28.57 dB compressed in 10.9 minutes (the 10-minute budget: 29.04 dB in 16.1; the default 30
+minutes: 29.70 in 36.6 before the change). Before it, 5 minutes made a foggy NeRF-SH whose
+2.5x the leaves made the chain no shorter than at 10 (27.21 dB, 17.8 min)."""
 
 
 def train_preset(name: str) -> TrainConfig:
@@ -200,8 +201,8 @@ def _preset_paper() -> PipelineConfig:
 
 
 def _preset_quick() -> PipelineConfig:
-    # the stages after training as the defaults (256³, 12 epochs: the frontier's 10-minute
-    # point was measured with them); fewer views scored, no video
+    # the stages after training as the defaults (256³, 12 epochs: the frontier's 5-minute
+    # point was measured with them; 6 epochs lost 0.26 dB there); fewer views scored, no video
     return PipelineConfig(train=train_preset("quick"), nerf_eval_views=1, eval_views=5,
                           video_frames=0)
 
@@ -215,7 +216,7 @@ PRESETS: dict[str, Callable[[], PipelineConfig]] = {
 """``plenoctree run --preset NAME``: ``cpu`` (the defaults: cpu NeRF-SH preset for 30 minutes,
 256³), ``gpu`` (the gpu NeRF-SH preset: fixed-shape steps of 2^18 samples, 20,000 steps, then
 the cpu pipeline's stages), ``paper`` (the paper's NeRF-SH, 512³, 256 samples per voxel; for
-GPUs), ``quick`` (a 10-minute NeRF-SH, 5 test views scored, no video: about 17 minutes end to
+GPUs), ``quick`` (a 5-minute NeRF-SH, 5 test views scored, no video: about 11 minutes end to
 end on 2 cores)."""
 
 
