@@ -177,14 +177,15 @@ def _clearing_fog(decay: float, limit: int = 150) -> tuple[int, bool]:
 def test_the_default_decay_lets_the_grid_follow_a_clearing_fog():
     """A NeRF-SH's early fog clears long before a grid at instant-ngp's decay (0.95) lets go
     of it, and its rays keep sampling the empty space (flower's photos: 3.3 k rays/s instead
-    of 12.5 k at step 800). At the default (``TrainConfig.occ_decay``) a cleared fog leaves
-    the grid within 25 updates (400 steps at the default cadence), at 0.95 after over 70; the
-    solid core inside stays occupied."""
+    of 12.5 k at step 800). At the default decay after the warm-up (``TrainConfig.occ_decay``)
+    a cleared fog leaves the grid within 25 updates (400 steps at the default cadence), at
+    0.95 after over 70; the solid core inside stays occupied."""
     from plenoctree.nerf.config import TrainConfig
+    from plenoctree.nerf.occupancy import WARMUP_DECAY
 
     n, core_kept = _clearing_fog(TrainConfig().occ_decay)
     assert n <= 25 and core_kept
-    n, core_kept = _clearing_fog(0.95)
+    n, core_kept = _clearing_fog(WARMUP_DECAY)
     assert n > 70 and core_kept
 
 

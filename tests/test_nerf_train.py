@@ -302,3 +302,23 @@ def test_large_validation_views_are_scored_on_every_kth_row(data, tmp_path, monk
     train(tiny_cpu_config(data, tmp_path / "all", steps=2))
     row = list(csv.DictReader(open(tmp_path / "all" / "val.csv")))[-1]
     assert math.isfinite(float(row["ssim"]))
+
+
+def test_the_warm_up_decays_as_instant_ngp_then_the_configured_decay(data, tmp_path,
+                                                                     monkeypatch):
+    """Every update of the warm-up (all cells re-evaluated) decays by 0.95, so the grid keeps
+    what the young network has not learned yet; the later ones by ``occ_decay``."""
+    from plenoctree.nerf.occupancy import WARMUP_DECAY, OccupancyGrid
+
+    seen = []
+    real = OccupancyGrid.update
+
+    def spy(self, density_fn, threshold, decay, all_cells=False, **kw):
+        seen.append((all_cells, decay))
+        return real(self, density_fn, threshold, decay, all_cells=all_cells, **kw)
+
+    monkeypatch.setattr(OccupancyGrid, "update", spy)
+    cfg = tiny_cpu_config(data, tmp_path / "run", steps=28)       # warm-up 16, every 4 steps
+    cfg.occ_decay, cfg.val_views = 0.5, 0
+    train(cfg, quiet=True)
+    assert seen == [(True, WARMUP_DECAY)] * 3 + [(False, 0.5)] * 3, seen      # steps 4..24

@@ -27,7 +27,7 @@ __all__ = ["DemoConfig", "run_demo"]
 logger = logging.getLogger(__name__)
 
 #: The demo's NeRF-SH budget: the procedural scene reaches ~35 dB in it (``run --preset
-#: quick``, 5 minutes, is for real captures).
+#: quick``, 10 minutes, is for real captures).
 DEMO_MINUTES = 3.0
 
 

@@ -61,7 +61,7 @@ def register(sub) -> None:
                        description="Train a NeRF-SH. Presets: 'cpu' (hash grid + occupancy "
                        "grid, most quality per minute on a few cores), 'paper' (the "
                        "paper's 8x256 NeRF-SH, 64+128 samples; for GPUs) and 'quick' (cpu for "
-                       "5 minutes), as `plenoctree run --preset`. A killed run continues from "
+                       "10 minutes), as `plenoctree run --preset`. A killed run continues from "
                        "its last checkpoint with --resume. Every option below is a "
                        "TrainConfig/ModelConfig field; defaults shown are the cpu preset's.")
     p.add_argument("--out", required=True, help="run directory (checkpoint, logs, curve.png)")

@@ -139,12 +139,14 @@ class TrainConfig:
     occ_threshold: float = 0.01
     """Occupancy sampler: a cell is occupied when one step through it has opacity above this."""
     occ_decay: float = 0.8
-    """Occupancy sampler: decay of the cells' running density at each update. 0.8, not
-    instant-ngp's 0.95: a cell is re-drawn at only some updates (1/16 of the cells uniformly,
-    as many from the occupied ones), and at 0.95 the grid held on to the early fog for
-    hundreds of steps, so rays kept sampling empty space (flower's photos at step 800: 3.3 k
-    rays/s against 12.5 k). At equal steps and equal time 0.8 gave +1.1 dB on flower and
-    +0.4 dB on lego 400² (docs/capture_records.md, "The occupancy grid's decay")."""
+    """Occupancy sampler: decay of the cells' running density at each update after the
+    warm-up (during it: instant-ngp's 0.95, :data:`.occupancy.WARMUP_DECAY`). Not 0.95 after
+    it too: a cleared cell then stays in the grid for ~90 updates (from 100x the threshold),
+    ~1,400 steps, most of a CPU budget, and rays keep sampling the early fog (flower's photos at
+    step 800: 3.3 k rays/s against 12.5 k). At equal steps and time: flower +0.8 dB, fox
+    +0.1 dB; 0.8 from the first update gained more on flower but lost 0.55 dB on fox and
+    opacity on a small forward-facing scene: the grid dropped regions the young network had
+    not learned yet (docs/capture_records.md "The occupancy grid's decay")."""
     train_stop_thresh: float = 1e-4
     """Early ray termination in training: samples behind transmittance below this are not
     trained (0 = keep every sample)."""

@@ -15,7 +15,12 @@ import numpy as np
 import torch
 from torch import nn
 
-__all__ = ["OccupancyGrid"]
+__all__ = ["OccupancyGrid", "WARMUP_DECAY"]
+
+#: Decay of the running densities at the warm-up's updates (every cell re-evaluated;
+#: instant-ngp's decay): the grid keeps the regions the young network has not learned yet.
+#: After the warm-up the trainer decays by ``TrainConfig.occ_decay`` (0.8).
+WARMUP_DECAY = 0.95
 
 
 class OccupancyGrid(nn.Module):

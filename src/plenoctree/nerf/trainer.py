@@ -37,6 +37,7 @@ from .checkpoint import CHECKPOINT_NAME, CheckpointError, TrainProgress, \
 from .config import TrainConfig, config_json, validate
 from .encoding import HashGridEncoding
 from .far import resolve_far_levels, resolve_render_step
+from .occupancy import WARMUP_DECAY
 from .fixed import FixedBatch, candidate_factor, fixed_loss, render_fixed
 from .graph import StepGraphs, lr_tensor, make_capturable
 from .raygen import draw_uniforms, ray_batch
@@ -262,8 +263,9 @@ class Trainer:
         t = time.perf_counter()
         if self.occ and self.step > 0 and self.step % cfg.occ_update_every == 0:
             with autocast(self.device, self.amp):
-                model.occupancy.update(model.fine.density, self.occ_thresh, cfg.occ_decay,
-                                       all_cells=self.step < cfg.occ_warmup_steps,
+                warm = self.step < cfg.occ_warmup_steps
+                model.occupancy.update(model.fine.density, self.occ_thresh,
+                                       WARMUP_DECAY if warm else cfg.occ_decay, all_cells=warm,
                                        generator=self.gen, sync_free=self.fixed is not None)
             if self.dctx.active:     # identical on every rank already; keep it bit-identical
                 self.dctx.broadcast_module(model.occupancy)
