@@ -74,8 +74,8 @@ QUICK_MINUTES = 10.0
 measured on flower's photos (docs/capture_records.md "Time against quality"): 28.89 dB
 compressed in 17.1 minutes of ``run --images`` against 29.70 in 36.6 at the 30-minute default
 (before the occupancy grid's faster decay, 2026-12-07). With that decay a 5-minute NeRF-SH is
-no longer fog on flower (28.57 dB in 10.9 minutes, with the decay from the first update), but
-lego's 5-minute point was measured only before it (31.24 dB against 32.26 at 10 minutes in
+no longer fog on flower (28.90 dB in 10.2 minutes; 27.21 in 17.8 before), but lego's 5-minute
+point was measured only before it (31.24 dB against 32.26 at 10 minutes in
 the same wall time), so the preset stays at 10."""
 
 

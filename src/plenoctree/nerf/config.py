@@ -143,8 +143,8 @@ class TrainConfig:
     warm-up (during it: instant-ngp's 0.95, :data:`.occupancy.WARMUP_DECAY`). Not 0.95 after
     it too: a cleared cell then stays in the grid for ~90 updates (from 100x the threshold),
     ~1,400 steps, most of a CPU budget, and rays keep sampling the early fog (flower's photos at
-    step 800: 3.3 k rays/s against 12.5 k). At equal steps and time: flower +0.8 dB, fox
-    +0.1 dB; 0.8 from the first update gained more on flower but lost 0.55 dB on fox and
+    step 800: 3.3 k rays/s against 12.5 k). At equal steps and time: flower +0.9 dB (1,200
+    steps), lego 400² +0.3 dB, fox +0.1 dB; 0.8 from the first update gained more on flower but lost 0.55 dB on fox and
     opacity on a small forward-facing scene: the grid dropped regions the young network had
     not learned yet (docs/capture_records.md "The occupancy grid's decay")."""
     train_stop_thresh: float = 1e-4

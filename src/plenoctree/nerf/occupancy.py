@@ -83,8 +83,8 @@ class OccupancyGrid(nn.Module):
         Args:
             density_fn: world points ``[N, 3]`` -> σ ``[N]``.
             threshold: density above which a cell counts as occupied (1/world-length).
-            decay: multiplier applied to every cell's running density first (the trainer's
-                ``TrainConfig.occ_decay``).
+            decay: multiplier applied to every cell's running density first (the trainer's:
+                :data:`WARMUP_DECAY` in the warm-up, ``TrainConfig.occ_decay`` after it).
             all_cells: evaluate every cell (warm-up); otherwise ``fraction`` of the cells drawn
                 uniformly plus as many drawn from the occupied ones.
             generator: source of the random cells and points.

@@ -37,9 +37,9 @@ from .checkpoint import CHECKPOINT_NAME, CheckpointError, TrainProgress, \
 from .config import TrainConfig, config_json, validate
 from .encoding import HashGridEncoding
 from .far import resolve_far_levels, resolve_render_step
-from .occupancy import WARMUP_DECAY
 from .fixed import FixedBatch, candidate_factor, fixed_loss, render_fixed
 from .graph import StepGraphs, lr_tensor, make_capturable
+from .occupancy import WARMUP_DECAY
 from .raygen import draw_uniforms, ray_batch
 from .preview import LiveView
 from .trainer_state import LogWindow, StepFigures, TrainerState, TrainResult
