@@ -217,7 +217,7 @@ PRESETS: dict[str, Callable[[], PipelineConfig]] = {
 """``plenoctree run --preset NAME``: ``cpu`` (the defaults: cpu NeRF-SH preset for 30 minutes,
 256³), ``gpu`` (the gpu NeRF-SH preset: fixed-shape steps of 2^18 samples, 20,000 steps, then
 the cpu pipeline's stages), ``paper`` (the paper's NeRF-SH, 512³, 256 samples per voxel; for
-GPUs), ``quick`` (a 10-minute NeRF-SH, 5 test views scored, no video: about 16 minutes end to
+GPUs), ``quick`` (a 10-minute NeRF-SH, 5 test views scored, no video: about 14 minutes end to
 end on 2 cores)."""
 
 

@@ -83,7 +83,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", dest="run_preset", choices=sorted(PRESETS), default=None,
                    help="settings to start from: cpu (default), paper (the paper's NeRF-SH "
                         "and 512^3; for GPUs), gpu (fixed-shape steps) or quick (a 10-minute "
-                        "NeRF-SH, ~16 minutes end to end on 2 cores)")
+                        "NeRF-SH, ~14 minutes end to end on 2 cores)")
     add_config_file(p)
     p.add_argument("--print-config", action="store_true",
                    help="print the resolved configuration as JSON and exit")
