@@ -34,11 +34,12 @@ def tiny_cpu_config(data: Path, out: Path, steps: int = 10) -> TrainConfig:
     m.grid_levels, m.grid_base_res, m.grid_max_res, m.grid_log2_table = 6, 8, 96, 12
     m.net_width = 32
     cfg.occ_res, cfg.render_step = 32, 0.03
+    real_every = cfg.occ_update_every
     cfg.occ_warmup_steps, cfg.occ_update_every = 16, 4
-    # the preset's decay per step at this 4x faster cadence (0.8 an update every 16 steps is
+    # the preset's decay per step at this faster cadence (0.8 an update every 16 steps is
     # 0.946 every 4; 0.8 every 4 steps forgets 4x faster than a real run, and on
     # test_ndc_chain's scene the photos' opacity fell from 0.935 to 0.898)
-    cfg.occ_decay = cfg.occ_decay ** (cfg.occ_update_every / 16)
+    cfg.occ_decay = cfg.occ_decay ** (cfg.occ_update_every / real_every)
     cfg.batch_rays, cfg.max_rays, cfg.target_samples = 256, 1024, 1 << 13
     cfg.sparsity_points = 512
     cfg.max_steps, cfg.log_every = steps, 5
