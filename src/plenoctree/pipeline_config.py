@@ -75,8 +75,8 @@ measured on flower's photos (docs/capture_records.md "Time against quality"): 28
 compressed in 17.1 minutes of ``run --images`` against 29.70 in 36.6 at the 30-minute default
 (before the occupancy grid's faster decay, 2026-12-07). With that decay a 5-minute NeRF-SH is
 no longer fog on flower (28.90 dB in 10.2 minutes; 27.21 in 17.8 before), but lego's 5-minute
-point was measured only before it (31.24 dB against 32.26 at 10 minutes in
-the same wall time), so the preset stays at 10."""
+point with it stays under its old 10-minute one (31.52 dB on 200 views in 15.6 minutes against
+32.26 on 5), so the preset stays at 10."""
 
 
 def train_preset(name: str) -> TrainConfig:
