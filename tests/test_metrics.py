@@ -69,6 +69,21 @@ def test_ssim_matches_direct_reference():
                                                       abs=1e-10)
 
 
+def test_ssim_matches_the_direct_reference_without_scipy_too(monkeypatch):
+    """The blur has two paths: scipy's ``correlate1d`` (installed here) and plain numpy
+    (without scipy); both give the direct reference's SSIM and the same blur."""
+    rng = np.random.default_rng(3)
+    z = rng.random((2, 3, 23, 17))
+    for k in (11, 4, 7):
+        filt = metrics._gaussian_window(k, 1.5)
+        np.testing.assert_allclose(metrics._blur_valid(z, filt),
+                                   metrics._blur_valid_numpy(z, filt), rtol=0, atol=1e-14)
+    x = rng.random((16, 19, 3))
+    y = np.clip(x + 0.2 * rng.normal(size=x.shape), 0, 1)
+    monkeypatch.setitem(sys.modules, "scipy", None)          # import scipy raises ImportError
+    assert ssim(x, y) == pytest.approx(_ssim_direct(x, y), abs=1e-10)
+
+
 def test_ssim_identity_and_monotone_in_noise():
     rng = np.random.default_rng(2)
     img = rng.random((32, 32, 3))

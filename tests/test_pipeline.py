@@ -112,6 +112,27 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path, logs, 
         run_pipeline(_tiny_cfg(scene, tmp_path / "x", nerf=str(tmp_path)))
 
 
+def test_the_trees_are_scored_on_one_load_of_the_test_split(scene, tmp_path, monkeypatch):
+    """The four scoring stages decode the test split once, and score as a fresh load does."""
+    from plenoctree import evaluation
+
+    loads: list[str] = []
+    real = evaluation.eval_dataset
+    monkeypatch.setattr(evaluation, "eval_dataset",
+                        lambda cfg: loads.append(str(cfg.tree)) or real(cfg))
+    out = tmp_path / "run"
+    run_pipeline(_tiny_cfg(scene, out, video_frames=0, web=False))
+    assert len(loads) == 1 and loads[0].endswith("tree.npz")
+    for key, tree in (("raw", "tree.npz"), ("compressed", "tree_ft.plnz")):
+        saved = json.loads((out / f"eval_{key}" / "eval.json").read_text())
+        fresh = evaluation.eval_tree_file(evaluation.EvalConfig(
+            tree=out / tree, data=scene, out=tmp_path / f"again_{key}"))
+        assert fresh["mean"]["psnr"] == pytest.approx(saved["mean"]["psnr"], abs=1e-9)
+        assert fresh["mean"]["ssim"] == pytest.approx(saved["mean"]["ssim"], abs=1e-12)
+        assert fresh["tree"]["n_occupied_leaves"] == saved["tree"]["n_occupied_leaves"] > 0
+    assert len(loads) == 3                   # each call of eval_tree_file alone loads its own
+
+
 def test_bad_stage_options_fail_before_training(scene, tmp_path):
     out = tmp_path / "early"
     with pytest.raises(ConfigError, match="--extract.grid must be a power of two"):

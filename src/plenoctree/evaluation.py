@@ -311,9 +311,20 @@ def _resolved_backend(backend: str, device: Any = "cpu") -> str:
     return resolve("render", backend, device)
 
 
-def eval_tree_file(cfg: EvalConfig) -> dict:
+def eval_dataset(cfg: EvalConfig) -> Dataset:
+    """The dataset split :func:`eval_tree_file` scores ``cfg`` on (its images decoded)."""
+    from .datasets import load_dataset
+
+    bg = tuple(float(b) for b in cfg.background) if cfg.background is not None else None
+    return load_dataset(cfg.data, split=cfg.split, format=cfg.format, downscale=cfg.downscale,
+                        background=bg, limit=cfg.limit, spread=cfg.spread)
+
+
+def eval_tree_file(cfg: EvalConfig, data: Dataset | None = None) -> dict:
     """Score a tree file on a dataset split: PSNR, SSIM, LPIPS (or why it was skipped), render
     speed at the dataset resolution, tree size. Writes ``eval.json`` and ``eval.md`` (atomic).
+    ``data``: the split already loaded by :func:`eval_dataset` for this ``cfg`` (``run`` scores
+    its trees on one load of the images); None loads it.
 
     FPS is 1000 / the median per-view render time in ms, after one untimed warm-up render
     (numba compilation or cache load). MB are 10^6 bytes: ``file_mb`` on disk, ``memory_mb``
@@ -332,7 +343,7 @@ def eval_tree_file(cfg: EvalConfig) -> dict:
         BackendError for an unavailable renderer backend.
     """
     from .compression import is_compressed_file, load_any_tree
-    from .datasets import FORMATS, load_dataset
+    from .datasets import FORMATS
     from .errors import ConfigError, TreeFormatError
     from .metrics import _lpips_problem
 
@@ -350,9 +361,7 @@ def eval_tree_file(cfg: EvalConfig) -> dict:
     device = resolve_device(cfg.device)
     backend = _resolved_backend(cfg.backend, device)
     tree = load_any_tree(tree_path)
-    bg = tuple(float(b) for b in cfg.background) if cfg.background is not None else None
-    data = load_dataset(cfg.data, split=cfg.split, format=cfg.format, downscale=cfg.downscale,
-                        background=bg, limit=cfg.limit, spread=cfg.spread)
+    data = eval_dataset(cfg) if data is None else data
     if len(data.cameras) == 0:
         raise ConfigError(f"{cfg.data}: split {cfg.split!r} has no views to evaluate")
     out = Path(cfg.out) if cfg.out is not None else \
@@ -368,7 +377,7 @@ def eval_tree_file(cfg: EvalConfig) -> dict:
                         backend, show_progress=cfg.show_progress, device=device,
                         lpips_net=None if problem is not None else cfg.lpips_net)
 
-    leaf_sigma = tree.leaf_data()[..., -1]
+    leaf_sigma = tree.data[..., -1][tree.child == 0]     # σ alone: no copy of every leaf's row
     report = res.to_json()
     if problem is not None:
         report["mean"]["lpips"] = f"skipped: {problem}"

@@ -70,9 +70,24 @@ def _gaussian_window(size: int = 11, sigma: float = 1.5) -> np.ndarray:
 
 def _blur_valid(z: np.ndarray, filt: np.ndarray) -> np.ndarray:
     """Separable ``valid`` correlation of the last two axes of ``z`` with the 1-D ``filt``
-    (as ``conv2d`` with an ``[k, 1]`` then a ``[1, k]`` kernel), as ``k`` shifted
-    multiply-adds per axis (torch's conv2d is slow for one-channel float64 kernels: a whole
-    400x400 SSIM takes 50 ms here against 142 ms, ``benchmarks/scoring_speed.py``)."""
+    (as ``conv2d`` with an ``[k, 1]`` then a ``[1, k]`` kernel, ``k`` odd): scipy's
+    ``ndimage.correlate1d`` per axis, cropped to the valid region, when scipy is installed
+    (one pass in C per axis: ~4x faster on the 400x400 stacks of SSIM,
+    ``benchmarks/scoring_speed.py``), else :func:`_blur_valid_numpy` (equal to ~1e-16)."""
+    try:
+        from scipy import ndimage
+    except ImportError:
+        return _blur_valid_numpy(z, filt)
+    k = filt.shape[0]
+    hw = k // 2
+    h, w = z.shape[-2] - k + 1, z.shape[-1] - k + 1
+    rows = ndimage.correlate1d(z, filt, axis=-2, mode="constant")[..., hw:hw + h, :]
+    return ndimage.correlate1d(rows, filt, axis=-1, mode="constant")[..., hw:hw + w]
+
+
+def _blur_valid_numpy(z: np.ndarray, filt: np.ndarray) -> np.ndarray:
+    """:func:`_blur_valid` without scipy: ``k`` shifted multiply-adds per axis (torch's conv2d
+    is slower still for one-channel float64 kernels)."""
     k = filt.shape[0]
     h, w = z.shape[-2] - k + 1, z.shape[-1] - k + 1
     rows = filt[0] * z[..., 0:h, :]
