@@ -227,9 +227,26 @@ def test_refinement_passes_by_capture():
     assert scene_refine_passes(2, forward=True) == 2 and scene_refine_passes(0, False) == 0
 
 
-def test_scene_settings_read_the_capture_only_when_left_to_it(monkeypatch):
-    """With ``--downscale`` and ``--refine.passes`` both given nothing is decided by the
-    capture, so no image is read to probe it; with either left open the probe runs."""
+def test_training_budget_by_capture():
+    """``run``'s ``--train.minutes`` default (-1) is 15 minutes for a forward-facing capture
+    and 30 for a 360° one, with no step limit; a budget given is kept, also 0 (steps)."""
+    from plenoctree.pipeline_config import AUTO_MINUTES, UNLIMITED_STEPS, scene_train_minutes
+
+    cfg = PipelineConfig()
+    assert cfg.train.minutes == AUTO_MINUTES and cfg.train.max_steps == UNLIMITED_STEPS
+    assert scene_train_minutes(AUTO_MINUTES, forward=True) == 15.0
+    assert scene_train_minutes(AUTO_MINUTES, forward=False) == 30.0
+    assert scene_train_minutes(7.5, forward=True) == 7.5 and scene_train_minutes(0, False) == 0
+    # -1 given as a flag still means "by capture", with the budget deciding (no step limit)
+    cfg = layer_settings(PipelineConfig(), {"train": {"minutes": AUTO_MINUTES}}, where="test")
+    assert cfg.train.max_steps == UNLIMITED_STEPS
+
+
+@pytest.mark.parametrize("forward", [True, False])
+def test_scene_settings_read_the_capture_only_when_left_to_it(monkeypatch, forward):
+    """With ``--downscale``, ``--refine.passes`` and ``--train.minutes`` given nothing is
+    decided by the capture, so no image is read to probe it; with any left open the probe
+    runs and decides it by the capture's kind."""
     import dataclasses
 
     import plenoctree.pipeline as pl
@@ -238,14 +255,20 @@ def test_scene_settings_read_the_capture_only_when_left_to_it(monkeypatch):
 
     def probe(cfg):
         probes.append(cfg.train.data)
-        return "blender", 800, 800, False
+        return ("llff" if forward else "blender"), 800, 800, forward
 
     monkeypatch.setattr(pl, "_capture", probe)
     given = PipelineConfig(data="scene", out="o", downscale=2)
-    given = dataclasses.replace(given, refine=dataclasses.replace(given.refine, passes=1))
-    assert pl._scene_settings(pl.wired(given)).refine.passes == 1 and probes == []
+    given = dataclasses.replace(given, refine=dataclasses.replace(given.refine, passes=1),
+                                train=dataclasses.replace(given.train, minutes=12.0))
+    done = pl._scene_settings(pl.wired(given))
+    assert (done.refine.passes, done.train.minutes) == (1, 12.0) and probes == []
     auto = pl._scene_settings(pl.wired(PipelineConfig(data="scene", out="o", downscale=2)))
-    assert auto.refine.passes == 1 and len(probes) == 1
+    assert len(probes) == 1
+    assert (auto.refine.passes, auto.train.minutes) == ((0, 15.0) if forward else (1, 30.0))
+    budget_only = dataclasses.replace(given, train=PipelineConfig().train)
+    assert pl._scene_settings(pl.wired(budget_only)).train.minutes == (15.0 if forward else 30.0)
+    assert len(probes) == 2
 
 
 @pytest.mark.parametrize("scene,forward", [("flower", True), ("lounge", False)])

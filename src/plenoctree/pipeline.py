@@ -30,9 +30,10 @@ from ._util import atomic_save_json, atomic_write, check_output_dir, run_lock
 from .compression.codec import CompressOptions
 from .errors import ConfigError, DatasetError, PlenOctreeError
 from .nerf.config import TrainConfig
-from .pipeline_config import (AUTO_PASSES, PRESETS, STAGE_OPTIONS, PipelineConfig, RunLayout,
-                              artefact_layout, layer_settings, name_the_flags, nerf_run_dir,
-                              pipeline_preset, scene_refine_passes, train_preset, wired,
+from .pipeline_config import (AUTO_MINUTES, AUTO_PASSES, PRESETS, STAGE_OPTIONS,
+                              PipelineConfig, RunLayout, artefact_layout, layer_settings,
+                              name_the_flags, nerf_run_dir, pipeline_preset,
+                              scene_refine_passes, scene_train_minutes, train_preset, wired,
                               working_downscale)
 from .pipeline_summary import finetune_outcome, pipeline_summary, summary_markdown
 
@@ -105,7 +106,10 @@ def _validate(cfg: PipelineConfig) -> None:
         _checked("process", cfg.process.validated)
     elif config_dict(cfg.process) != config_dict(wired(PipelineConfig(out=cfg.out)).process):
         raise ConfigError("--process.* options apply to --images (photos or a video), not --data")
-    _checked("train", lambda: validate(cfg.train))
+    train = cfg.train                 # (AUTO: a budget the capture decides, checked as 30)
+    if train.minutes == AUTO_MINUTES:
+        train = dataclasses.replace(train, minutes=scene_train_minutes(AUTO_MINUTES, False))
+    _checked("train", lambda: validate(train))
     _checked("extract", lambda: validate_extract(cfg.extract))
     if cfg.refine.passes not in (0, AUTO_PASSES):     # (AUTO: checked once decided)
         _checked("refine", cfg.refine.validated)
@@ -384,17 +388,25 @@ def _working_resolution(cfg: PipelineConfig, fmt: str, w: int, h: int, forward: 
 
 def _scene_settings(cfg: PipelineConfig) -> PipelineConfig:
     """``cfg`` with what depends on the capture decided: the working resolution (``downscale``
-    0) and the refinement passes (:data:`AUTO_PASSES`); wired and checked."""
-    if cfg.downscale and cfg.refine.passes != AUTO_PASSES:
+    0), the NeRF-SH's budget (:data:`AUTO_MINUTES`) and the refinement passes
+    (:data:`AUTO_PASSES`); wired and checked."""
+    if (cfg.downscale and cfg.refine.passes != AUTO_PASSES
+            and cfg.train.minutes != AUTO_MINUTES):
         return cfg                       # nothing left to the capture (no probe read)
     fmt, w, h, forward = _capture(cfg)
+    kind = "forward-facing" if forward else "360°"
     if not cfg.downscale:
         cfg = _working_resolution(cfg, fmt, w, h, forward)
+    if cfg.train.minutes == AUTO_MINUTES:
+        minutes = scene_train_minutes(AUTO_MINUTES, forward)
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, minutes=minutes))
+        if not cfg.nerf:
+            logger.info(f"NeRF-SH budget: {minutes:g} minutes for a {kind} capture; "
+                        f"--train.minutes overrides")
     passes = scene_refine_passes(cfg.refine.passes, forward)
     if passes != cfg.refine.passes:
         cfg = dataclasses.replace(cfg, refine=dataclasses.replace(cfg.refine, passes=passes))
-        logger.info(f"refinement passes: {passes} for a "
-                    f"{'forward-facing' if forward else '360°'} capture; --refine.passes "
+        logger.info(f"refinement passes: {passes} for a {kind} capture; --refine.passes "
                     f"overrides")
     cfg = wired(cfg)
     if cfg.refine.passes > 0:

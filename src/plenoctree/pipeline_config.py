@@ -27,7 +27,7 @@ __all__ = ["PipelineConfig", "StageOptions", "STAGE_OPTIONS", "PRESETS", "UNLIMI
            "pipeline_preset", "train_preset", "time_budget", "layer_settings", "wired",
            "stage_flags", "name_the_flags", "nerf_run_dir", "working_downscale",
            "WORKING_PIXELS", "RunLayout", "artefact_layout", "AUTO_PASSES",
-           "scene_refine_passes"]
+           "scene_refine_passes", "AUTO_MINUTES", "scene_train_minutes"]
 
 UNLIMITED_STEPS = 10**9
 """``train.max_steps`` when the time budget (``train.minutes``) decides."""
@@ -69,6 +69,23 @@ def working_downscale(width: int, height: int, forward: bool, gpu: bool,
                 max(d for d in range(1, factor) if width % d == 0 and height % d == 0))
 
 
+#: ``run``'s ``--train.minutes`` default: decided by the capture (:func:`scene_train_minutes`).
+AUTO_MINUTES = -1.0
+
+
+def scene_train_minutes(minutes: float, forward: bool) -> float:
+    """``run``'s NeRF-SH budget: ``minutes``, or for :data:`AUTO_MINUTES` 15 minutes for a
+    forward-facing capture and 30 for a 360° one: where more minutes stop paying on the
+    time-quality frontier (docs/capture_records.md "The whole frontier with the faster
+    decay"). On flower's photos (2 cores) the NeRF-SH's held-out validation levels off at
+    ~29.6 dB from ~4,000 steps (~13 minutes) whatever the budget, and the chains give 29.58 dB
+    in 20.3 minutes at 15, 29.48 in 24.4 at 20, 29.29 in 34.3 at 30; on lego 400² more minutes
+    keep paying up to 30 (31.52 dB at 5, 32.88 at 20, 33.85 at 30 on the 200 test views)."""
+    if minutes != AUTO_MINUTES:
+        return float(minutes)
+    return 15.0 if forward else 30.0
+
+
 QUICK_MINUTES = 10.0
 """NeRF-SH budget of the ``quick`` preset: the 10-minute point of the time-quality frontier
 measured on flower's photos (docs/capture_records.md "Time against quality"): 28.89 dB
@@ -94,8 +111,10 @@ def train_preset(name: str) -> TrainConfig:
 
 
 def _run_train() -> TrainConfig:
-    """``run``'s default training: the cpu preset for 30 minutes (the budget decides)."""
-    return dataclasses.replace(train_preset("cpu"), minutes=30.0, max_steps=UNLIMITED_STEPS)
+    """``run``'s default training: the cpu preset for the capture's budget
+    (:func:`scene_train_minutes`; the budget decides, not a step count)."""
+    return dataclasses.replace(train_preset("cpu"), minutes=AUTO_MINUTES,
+                               max_steps=UNLIMITED_STEPS)
 
 
 @dataclass
@@ -149,7 +168,8 @@ class PipelineConfig:
     process: ProcessConfig = field(default_factory=lambda: ProcessConfig(overwrite=True))
     """camera poses of --images (`plenoctree process`)"""
     train: TrainConfig = field(default_factory=_run_train)
-    """NeRF-SH training (`plenoctree train`)"""
+    """NeRF-SH training (`plenoctree train`; --train.minutes -1 = by capture: 15 for a
+    forward-facing one, 30 for a 360° one, :func:`scene_train_minutes`)"""
     extract: ExtractConfig = field(default_factory=lambda: ExtractConfig(eval=False))
     """octree extraction (`plenoctree extract`)"""
     refine: RefineConfig = field(default_factory=lambda: RefineConfig(passes=AUTO_PASSES))
@@ -214,8 +234,8 @@ def _preset_gpu() -> PipelineConfig:
 
 PRESETS: dict[str, Callable[[], PipelineConfig]] = {
     "cpu": PipelineConfig, "paper": _preset_paper, "quick": _preset_quick, "gpu": _preset_gpu}
-"""``plenoctree run --preset NAME``: ``cpu`` (the defaults: cpu NeRF-SH preset for 30 minutes,
-256³), ``gpu`` (the gpu NeRF-SH preset: fixed-shape steps of 2^18 samples, 20,000 steps, then
+"""``plenoctree run --preset NAME``: ``cpu`` (the defaults: cpu NeRF-SH preset for 15 minutes
+on a forward-facing capture and 30 on a 360° one, 256³), ``gpu`` (the gpu NeRF-SH preset: fixed-shape steps of 2^18 samples, 20,000 steps, then
 the cpu pipeline's stages), ``paper`` (the paper's NeRF-SH, 512³, 256 samples per voxel; for
 GPUs), ``quick`` (a 10-minute NeRF-SH, 5 test views scored, no video: about 14 minutes end to
 end on 2 cores)."""
@@ -229,10 +249,11 @@ def pipeline_preset(name: str) -> PipelineConfig:
 
 
 def time_budget(train: TrainConfig, given: dict) -> None:
-    """A training budget given without a step count decides alone: ``minutes > 0`` lifts the
-    step limit, ``minutes == 0`` restores the preset's steps (``given``: the values set)."""
+    """A training budget given without a step count decides alone: ``minutes > 0`` (or
+    :data:`AUTO_MINUTES`, the capture's budget) lifts the step limit, ``minutes == 0`` restores
+    the preset's steps (``given``: the values set)."""
     if "minutes" in given and "max_steps" not in given:
-        train.max_steps = (UNLIMITED_STEPS if train.minutes > 0
+        train.max_steps = (UNLIMITED_STEPS if train.minutes > 0 or train.minutes == AUTO_MINUTES
                            else train_preset(train.preset).max_steps)
 
 

@@ -178,7 +178,8 @@ class TrainConfig:
     max_steps: int = field(default=30000, metadata={"flag": "steps"})
     """Training steps (the run also stops at ``minutes`` when that is set)."""
     minutes: float = 0.0
-    """Training-time budget in minutes (0 = none). With a budget the learning-rate schedule
+    """Training-time budget in minutes (0 = none); `run`'s default -1: 15 for a
+    forward-facing capture, 30 for a 360° one. With a budget the learning-rate schedule
     follows elapsed training time, so such runs are not bit-for-bit repeatable."""
     lr_init: float = 1e-2
     """Initial learning rate (paper: 5e-4)."""
