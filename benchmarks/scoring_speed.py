@@ -12,6 +12,8 @@ against a reference implementation measured in the same run.
   averages the valid region only), on pairs of consecutive test views of ``--data`` (default
   the data root's lego at 400², real content), with the largest difference of the two values.
   Skipped with a note without scikit-image.
+- ``ssim_blur``: the same SSIM with its blur by scipy's ``correlate1d`` (used when scipy is
+  installed) against the numpy blur it falls back to without scipy, on the same pairs.
 
 Each figure is the median of ``--repeats`` timed calls after a warm-up (page cache warm for
 both readers). Old code against new: ``python benchmarks/ab.py --rev REV -- scoring_speed.py``.
@@ -73,8 +75,33 @@ def ssim_row(data: Path, n_pairs: int, repeats: int) -> dict[str, Any]:
     new = timed(lambda: [ssim(a, b) for a, b in pairs], repeats)
     ref = timed(lambda: [ssim_skimage(a, b) for a, b in pairs], repeats)
     h, w = pairs[0][0].shape[:2]
-    return {**row(f"{len(pairs)} test-view pairs of {data.name} at {w}x{h}", new, ref,
-                  "skimage structural_similarity", len(pairs)), "max_abs_diff": diff}
+    what = f"{len(pairs)} test-view pairs of {data.name} at {w}x{h}"
+    return {**row(what, new, ref, "skimage structural_similarity", len(pairs)),
+            "max_abs_diff": diff}
+
+
+def ssim_numpy_row(data: Path, n_pairs: int, repeats: int) -> dict[str, Any]:
+    """SSIM with its blur by scipy (what it uses when scipy is installed) against the plain
+    numpy blur it falls back to (scipy hidden from the import), on the ``ssim`` row's pairs."""
+    import sys
+
+    from plenoctree.datasets import load_dataset
+    from plenoctree.metrics import ssim
+
+    if importlib.util.find_spec("scipy") is None:
+        return {"skipped": "scipy is not installed: SSIM uses the numpy blur"}
+    test = load_dataset(str(data), split="test", downscale=2, limit=n_pairs + 1)
+    pairs = [(test.images[k], test.images[k + 1]) for k in range(min(n_pairs, len(test) - 1))]
+    new = timed(lambda: [ssim(a, b) for a, b in pairs], repeats)
+    hidden = sys.modules.get("scipy")
+    sys.modules["scipy"] = None                  # type: ignore[assignment]  # import fails
+    try:
+        ref = timed(lambda: [ssim(a, b) for a, b in pairs], repeats)
+    finally:
+        sys.modules["scipy"] = hidden            # type: ignore[assignment]
+    h, w = pairs[0][0].shape[:2]
+    return row(f"{len(pairs)} test-view pairs of {data.name} at {w}x{h}", new, ref,
+               "the numpy blur", len(pairs))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -101,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = {"load": row(f"{path} ({path.stat().st_size / 1e6:.0f} MB)", new, ref, "np.load")}
     data = Path(args.data) if args.data else data_path(args.data_root, "nerf_synthetic", "lego")
     rows["ssim"] = ssim_row(data, args.pairs, args.repeats)
+    rows["ssim_blur"] = ssim_numpy_row(data, args.pairs, args.repeats)
     table = [[name, r["what"], f"{r['new_s'] * 1e3:.1f} ± {r['new_spread_s'] * 1e3:.1f} ms",
               f"{r['reference_s'] * 1e3:.1f} ms ({r['reference']})", f"{r['speedup']:.2f}x"]
              for name, r in rows.items() if "skipped" not in r]
