@@ -76,7 +76,7 @@ AUTO_MINUTES = -1.0
 def scene_train_minutes(minutes: float, forward: bool) -> float:
     """``run``'s NeRF-SH budget: ``minutes``, or for :data:`AUTO_MINUTES` 15 minutes for a
     forward-facing capture and 30 for a 360° one: where more minutes stop paying on the
-    time-quality frontier (docs/capture_records.md "The whole frontier with the faster
+    time-quality frontier (docs/capture_records.md "The whole flower frontier with the faster
     decay"). On flower's photos (2 cores) the NeRF-SH's held-out validation levels off at
     ~29.6 dB from ~4,000 steps (~13 minutes) whatever the budget, and the chains give 29.58 dB
     in 20.3 minutes at 15, 29.48 in 24.4 at 20, 29.29 in 34.3 at 30; on lego 400² more minutes
@@ -88,12 +88,12 @@ def scene_train_minutes(minutes: float, forward: bool) -> float:
 
 QUICK_MINUTES = 10.0
 """NeRF-SH budget of the ``quick`` preset: the 10-minute point of the time-quality frontier
-measured on flower's photos (docs/capture_records.md "Time against quality"): 28.89 dB
-compressed in 17.1 minutes of ``run --images`` against 29.70 in 36.6 at the 30-minute default
-(before the occupancy grid's faster decay, 2026-12-07). With that decay a 5-minute NeRF-SH is
-no longer fog on flower (28.90 dB in 10.2 minutes; 27.21 in 17.8 before), but lego's 5-minute
-point with it stays under its old 10-minute one (31.52 dB on 200 views in 15.6 minutes against
-32.26 on 5), so the preset stays at 10."""
+measured on flower's photos (docs/capture_records.md "The whole flower frontier with the
+faster decay"): 29.35 dB compressed in 13.9 minutes of ``run --images`` against 29.58 in 20.3
+at the forward-facing default of 15 (:func:`scene_train_minutes`); 4.5 minutes give 28.77 in
+9.9. Lego's 5-minute point stays under its 10-minute one (31.52 dB on 200 views in 15.6
+minutes against 32.26 on 5, the latter before the grid's faster decay), so the preset stays
+at 10."""
 
 
 def train_preset(name: str) -> TrainConfig:
@@ -235,10 +235,10 @@ def _preset_gpu() -> PipelineConfig:
 PRESETS: dict[str, Callable[[], PipelineConfig]] = {
     "cpu": PipelineConfig, "paper": _preset_paper, "quick": _preset_quick, "gpu": _preset_gpu}
 """``plenoctree run --preset NAME``: ``cpu`` (the defaults: cpu NeRF-SH preset for 15 minutes
-on a forward-facing capture and 30 on a 360° one, 256³), ``gpu`` (the gpu NeRF-SH preset: fixed-shape steps of 2^18 samples, 20,000 steps, then
-the cpu pipeline's stages), ``paper`` (the paper's NeRF-SH, 512³, 256 samples per voxel; for
-GPUs), ``quick`` (a 10-minute NeRF-SH, 5 test views scored, no video: about 14 minutes end to
-end on 2 cores)."""
+on a forward-facing capture and 30 on a 360° one, 256³), ``gpu`` (the gpu NeRF-SH preset:
+fixed-shape steps of 2^18 samples, 20,000 steps, then the cpu pipeline's stages), ``paper``
+(the paper's NeRF-SH, 512³, 256 samples per voxel; for GPUs), ``quick`` (a 10-minute NeRF-SH,
+5 test views scored, no video: about 14 minutes end to end on 2 cores)."""
 
 
 def pipeline_preset(name: str) -> PipelineConfig:
