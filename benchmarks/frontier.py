@@ -18,7 +18,8 @@ nothing else on the machine meanwhile (the figure is a wall time).
     python benchmarks/frontier.py --scene lego --budgets 10 -- --eval-views 5   # flags for run
     python benchmarks/frontier.py --plot docs/frontier.png --plot-from \\
         benchmarks/frontier_points/flower.json benchmarks/frontier_points/lego.json \\
-        benchmarks/frontier_points/earlier.json benchmarks/frontier_points/flower_decay.json
+        benchmarks/frontier_points/earlier.json benchmarks/frontier_points/flower_decay.json \\
+        benchmarks/frontier_points/lego_decay.json
 
 (``benchmarks/frontier_points/``: the docs' points, kept in the repository; a new run writes
 ``benchmarks/results/frontier_<scene>.json``, to be copied there with the docs' table.)

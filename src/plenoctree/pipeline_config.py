@@ -80,7 +80,7 @@ def scene_train_minutes(minutes: float, forward: bool) -> float:
     decay"). On flower's photos (2 cores) the NeRF-SH's held-out validation levels off at
     ~29.6 dB from ~4,000 steps (~13 minutes) whatever the budget, and the chains give 29.58 dB
     in 20.3 minutes at 15, 29.48 in 24.4 at 20, 29.29 in 34.3 at 30; on lego 400² more minutes
-    keep paying up to 30 (31.52 dB at 5, 32.88 at 20, 33.85 at 30 on the 200 test views)."""
+    keep paying up to 30 (31.52 dB at 5, 32.88 at 20, 33.51 at 30 on the 200 test views)."""
     if minutes != AUTO_MINUTES:
         return float(minutes)
     return 15.0 if forward else 30.0
