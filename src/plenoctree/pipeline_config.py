@@ -35,7 +35,7 @@ WORKING_PIXELS = {("forward", "cpu"): 200_000, ("360", "cpu"): 250_000,
                   ("forward", "gpu"): 800_000, ("360", "gpu"): 1_000_000}
 """Pixels per image that ``run`` works at when ``--downscale`` is not given, by capture kind
 and device: on a CPU, LLFF's forward-facing convention (504x378, NeRF's flower) and about
-lego's 400² for 360° captures, which keep a 30-minute training, fine-tuning epochs and the
+lego's 400² for 360° captures, which keep a CPU budget's training, fine-tuning epochs and the
 evaluation frames within the CPU budget; on a GPU LLFF's factor 4 (1008x756) and lego's
 800²."""
 
