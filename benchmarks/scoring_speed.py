@@ -62,46 +62,49 @@ def row(what: str, new: Any, ref: Any, ref_name: str, per: int = 1) -> dict[str,
             "reference_spread_s": ref.spread / per, "speedup": ref.median / new.median}
 
 
-def ssim_row(data: Path, n_pairs: int, repeats: int) -> dict[str, Any]:
-    """The ``ssim`` row on consecutive test-view pairs of ``data`` at 400² (downscale 2)."""
+def test_pairs(data: Path, n_pairs: int) -> tuple[list[tuple[Any, Any]], str]:
+    """Consecutive test-view pairs of ``data`` at 400² (downscale 2), loaded once for both
+    SSIM rows, and their description."""
     from plenoctree.datasets import load_dataset
+
+    test = load_dataset(str(data), split="test", downscale=2, limit=n_pairs + 1)
+    pairs = [(test.images[k], test.images[k + 1]) for k in range(min(n_pairs, len(test) - 1))]
+    h, w = pairs[0][0].shape[:2]
+    return pairs, f"{len(pairs)} test-view pairs of {data.name} at {w}x{h}"
+
+
+def ssim_row(pairs: list, what: str, repeats: int) -> dict[str, Any]:
+    """The ``ssim`` row: :func:`plenoctree.metrics.ssim` against scikit-image's."""
     from plenoctree.metrics import ssim
 
     if importlib.util.find_spec("skimage") is None:
         return {"skipped": "scikit-image is not installed (pip install scikit-image)"}
-    test = load_dataset(str(data), split="test", downscale=2)
-    pairs = [(test.images[k], test.images[k + 1]) for k in range(min(n_pairs, len(test) - 1))]
     diff = max(abs(ssim(a, b) - ssim_skimage(a, b)) for a, b in pairs)
     new = timed(lambda: [ssim(a, b) for a, b in pairs], repeats)
     ref = timed(lambda: [ssim_skimage(a, b) for a, b in pairs], repeats)
-    h, w = pairs[0][0].shape[:2]
-    what = f"{len(pairs)} test-view pairs of {data.name} at {w}x{h}"
     return {**row(what, new, ref, "skimage structural_similarity", len(pairs)),
             "max_abs_diff": diff}
 
 
-def ssim_numpy_row(data: Path, n_pairs: int, repeats: int) -> dict[str, Any]:
+def ssim_blur_row(pairs: list, what: str, repeats: int) -> dict[str, Any]:
     """SSIM with its blur by scipy (what it uses when scipy is installed) against the plain
-    numpy blur it falls back to (scipy hidden from the import), on the ``ssim`` row's pairs."""
+    numpy blur it falls back to (scipy hidden from the import), on the same pairs."""
     import sys
 
-    from plenoctree.datasets import load_dataset
     from plenoctree.metrics import ssim
 
     if importlib.util.find_spec("scipy") is None:
         return {"skipped": "scipy is not installed: SSIM uses the numpy blur"}
-    test = load_dataset(str(data), split="test", downscale=2, limit=n_pairs + 1)
-    pairs = [(test.images[k], test.images[k + 1]) for k in range(min(n_pairs, len(test) - 1))]
     new = timed(lambda: [ssim(a, b) for a, b in pairs], repeats)
-    hidden = sys.modules.get("scipy")
+    hidden = sys.modules.pop("scipy", None)
     sys.modules["scipy"] = None                  # type: ignore[assignment]  # import fails
     try:
         ref = timed(lambda: [ssim(a, b) for a, b in pairs], repeats)
     finally:
-        sys.modules["scipy"] = hidden            # type: ignore[assignment]
-    h, w = pairs[0][0].shape[:2]
-    return row(f"{len(pairs)} test-view pairs of {data.name} at {w}x{h}", new, ref,
-               "the numpy blur", len(pairs))
+        del sys.modules["scipy"]
+        if hidden is not None:
+            sys.modules["scipy"] = hidden
+    return row(what, new, ref, "the numpy blur", len(pairs))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -127,8 +130,9 @@ def main(argv: list[str] | None = None) -> int:
     ref = timed(lambda: read_npz(path), args.repeats)
     rows = {"load": row(f"{path} ({path.stat().st_size / 1e6:.0f} MB)", new, ref, "np.load")}
     data = Path(args.data) if args.data else data_path(args.data_root, "nerf_synthetic", "lego")
-    rows["ssim"] = ssim_row(data, args.pairs, args.repeats)
-    rows["ssim_blur"] = ssim_numpy_row(data, args.pairs, args.repeats)
+    pairs, what = test_pairs(data, args.pairs)
+    rows["ssim"] = ssim_row(pairs, what, args.repeats)
+    rows["ssim_blur"] = ssim_blur_row(pairs, what, args.repeats)
     table = [[name, r["what"], f"{r['new_s'] * 1e3:.1f} ± {r['new_spread_s'] * 1e3:.1f} ms",
               f"{r['reference_s'] * 1e3:.1f} ms ({r['reference']})", f"{r['speedup']:.2f}x"]
              for name, r in rows.items() if "skipped" not in r]

@@ -72,7 +72,7 @@ def _blur_valid(z: np.ndarray, filt: np.ndarray) -> np.ndarray:
     """Separable ``valid`` correlation of the last two axes of ``z`` with the 1-D ``filt``
     (as ``conv2d`` with an ``[k, 1]`` then a ``[1, k]`` kernel, ``k`` odd): scipy's
     ``ndimage.correlate1d`` per axis, cropped to the valid region, when scipy is installed
-    (one pass in C per axis: a whole SSIM of a lego 400x400 view 1.8x faster, docs/performance.md
+    (one pass in C per axis: a whole SSIM of a lego 400x400 view 1.9x faster, docs/performance.md
     "Scoring"), else :func:`_blur_valid_numpy` (the same values to ~1e-15)."""
     try:
         from scipy import ndimage
