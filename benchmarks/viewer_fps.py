@@ -46,14 +46,17 @@ FLAGS = ["--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader", "--disa
          "--no-first-run", "--disable-background-networking", "--disable-component-update",
          "--disable-sync"]
 
-# The camera hook: orbit every animation frame for `ms`; tStop: the last camera change.
-# _TICKS records every animation frame's time (until __stopTicks).
-_MOVE = """([ms, step]) => new Promise((done) => {
-  const v = window.viewer, t0 = performance.now();
-  let last = t0;
+# The camera hook: orbit every animation frame for `ms`; tStop: the last camera change. With
+# `sweep` > 0 (degrees) the orbit turns back at +-sweep from where it started (a triangle wave:
+# a forward-facing capture stays in view); 0: one way all the time.
+_MOVE = """([ms, step, sweep]) => new Promise((done) => {
+  const v = window.viewer, t0 = performance.now(), lim = sweep * Math.PI / 180;
+  let last = t0, off = 0, sign = 1;
   function tick(now) {
     if (now - t0 < ms) {
-      v.camera().orbit(step, 0);
+      if (lim > 0 && Math.abs(off + sign * step * 0.008) > lim) sign = -sign;
+      off += sign * step * 0.008;
+      v.camera().orbit(sign * step, 0);
       last = performance.now();
       requestAnimationFrame(tick);
     } else { done({ t0, tStop: last }); }
@@ -107,11 +110,12 @@ def start_viewer(tree: Path, data: str | None = None) -> tuple[subprocess.Popen,
     return proc, m.group(1)
 
 
-def one_cycle(page: Any, move_s: float, step: float, size: int, timeout_s: float) -> dict:
+def one_cycle(page: Any, move_s: float, step: float, size: int, timeout_s: float,
+              sweep: float = 0.0) -> dict:
     """Move the camera for ``move_s`` s, stop, wait for the sharp frame; the cycle's figures."""
     n0 = len(page.evaluate("window.viewer.stats().log"))
     page.evaluate(_TICKS)
-    mv = page.evaluate(_MOVE, [1e3 * move_s, step])
+    mv = page.evaluate(_MOVE, [1e3 * move_s, step, sweep])
     t_stop = mv["tStop"]
     page.wait_for_function(
         "t => window.viewer.stats().log.some((e) => e.full && e.t - e.ms >= t - 1)",
@@ -156,7 +160,7 @@ def run_mode(browser: Any, url: str, mode: str, args: argparse.Namespace) -> dic
     who = page.evaluate("window.viewer.renderer()")
     page.wait_for_function("window.viewer.stats().last && window.viewer.stats().last.full",
                            timeout=1e3 * args.load_timeout)
-    cycles = [one_cycle(page, args.move_s, args.step, args.size, args.load_timeout)
+    cycles = [one_cycle(page, args.move_s, args.step, args.size, args.load_timeout, args.sweep)
               for _ in range(args.cycles)]
     page.close()
     med = {k: statistics.median(c[k] for c in cycles) for k in
@@ -179,6 +183,9 @@ def main() -> None:
     ap.add_argument("--cycles", type=int, default=3, help="move / stop cycles per mode")
     ap.add_argument("--move-s", type=float, default=4.0, help="seconds of motion per cycle")
     ap.add_argument("--step", type=float, default=3.0, help="orbit per animation frame (px)")
+    ap.add_argument("--sweep", type=float, default=0.0,
+                    help="orbit back and forth within +-SWEEP degrees of the first view (0: "
+                         "one way: a full turn in ~4 s; a forward-facing tree: 15)")
     ap.add_argument("--load-timeout", type=float, default=600.0, help="seconds")
     ap.add_argument("--out", default=None, help="JSON (default results/viewer_fps_<tree>.json)")
     args = ap.parse_args()

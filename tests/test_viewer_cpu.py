@@ -384,6 +384,42 @@ def test_llff_look_around_never_stops_the_page(no_webgl_browser, llff_tree):
             page.close()
 
 
+# Move away and back to the pose of the sharp frame on screen without pausing (a sweep, or
+# Reset while moving): the camera ends where the last full-resolution frame was drawn.
+_AWAY_AND_BACK = """() => new Promise((done) => {
+  const cam = window.viewer.camera(), s0 = cam.state();
+  let k = 0;
+  function tick() {
+    if (k < 12) { cam.orbit(k % 2 ? -2 : 5, 0); k += 1; requestAnimationFrame(tick); }
+    else { cam.setState(s0); done(performance.now()); }
+  }
+  requestAnimationFrame(tick);
+})"""
+
+
+def test_back_at_the_last_sharp_pose_draws_sharp_again(no_webgl_browser, llff_tree):
+    """A moving frame replaces the sharp one on screen: coming back to the pose of the last
+    sharp frame while moving still ends in a full-resolution frame (it used to keep the blurry
+    moving frame for good, as the page thought the sharp one was still shown)."""
+    with ViewerServer(llff_tree, port=0, render="cpu") as srv:
+        page = no_webgl_browser.new_page(viewport={"width": 775, "height": 800})
+        page.goto(srv.url)
+        page.wait_for_function("window.viewer && window.viewer.state !== 'loading'",
+                               timeout=120_000)
+        try:
+            page.wait_for_function("window.viewer.stats().last && window.viewer.stats().last.full",
+                                   timeout=120_000)
+            for _ in range(3):
+                t_back = page.evaluate(_AWAY_AND_BACK)
+                page.wait_for_function(
+                    "t => window.viewer.stats().log.some((e) => e.full && e.t - e.ms >= t - 1)",
+                    arg=t_back, timeout=20_000)
+                page.wait_for_timeout(200)
+                assert page.evaluate("window.viewer.stats().last.full")
+        finally:
+            page.close()
+
+
 def test_a_failed_frame_is_a_notice_and_the_next_change_draws(no_webgl_browser, llff_tree):
     """A frame the server cannot draw (here: the first answered 400 on the way) shows a
     notice, the page stays ready, the next camera change draws; benchmark() works in CPU mode;

@@ -87,7 +87,7 @@ export class CpuFrames {
     this.otherMs = 10;           // request -> screen time besides the server's render (EMA)
     this.renderFullMs = null;    // server render time of a full-resolution frame (EMA)
     this.sentKey = null;         // camera + options of the last request
-    this.sharpKey = null;        // ... of the last full-resolution frame on screen
+    this.sharpKey = null;        // ... of the frame on screen when it is full resolution
     this.failedKey = null;       // ... of a frame the server could not draw (not asked again)
     this.onError = () => {};
     this.next = () => {};        // called when a frame is on screen (pump the next one)
@@ -138,7 +138,7 @@ export class CpuFrames {
       bmp.close();
       const ms = performance.now() - t0;
       const full = scale === 1;
-      if (full) this.sharpKey = key;
+      this.sharpKey = full ? key : null;   // what is on screen now (a moving frame too)
       this.failedKey = null;
       this._adapt(ms, renderMs, view.width * view.height, W * H);
       this.stats.add({ width: view.width, height: view.height, full, ms, renderMs, encodeMs, key });
