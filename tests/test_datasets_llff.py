@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -119,12 +120,17 @@ def test_forward_facing_defaults_to_ndc_and_spherify_does_not(ff_root):
 
 def test_inward_facing_scene_is_detected_and_refuses_ndc(llff_root, ff_root, caplog):
     """A folder whose cameras surround the scene is a 360° capture: spherified, no NDC, and
-    the loader says so; forward-facing folders keep NDC; NDC asked for is still refused."""
-    assert read_llff(llff_root, spherify=None).spherify           # decided by the cameras
-    assert not read_llff(ff_root, spherify=None).spherify
+    the loader says so, once a file however often a run loads it; forward-facing folders keep
+    NDC; NDC asked for is still refused."""
+    import plenoctree.datasets.llff as llff_mod
+
+    llff_mod._SAID_360.discard(str(Path(llff_root) / "poses_bounds.npy"))
     with caplog.at_level("INFO", logger="plenoctree.datasets.llff"):
+        assert read_llff(llff_root, spherify=None).spherify       # decided by the cameras
+        assert not read_llff(ff_root, spherify=None).spherify
         data = load_llff(llff_root, "train")
-    assert "a 360° capture" in caplog.text and "poses_bounds.npy" in caplog.text
+        load_llff(llff_root, "test")
+    assert caplog.text.count("a 360° capture") == 1 and "poses_bounds.npy" in caplog.text
     assert not data.cameras.ndc
     np.testing.assert_allclose(data.scene_bbox, [[-1] * 3, [1] * 3])
     same = load_llff(llff_root, "train", options=LLFFOptions(spherify=True))

@@ -177,6 +177,10 @@ def _spherify(c2w: np.ndarray) -> np.ndarray:
     return np.diag([1.0 / rad] * 3 + [1.0]) @ reset
 
 
+#: ``poses_bounds.npy`` files already said to be 360° captures in this process.
+_SAID_360: set[str] = set()
+
+
 def read_llff(root: str | os.PathLike, recenter: bool = True, bd_factor: float | None = BD_FACTOR,
               spherify: bool | None = False) -> LLFFScene:
     """Read ``root/poses_bounds.npy`` and normalise it (module docstring, steps 1-4).
@@ -193,7 +197,8 @@ def read_llff(root: str | os.PathLike, recenter: bool = True, bd_factor: float |
     c2w, bounds, hwf = read_poses_bounds(path)
     if spherify is None:
         spherify = capture_kind(c2w) == "360"
-        if spherify:
+        if spherify and str(path) not in _SAID_360:      # once a file: a run loads it often
+            _SAID_360.add(str(path))
             logger.info("%s: the cameras surround the scene: a 360° capture (spherical "
                         "normalisation, no NDC rays)", path)
     transform = np.eye(4)
