@@ -7,8 +7,10 @@ software WebGL a browser has without a GPU) opens it with a ``--size`` x ``--siz
 side panel hidden) twice: ``?render=auto`` (which picks the CPU mode under software GL: the
 figure says which mode it chose) and ``?render=webgl`` (the page's own ray marcher: the
 baseline, measured in the same run). A page hook turns the orbit camera every animation frame
-(``camera.orbit(--step, 0)``, as a steady mouse drag) for ``--move-s`` seconds, stops, and
-waits for the sharp frame; ``--cycles`` times. From the page's own frame log
+(``camera.orbit(--step, 0)``, as a steady mouse drag: a full turn in ~4 s; with ``--sweep
+DEG`` back and forth within ±DEG of where it started, as a user looks at a forward-facing
+capture, whose rays miss the scene once the camera turns away) for ``--move-s`` seconds,
+stops, and waits for the sharp frame; ``--cycles`` times. From the page's own frame log
 (``viewer.stats()``: every frame with its time on screen, size and whether it is full
 resolution) the script takes, per cycle:
 
