@@ -1,6 +1,7 @@
 """The speed benchmarks' tree and view choice (benchmarks/_trees.py): a
 forward-facing (NDC) tree is timed from its own capture's cameras, never from orbit views; and
-benchmarks/kernel_cache_check.py (the render kernel's image does not depend on numba's cache)."""
+benchmarks/kernel_cache_check.py (the render kernel's image does not depend on numba's cache);
+benchmarks/direct_leaves.py's levels."""
 
 from __future__ import annotations
 
@@ -48,3 +49,31 @@ def test_render_kernel_same_image_compiled_or_loaded_from_cache(bench, tmp_path)
     assert kernel_cache_check.main(["--tree", "procedural", "--size", "96", "--out",
                                     str(out)]) == 0
     assert '"fresh_vs_cached": 0.0' in out.read_text()
+
+
+def test_direct_leaves_levels_copy_the_parent_and_empty_the_faint(monkeypatch):
+    """benchmarks/direct_leaves.py: the dense start is uniform (opacity ~0.01 a cell, colour 0);
+    the next level's cells hold their parent's values, faint cells empty."""
+    import numpy as np
+
+    monkeypatch.syspath_prepend(str(_BENCH))
+    import direct_leaves as dl
+
+    c, r = np.array([0.1, -0.2, 0.3]), np.array([1.0, 0.5, 0.75])
+    start = dl.dense_start(c, r, 4)
+    data = start.leaf_data()
+    assert start.n_leaves == 64 and start.data_format == "SH9"
+    np.testing.assert_allclose(data[:, -1] * 0.5, 0.01, rtol=1e-6)    # σ · side: opacity ~0.01
+    assert not data[:, :-1].any()
+    rng = np.random.default_rng(0)
+    values = rng.normal(size=data.shape).astype(np.float32)
+    values[:, -1] = np.abs(values[:, -1])
+    values[0, -1] = 0.0                                        # one empty parent
+    start.set_leaf_data(values)
+    fine = dl.upsample(start, 8, 1e-3)
+    centers = fine.leaf_centers()
+    got = fine.leaf_data()
+    want = start.query(centers)
+    full = got[:, -1] > 0
+    np.testing.assert_array_equal(got[full], want[full])       # children copy their parent
+    assert fine.n_leaves < 512 and (want[~full][:, -1] <= 0).all()   # the empty parent merged
