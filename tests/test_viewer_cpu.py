@@ -213,8 +213,9 @@ def browser(playwright):
     b.close()
 
 
-def _open(browser, url):
-    page = browser.new_page(viewport={"width": 640, "height": 400})
+def _open(browser, url, size=(640, 400)):
+    """A page of the viewer at ``url`` (``size`` = viewport), loaded and ready."""
+    page = browser.new_page(viewport={"width": size[0], "height": size[1]})
     page.goto(url)
     page.wait_for_function("window.viewer && window.viewer.state !== 'loading'", timeout=120_000)
     assert page.evaluate("window.viewer.state") == "ready", page.evaluate("window.viewer.message")
@@ -349,20 +350,12 @@ def _frames(page) -> int:
     return len(page.evaluate("window.viewer.stats().log"))
 
 
-def _open(browser, srv):
-    """A 775x800 page of the viewer at ``srv``, past its loading state."""
-    page = browser.new_page(viewport={"width": 775, "height": 800})
-    page.goto(srv.url)
-    page.wait_for_function("window.viewer && window.viewer.state !== 'loading'", timeout=120_000)
-    return page
-
-
 def test_llff_look_around_never_stops_the_page(no_webgl_browser, llff_tree):
     """The user's path on a forward-facing tree in CPU mode: look around with the arrow keys
     held for seconds (the camera turns past 180°: most rays miss the NDC volume), then reset:
     frames keep arriving, no frame is refused, nothing stops the page."""
     with ViewerServer(llff_tree, port=0, render="auto") as srv:
-        page = _open(no_webgl_browser, srv)
+        page = _open(no_webgl_browser, srv.url, (775, 800))
         try:
             assert page.evaluate("window.viewer.state") == "ready", page.evaluate("window.viewer.message")
             assert page.evaluate("window.viewer.renderer()")["mode"] == "cpu"
@@ -407,7 +400,7 @@ def test_back_at_the_last_sharp_pose_draws_sharp_again(no_webgl_browser, llff_tr
     sharp frame while moving still ends in a full-resolution frame (it used to keep the blurry
     moving frame for good, as the page thought the sharp one was still shown)."""
     with ViewerServer(llff_tree, port=0, render="cpu") as srv:
-        page = _open(no_webgl_browser, srv)
+        page = _open(no_webgl_browser, srv.url, (775, 800))
         try:
             page.wait_for_function("window.viewer.stats().last && window.viewer.stats().last.full",
                                    timeout=120_000)
