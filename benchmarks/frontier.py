@@ -6,7 +6,8 @@ For each budget B (minutes) one child process, the command a user types:
 
 with <source> ``--images REAL/flower/images_8`` (``--scene flower``: COLMAP poses by
 ``process``, then the chain) or ``--data nerf_synthetic/lego --downscale 2`` (``--scene lego``:
-400², all 200 test views scored by ``run``'s default ``--eval-views 0``). It measures the wall
+400²: the compressed tree scored on all 200 test views by ``run``'s default ``--eval-views 0``,
+the trees before it on 25, ``--stage-eval-views``). It measures the wall
 time of the whole command, polls the run's newest tree (:func:`plenoctree.live.newest_tree`)
 once a second for when the first preview appeared and the gaps between previews, and reads the
 run's ``summary.json`` for the PSNR of each stage (NeRF-SH, raw, refined, fine-tuned,

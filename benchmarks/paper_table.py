@@ -334,7 +334,8 @@ def run_full(out: Path, data: Path, views: int, downscale: int = 2, nerf: str = 
     from plenoctree.pipeline import PipelineConfig, layer_settings, run_pipeline
 
     cfg = PipelineConfig(data=str(data), out=str(out), downscale=downscale,
-                         eval_views=views, video_frames=0, web=False, nerf=nerf)
+                         eval_views=views, stage_eval_views=0, video_frames=0, web=False,
+                         nerf=nerf)
     if finetune_epochs:
         cfg.finetune.epochs = finetune_epochs
     if train_minutes:

@@ -113,7 +113,8 @@ def test_pipeline_runs_resumes_and_reruns_changed_stages(scene, tmp_path, logs, 
 
 
 def test_the_trees_are_scored_on_one_load_of_the_test_split(scene, tmp_path, monkeypatch):
-    """The four scoring stages decode the test split once, and score as a fresh load does."""
+    """The four scoring stages decode each view subset once (the trees before the result share
+    theirs), and score as a fresh load does."""
     from plenoctree import evaluation
 
     loads: list[str] = []
@@ -122,7 +123,7 @@ def test_the_trees_are_scored_on_one_load_of_the_test_split(scene, tmp_path, mon
                         lambda cfg: loads.append(str(cfg.tree)) or real(cfg))
     out = tmp_path / "run"
     run_pipeline(_tiny_cfg(scene, out, video_frames=0, web=False))
-    assert len(loads) == 1 and loads[0].endswith("tree.npz")
+    assert len(loads) == 2 and loads[0].endswith("tree.npz") and loads[1].endswith(".plnz")
     for key, tree in (("raw", "tree.npz"), ("compressed", "tree_ft.plnz")):
         saved = json.loads((out / f"eval_{key}" / "eval.json").read_text())
         fresh = evaluation.eval_tree_file(evaluation.EvalConfig(
@@ -130,7 +131,27 @@ def test_the_trees_are_scored_on_one_load_of_the_test_split(scene, tmp_path, mon
         assert fresh["mean"]["psnr"] == pytest.approx(saved["mean"]["psnr"], abs=1e-9)
         assert fresh["mean"]["ssim"] == pytest.approx(saved["mean"]["ssim"], abs=1e-12)
         assert fresh["tree"]["n_occupied_leaves"] == saved["tree"]["n_occupied_leaves"] > 0
-    assert len(loads) == 3                   # each call of eval_tree_file alone loads its own
+    assert len(loads) == 4                   # each call of eval_tree_file alone loads its own
+
+
+def test_the_result_is_scored_on_every_view_and_the_trees_before_it_on_fewer(scene, tmp_path):
+    """--stage-eval-views: the raw, refined and fine-tuned trees on that many evenly spaced test
+    views, the compressed tree (the chain's result) on --eval-views (0 = all); never more views
+    for a tree before it than for the result."""
+    from plenoctree.pipeline import stage_views
+
+    cfg = PipelineConfig(eval_views=0, stage_eval_views=25)
+    assert [stage_views(cfg, k) for k in ("raw", "ft", "compressed")] == [25, 25, 0]
+    cfg = PipelineConfig(eval_views=5, stage_eval_views=25)
+    assert [stage_views(cfg, k) for k in ("raw", "ft", "compressed")] == [5, 5, 5]
+    cfg = PipelineConfig(eval_views=40, stage_eval_views=0)
+    assert [stage_views(cfg, k) for k in ("raw", "ft", "compressed")] == [40, 40, 40]
+
+    out = tmp_path / "run"
+    s = run_pipeline(_tiny_cfg(scene, out, video_frames=0, web=False, stage_eval_views=1))
+    assert [r["views"] for r in s["rows"]] == [1, 1, 1, 1, 2]
+    with pytest.raises(ConfigError, match="--stage-eval-views must be >= 0"):
+        run_pipeline(_tiny_cfg(scene, tmp_path / "bad", stage_eval_views=-1))
 
 
 def test_bad_stage_options_fail_before_training(scene, tmp_path):

@@ -115,7 +115,7 @@ def _validate(cfg: PipelineConfig) -> None:
         _checked("refine", cfg.refine.validated)
     _checked("finetune", cfg.finetune.validated)
     _checked("compress", cfg.compress.validated)
-    for name in ("eval_views", "video_frames", "video_size"):
+    for name in ("eval_views", "stage_eval_views", "video_frames", "video_size"):
         if getattr(cfg, name) < 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be >= 0, got "
                               f"{getattr(cfg, name)}")
@@ -460,37 +460,46 @@ def _compress(lay: RunLayout, options: CompressOptions) -> None:
     save_compressed(compress(load_tree(lay.ft), options), lay.compressed)
 
 
+def stage_views(cfg: PipelineConfig, key: str) -> int:
+    """Test views tree stage ``key`` is scored on (0 = all): ``eval_views`` for the result
+    (the compressed tree), ``stage_eval_views`` (at most as many) for the trees before it."""
+    final, inter = cfg.eval_views, cfg.stage_eval_views
+    if key == "compressed" or inter == 0:
+        return final
+    return inter if final == 0 else min(final, inter)
+
+
 def _eval_stages(cfg: PipelineConfig, lay: RunLayout, common: dict) -> list[Stage]:
     """Scores of each octree stage on the test split (PSNR, SSIM, FPS, MB), sharing one load of
-    the split's images: the first of them that runs loads it, the last lets it go (decoding
-    lego's 200 test photos took ~6 s of each ~40-s scoring)."""
+    each view subset (:func:`stage_views`): the first stage that scores a subset loads it, the
+    last stage lets them go (decoding lego's 200 test photos took ~6 s of each ~40-s scoring)."""
     trees = _trees(cfg, lay)
-    shared: dict[str, Any] = {}
+    shared: dict[int, Any] = {}
     return [_eval_stage(cfg, key, tree, common, shared, last=k == len(trees) - 1)
             for k, (key, tree) in enumerate(trees)]
 
 
-def _eval_stage(cfg: PipelineConfig, key: str, tree: Path, common: dict, shared: dict[str, Any],
+def _eval_stage(cfg: PipelineConfig, key: str, tree: Path, common: dict, shared: dict[int, Any],
                 last: bool) -> Stage:
-    """Scores of one octree stage on the test split; ``shared["data"]``: the split, loaded once
-    for the stages of :func:`_eval_stages` (dropped after the ``last``)."""
+    """Scores of one octree stage on its test views; ``shared[views]``: that subset of the
+    split, loaded once for the stages of :func:`_eval_stages` (dropped after the ``last``)."""
     from .evaluation import EvalConfig
 
+    views = stage_views(cfg, key)
     ev_dir = Path(cfg.out) / f"eval_{key}"
     ecfg = EvalConfig(tree=str(tree), data=cfg.train.data, format=cfg.format,
-                      downscale=cfg.downscale, limit=cfg.eval_views or None, spread=True,
+                      downscale=cfg.downscale, limit=views or None, spread=True,
                       out=str(ev_dir), backend=cfg.backend, device=cfg.device,
                       show_progress=bool(cfg.show_progress), save_images=(key == "ft"))
-    settings = {**common, "views": cfg.eval_views,
-                **({"spread": True} if cfg.eval_views else {})}
+    settings = {**common, "views": views, **({"spread": True} if views else {})}
 
     def score() -> dict:
         from .evaluation import eval_dataset, eval_tree_file
 
         try:
-            if "data" not in shared:
-                shared["data"] = eval_dataset(ecfg)
-            return eval_tree_file(ecfg, shared["data"])
+            if views not in shared:
+                shared[views] = eval_dataset(ecfg)
+            return eval_tree_file(ecfg, shared[views])
         finally:
             if last:
                 shared.clear()

@@ -155,7 +155,12 @@ class PipelineConfig:
     """progress bars of the stages (default: training, extraction and fine-tuning when stderr
     is a terminal)"""
     eval_views: int = 0
-    """test views scored per octree stage, evenly spaced over the split (0 = all)"""
+    """test views the chain's result (the compressed tree) is scored on, evenly spaced over
+    the split (0 = all)"""
+    stage_eval_views: int = 25
+    """test views the trees before it (raw, refined, fine-tuned) are scored on, evenly spaced
+    (0 = as many as the result; never more): enough to follow the stages, without scoring
+    lego's 200 views four times (~45 s a tree on 2 cores)"""
     nerf_eval_views: int = 5
     """test views rendered with the NeRF-SH for its PSNR and speed baseline, evenly spaced
     (0 = all, -1 = skip; 5 = all of an LLFF capture's held-out photos)"""
