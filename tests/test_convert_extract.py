@@ -84,6 +84,59 @@ def test_hidden_voxels_removed_by_weight_filter_kept_by_sigma(weight_run, sigma_
     assert abs(weight_run.psnr - sigma_run.psnr) < 0.3
 
 
+def _far_from_every_ray(cams, candidates: np.ndarray, margin: float) -> np.ndarray:
+    """The first of ``candidates`` (``[K, 3]``) farther than ``margin`` from every pixel ray
+    of ``cams`` (rays as half-lines from the camera), found from the rays themselves."""
+    for p in candidates:
+        for i in range(len(cams)):
+            o, d = cams.rays(i)
+            o, d = o.reshape(-1, 3).astype(np.float64), d.reshape(-1, 3).astype(np.float64)
+            t = np.maximum(((p - o) * d).sum(1), 0.0)
+            if np.linalg.norm(o + t[:, None] * d - p, axis=1).min() < margin:
+                break
+        else:
+            return p
+    raise AssertionError("no point outside every view")
+
+
+def test_matter_outside_every_view_is_kept_with_unseen_keep(scene):
+    # a dense ball where no training ray passes (just behind a camera: they sit on a sphere
+    # of radius 4 looking at the object): the weight filter cannot judge it; "keep" keeps the field's
+    # values there, "drop" (the paper's filter) removes it, and nothing else changes
+    from plenoctree.datasets import load_dataset
+
+    cams = load_dataset(scene, "train").cameras
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(200, 3))
+    ball = _far_from_every_ray(cams, 4.6 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True),
+                               margin=0.6)
+    field = AnalyticField(
+        lambda x: procedural.density(x) + procedural.SIGMA_MAX * (
+            np.linalg.norm(x - ball, axis=1) < 0.3),
+        procedural.sh_coeffs, scene_bbox=[[-5.0] * 3, [5.0] * 3])
+    runs = {m: extract(ExtractConfig(data=str(scene), grid=32, samples=2, bbox="fixed",
+                                     center=(0.0, 0.0, 0.0), radius=(5.0,), eval=False,
+                                     unseen=m, seed=1), field=field)
+            for m in ("keep", "drop")}
+    keep, drop = runs["keep"], runs["drop"]
+    assert keep.tree.query(ball)[-1] == pytest.approx(procedural.SIGMA_MAX)
+    assert drop.tree.query(ball)[-1] == 0.0
+    added = keep.extra["unseen_kept"]
+    assert added >= 1 and keep.n_kept == drop.n_kept + added and "unseen_kept" not in drop.extra
+    # the filter's masks: "keep" adds exactly the dropped cells that lie in no camera's image
+    from plenoctree.convert.extraction import _filter
+    from plenoctree.convert.visibility import unseen_cells
+
+    spec = GridSpec.make(0.0, 5.0, 32)
+    sigma = evaluate_density_grid(field, spec, show_progress=False)
+    train = load_dataset(scene, "train")
+    masks = {m: _filter(ExtractConfig(unseen=m, device="cpu"), sigma, spec, train, 1 << 30)[0]
+             for m in ("keep", "drop")}
+    extra = np.flatnonzero(masks["keep"] & ~masks["drop"])
+    assert extra.size == added and not np.any(masks["drop"] & ~masks["keep"])
+    assert unseen_cells(spec, extra, cams).all()
+
+
 def _content_aabb(res: int = 160) -> np.ndarray:
     ax = np.linspace(-1, 1, res)
     pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
@@ -248,7 +301,7 @@ def test_too_large_grid_is_a_clear_error(scene):
 
 @pytest.mark.parametrize("kw, match", [
     (dict(grid=100), "power of two"), (dict(samples=0), "--samples"),
-    (dict(masking="alpha"), "--masking"), (dict(bbox="tight"), "--bbox"),
+    (dict(masking="alpha"), "--masking"), (dict(unseen="maybe"), "--unseen"), (dict(bbox="tight"), "--bbox"),
     (dict(weight_thresh=0.0), "--weight-thresh"), (dict(precision="fp8"), "--precision"),
     (dict(radius=(1.0, 2.0)), "--radius"), (dict(center=(0.0, 0.0, 0.0)), "--radius"),
     (dict(averaging="median"), "--averaging"), (dict(ndc_depth_stretch=0.5), "--ndc-depth"),

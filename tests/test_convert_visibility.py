@@ -9,7 +9,8 @@ import pytest
 
 from plenoctree.convert.grid import GridSpec
 from plenoctree.convert.visibility import (auto_ray_scale, candidates, max_ray_weights,
-                                           rescale_cameras, sigma_mask, weight_mask)
+                                           rescale_cameras, sigma_mask, unseen_cells,
+                                           weight_mask)
 from plenoctree.datasets import Cameras
 from plenoctree.datasets.procedural import look_at
 from plenoctree.errors import ConfigError
@@ -134,3 +135,45 @@ def test_auto_ray_scale_makes_pixels_no_wider_than_voxels():
     o, d = big.rays(0)
     o0, d0 = cams.rays(0)
     np.testing.assert_allclose(d[big.height // 2, big.width // 2], d0[16, 16], atol=0.02)
+
+
+def _flat(spec, centers):
+    """C-order flat indices of the cells holding ``centers``."""
+    ijk = np.floor((np.asarray(centers, np.float64) - spec.lo) / spec.cell).astype(np.int64)
+    return np.ravel_multi_index(ijk.T, (spec.res,) * 3)
+
+
+def test_unseen_cells_golden_pinhole():
+    # one camera at the origin looking down -z; its 4x2 image spans x/depth in [-1, 1] and
+    # y/depth in [-0.5, 0.5]
+    cams = Cameras(np.eye(4, dtype=np.float32)[None], 2.0, 2.0, 2.0, 1.0, 4, 2)
+    spec = GridSpec.make([0.0, 0.0, -3.0], 4.0, 4)              # cells of side 2: centres ±1, ±3
+    centers = [(1, 1, -4),        # x/depth 0.25, y/depth 0.25: in the image
+               (-3, -1, -4),      # -0.75, -0.25: in
+               (1, 3, -6),        # y/depth exactly 0.5: on the image's edge, in
+               (3, 1, -2),        # x/depth 1.5: outside the image
+               (1, 1, 0),         # level with the camera: not in front of it
+               (-1, 3, -2)]       # y/depth 1.5: outside
+    got = unseen_cells(spec, _flat(spec, centers), cams)
+    assert got.tolist() == [False, False, False, True, True, True]
+    # a second camera turned to look along +x sees the first's outside cell (3, 1, -2)
+    c2w = np.stack([np.eye(4), look_at([-2.0, 1.0, -2.0], target=[3.0, 1.0, -2.0])])
+    both = Cameras(c2w.astype(np.float32), 2.0, 2.0, 2.0, 1.0, 4, 2)
+    assert unseen_cells(spec, _flat(spec, centers), both).tolist() == [
+        False, False, False, False, True, True]
+    assert unseen_cells(spec, np.zeros(0, np.int64), cams).shape == (0,)
+
+
+def test_unseen_cells_ndc_are_those_outside_the_reference_image():
+    # NDC space of the reference camera (identity pose): x', y' in [-1, 1] is its image, so
+    # with that camera alone a cell is unseen exactly when its centre has |x'| or |y'| > 1;
+    # centres outside NDC's depth range (-1, 1) are never reported
+    cams = Cameras(np.eye(4, dtype=np.float32)[None], 30.0, 30.0, 20.0, 15.0, 40, 30,
+                   ndc=True)
+    spec = GridSpec.make([0.0, 0.0, 0.0], [2.0, 2.0, 1.5], 8)
+    flat = np.arange(8 ** 3)
+    c = spec.lo + (np.stack(np.unravel_index(flat, (8,) * 3), -1) + 0.5) * spec.cell
+    want = (np.abs(c[:, :2]).max(1) > 1.0) & (np.abs(c[:, 2]) < 1.0)
+    got = unseen_cells(spec, flat, cams)
+    assert want.sum() > 100 and (~want).sum() > 100
+    np.testing.assert_array_equal(got, want)

@@ -9,7 +9,9 @@ Stages (each timed, with its peak RSS):
    :func:`~.bbox.stretch_depth`; its grid: :data:`NDC_GRID`);
 3. ``grid`` — σ at the centres of the ``grid³`` cells of the box;
 4. ``filter`` — keep cells whose maximum ray weight over all training views is ``≥ τ_w``
-   (``--masking weight``), or whose alpha is ``≥ --mask-alpha-thresh`` (``--masking sigma``);
+   (``--masking weight``; and, with ``--unseen keep``, the cells that could reach it but lie
+   outside every training view), or whose alpha is ``≥ --mask-alpha-thresh`` (``--masking
+   sigma``);
 5. ``sample`` — mean of ``S`` random samples of (coefficients, σ) in each kept cell
    (projected onto SH first for a plain NeRF);
 6. ``build`` / ``save`` — the octree (kept cells are leaves at the deepest level) and its file;
@@ -40,8 +42,8 @@ from .field import as_field
 from .grid import GridSpec, check_resolution, evaluate_density_grid
 from .memory import StageMonitor, check_budget, memory_limit
 from .sampling import SampleOptions, SamplingStats, output_format, sample_cells
-from .visibility import (auto_ray_scale, rescale_cameras, sigma_mask, visibility_weights,
-                         weight_mask)
+from .visibility import (auto_ray_scale, rescale_cameras, sigma_mask, unseen_cells,
+                         visibility_weights, weight_mask)
 
 logger = logging.getLogger(__name__)
 
@@ -96,6 +98,11 @@ class ExtractConfig:
     (alpha threshold; keeps hidden matter too)."""
     weight_thresh: float = 0.001
     """τ_w: keep voxels whose maximum ray weight is at least this (paper 1.4G variant: 0.01)."""
+    unseen: str = "keep"
+    """With --masking weight, voxels no training view holds (outside every camera's image),
+    which the weight filter cannot judge: "keep" those dense enough to reach τ_w (the
+    network's guess: flower's held-out photos see corners no training photo saw, +0.13 dB) or
+    "drop" them (the paper's filter)."""
     mask_alpha_thresh: float = 0.01
     """With --masking sigma: keep voxels whose alpha 1 - exp(-σ δ) (δ = voxel side) is at
     least this."""
@@ -228,6 +235,8 @@ def _validate(cfg: ExtractConfig) -> None:
                           f"{cfg.averaging!r}")
     if cfg.masking not in ("weight", "sigma"):
         raise ConfigError(f"--masking must be weight or sigma, got {cfg.masking!r}")
+    if cfg.unseen not in ("keep", "drop"):
+        raise ConfigError(f"--unseen must be keep or drop, got {cfg.unseen!r}")
     if cfg.bbox not in ("auto", "fixed"):
         raise ConfigError(f"--bbox must be auto or fixed, got {cfg.bbox!r}")
     if not 0.0 < cfg.weight_thresh < 1.0:
@@ -407,6 +416,11 @@ def _filter(cfg: ExtractConfig, sigma: np.ndarray, spec: GridSpec, train: Any,
                                            device=cfg.device)
         n_cand = int(cand.flat.size)
         mask = weight_mask(spec, cand, weights, cfg.weight_thresh)
+        if cfg.unseen == "keep":
+            dropped = cand.flat[weights < cfg.weight_thresh]
+            add = dropped[unseen_cells(spec, dropped, train.cameras)]
+            mask.reshape(-1)[add] = True
+            vis_info["unseen_kept"] = int(add.size)
         max_w = float(weights.max()) if weights.size else 0.0
         del cand, weights
         what = (f"no voxel reaches the weight threshold {cfg.weight_thresh:g} in any of the "
@@ -556,7 +570,7 @@ def _settings(cfg: ExtractConfig) -> dict:
     """The options repeated at the top level of ``extract.json``."""
     return {"samples": cfg.samples, "averaging": cfg.averaging, "masking": cfg.masking,
             "device": cfg.device, "weight_thresh": cfg.weight_thresh,
-            "precision": cfg.precision}
+            "unseen": cfg.unseen, "precision": cfg.precision}
 
 
 def _evaluate(res: ExtractResult, cfg: ExtractConfig, root: str, downscale: int,

@@ -29,7 +29,7 @@ from ..errors import ConfigError
 from .grid import GridSpec
 
 __all__ = ["Candidates", "candidates", "max_ray_weights", "visibility_weights", "weight_mask",
-           "sigma_mask", "auto_ray_scale", "rescale_cameras"]
+           "sigma_mask", "unseen_cells", "auto_ray_scale", "rescale_cameras"]
 
 
 @dataclass
@@ -349,6 +349,45 @@ def weight_mask(spec: GridSpec, cand: Candidates, weights: np.ndarray, weight_th
     mask = np.zeros((spec.res,) * 3, dtype=bool)
     mask.reshape(-1)[cand.flat[weights >= weight_thresh]] = True
     return mask
+
+
+def unseen_cells(spec: GridSpec, flat: np.ndarray, cameras: Any) -> np.ndarray:
+    """Bool ``[M]``: the cells ``flat`` (int ``[M]``, C-order flat indices of ``spec``'s grid)
+    whose centre lies in no camera's image: behind every camera or outside every image's
+    rectangle (occlusion plays no part: a cell in view behind a wall is *seen*).
+
+    ``cameras``: a :class:`~plenoctree.datasets.Cameras`. NDC cameras (the grid in the NDC
+    space of :attr:`~plenoctree.datasets.Cameras.ndc_focal`): centres are mapped back to the
+    world first; those outside NDC's depth range ``(-1, 1)`` (before the near plane or at
+    infinite depth) count as seen, so they are never added.
+    """
+    flat = np.asarray(flat, dtype=np.int64).reshape(-1)
+    idx = np.stack(np.unravel_index(flat, (spec.res,) * 3), -1)
+    pts = spec.lo + (idx + 0.5) * spec.cell
+    todo = np.ones(len(flat), dtype=bool)
+    if getattr(cameras, "ndc", False):
+        from ..octree.ndc import NDCSpace
+
+        todo = np.abs(pts[:, 2]) < 1.0
+        pts = np.where(todo[:, None], pts, 0.0)
+        pts = NDCSpace.from_cameras(cameras).ndc_to_world(pts)
+    left = np.flatnonzero(todo)        # not yet seen: most cells leave after a few cameras
+    for i in range(len(cameras)):
+        if left.size == 0:
+            break
+        fx, fy, cx, cy = cameras.intrinsics(i)
+        m = np.asarray(cameras.c2w[i], dtype=np.float64)
+        pc = (pts[left] - m[:3, 3]) @ m[:3, :3]          # camera space: looks down -z
+        depth = -pc[:, 2]
+        front = depth > 0.0
+        s = np.where(front, depth, 1.0)
+        u = cx + fx * pc[:, 0] / s
+        v = cy - fy * pc[:, 1] / s
+        seen = front & (u >= 0.0) & (u <= cameras.width) & (v >= 0.0) & (v <= cameras.height)
+        left = left[~seen]
+    out = np.zeros(len(flat), dtype=bool)
+    out[left] = True
+    return out
 
 
 def sigma_mask(sigma: np.ndarray, spec: GridSpec, alpha_thresh: float) -> np.ndarray:
