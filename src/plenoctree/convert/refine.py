@@ -16,8 +16,8 @@ not, a smaller tree would do. :func:`refine_tree` makes the tree adaptive:
 - **merge** nodes whose 8 children are leaves that agree (``max |α_i - ᾱ| + |c_i - c̄|`` below
   ``merge_tol``; all-empty siblings always agree) into one leaf holding their mean.
 
-Leaves whose stored σ is 0 are never scored: extraction zeroes what no training ray sees
-(hidden matter, floaters), and refinement must not bring it back. The result is a valid
+Leaves whose stored σ is 0 are never scored: extraction zeroes what the training views find
+hidden (matter behind surfaces, floaters), and refinement must not bring it back. The result is a valid
 svox-layout tree of mixed depths, nodes renumbered breadth-first (``check_integrity`` holds).
 
 :func:`refine` is the ``plenoctree refine`` command: a tree file + the NeRF-SH run it came from.
