@@ -101,8 +101,9 @@ def _far_from_every_ray(cams, candidates: np.ndarray, margin: float) -> np.ndarr
 
 def test_matter_outside_every_view_is_kept_with_unseen_keep(scene):
     # a dense ball where no training ray passes (just behind a camera: they sit on a sphere
-    # of radius 4 looking at the object): the weight filter cannot judge it; "keep" keeps the field's
-    # values there, "drop" (the paper's filter) removes it, and nothing else changes
+    # of radius 4 looking at the object): the weight filter cannot judge it; "keep" keeps
+    # the field's values there, "drop" (the paper's filter) removes it, and nothing else
+    # changes
     from plenoctree.datasets import load_dataset
 
     cams = load_dataset(scene, "train").cameras
@@ -301,7 +302,8 @@ def test_too_large_grid_is_a_clear_error(scene):
 
 @pytest.mark.parametrize("kw, match", [
     (dict(grid=100), "power of two"), (dict(samples=0), "--samples"),
-    (dict(masking="alpha"), "--masking"), (dict(unseen="maybe"), "--unseen"), (dict(bbox="tight"), "--bbox"),
+    (dict(masking="alpha"), "--masking"), (dict(unseen="maybe"), "--unseen"),
+    (dict(bbox="tight"), "--bbox"),
     (dict(weight_thresh=0.0), "--weight-thresh"), (dict(precision="fp8"), "--precision"),
     (dict(radius=(1.0, 2.0)), "--radius"), (dict(center=(0.0, 0.0, 0.0)), "--radius"),
     (dict(averaging="median"), "--averaging"), (dict(ndc_depth_stretch=0.5), "--ndc-depth"),

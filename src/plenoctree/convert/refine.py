@@ -17,8 +17,9 @@ not, a smaller tree would do. :func:`refine_tree` makes the tree adaptive:
   ``merge_tol``; all-empty siblings always agree) into one leaf holding their mean.
 
 Leaves whose stored σ is 0 are never scored: extraction zeroes what the training views find
-hidden (matter behind surfaces, floaters), and refinement must not bring it back. The result is a valid
-svox-layout tree of mixed depths, nodes renumbered breadth-first (``check_integrity`` holds).
+hidden (matter behind surfaces, floaters), and refinement must not bring it back. The result
+is a valid svox-layout tree of mixed depths, nodes renumbered breadth-first
+(``check_integrity`` holds).
 
 :func:`refine` is the ``plenoctree refine`` command: a tree file + the NeRF-SH run it came from.
 """
