@@ -101,7 +101,7 @@ class ExtractConfig:
     unseen: str = "keep"
     """With --masking weight, voxels no training view holds (outside every camera's image),
     which the weight filter cannot judge: "keep" those dense enough to reach τ_w (the
-    network's guess: flower's held-out photos see corners no training photo saw, +0.13 dB) or
+    network's guess: held-out photos see past the training views' edges; flower +0.13 dB) or
     "drop" them (the paper's filter)."""
     mask_alpha_thresh: float = 0.01
     """With --masking sigma: keep voxels whose alpha 1 - exp(-σ δ) (δ = voxel side) is at
