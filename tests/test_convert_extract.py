@@ -124,6 +124,10 @@ def test_matter_outside_every_view_is_kept_with_unseen_keep(scene):
     assert drop.tree.query(ball)[-1] == 0.0
     added = keep.extra["unseen_kept"]
     assert added >= 1 and keep.n_kept == drop.n_kept + added and "unseen_kept" not in drop.extra
+    from plenoctree.cli.extract import report          # what `plenoctree extract` prints
+
+    assert f"kept ({added} outside every training view)" in report(keep)
+    assert "outside every training view" not in report(drop)
     # the filter's masks: "keep" adds exactly the dropped cells that lie in no camera's image
     from plenoctree.convert.extraction import _filter
     from plenoctree.convert.visibility import unseen_cells

@@ -34,8 +34,10 @@ def report(res) -> str:
                  + (f" (depth stretched {b.depth_stretch:g}x: forward-facing)"
                     if b.depth_stretch != 1 else ""))
     t = res.tree
+    unseen = res.extra.get("unseen_kept")
     lines.append(f"grid {res.grid}^3: {res.n_candidates} candidate voxels, {res.n_kept} kept "
-                 f"-> {t.n_leaves} leaves ({t.n_nodes} nodes, {t.data_format})")
+                 + (f"({unseen} outside every training view) " if unseen else "")
+                 + f"-> {t.n_leaves} leaves ({t.n_nodes} nodes, {t.data_format})")
     if res.out is not None:
         lines.append(f"saved {res.out} ({_mb(res.file_bytes)}, {res.extra.get('precision')})")
     if res.eval_views:
