@@ -106,7 +106,8 @@ def test_matter_outside_every_view_is_kept_with_unseen_keep(scene):
     # changes
     from plenoctree.datasets import load_dataset
 
-    cams = load_dataset(scene, "train").cameras
+    train = load_dataset(scene, "train")
+    cams = train.cameras
     rng = np.random.default_rng(0)
     dirs = rng.normal(size=(200, 3))
     ball = _far_from_every_ray(cams, 4.6 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True),
@@ -134,7 +135,6 @@ def test_matter_outside_every_view_is_kept_with_unseen_keep(scene):
 
     spec = GridSpec.make(0.0, 5.0, 32)
     sigma = evaluate_density_grid(field, spec, show_progress=False)
-    train = load_dataset(scene, "train")
     masks = {m: _filter(ExtractConfig(unseen=m, device="cpu"), sigma, spec, train, 1 << 30)[0]
              for m in ("keep", "drop")}
     extra = np.flatnonzero(masks["keep"] & ~masks["drop"])
