@@ -7,7 +7,10 @@ the box is the innermost rings). The march is the renderer's (:func:`next_leaf` 
 stack and the empty-space skip tables of ``tree_to_device``, the same early stop); for each
 ring it counts, per ray: lookups of empty leaves and how many of those could not be pushed
 forward by the skip tables at all (``r = 0``: the empty cube ahead is the leaf itself), lookups
-of σ > 0 leaves, and ``child`` reads. A second table gives each ring's share of σ > 0 leaves
+of σ > 0 leaves, ``child`` reads, and *empty runs*: the stretches of consecutive empty lookups
+between σ > 0 ones (counted in the ring where they start). A run is what a skip that knew the
+ray's own path would cross in one lookup, so ``σ > 0 lookups + runs`` bounds from below what
+any exact empty-space skip can bring the lookups per ray to. A second table gives each ring's share of σ > 0 leaves
 and of leaves with opacity ``1 - exp(-σ ℓ) > 0.1`` (ℓ: the leaf's side in world units), and
 ``--prune A`` scores the tree with the leaves under opacity ``A`` emptied
 (``compression.lod.prune``) on the test views: what leaving faint cells empty would buy.
@@ -37,8 +40,8 @@ from plenoctree.render._march_numba import (MARCH_MATH, MAX_LEVEL, STACK_SIZE, n
 from plenoctree.render.options import QUANT_BITS
 
 RINGS = 16
-# per ring: 0 empty lookups, 1 empty with r = 0, 2 child reads, 3 σ > 0 lookups
-_COLS = 4
+# per ring: 0 empty lookups, 1 empty with r = 0, 2 child reads, 3 σ > 0 lookups, 4 empty runs
+_COLS = 5
 
 
 @njit(cache=True, fastmath=MARCH_MATH)
@@ -60,6 +63,7 @@ def _count(child, skip, shift, data, offset, invr, o, d, stop, eps, out):
         st[1] = -1
         stack[0] = 0
         steps = 0
+        in_run = False
         while t < t1 and steps < 100000:
             steps += 1
             cell, t_end, n_desc = next_leaf(child, skip, shift, oc, px, py, pz, vx, vy, vz, ix,
@@ -70,17 +74,20 @@ def _count(child, skip, shift, data, offset, invr, o, d, stop, eps, out):
                 ring += 1
             out[ring, 2] += n_desc
             c = child[cell]
-            if c < 0:
+            sigma = data[cell, dim - 1] if c >= 0 else 0.0
+            if sigma <= 0.0:                 # empty (marked by the skip tables or not)
+                if not in_run:
+                    out[ring, 4] += 1
+                in_run = True
                 out[ring, 0] += 1
-                if skip[-c - 1, oc] == 0:
+                if c >= 0 or skip[-c - 1, oc] == 0:
                     out[ring, 1] += 1
             else:
-                sigma = data[cell, dim - 1]
-                if sigma > 0.0:
-                    out[ring, 3] += 1
-                    trans *= math.exp(-sigma * (t_end - t))
-                    if trans < stop:
-                        break
+                in_run = False
+                out[ring, 3] += 1
+                trans *= math.exp(-sigma * (t_end - t))
+                if trans < stop:
+                    break
             t = t_end
 
 
@@ -95,7 +102,8 @@ def ring_of_leaves(tree) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def lookups_by_ring(tree, fast, views: list, opts) -> tuple[np.ndarray, int]:
-    """``[RINGS, 4]`` counts summed over the rays of ``views`` and the number of rays."""
+    """``[RINGS, 5]`` counts (columns: ``_COLS``) summed over the rays of ``views`` and the
+    number of rays; the march skips with ``fast.empty_skip`` (None: leaf by leaf)."""
     from plenoctree.render._spec import tree_spec
 
     p = tree_spec(tree, opts, skip=fast.empty_skip, with_values=True)
@@ -170,6 +178,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append({"ring": k, "empty_per_ray": empty / n,
                      "no_skip_share": counts[k, 1] / max(1, empty),
                      "sigma_per_ray": counts[k, 3] / n, "reads_per_ray": counts[k, 2] / n,
+                     "runs_per_ray": counts[k, 4] / n,
                      "leaves": int(in_ring.sum()),
                      "sigma_share": float((sigma[in_ring] > 0).mean()) if in_ring.any() else 0.0,
                      "alpha01_share": float((alpha[in_ring] > 0.1).mean()) if in_ring.any()
@@ -178,18 +187,21 @@ def main(argv: list[str] | None = None) -> int:
              "empty_per_ray": float(counts[:, 0].sum() / n),
              "sigma_per_ray": float(counts[:, 3].sum() / n),
              "no_skip_share": float(counts[:, 1].sum() / max(1, counts[:, 0].sum())),
+             "runs_per_ray": float(counts[:, 4].sum() / n),
              "rays": n, "seconds": time.perf_counter() - t0}
     print(f"{args.tree}: {len(sigma):,} leaves, {n:,} rays ({len(views)} test views at "
           f"{cams.width}x{cams.height}, every {args.stride}th pixel)\n")
     print(markdown_table(
         ["ring", "leaves", "σ>0 share", "α>0.1 share", "empty lookups/ray", "of them r=0",
-         "σ>0 lookups/ray", "child reads/ray"],
+         "σ>0 lookups/ray", "child reads/ray", "empty runs/ray"],
         [[r["ring"], f"{r['leaves']:,}", f"{r['sigma_share']:.2f}", f"{r['alpha01_share']:.2f}",
           f"{r['empty_per_ray']:.2f}", f"{r['no_skip_share']:.2f}", f"{r['sigma_per_ray']:.2f}",
-          f"{r['reads_per_ray']:.2f}"] for r in rows]))
+          f"{r['reads_per_ray']:.2f}", f"{r['runs_per_ray']:.2f}"] for r in rows]))
     print(f"\nper ray: {total['lookups_per_ray']:.1f} lookups, {total['empty_per_ray']:.1f} "
           f"empty ({100 * total['no_skip_share']:.0f} % of them not skippable), "
-          f"{total['sigma_per_ray']:.1f} with σ > 0")
+          f"{total['sigma_per_ray']:.1f} with σ > 0; the empty lookups form "
+          f"{total['runs_per_ray']:.1f} runs, so an exact skip could bring a ray to "
+          f"{total['sigma_per_ray'] + total['runs_per_ray']:.1f} lookups at best")
     pruned = prune_rows(tree, args.data, args.downscale, args.prune) if args.prune else []
     if pruned:
         print("\n" + markdown_table(

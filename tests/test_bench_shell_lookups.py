@@ -1,0 +1,61 @@
+"""benchmarks/shell_lookups.py's counters on a hand-made row of leaves: lookups, σ > 0
+lookups and empty runs (the floor of an exact empty-space skip)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from plenoctree.octree.tree import Octree
+from plenoctree.render import RenderOptions, tree_to_device
+
+_BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@pytest.fixture()
+def shell_lookups(monkeypatch):
+    monkeypatch.syspath_prepend(str(_BENCH))
+    import shell_lookups
+
+    return shell_lookups
+
+
+def _row_tree(sigmas: list[float]) -> Octree:
+    """A 4³ grid over [-1, 1]³ (RGBA, grey) whose row at y = z = -0.25 has σ ``sigmas`` along
+    +x; every other leaf empty."""
+    tree = Octree.dense(1, "RGBA")
+    tree.data[...] = 0.0
+    tree.data[..., :3] = 0.5
+    centres = np.asarray(tree.leaf_centers())            # world units
+    node, i, j, k = tree.leaf_indices()
+    for x, s in zip((-0.75, -0.25, 0.25, 0.75), sigmas):
+        m = np.flatnonzero(np.all(np.isclose(centres, [x, -0.25, -0.25]), axis=1))
+        assert m.size == 1
+        tree.data[node[m], i[m], j[m], k[m], 3] = s
+    return tree
+
+
+@pytest.mark.parametrize("skip", [True, False])
+@pytest.mark.parametrize("sigmas, runs, sigma_lookups, empty_leaves", [
+    ([0.0, 0.0, 0.1, 0.0], 2, 1, 3),      # an empty run of two leaves, a thin leaf, a run of one
+    ([0.1, 0.0, 0.1, 0.1], 1, 3, 1),      # one empty leaf between thin ones
+    ([0.0, 0.0, 0.0, 0.0], 1, 0, 4),      # nothing but empty space: one run
+    ([0.0, 50.0, 0.0, 0.0], 1, 1, 1),     # the ray stops in the opaque leaf
+])
+def test_empty_runs_along_one_ray(shell_lookups, sigmas, runs, sigma_lookups, empty_leaves,
+                                  skip):
+    tree = _row_tree(sigmas)
+    o = np.array([[-3.0, -0.25, -0.25]], np.float32)
+    d = np.array([[1.0, 0.0, 0.0]], np.float32)
+    fast = tree_to_device(tree, "cpu") if skip else SimpleNamespace(empty_skip=None)
+    counts, n = shell_lookups.lookups_by_ring(tree, fast, [(o, d)], RenderOptions())
+    assert n == 1
+    total = counts.sum(axis=0)
+    assert total[4] == runs and total[3] == sigma_lookups
+    if skip:                                     # each run takes at least one lookup
+        assert runs <= total[0] <= empty_leaves
+    else:                                        # one lookup per empty leaf crossed
+        assert total[0] == empty_leaves
