@@ -3,10 +3,11 @@
 A leaf whose σ is ≤ 0 adds nothing to a ray (no weight, no colour, transmittance unchanged),
 so a ray inside one may skip ahead over any region that holds only such leaves — the image is
 the same (the torch twin, which visits every leaf, stays the spec) up to the lookups' ε push:
-a skip that ends inside an empty leaf larger than a grid cell, less than ``ε`` before that
-leaf's own face, makes the next lookup land in a diagonal neighbour, so the following σ > 0
-segment starts up to ``ε`` later than the twin's (a far field's shells have such leaves: on
-lounge ≤ 5e-3 on ~1e-4 of the pixels; lego and flower stay within 2e-5). Real trees are
+a leaf is looked up at ``p(t + ε)``, so where a ray crosses less than ``ε`` of a leaf, the
+march jumps that sliver and gives it to the next leaf; a skip ends at other points
+than the leaf-by-leaf march, so it meets other slivers (on lounge's far-field tree ≤ 5e-3 on
+~1e-4 of the pixels, where the march gave a sliver of empty space the next leaf's σ; lego
+and flower stay within 2e-5). Real trees are
 full of small empty leaves around the surface (the octree can only be as coarse as its dyadic
 cells): on lego's 256³ tree a ray that hits the box visits 17.7 leaves, 11.4 of them empty.
 
