@@ -10,8 +10,9 @@ forward by the skip tables at all (``r = 0``: the empty cube ahead is the leaf i
 of σ > 0 leaves, ``child`` reads, and *empty runs*: the stretches of consecutive empty lookups
 between σ > 0 ones (counted in the ring where they start). A run is what a skip that knew the
 ray's own path would cross in one lookup, so ``σ > 0 lookups + runs`` bounds from below what
-any exact empty-space skip can bring the lookups per ray to. A second table gives each ring's share of σ > 0 leaves
-and of leaves with opacity ``1 - exp(-σ ℓ) > 0.1`` (ℓ: the leaf's side in world units), and
+any exact empty-space skip can bring the lookups per ray to. A second table gives each
+ring's share of σ > 0 leaves and of leaves with opacity ``1 - exp(-σ ℓ) > 0.1`` (ℓ: the
+leaf's side in world units), and
 ``--prune A`` scores the tree with the leaves under opacity ``A`` emptied
 (``compression.lod.prune``) on the test views: what leaving faint cells empty would buy.
 

@@ -4,12 +4,12 @@ A leaf whose σ is ≤ 0 adds nothing to a ray (no weight, no colour, transmitta
 so a ray inside one may skip ahead over any region that holds only such leaves — the image is
 the same (the torch twin, which visits every leaf, stays the spec) up to the lookups' ε push:
 a leaf is looked up at ``p(t + ε)``, so where a ray crosses less than ``ε`` of a leaf, the
-march jumps that sliver and gives it to the next leaf; a skip ends at other points
-than the leaf-by-leaf march, so it meets other slivers (on lounge's far-field tree ≤ 5e-3 on
-~1e-4 of the pixels, where the march gave a sliver of empty space the next leaf's σ; lego
-and flower stay within 2e-5). Real trees are
-full of small empty leaves around the surface (the octree can only be as coarse as its dyadic
-cells): on lego's 256³ tree a ray that hits the box visits 17.7 leaves, 11.4 of them empty.
+march jumps that sliver and gives it to the next leaf; a skip ends at other points than the
+leaf-by-leaf march, so it meets other slivers (on lounge's far-field tree ≤ 5e-3 on ~1e-4 of
+the pixels, where the march gave a sliver of empty space the next leaf's σ; lego and flower
+stay within 2e-5). Real trees are full of small empty leaves around the surface (the octree
+can only be as coarse as its dyadic cells): on lego's 256³ tree a ray that hits the box
+visits 17.7 leaves, 11.4 of them empty.
 
 For each *ray octant* (the signs of the direction) and each empty leaf, :func:`skip_tables`
 precomputes how far the leaf's exit planes may be pushed forward: on a grid of ``G³`` cells
