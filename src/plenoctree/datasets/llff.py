@@ -50,6 +50,7 @@ from ._files import HOLDOUT, check_load_options, holdout_split, take_views
 from .base import Dataset, DatasetFormat
 from .cameras import Cameras
 from .ndc import ndc_bounds
+from .padding import border_padding, crop_padding
 
 __all__ = ["load_llff", "LLFFOptions", "read_llff", "LLFFScene", "llff_render_cameras",
            "spiral_path", "average_pose", "write_llff", "llff_matches_colmap", "LLFF_HOLD",
@@ -398,6 +399,8 @@ def load_llff(root: str | os.PathLike, split: str = "train", downscale: int = 1,
         all_cams = all_cams.scaled(factor)
     except ConfigError as e:
         raise DatasetError(f"{root / POSES_FILE}: {e}") from None
+    images, alphas, all_cams = crop_padding(images, alphas, all_cams, *border_padding(files),
+                                            factor)
     cams = all_cams.select(sel)
     k = all_cams.intrinsics_array()
     if ndc:
@@ -445,7 +448,7 @@ def llff_render_cameras(root: str | os.PathLike, n_frames: int = 120, downscale:
     try:
         cams = Cameras(path.astype(np.float32), float(np.mean(fx)), float(np.mean(fy)), cx, cy,
                        size[0], size[1], ndc=ndc)
-        return cams.scaled(factor)
+        return crop_padding(None, None, cams.scaled(factor), *border_padding(files), factor)[2]
     except ConfigError as e:
         raise DatasetError(f"{root / POSES_FILE}: {e}") from None
 
