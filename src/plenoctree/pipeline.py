@@ -371,16 +371,20 @@ def _working_resolution(cfg: PipelineConfig, fmt: str, w: int, h: int, forward: 
 
     from .datasets import load_dataset
 
+    sizes: dict[int, tuple[int, int]] = {}
+
     def loads(f: int) -> bool:           # (undistorted images: the files' size must divide)
         try:
-            load_dataset(cfg.train.data, "train", format=fmt, limit=1, downscale=f)
+            d = load_dataset(cfg.train.data, "train", format=fmt, limit=1, downscale=f)
         except (ConfigError, DatasetError):
             return False
+        sizes[f] = (d.cameras.width, d.cameras.height)    # after any padding crop
         return True
 
     gpu = cfg.device.startswith("cuda") or (cfg.device == "auto" and torch.cuda.is_available())
     f = working_downscale(w, h, forward, gpu, loads)
-    logger.info(f"working resolution {w // f}x{h // f} (downscale {f}) for a "
+    ww, hh = sizes.get(f, (w // f, h // f))
+    logger.info(f"working resolution {ww}x{hh} (downscale {f}) for a "
                 f"{'forward-facing' if forward else '360°'} capture on the "
                 f"{'GPU' if gpu else 'CPU'}; --downscale overrides")
     return dataclasses.replace(cfg, downscale=f)
