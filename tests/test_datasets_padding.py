@@ -16,45 +16,42 @@ from plenoctree.datasets.llff import llff_render_cameras
 from plenoctree.datasets.padding import border_padding, crop_padding
 
 
-def _photos(tmp_path: Path, n: int = 6, h: int = 40, w: int = 56, seed: int = 0) -> list[np.ndarray]:
+def _photos(n: int = 6, h: int = 40, w: int = 56, seed: int = 0) -> list[np.ndarray]:
     rng = np.random.default_rng(seed)
     return [(rng.uniform(0.3, 0.9, (h, w, 3)) * 255).astype(np.uint8) for _ in range(n)]
 
 
-def _write(tmp_path: Path, imgs: list[np.ndarray]) -> list[Path]:
+def _write(folder: Path, imgs: list[np.ndarray]) -> list[Path]:
+    folder.mkdir()
     paths = []
     for i, im in enumerate(imgs):
-        p = tmp_path / f"{i:03d}.png"
+        p = folder / f"{i:03d}.png"
         Image.fromarray(im).save(p)
         paths.append(p)
     return paths
 
 
 def test_black_and_darkened_rows_are_padding(tmp_path):
-    imgs = _photos(tmp_path)
+    imgs = _photos()
     for im in imgs:
         im[-1] = 1                                     # a video's black last row
-    (tmp_path / "a").mkdir()
     assert border_padding(_write(tmp_path / "a", imgs)) == (1, 0)
-    half = _photos(tmp_path, seed=1)
+    half = _photos(seed=1)
     for im in half:
         im[-1] = (im[-1] * 0.26).astype(np.uint8)      # a downscaled copy: a quarter as bright
         im[:, :2] = 0                                  # and two black columns on the left
-    (tmp_path / "b").mkdir()
     assert border_padding(_write(tmp_path / "b", half)) == (1, 2)
 
 
 def test_photos_without_padding_or_with_a_dark_edge_on_some_load_as_they_are(tmp_path):
-    (tmp_path / "a").mkdir()
-    assert border_padding(_write(tmp_path / "a", _photos(tmp_path))) == (0, 0)
-    some = _photos(tmp_path, seed=2)
+    assert border_padding(_write(tmp_path / "a", _photos())) == (0, 0)
+    some = _photos(seed=2)
     for im in some[:3]:                                # a dark floor on half of the photos
         im[-1] = 0
-    (tmp_path / "b").mkdir()
     assert border_padding(_write(tmp_path / "b", some)) == (0, 0)
 
 
-def test_crop_keeps_the_principal_point_centred(tmp_path):
+def test_crop_keeps_the_principal_point_centred():
     from plenoctree.datasets.cameras import Cameras
 
     cams = Cameras(np.eye(4, dtype=np.float32)[None].repeat(2, 0), 50.0, 50.0, 28.0, 20.0, 56, 40)
@@ -89,6 +86,7 @@ def test_llff_loader_crops_padding_in_every_split_and_the_video_path(tmp_path):
         np.testing.assert_array_equal(b.images, a.images[:, 1:47])   # the same pixels, cropped
         # rays of the cropped image are the plain image's rays one row down
         ra, rb = a.cameras.rays(0), b.cameras.rays(0)
+        np.testing.assert_allclose(rb[0], ra[0][1:47], atol=1e-6)
         np.testing.assert_allclose(rb[1], ra[1][1:47], atol=1e-6)
     assert llff_render_cameras(padded, n_frames=3).height == 46
     assert llff_render_cameras(plain, n_frames=3).height == 48
