@@ -151,6 +151,20 @@ def twin_pass(tree: Any, fast: Any, cams: Any, idx: list[int], views: list, opts
     return row, diff
 
 
+def skip_deviation(tree: Any, fast: Any, cams: Any, idx: list[int], opts: Any) -> dict:
+    """Whole frames with and without the skip tables: their largest |Δ rgb| and the pixels
+    off by more than the twin's tolerance (1e-4; the lookups' ε push lands elsewhere after a
+    skip, :mod:`plenoctree.render.empty_skip`)."""
+    from plenoctree.render import render_image
+
+    worst, off, n = 0.0, 0, 0
+    for i in idx:
+        d = (render_image(fast, cams, i, opts, backend="numba").rgb
+             - render_image(tree, cams, i, opts, backend="numba").rgb).abs().amax(-1)
+        worst, off, n = max(worst, float(d.max())), off + int((d > 1e-4).sum()), n + d.numel()
+    return {"max_abs_diff_rgb": worst, "pixels_over_1e-4": off, "pixels": n}
+
+
 def measure_set(tree: Any, fast: Any, cams: Any, idx: list[int], opts: Any,
                 args: argparse.Namespace) -> dict[str, Any]:
     """Every path, the twin, the counters and the time breakdown on one view set."""
@@ -168,7 +182,8 @@ def measure_set(tree: Any, fast: Any, cams: Any, idx: list[int], opts: Any,
                  "rays_api_outside_kernel_ms": rows["rays"]["ms_per_frame"] - ker,
                  "kernel_ms": ker,
                  "kernel_ns_per_ray_core": ker * 1e6 / n_px * (os.cpu_count() or 1)}
-    return {"rows": rows, "counters": counters, "breakdown": breakdown, "max_diff": max_diff}
+    return {"rows": rows, "counters": counters, "breakdown": breakdown, "max_diff": max_diff,
+            "skip_vs_noskip": skip_deviation(tree, fast, cams, idx, opts)}
 
 
 def print_report(report: dict, tree: Any) -> None:
@@ -199,11 +214,14 @@ def print_report(report: dict, tree: Any) -> None:
          "child reads", "stopped early", "numpy raygen ms", "render_image − kernel ms",
          "render_rays − kernel ms", "kernel ns/ray/core"], rows))
     print()
+    sk = report["skip_vs_noskip"]
     for k in sets:
         print(f"{k}: numba {results['numba'][k]['fps']:.1f} FPS, "
               f"{report['speedup_numba_over_twin'][k]:.0f}x the torch twin; "
               f"{report['speedup_skip_over_noskip'][k]:.2f}x without empty-space skipping; "
-              f"max |Δ rgb| numba/rays vs twin = {report['max_abs_diff_rgb_numba_vs_torch'][k]:.2e}")
+              f"max |Δ rgb| numba/rays vs twin = {report['max_abs_diff_rgb_numba_vs_torch'][k]:.2e}; "
+              f"skip vs no skip, whole frames: {sk[k]['max_abs_diff_rgb']:.2e}, "
+              f"{sk[k]['pixels_over_1e-4']} of {sk[k]['pixels']} pixels over 1e-4")
     print("\n" + machine_line(report["machine"]))
 
 
@@ -267,6 +285,7 @@ def main(argv: list[str] | None = None) -> int:
         "empty_skip": {"seconds": fast.empty_skip.seconds, "mib": fast.empty_skip.nbytes / 2**20,
                        "grid_bits": fast.empty_skip.grid_bits},
         "max_abs_diff_rgb_numba_vs_torch": {k: s["max_diff"] for k, s in per_set.items()},
+        "skip_vs_noskip": {k: s["skip_vs_noskip"] for k, s in per_set.items()},
         "machine": machine_info(load_before),
     }
     out = write_json(args.out or RESULTS / f"render_speed_{desc['kind']}.json", report)

@@ -1,5 +1,6 @@
 """benchmarks/shell_lookups.py's counters on a hand-made row of leaves: lookups, σ > 0
-lookups and empty runs (the floor of an exact empty-space skip)."""
+lookups and empty runs (the floor of an exact empty-space skip); and render_speed.py's
+whole-frame comparison of the renderer with and without its skip tables."""
 
 from __future__ import annotations
 
@@ -59,3 +60,22 @@ def test_empty_runs_along_one_ray(shell_lookups, sigmas, runs, sigma_lookups, em
         assert runs <= total[0] <= empty_leaves
     else:                                        # one lookup per empty leaf crossed
         assert total[0] == empty_leaves
+
+
+def test_render_speed_compares_whole_frames_with_and_without_skip_tables(monkeypatch):
+    # benchmarks/render_speed.py's skip_deviation: every pixel of every view, both paths
+    monkeypatch.syspath_prepend(str(_BENCH))
+    import _trees
+    import render_speed
+
+    tree = _row_tree([0.0, 0.0, 3.0, 0.0])
+    cams = _trees.orbit_cameras(2, 24)
+    dev = render_speed.skip_deviation(tree, tree_to_device(tree, "cpu"), cams, [0, 1],
+                                      RenderOptions())
+    assert dev["pixels"] == 2 * 24 * 24
+    assert dev["pixels_over_1e-4"] == 0 and dev["max_abs_diff_rgb"] < 1e-4
+    # a tree whose values differ from the prepared one shows up pixel by pixel
+    other = _row_tree([0.0, 0.0, 30.0, 0.0])
+    dev = render_speed.skip_deviation(other, tree_to_device(tree, "cpu"), cams, [0, 1],
+                                      RenderOptions())
+    assert dev["pixels_over_1e-4"] > 0 and dev["max_abs_diff_rgb"] > 1e-2
