@@ -7,9 +7,9 @@ a leaf is looked up at ``p(t + ε)``, so where a ray crosses less than ``ε`` of
 march jumps that sliver and gives it to the next leaf; a skip ends at other points than the
 leaf-by-leaf march, so it meets other slivers (on lounge's far-field tree ≤ 5e-3 on ~1e-4 of
 the pixels, where the march gave a sliver of empty space the next leaf's σ; flower within
-2e-5, lego's 256³ tree bit for bit: ``benchmarks/render_speed.py``). Real trees are full of small empty leaves around the surface (the octree
-can only be as coarse as its dyadic cells): on lego's 256³ tree a ray that hits the box
-visits 17.7 leaves, 11.4 of them empty.
+2e-5, lego's 256³ tree bit for bit: ``benchmarks/render_speed.py``). Real trees are full of
+small empty leaves around the surface (the octree can only be as coarse as its dyadic cells):
+on lego's 256³ tree a ray that hits the box visits 17.7 leaves, 11.4 of them empty.
 
 For each *ray octant* (the signs of the direction) and each empty leaf, :func:`skip_tables`
 precomputes how far the leaf's exit planes may be pushed forward: on a grid of ``G³`` cells
