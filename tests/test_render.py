@@ -275,6 +275,67 @@ def test_early_stop_changes_rgb_by_less_than_thresh(backend):
         assert float((early.alpha - full.alpha).abs().max()) < thresh
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_renormalize_closed_form(backend):
+    """svox's fast rule on two voxels in a row (opacities a1, a2 > 0.9 together): a ray that
+    stops early gets Σ w c / (1 - T) and alpha 1; one that ends before the threshold keeps
+    the background."""
+    res = 8
+    k1, k2 = np.array([0.7, -1.2, 0.3]), np.array([-0.4, 0.9, 1.5])
+    cells = {(3, 4, 4): np.r_[k1, 2.0], (4, 4, 4): np.r_[k2, 8.0], (3, 1, 1): np.r_[k1, 2.0]}
+    tree = _voxel_tree(res, cells, fmt="SH1")
+    lo, size = _voxel_box(res, (3, 4, 4), 0.0, 1.0)
+    lo_b, _ = _voxel_box(res, (3, 1, 1), 0.0, 1.0)
+    o = np.array([[-3.0, *(lo[1:] + size[1:] / 2)], [-3.0, *(lo_b[1:] + size[1:] / 2)]])
+    d = np.tile([1.0, 0.0, 0.0], (2, 1))
+    c1, c2 = _sigmoid(k1 * 0.28209479177387814), _sigmoid(k2 * 0.28209479177387814)
+    a1, a2 = 1 - math.exp(-2.0 * size[0]), 1 - math.exp(-8.0 * size[0])
+    trans = (1 - a1) * (1 - a2)
+    assert trans < 0.1 < 1 - a1                 # the first ray stops after the second voxel
+    acc = a1 * c1 + (1 - a1) * a2 * c2
+    bg = (0.2, 0.5, 0.9)
+    rgb, _, alpha = _render(tree, o, d, backend, stop_thresh=0.1, background=bg)
+    np.testing.assert_allclose(rgb[0], acc + trans * np.array(bg), atol=1e-5)
+    np.testing.assert_allclose(alpha[0], 1 - trans, atol=1e-6)
+    rgb, _, alpha = _render(tree, o, d, backend, stop_thresh=0.1, background=bg,
+                            renormalize=True)
+    np.testing.assert_allclose(rgb[0], acc / (1 - trans), atol=1e-5)
+    assert alpha[0] == 1.0
+    np.testing.assert_allclose(rgb[1], a1 * c1 + (1 - a1) * np.array(bg), atol=1e-5)
+    np.testing.assert_allclose(alpha[1], a1, atol=1e-6)
+
+
+@pytest.mark.parametrize("fmt", ["SH9", "RGBA"])
+def test_numba_matches_twin_renormalized(fmt):
+    tree = _random_tree(fmt, seed=sum(map(ord, fmt)))
+    o, d = _random_rays(tree, 300, seed=7)
+    opts = RenderOptions(stop_thresh=0.1, background=(0.3, 0.6, 0.9), renormalize=True)
+    fast = render_rays(tree, o, d, opts, backend="numba")
+    ref = render_rays(tree, o, d, opts, backend="torch")
+    plain = render_rays(tree, o, d, RenderOptions(stop_thresh=0.1, background=(0.3, 0.6, 0.9)),
+                        backend="torch")
+    early = ref.alpha == 1.0
+    assert 0 < int(early.sum()) < early.numel() - 10                   # both kinds of rays
+    assert float((ref.rgb - plain.rgb)[early].abs().max()) > 1e-3      # the rule changed them
+    assert torch.equal(ref.rgb[~early], plain.rgb[~early])
+    assert float((fast.rgb - ref.rgb).abs().max()) <= 1e-4
+    assert torch.equal(fast.alpha == 1.0, early)
+    assert float((fast.depth - ref.depth).abs().max()) <= 1e-4
+
+
+def test_renormalize_is_for_display_only():
+    from plenoctree.optim import render_rays_differentiable
+
+    tree = _random_tree("SH4", seed=1)
+    o, d = _random_rays(tree, 8, seed=1)
+    data = torch.from_numpy(tree.data.copy())
+    with pytest.raises(ConfigError, match="exact colour rule"):
+        render_rays_differentiable(data, tree, o, d, RenderOptions(renormalize=True),
+                                   backend="numba")
+    with pytest.raises(ConfigError, match="renormalize must be True or False"):
+        RenderOptions(renormalize=1).validated()
+
+
 def test_twin_gradcheck_float64():
     from plenoctree.render._torch_impl import render_rays_torch
 

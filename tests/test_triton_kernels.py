@@ -105,6 +105,20 @@ def test_render_kernel_matches_twin(fmt, stop):
     assert float(((fast.depth - ref.depth).abs() / ref.depth.clamp(min=1)).max()) <= 1e-5
 
 
+def test_render_kernel_renormalized_matches_twin():
+    """svox's fast rule (RenderOptions.renormalize) in the kernel's epilogue: the rays stopped
+    early get Σ w c / (1 - T) and alpha 1, as in the twin."""
+    tree = _random_tree("SH4", seed=11)
+    o, d = _random_rays(tree, 160, seed=3)
+    opts = RenderOptions(stop_thresh=0.1, background=(0.3, 0.6, 0.9), renormalize=True)
+    fast = render_rays(tree, o, d, opts, backend="triton")
+    ref = render_rays(tree, o, d, opts, backend="torch")
+    early = ref.alpha == 1.0
+    assert 0 < int(early.sum()) < early.numel()
+    assert float((fast.rgb - ref.rgb).abs().max()) <= 1e-5
+    assert torch.equal(fast.alpha == 1.0, early)
+
+
 def test_render_kernel_on_voxel_faces_and_basis_range():
     tree = _random_tree("SH4", seed=3)
     o, d = _axis_rays(tree, 120, seed=1)

@@ -79,7 +79,9 @@ def test_streamed_frame_equals_the_render_of_the_same_camera(cpu_server, proc):
     cams = Cameras(C2W[None], FX, FX, SIZE / 2, SIZE / 2, SIZE, SIZE)
     for opts, extra in ((RenderOptions(), {}),
                         (RenderOptions(background=(0, 0, 0), sh_min=1, sh_max=3),
-                         {"bg": "0,0,0", "sh_min": 1, "sh_max": 3})):
+                         {"bg": "0,0,0", "sh_min": 1, "sh_max": 3}),
+                        (RenderOptions(background=(0, 0, 0), stop_thresh=0.3, renormalize=True),
+                         {"bg": "0,0,0", "stop": 0.3, "renorm": 1})):
         got = _frame(cpu_server.port, _query(C2W, FX, FX, SIZE / 2, SIZE / 2, SIZE, SIZE, **extra))
         want = render_image(tree, cams, 0, opts).rgb.numpy()
         assert got.shape == want.shape
@@ -135,6 +137,7 @@ BAD = {
     "bad quality": _query(C2W, FX, FX, 4, 4, 8, 8, q=0),
     "bad stop": _query(C2W, FX, FX, 4, 4, 8, 8, stop=1.5),
     "negative sh_min": _query(C2W, FX, FX, 4, 4, 8, 8, sh_min=-1),
+    "renorm not 0 or 1": _query(C2W, FX, FX, 4, 4, 8, 8, renorm=2),
 }
 
 

@@ -69,6 +69,10 @@ class RenderConfig:
     """auto (CUDA when a GPU is present, else cpu), cpu, cuda or cuda:N"""
     stop_thresh: float = 0.01
     """early ray termination when transmittance < this; 0 disables"""
+    renormalize: bool = False
+    """svox's fast rule: a ray stopped early (transmittance < --stop-thresh) gets its colour
+    divided by its opacity instead of the background; with --stop-thresh 0.1 a faster, slightly
+    softer picture"""
     background: tuple[float, float, float] | None = None
     """white, black or R,G,B (default: the dataset's background)"""
     show_progress: bool | None = None
@@ -82,7 +86,8 @@ def _render_options(cfg: RenderConfig, data_background):
     if cfg.stop_thresh < 0 or cfg.stop_thresh >= 1:
         raise ConfigError(f"--stop-thresh must be in [0, 1), got {cfg.stop_thresh}")
     bg = tuple(cfg.background) if cfg.background else tuple(data_background)
-    return RenderOptions(stop_thresh=cfg.stop_thresh, background=bg)
+    return RenderOptions(stop_thresh=cfg.stop_thresh, background=bg,
+                         renormalize=bool(cfg.renormalize))
 
 
 def _check_size(cfg: RenderConfig) -> None:

@@ -178,12 +178,13 @@ def _camera_ray(cam, u, v):
 @njit(parallel=True, cache=True, fastmath=MARCH_MATH)
 def _render_kernel(child, skip, shift, data, offset, invr, origins, dirs, cam, kind, n_b, sg, b_lo,
                    b_hi, bg, stop, eps, use_stack, max_level, max_steps, n, width, tile_w, tile_h,
-                   threads, rgb, depth, alpha):
+                   threads, renorm, rgb, depth, alpha):
     """``n`` rays ``i = y * width + x`` in tiles of ``tile_w × tile_h`` pixels (one work item
     each, handed out one at a time by :func:`._schedule_numba.next_item` to ``threads``
     workers, ``numba.get_num_threads()``): read from ``origins, dirs [n, 3]`` (``cam[0] ==
     CAM_ARRAYS``) or made for pixel ``(x, y)`` of the camera ``cam`` (:func:`_camera_ray`; the
-    arrays are then unused)."""
+    arrays are then unused). ``renorm``: a ray stopped early gets ``Σ w c / (1 - T)`` and alpha
+    1 instead of the background (:attr:`~.options.RenderOptions.renormalize`)."""
     height = (n + width - 1) // width
     ntx = (width + tile_w - 1) // tile_w
     n_tiles = ntx * ((height + tile_h - 1) // tile_h)
@@ -216,10 +217,15 @@ def _render_kernel(child, skip, shift, data, offset, invr, origins, dirs, cam, k
                         child, skip, shift, data, offset, invr, ox, oy, oz, dx, dy, dz, kind,
                         n_b, sg, b_lo, b_hi, stop, eps, use_stack, max_level, max_steps, basis,
                         st, stack, qc, qe, acc)
-                    for ch in range(3):
-                        rgb[i, ch] = acc[ch] + trans * bg[ch]
                     depth[i] = wt_sum / max(w_sum, 1e-10)
-                    alpha[i] = 1.0 - trans
+                    if renorm and trans < stop:         # stopped early: svox's fast rule
+                        for ch in range(3):
+                            rgb[i, ch] = acc[ch] / (1.0 - trans)
+                        alpha[i] = 1.0
+                    else:
+                        for ch in range(3):
+                            rgb[i, ch] = acc[ch] + trans * bg[ch]
+                        alpha[i] = 1.0 - trans
 
 
 @njit(parallel=True, cache=True, fastmath=MARCH_MATH)
@@ -304,7 +310,8 @@ def _launch(p: TreeSpec, origins: np.ndarray, dirs: np.ndarray, cam: np.ndarray,
         tw, th = how.tile if how.tile is not None else TILE_2D
     p.launch(_render_kernel, None, (origins, dirs, cam),
              (bool(how.use_stack), MAX_LEVEL, MAX_STEPS, int(n), int(width), max(1, int(tw)),
-              max(1, int(th)), numba.get_num_threads(), rgb.reshape(n, 3), depth.reshape(n),
+              max(1, int(th)), numba.get_num_threads(), p.renorm, rgb.reshape(n, 3),
+              depth.reshape(n),
               alpha.reshape(n)))
 
 

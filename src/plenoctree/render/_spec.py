@@ -50,6 +50,7 @@ class TreeSpec:
     eps: float                 # step_eps, tree units
     cap0: int                  # segments a fine-tuning ray record holds before it grows
     data: np.ndarray | None = None   # float32 [n_cells, D] values, or None (passed per launch)
+    renorm: bool = False       # RenderOptions.renormalize (the render kernel's own argument)
 
     @property
     def n_cells(self) -> int:
@@ -115,7 +116,7 @@ def tree_spec(tree: Any, options: RenderOptions | None = None, *,
                     vec3(tree.invradius), info, sg, b_lo, b_hi,
                     np.asarray(opts.background, dtype=np.float64), float(opts.stop_thresh),
                     float(opts.step_eps), initial_capacity(getattr(tree, "depth_limit", 10)),
-                    data)
+                    data, bool(opts.renormalize))
 
 
 def initial_capacity(depth_limit: int) -> int:

@@ -23,7 +23,9 @@ Algorithm (both backends; the numba kernel in ``_render_numba`` computes the sam
    nothing (and has zero gradient).
    A ray also stops after ``max_steps(D)`` segments (``octree.limits``: ``3·2^(D+1) + 64``,
    at most ``2^20``; D = deepest cell depth met so far), as the WebGL shader caps it.
-5. ``rgb = Σ w c + T·background``, ``depth = Σ w t_mid / max(Σ w, 1e-10)``, ``alpha = 1 - T``.
+5. ``rgb = Σ w c + T·background``, ``depth = Σ w t_mid / max(Σ w, 1e-10)``, ``alpha = 1 - T``;
+   with ``renormalize`` (svox's ``fast`` rule) a ray stopped early (``T < stop_thresh``) gets
+   ``rgb = Σ w c / (1 - T)`` and ``alpha = 1`` instead.
 
 Colour ``c = sigmoid(Σ_{b in [sh_min, sh_max]} k_b Y_b(d))`` per channel: SH bases, SG bases
 from ``extra_data`` (sharpness, mu) or, for RGBA, the single constant basis 1.
@@ -229,4 +231,8 @@ def render_rays_torch(tree: Any, origins: Any, dirs: Any, options: RenderOptions
     rgb = rgb_acc + t_final[:, None] * bg
     depth = wt_sum / torch.clamp(w_sum, min=1e-10)
     alpha = 1.0 - t_final
+    if opts.renormalize:                # svox's fast rule for the rays stopped early
+        early = t_final < opts.stop_thresh
+        rgb = torch.where(early[:, None], rgb_acc / (1.0 - t_final)[:, None], rgb)
+        alpha = torch.where(early, torch.ones_like(alpha), alpha)
     return RenderOutput(rgb=rgb, depth=depth, alpha=alpha)

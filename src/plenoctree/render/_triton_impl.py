@@ -47,7 +47,7 @@ def _march_kernel(child_ptr, data_ptr, basis_ptr, geo_ptr, grad_ptr, crgb_ptr,
                   rgb_ptr, depth_ptr, alpha_ptr, gdata_ptr, n_rays, stop_thresh: tl.float64,
                   bg_r: tl.float64, bg_g: tl.float64, bg_b: tl.float64,
                   D: tl.constexpr, B: tl.constexpr, BP: tl.constexpr, QB: tl.constexpr,
-                  BACKWARD: tl.constexpr, BLOCK: tl.constexpr):
+                  BACKWARD: tl.constexpr, BLOCK: tl.constexpr, RENORM: tl.constexpr = False):
     pid = tl.program_id(0)
     ray = pid * BLOCK + tl.arange(0, BLOCK)
     valid = ray < n_rays
@@ -170,11 +170,22 @@ def _march_kernel(child_ptr, data_ptr, basis_ptr, geo_ptr, grad_ptr, crgb_ptr,
         active = active & (t_end < t1) & (trans >= stop)
 
     if not BACKWARD:
-        tl.store(rgb_ptr + ray * 3 + 0, acc_r + trans * back_r, mask=valid)
-        tl.store(rgb_ptr + ray * 3 + 1, acc_g + trans * back_g, mask=valid)
-        tl.store(rgb_ptr + ray * 3 + 2, acc_b + trans * back_b, mask=valid)
+        out_r = acc_r + trans * back_r
+        out_g = acc_g + trans * back_g
+        out_b = acc_b + trans * back_b
+        opacity = 1.0 - trans
+        if RENORM:      # svox's fast rule for the rays stopped early (RenderOptions.renormalize)
+            early = trans < stop
+            keep = tl.where(early, opacity, zero + 1.0)     # no division by 0 in other lanes
+            out_r = tl.where(early, acc_r / keep, out_r)
+            out_g = tl.where(early, acc_g / keep, out_g)
+            out_b = tl.where(early, acc_b / keep, out_b)
+            opacity = tl.where(early, zero + 1.0, opacity)
+        tl.store(rgb_ptr + ray * 3 + 0, out_r, mask=valid)
+        tl.store(rgb_ptr + ray * 3 + 1, out_g, mask=valid)
+        tl.store(rgb_ptr + ray * 3 + 2, out_b, mask=valid)
         tl.store(depth_ptr + ray, wt_sum / tl.maximum(w_sum, 1e-10), mask=valid)
-        tl.store(alpha_ptr + ray, 1.0 - trans, mask=valid)
+        tl.store(alpha_ptr + ray, opacity, mask=valid)
 
 
 def _block() -> int:
@@ -251,7 +262,7 @@ def march_kernel_call(child: torch.Tensor, data2: torch.Tensor, basis: torch.Ten
             _march_kernel[grid](child, data2, basis, geo, rgb, rgb, rgb, depth, alpha, data2,
                                 n, float(opts.stop_thresh), bg[0], bg[1], bg[2],
                                 D=d_dim, B=n_b, BP=bp, QB=QUANT_BITS, BACKWARD=False,
-                                BLOCK=block, **_launch_opts())
+                                BLOCK=block, RENORM=bool(opts.renormalize), **_launch_opts())
         return rgb, depth, alpha
     grad = torch.zeros_like(data2)
     if n:

@@ -97,9 +97,9 @@ def parse_frame_query(query: str) -> FrameRequest:
 
     Parameters: ``w``, ``h`` (pixels; at most the image-size policy
     :func:`~plenoctree.datasets.cameras.check_image_size`), ``c2w`` (16 numbers, row-major),
-    ``fx``, ``fy``, ``cx``, ``cy``; optional ``bg`` (3 numbers), ``stop``, ``sh_min``,
-    ``sh_max``, ``mode`` (rgb|depth|alpha), ``dr`` (2 numbers: depth range), ``q`` (JPEG
-    quality). Raises :class:`ConfigError` (the server answers 400) for anything else: missing,
+    ``fx``, ``fy``, ``cx``, ``cy``; optional ``bg`` (3 numbers), ``stop``, ``renorm`` (0|1:
+    :attr:`~plenoctree.render.RenderOptions.renormalize`), ``sh_min``, ``sh_max``, ``mode``
+    (rgb|depth|alpha), ``dr`` (2 numbers: depth range), ``q`` (JPEG quality). Raises :class:`ConfigError` (the server answers 400) for anything else: missing,
     non-numeric or non-finite values, a singular pose, implausible intrinsics, a bad size.
     """
     from ..datasets import check_image_size
@@ -125,7 +125,11 @@ def parse_frame_query(query: str) -> FrameRequest:
     bg = tuple(_floats(q, "bg", 3, (1.0, 1.0, 1.0)))
     dr = tuple(_floats(q, "dr", 2, (0.0, 1.0)))
     stop, sh_min, sh_max = _floats(q, "stop", 1, (0.01,))[0], _int(q, "sh_min", 0), _int(q, "sh_max", -1)
-    opts = RenderOptions(stop_thresh=stop, background=bg, sh_min=sh_min, sh_max=sh_max).validated()
+    renorm = _int(q, "renorm", 0)
+    if renorm not in (0, 1):
+        raise ConfigError(f"parameter 'renorm' must be 0 or 1, got {renorm}")
+    opts = RenderOptions(stop_thresh=stop, background=bg, sh_min=sh_min, sh_max=sh_max,
+                         renormalize=bool(renorm)).validated()
     camera = Cameras(c2w[None], fx, fy, cx, cy, w, h)
     return FrameRequest(camera, opts, mode=mode, depth_range=dr,  # type: ignore[arg-type]
                         quality=quality)
