@@ -15,6 +15,9 @@ Paths:
   ``eval``/``video`` get;
 - ``noskip``: the same on the plain tree (no skip tables): ``noskip / numba`` is what
   empty-space skipping buys;
+- ``fast``: ``numba`` with svox's fast rule (``RenderOptions.renormalize``, rays stopped at
+  transmittance ``--fast-stop``, 0.1): ``numba / fast`` is what it buys, and the report gives
+  its frames' PSNR against the exact ones;
 - ``rays``: the public :func:`plenoctree.render_rays` on ray arrays made before timing (input
   checks + kernel: the API for arbitrary rays);
 - ``kernel``: the same kernel called with prepared ray arrays (so ``rays - kernel`` is the time
@@ -53,6 +56,7 @@ import argparse
 import os
 import sys
 import time
+from dataclasses import replace
 from typing import Any, Callable
 
 import numpy as np
@@ -61,7 +65,7 @@ from _bench import (RESULTS, Timing, interleaved, machine_info, machine_line, ma
                     write_json)
 from _trees import add_tree_args, data_cameras, orbit_cameras, tree_from_args
 
-PATHS = ("numba", "noskip", "rays", "kernel")
+PATHS = ("numba", "noskip", "fast", "rays", "kernel")
 
 
 def summarise(t: Timing, rays_per_frame: int) -> dict[str, Any]:
@@ -93,7 +97,7 @@ def ray_counters(tree: Any, views: list, opts: Any, skip: Any = None) -> dict[st
 
 
 def path_functions(tree: Any, fast: Any, cams: Any, idx: list[int], views: list,
-                   opts: Any) -> dict[str, Callable[[], Any]]:
+                   opts: Any, fast_opts: Any) -> dict[str, Callable[[], Any]]:
     """One pass over the views for each of :data:`PATHS`."""
     from plenoctree.render import render_image, render_rays
     from plenoctree.render import _render_numba as kern
@@ -112,6 +116,10 @@ def path_functions(tree: Any, fast: Any, cams: Any, idx: list[int], views: list,
         for i in idx:
             render_image(tree, cams, i, opts, backend="numba")
 
+    def run_fast():
+        for i in idx:
+            render_image(fast, cams, i, fast_opts, backend="numba")
+
     def run_rays():
         for o, d in views:
             render_rays(fast, o, d, opts, backend="numba")
@@ -120,7 +128,8 @@ def path_functions(tree: Any, fast: Any, cams: Any, idx: list[int], views: list,
         for (o, d), out in zip(flat, outs):
             kern.render_prepared(prepared, o, d, out, width=cams.width)
 
-    return {"numba": run_public, "noskip": run_noskip, "rays": run_rays, "kernel": run_kernel}
+    return {"numba": run_public, "noskip": run_noskip, "fast": run_fast, "rays": run_rays,
+            "kernel": run_kernel}
 
 
 def twin_pass(tree: Any, fast: Any, cams: Any, idx: list[int], views: list, opts: Any,
@@ -165,6 +174,16 @@ def skip_deviation(tree: Any, fast: Any, cams: Any, idx: list[int], opts: Any) -
     return {"max_abs_diff_rgb": worst, "pixels_over_1e-4": off, "pixels": n}
 
 
+def fast_psnr(fast: Any, cams: Any, idx: list[int], opts: Any, fast_opts: Any) -> float:
+    """Mean PSNR (dB) of the ``fast`` path's frames against the exact frames."""
+    from plenoctree.render import render_image
+
+    mse = [float(((render_image(fast, cams, i, fast_opts, backend="numba").rgb
+                   - render_image(fast, cams, i, opts, backend="numba").rgb) ** 2).mean())
+           for i in idx]
+    return float(np.mean([-10 * np.log10(max(m, 1e-20)) for m in mse]))
+
+
 def measure_set(tree: Any, fast: Any, cams: Any, idx: list[int], opts: Any,
                 args: argparse.Namespace) -> dict[str, Any]:
     """Every path, the twin, the counters and the time breakdown on one view set."""
@@ -172,7 +191,9 @@ def measure_set(tree: Any, fast: Any, cams: Any, idx: list[int], opts: Any,
     t0 = time.perf_counter()
     views = [cams.rays(i) for i in idx]
     raygen_ms = 1e3 * (time.perf_counter() - t0) / len(views)
-    timings = interleaved(path_functions(tree, fast, cams, idx, views, opts), args.repeats)
+    fast_opts = replace(opts, stop_thresh=args.fast_stop, renormalize=True)
+    timings = interleaved(path_functions(tree, fast, cams, idx, views, opts, fast_opts),
+                          args.repeats)
     rows = {p: summarise(t.scaled(1 / len(views)), n_px) for p, t in timings.items()}
     rows["torch"], max_diff = twin_pass(tree, fast, cams, idx, views, opts, args)
     counters = ray_counters(tree, views, opts)
@@ -183,7 +204,8 @@ def measure_set(tree: Any, fast: Any, cams: Any, idx: list[int], opts: Any,
                  "kernel_ms": ker,
                  "kernel_ns_per_ray_core": ker * 1e6 / n_px * (os.cpu_count() or 1)}
     return {"rows": rows, "counters": counters, "breakdown": breakdown, "max_diff": max_diff,
-            "skip_vs_noskip": skip_deviation(tree, fast, cams, idx, opts)}
+            "skip_vs_noskip": skip_deviation(tree, fast, cams, idx, opts),
+            "fast_psnr_vs_exact": fast_psnr(fast, cams, idx, opts, fast_opts)}
 
 
 def print_report(report: dict, tree: Any) -> None:
@@ -219,6 +241,9 @@ def print_report(report: dict, tree: Any) -> None:
         print(f"{k}: numba {results['numba'][k]['fps']:.1f} FPS, "
               f"{report['speedup_numba_over_twin'][k]:.0f}x the torch twin; "
               f"{report['speedup_skip_over_noskip'][k]:.2f}x without empty-space skipping; "
+              f"fast rule (stop {report['options']['fast_stop']}, renormalised) "
+              f"{report['speedup_fast_over_numba'][k]:.2f}x at {report['fast_psnr_vs_exact'][k]:.1f} dB "
+              "against the exact frames; "
               f"max |Δ rgb| numba/rays vs twin = {report['max_abs_diff_rgb_numba_vs_torch'][k]:.2e}; "
               f"skip vs no skip, whole frames: {sk[k]['max_abs_diff_rgb']:.2e}, "
               f"{sk[k]['pixels_over_1e-4']} of {sk[k]['pixels']} pixels over 1e-4")
@@ -240,6 +265,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--twin-rays", type=int, default=8000,
                     help="rays per view rendered by the torch twin (strided subset)")
     ap.add_argument("--twin-views", type=int, default=1, help="views rendered by the twin")
+    ap.add_argument("--fast-stop", type=float, default=0.1,
+                    help="transmittance at which the fast path stops a ray (renormalised)")
     return ap.parse_args(argv)
 
 
@@ -277,11 +304,14 @@ def main(argv: list[str] | None = None) -> int:
     report = {
         "benchmark": "render_speed", "tree": desc, "views": args.views,
         "sets": list(sets), "repeats": args.repeats,
-        "options": {"stop_thresh": opts.stop_thresh, "background": list(opts.background)},
+        "options": {"stop_thresh": opts.stop_thresh, "background": list(opts.background),
+                    "fast_stop": args.fast_stop},
         "results": results, "ray_counters": {k: s["counters"] for k, s in per_set.items()},
         "time_breakdown": {k: s["breakdown"] for k, s in per_set.items()},
         "speedup_numba_over_twin": ratio("torch", "numba"),
         "speedup_skip_over_noskip": ratio("noskip", "numba"),
+        "speedup_fast_over_numba": ratio("numba", "fast"),
+        "fast_psnr_vs_exact": {k: s["fast_psnr_vs_exact"] for k, s in per_set.items()},
         "empty_skip": {"seconds": fast.empty_skip.seconds, "mib": fast.empty_skip.nbytes / 2**20,
                        "grid_bits": fast.empty_skip.grid_bits},
         "max_abs_diff_rgb_numba_vs_torch": {k: s["max_diff"] for k, s in per_set.items()},
