@@ -242,8 +242,8 @@ def print_report(report: dict, tree: Any) -> None:
               f"{report['speedup_numba_over_twin'][k]:.0f}x the torch twin; "
               f"{report['speedup_skip_over_noskip'][k]:.2f}x without empty-space skipping; "
               f"fast rule (stop {report['options']['fast_stop']}, renormalised) "
-              f"{report['speedup_fast_over_numba'][k]:.2f}x at {report['fast_psnr_vs_exact'][k]:.1f} dB "
-              "against the exact frames; "
+              f"{report['speedup_fast_over_numba'][k]:.2f}x at "
+              f"{report['fast_psnr_vs_exact'][k]:.1f} dB against the exact frames; "
               f"max |Δ rgb| numba/rays vs twin = {report['max_abs_diff_rgb_numba_vs_torch'][k]:.2e}; "
               f"skip vs no skip, whole frames: {sk[k]['max_abs_diff_rgb']:.2e}, "
               f"{sk[k]['pixels_over_1e-4']} of {sk[k]['pixels']} pixels over 1e-4")

@@ -311,8 +311,7 @@ def _launch(p: TreeSpec, origins: np.ndarray, dirs: np.ndarray, cam: np.ndarray,
     p.launch(_render_kernel, None, (origins, dirs, cam),
              (bool(how.use_stack), MAX_LEVEL, MAX_STEPS, int(n), int(width), max(1, int(tw)),
               max(1, int(th)), numba.get_num_threads(), p.renorm, rgb.reshape(n, 3),
-              depth.reshape(n),
-              alpha.reshape(n)))
+              depth.reshape(n), alpha.reshape(n)))
 
 
 def render_prepared(p: TreeSpec, origins: np.ndarray, dirs: np.ndarray,

@@ -41,7 +41,7 @@ class RenderOptions:
             if what lies behind looked like what the ray saw; rays that leave the box are
             composited with the background as always. With a larger ``stop_thresh`` this is
             the fast mode: fewer leaves a ray (lounge's far-field tree at ``stop_thresh`` 0.1:
-            1.28x the frame rate for 0.24 dB; docs/results.md). ``False``: the exact rule.
+            1.22–1.25x the frame rate for 0.24 dB; docs/results.md). ``False``: the exact rule.
     """
 
     stop_thresh: float = 0.01

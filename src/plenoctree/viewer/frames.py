@@ -99,8 +99,9 @@ def parse_frame_query(query: str) -> FrameRequest:
     :func:`~plenoctree.datasets.cameras.check_image_size`), ``c2w`` (16 numbers, row-major),
     ``fx``, ``fy``, ``cx``, ``cy``; optional ``bg`` (3 numbers), ``stop``, ``renorm`` (0|1:
     :attr:`~plenoctree.render.RenderOptions.renormalize`), ``sh_min``, ``sh_max``, ``mode``
-    (rgb|depth|alpha), ``dr`` (2 numbers: depth range), ``q`` (JPEG quality). Raises :class:`ConfigError` (the server answers 400) for anything else: missing,
-    non-numeric or non-finite values, a singular pose, implausible intrinsics, a bad size.
+    (rgb|depth|alpha), ``dr`` (2 numbers: depth range), ``q`` (JPEG quality). Raises
+    :class:`ConfigError` (the server answers 400) for anything else: missing, non-numeric or
+    non-finite values, a singular pose, implausible intrinsics, a bad size.
     """
     from ..datasets import check_image_size
 
