@@ -135,7 +135,8 @@ def test_eval_cli(scene, tmp_path, capsys):
     assert rc == 0
     rep = json.loads((out / "eval.json").read_text())
     assert rep["dataset"]["n_views"] == 2 and rep["render"] == {
-        "backend": "torch", "stop_thresh": 0.0, "background": [0.0, 0.0, 0.0]}
+        "backend": "torch", "stop_thresh": 0.0, "renormalize": False,
+        "background": [0.0, 0.0, 0.0]}
     assert (out / "renders" / "r_0.png").exists() and (out / "renders" / "r_0_depth.png").exists()
     text = capsys.readouterr().out
     assert "| PSNR (dB) |" in text
