@@ -23,6 +23,7 @@ import pytest
 from PIL import Image
 
 from plenoctree.cli import main
+from plenoctree.compression import load_any_tree
 from plenoctree.datasets import Cameras
 from plenoctree.datasets.procedural import look_at, procedural_tree
 from plenoctree.errors import ConfigError
@@ -269,6 +270,30 @@ def test_auto_picks_the_cpu_under_software_gl_and_matches_the_renderer(browser, 
     assert _psnr(got, want) > 35, _psnr(got, want)
     want0 = render_image(tree, cams, 0, RenderOptions(background=(0, 0, 0), sh_max=0)).rgb.numpy()
     assert _psnr(got0, want0) > 35, _psnr(got0, want0)
+
+
+def test_moving_frames_ask_for_the_fast_rule_and_get_it(browser, proc, cpu_server):
+    """The page's query for a moving frame (scale < 1) asks for svox's renormalised rule at
+    stop 0.1, its sharp frame for the page's exact options; the server draws what was asked."""
+    page = _open(browser, cpu_server.url)
+    try:
+        queries = page.evaluate("""async (view) => {
+            const m = await import("./frames.js");
+            const o = {background: [0, 0, 0], stop_thresh: 0.01, sh_min: 0, sh_max: -1};
+            return [m.frameQuery(view, m.frameOptions(o, 0.5)),
+                    m.frameQuery(view, m.frameOptions(o, 1))];
+        }""", {"c2w": C2W.reshape(-1).tolist(), "fx": FX, "fy": FX, "cx": SIZE / 2,
+               "cy": SIZE / 2, "width": SIZE, "height": SIZE})
+    finally:
+        page.close()
+    moving, sharp = (parse_frame_query(q).options for q in queries)
+    assert moving.renormalize and moving.stop_thresh == 0.1
+    assert not sharp.renormalize and sharp.stop_thresh == 0.01
+    tree = load_any_tree(proc)
+    cams = Cameras(C2W[None], FX, FX, SIZE / 2, SIZE / 2, SIZE, SIZE)
+    got = _frame(cpu_server.port, queries[0].replace("q=80", "q=95").replace("q=90", "q=95"))
+    want = render_image(tree, cams, 0, moving).rgb.numpy()
+    assert _psnr(got, want) > 35, _psnr(got, want)
 
 
 def test_webgl_mode_label_and_no_sync_readback_in_the_frame_loop(browser, proc):
