@@ -323,7 +323,8 @@ def test_numba_matches_twin_renormalized(fmt):
     assert float((fast.depth - ref.depth).abs().max()) <= 1e-4
 
 
-def test_renormalize_is_for_display_only():
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_renormalize_is_for_display_only(backend):
     from plenoctree.optim import render_rays_differentiable
 
     tree = _random_tree("SH4", seed=1)
@@ -331,7 +332,7 @@ def test_renormalize_is_for_display_only():
     data = torch.from_numpy(tree.data.copy())
     with pytest.raises(ConfigError, match="exact colour rule"):
         render_rays_differentiable(data, tree, o, d, RenderOptions(renormalize=True),
-                                   backend="numba")
+                                   backend=backend)
     with pytest.raises(ConfigError, match="renormalize must be True or False"):
         RenderOptions(renormalize=1).validated()
 

@@ -33,14 +33,6 @@ def default_chunks() -> int:
     return max(1, int(numba.get_num_threads()))
 
 
-def require_exact_rule(options: RenderOptions | None) -> None:
-    """The gradient kernels composite with the exact rule only: refuse
-    :attr:`RenderOptions.renormalize` (a fast mode for display, not for training)."""
-    if options is not None and options.renormalize:
-        raise ConfigError("fine-tuning renders with the exact colour rule: "
-                          "RenderOptions.renormalize must be False")
-
-
 def kernel_args(tree: Any, options: RenderOptions | None = None,
                 skip_from: np.ndarray | None = None) -> TreeSpec:
     """Pack ``tree`` (an :class:`~plenoctree.octree.Octree`, geometry only) and ``options`` into
@@ -52,7 +44,6 @@ def kernel_args(tree: Any, options: RenderOptions | None = None,
     for arbitrary values (gradcheck, autograd)."""
     from ..render.empty_skip import skip_tables
 
-    require_exact_rule(options)
     skip = None
     if skip_from is not None:
         flat = np.ascontiguousarray(to_numpy(tree.child), dtype=np.int32).reshape(-1)

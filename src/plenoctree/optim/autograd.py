@@ -116,6 +116,9 @@ def render_rays_differentiable(data: torch.Tensor, tree: Any, origins: Any, dirs
     if not isinstance(opts, RenderOptions):
         raise ConfigError(f"options: expected RenderOptions, got {type(opts).__name__}")
     opts.validated()
+    if opts.renormalize:        # the analytic gradients are those of the exact rule
+        raise ConfigError("differentiable rendering uses the exact colour rule: "
+                          "RenderOptions.renormalize must be False")
     data = _check_data(data, tree)
     o = origins if isinstance(origins, torch.Tensor) else torch.as_tensor(np.asarray(origins))
     d = dirs if isinstance(dirs, torch.Tensor) else torch.as_tensor(np.asarray(dirs))
