@@ -79,3 +79,19 @@ def test_render_speed_compares_whole_frames_with_and_without_skip_tables(monkeyp
     dev = render_speed.skip_deviation(other, tree_to_device(tree, "cpu"), cams, [0, 1],
                                       RenderOptions())
     assert dev["pixels_over_1e-4"] > 0 and dev["max_abs_diff_rgb"] > 1e-2
+
+
+def test_render_speed_scores_the_fast_rule_against_the_exact_frames(monkeypatch):
+    # benchmarks/render_speed.py's fast_psnr: the `fast` path's frames against the exact ones
+    monkeypatch.syspath_prepend(str(_BENCH))
+    import _trees
+    import render_speed
+
+    tree = _row_tree([0.0, 2.0, 30.0, 0.0])
+    fast = tree_to_device(tree, "cpu")
+    cams = _trees.orbit_cameras(2, 24)
+    exact = RenderOptions(background=(0.0, 0.0, 0.0))
+    assert render_speed.fast_psnr(fast, cams, [0, 1], exact, exact) == 200.0      # identical
+    renorm = RenderOptions(background=(0.0, 0.0, 0.0), stop_thresh=0.5, renormalize=True)
+    db = render_speed.fast_psnr(fast, cams, [0, 1], exact, renorm)
+    assert 10.0 < db < 80.0                      # the rule changed the stopped rays, not all
