@@ -564,7 +564,7 @@ def test_render_image_on_the_device_matches_numba_without_read_backs(fmt):
     """``render_image(device=...)``'s device path (render/_device.py): the rays, their
     geometry and basis made on the device in one launch, the tree's constants uploaded once
     per tree; the image is the numba renderer's, and a frame reads nothing back (one upload:
-    the camera) in a handful of ops."""
+    the camera) in a handful of ops, with svox's fast rule as without it."""
     import sys
     from pathlib import Path
 
@@ -586,11 +586,12 @@ def test_render_image_on_the_device_matches_numba_without_read_backs(fmt):
     info = parse_data_format(tree.data_format, tree.data_dim, tree.extra_data)
     counter = step_ops.Recorder()
     render_camera_device(fast, info, cams, 0, RenderOptions(), DEV, "triton")  # tree constants
-    for i in range(2):
-        ref = render_image(tree, cams, i, backend="numba")
+    fast_rule = RenderOptions(stop_thresh=0.1, renormalize=True)   # the same counts with it
+    for i, opts in ((0, RenderOptions()), (1, RenderOptions()), (0, fast_rule)):
+        ref = render_image(tree, cams, i, opts, backend="numba")
         for backend in ("triton", "torch"):
             with counter.region() as c:
-                out = render_camera_device(fast, info, cams, i, RenderOptions(), DEV, backend)
+                out = render_camera_device(fast, info, cams, i, opts, DEV, backend)
             for a, b in ((out.rgb, ref.rgb), (out.alpha, ref.alpha)):
                 torch.testing.assert_close(a.cpu(), b, atol=1e-4, rtol=0)
             if backend == "triton":          # (the twin, the spec, reads back as it likes)
