@@ -406,9 +406,42 @@ def test_checkpoint_interval(scene, tmp_path, monkeypatch):
     kw = dict(epochs=4, val_every=1, optimizer="adam", lr=1e-2, continue_on_decrease=True,
               test_views=-1)
     finetune(cfg(scene, tmp_path / "a.npz", checkpoint_minutes=0, **kw))
-    assert len(calls) == 4
+    assert len(calls) == 3          # none after the last epoch: the tree is written at once
     calls.clear()
     finetune(cfg(scene, tmp_path / "b.npz", checkpoint_minutes=60, **kw))
     assert calls == []
     with pytest.raises(ConfigError, match="checkpoint_minutes"):
         finetune(cfg(scene, tmp_path / "c.npz", checkpoint_minutes=-1, **kw))
+
+
+def test_a_time_limit_stops_after_the_epoch_that_leaves_too_little(scene, tmp_path):
+    """``minutes``: the loop ends after the epoch past which another would end too late, and
+    validates it as the last one (here the limit is gone at once: one epoch); a long limit
+    changes nothing."""
+    kw = dict(epochs=6, val_every=2, optimizer="adam", lr=0.1, test_views=-1)
+    res = finetune(cfg(scene, tmp_path / "a.npz", minutes=1e-6, **kw))
+    assert res.epochs_run == 1 and res.stop_reason.startswith("time limit")
+    assert [h["epoch"] for h in res.history] == [0, 1]       # epoch 1 validated (val_every 2)
+    assert res.best_epoch == 1 and res.val_psnr_best > res.val_psnr_before
+    ref = finetune(cfg(scene, tmp_path / "ref.npz", **{**kw, "epochs": 1}))
+    np.testing.assert_array_equal(load_tree(tmp_path / "a.npz").data,
+                                  load_tree(tmp_path / "ref.npz").data)
+    res = finetune(cfg(scene, tmp_path / "b.npz", minutes=60, **kw))
+    assert res.epochs_run == 6 and res.stop_reason == "finished 6 epochs"
+    for bad in (-1, float("inf"), 1e308):
+        with pytest.raises(ConfigError, match="minutes"):
+            finetune(cfg(scene, tmp_path / "c.npz", minutes=bad, **kw))
+
+
+def test_the_last_epoch_keeps_its_values_without_a_copy(scene, tmp_path, monkeypatch):
+    """After the last epoch better values stay the live ones, returned as they are: no copy
+    of a tree-sized array (lego: 4.5 s) nor a checkpoint (16 s) just before the output."""
+    import plenoctree.optim._best as best
+
+    stores = []
+    real = best.BestValues.store
+    monkeypatch.setattr(best.BestValues, "store",
+                        lambda self, v: (stores.append(1), real(self, v)))
+    res = finetune(cfg(scene, tmp_path / "a.npz", epochs=1, val_every=1, optimizer="adam",
+                       lr=0.1, test_views=-1))
+    assert res.best_epoch == 1 and len(stores) == 1           # the input tree's copy only

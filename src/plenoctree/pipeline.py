@@ -35,6 +35,8 @@ from .pipeline_config import (AUTO_MINUTES, AUTO_PASSES, PRESETS, STAGE_OPTIONS,
                               name_the_flags, nerf_run_dir, pipeline_preset,
                               scene_refine_passes, scene_train_minutes, train_preset, wired,
                               working_downscale)
+from .pipeline_budget import (Counts, budget_training, chain_deadline, finetune_minutes,
+                              run_counts)
 from .pipeline_summary import finetune_outcome, pipeline_summary, summary_markdown
 
 __all__ = ["PipelineConfig", "PipelineError", "Stage", "run_pipeline", "plan_stages",
@@ -115,7 +117,7 @@ def _validate(cfg: PipelineConfig) -> None:
         _checked("refine", cfg.refine.validated)
     _checked("finetune", cfg.finetune.validated)
     _checked("compress", cfg.compress.validated)
-    for name in ("eval_views", "stage_eval_views", "video_frames", "video_size"):
+    for name in ("eval_views", "stage_eval_views", "video_frames", "video_size", "minutes"):
         if getattr(cfg, name) < 0:
             raise ConfigError(f"--{name.replace('_', '-')} must be >= 0, got "
                               f"{getattr(cfg, name)}")
@@ -265,17 +267,25 @@ def run_pipeline(cfg: PipelineConfig) -> dict:
 
 
 def _run(cfg: PipelineConfig, out: Path) -> dict:
+    start = time.time()
     cfg = wired(cfg)
     if cfg.data and not Path(cfg.data).exists():
         raise ConfigError(f"{cfg.data}: dataset folder does not exist")
     lay = run_layout(out, cfg.nerf)
     _validate(cfg)
+    deadline = chain_deadline(out, cfg.minutes, start) if cfg.minutes > 0 else None
     r = _Runner(out)
     logger.info(f"[run] watch it as it goes: plenoctree view {out}")
     if cfg.images:                # its dataset decides the working resolution
         r.run(_process_stage(cfg))
+    budgeted = deadline is not None and cfg.train.minutes == AUTO_MINUTES and not cfg.nerf
     cfg = _scene_settings(cfg)
-    stages = plan_stages(cfg, lay)[1 if cfg.images else 0:]
+    budget = None
+    if deadline is not None:      # --minutes: the NeRF-SH's budget, fine-tuning's time limit
+        budget = (deadline, run_counts(cfg))
+        if budgeted:
+            cfg = wired(budget_training(cfg, out, *budget))
+    stages = plan_stages(cfg, lay, budget)[1 if cfg.images else 0:]
     atomic_save_json(out / "config.json", config_dict(cfg))   # `run --config` reads it back
     if cfg.nerf:          # a trained NeRF-SH: its training time is read from its summary
         logger.info(f"[train] using the trained NeRF-SH {lay.nerf} (not trained here)")
@@ -303,8 +313,11 @@ def _trees(cfg: PipelineConfig, lay: RunLayout) -> list[tuple[str, Path]]:
     return [("raw", lay.tree), *refined, ("ft", lay.ft), ("compressed", lay.compressed)]
 
 
-def plan_stages(cfg: PipelineConfig, lay: RunLayout) -> list[Stage]:
-    """The stages of the chain, in order, for a :func:`wired` and checked ``cfg``."""
+def plan_stages(cfg: PipelineConfig, lay: RunLayout,
+                budget: tuple[float, Counts] | None = None) -> list[Stage]:
+    """The stages of the chain, in order, for a :func:`wired` and checked ``cfg``; ``budget``
+    (``run --minutes``: the deadline, a ``time.time()``, and the run's counts) sets
+    fine-tuning's time limit when it starts (:func:`_finetune`)."""
     from .nerf.checkpoint import CHECKPOINT_NAME
 
     common = {"data": str(Path(cfg.train.data).resolve()), "format": cfg.format,
@@ -325,7 +338,7 @@ def plan_stages(cfg: PipelineConfig, lay: RunLayout) -> list[Stage]:
                             lambda: _call("convert.refine", "refine", cfg.refine),
                             "lower --refine.passes or raise --refine.threshold"))
     stages.append(Stage("finetune", _settings(cfg.finetune), [Path(cfg.finetune.tree)],
-                        [lay.ft], lambda: _call("optim.finetuning", "finetune", cfg.finetune),
+                        [lay.ft], lambda: _finetune(cfg, budget),
                         "lower --finetune.lr or --finetune.epochs"))
     stages.append(Stage("compress", config_dict(cfg.compress), [lay.ft], [lay.compressed],
                         lambda: _compress(lay, cfg.compress), "try fewer --compress.bits"))
@@ -337,6 +350,20 @@ def plan_stages(cfg: PipelineConfig, lay: RunLayout) -> list[Stage]:
     if cfg.video_frames > 0:
         stages.append(_video_stage(cfg, lay, common))
     return stages
+
+
+def _finetune(cfg: PipelineConfig, budget: tuple[float, Counts] | None) -> Any:
+    """Fine-tuning; under ``run --minutes`` with the time limit that leaves the stages after
+    it their predicted time (:func:`~.pipeline_budget.finetune_minutes`). The limit is not part
+    of the stage's stamp: a finished fine-tuning is not redone for it."""
+    fcfg = cfg.finetune
+    if budget is not None:
+        gb = Path(fcfg.tree).stat().st_size / 1e9       # the fine-tuned tree's size (fp32)
+        minutes = finetune_minutes(budget[1], budget[0], gb, fcfg.minutes)
+        logger.info(f"[finetune] --minutes {cfg.minutes:g}: its epochs stop within "
+                    f"{minutes:.1f} minutes")
+        fcfg = dataclasses.replace(fcfg, minutes=minutes)
+    return _call("optim.finetuning", "finetune", fcfg)
 
 
 def _call(module: str, name: str, stage_cfg: Any) -> Any:
@@ -404,7 +431,7 @@ def _scene_settings(cfg: PipelineConfig) -> PipelineConfig:
     if cfg.train.minutes == AUTO_MINUTES:
         minutes = scene_train_minutes(AUTO_MINUTES, forward)
         cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, minutes=minutes))
-        if not cfg.nerf:
+        if not cfg.nerf and not cfg.minutes:      # (--minutes: decided by the run's budget)
             logger.info(f"NeRF-SH budget: {minutes:g} minutes for a {kind} capture; "
                         f"--train.minutes overrides")
     passes = scene_refine_passes(cfg.refine.passes, forward)

@@ -86,20 +86,23 @@ def scene_train_minutes(minutes: float, forward: bool) -> float:
     return 15.0 if forward else 30.0
 
 
+QUICK_RUN_MINUTES = 10.0
+"""The ``quick`` preset of ``run``: the whole run within 10 minutes (``PipelineConfig.minutes``),
+the 10-minute point of the time-quality frontier (docs/capture_records.md)."""
+
 QUICK_MINUTES = 10.0
-"""NeRF-SH budget of the ``quick`` preset: the 10-minute point of the time-quality frontier
-measured on flower's photos (docs/capture_records.md "The whole flower frontier with the
-faster decay"): 29.35 dB compressed in 13.9 minutes of ``run --images`` against 29.58 in 20.3
-at the forward-facing default of 15 (:func:`scene_train_minutes`); 4.5 minutes give 28.77 in
-9.9. Lego's 5-minute point stays under its 10-minute one (31.52 dB on 200 views in 15.6
-minutes against 32.26 on 5, the latter before the grid's faster decay), so the preset stays
-at 10."""
+"""NeRF-SH budget of ``plenoctree train --preset quick`` (``run --preset quick`` budgets the
+whole run instead, :data:`QUICK_RUN_MINUTES`): on flower's photos a 10-minute NeRF-SH gave
+29.35 dB compressed in 13.9 minutes of ``run --images`` against 29.58 in 20.3 at the
+forward-facing default of 15 (:func:`scene_train_minutes`; docs/capture_records.md "The whole
+flower frontier with the faster decay")."""
 
 
 def train_preset(name: str) -> TrainConfig:
     """The NeRF-SH training settings of preset ``name``: ``cpu``, ``gpu`` and ``paper`` (the
     trainer's presets) or ``quick`` (cpu with a :data:`QUICK_MINUTES` budget). ``plenoctree
-    train --preset`` and ``run --preset`` take the same names."""
+    train --preset`` and ``run --preset`` take the same names (``run``'s ``quick`` trains for
+    what its whole-run budget leaves)."""
     from .nerf.config import preset
 
     if name == "quick":
@@ -170,6 +173,11 @@ class PipelineConfig:
     """orbit video width/height in pixels (0 = the dataset's)"""
     web: bool = True
     """export the static web-viewer bundle"""
+    minutes: float = 0.0
+    """wall-time budget of the whole run in minutes, from the command's start (0 = none):
+    the NeRF-SH trains for what the other stages leave (--train.minutes decides instead when
+    given) and fine-tuning stops its epochs in time for the stages after it; stages that an
+    earlier run into OUT finished count with their time"""
     process: ProcessConfig = field(default_factory=lambda: ProcessConfig(overwrite=True))
     """camera poses of --images (`plenoctree process`)"""
     train: TrainConfig = field(default_factory=_run_train)
@@ -227,9 +235,9 @@ def _preset_paper() -> PipelineConfig:
 
 
 def _preset_quick() -> PipelineConfig:
-    # the stages after training as the defaults (256³, 12 epochs: the frontier's points were
-    # measured with them; 6 epochs lost 0.26 dB at 5 minutes); fewer views scored, no video
-    return PipelineConfig(train=train_preset("quick"), nerf_eval_views=1, eval_views=5,
+    # the whole run in QUICK_RUN_MINUTES (the NeRF-SH's budget decided by it); fewer views
+    # scored, no video
+    return PipelineConfig(minutes=QUICK_RUN_MINUTES, nerf_eval_views=1, eval_views=5,
                           video_frames=0)
 
 
@@ -242,8 +250,8 @@ PRESETS: dict[str, Callable[[], PipelineConfig]] = {
 """``plenoctree run --preset NAME``: ``cpu`` (the defaults: cpu NeRF-SH preset for 15 minutes
 on a forward-facing capture and 30 on a 360° one, 256³), ``gpu`` (the gpu NeRF-SH preset:
 fixed-shape steps of 2^18 samples, 20,000 steps, then the cpu pipeline's stages), ``paper``
-(the paper's NeRF-SH, 512³, 256 samples per voxel; for GPUs), ``quick`` (a 10-minute NeRF-SH,
-5 test views scored, no video: about 14 minutes end to end on 2 cores)."""
+(the paper's NeRF-SH, 512³, 256 samples per voxel; for GPUs), ``quick`` (the whole run within
+:data:`QUICK_RUN_MINUTES` minutes, ``--minutes``; 5 test views scored, no video)."""
 
 
 def pipeline_preset(name: str) -> PipelineConfig:

@@ -132,7 +132,11 @@ class LoopOptions:
     on Ctrl-C; ``resume`` continues from it. ``show_progress``: the progress bar (None: on a
     terminal). ``read_every``: a device stepper's step figures (error, non-finite values) are
     read back every this many steps and at the end of an epoch (the divergence watch and the
-    progress bar follow them; a step itself never waits for the device).
+    progress bar follow them; a step itself never waits for the device). ``stop_at`` (a
+    ``time.perf_counter()`` value; None: no time limit): the loop ends after the epoch past
+    which another one, as long as the longest so far, and two validations would end later
+    (:meth:`FineTuneLoop.out_of_time`); that epoch is validated as the last one. At least one
+    epoch runs.
     """
 
     epochs: int
@@ -150,6 +154,7 @@ class LoopOptions:
     checkpoint_every_s: float = 0.0
     show_progress: bool | None = None
     read_every: int = 32
+    stop_at: float | None = None
 
 
 class FineTuneLoop:
@@ -217,6 +222,7 @@ class FineTuneLoop:
                      if hasattr(stepper, "step_tiles") and stepper.fits(train.images.nbytes)
                      else None)
         self._t_mark = time.perf_counter()       # device steps: counted up to here
+        self._epoch_s = 0.0                      # the longest epoch so far (seconds)
 
     @property
     def finished(self) -> bool:
@@ -283,6 +289,7 @@ class FineTuneLoop:
             return
         self.state.epochs_done = epoch
         self.state.rng_state = self.rng.bit_generator.state
+        self._epoch_s = max(self._epoch_s, seconds)
         n_rays = self.train.n_rays
         train_mse = sse / (3.0 * n_rays)
         self.events({"event": "epoch", "epoch": epoch,
@@ -388,27 +395,42 @@ class FineTuneLoop:
 
     def keep_best(self, epoch: int) -> None:
         """After epoch ``epoch``: without validation its values are the best; with it, validate
-        when due, keep better values, and on a drop back off or stop; then the checkpoint."""
+        when due, keep better values, and on a drop back off or stop; then the checkpoint.
+        After the last epoch (``epochs``, or the time limit's: :meth:`out_of_time`) the values
+        are validated, better ones are kept as the live values (not copied: the loop ends) and
+        no checkpoint is written (the output follows at once)."""
         st, opts = self.state, self.opts
-        due = opts.val_every <= 0 or epoch % opts.val_every == 0 or epoch == opts.epochs
+        late = self.out_of_time(epoch)
+        last = epoch >= opts.epochs or late
+        due = opts.val_every <= 0 or epoch % opts.val_every == 0 or last
         if self.val is None:
-            self._store_best(epoch)
-            if due:
+            self._take_best(epoch, copy=not last)
+            if due and not last:
                 self._save_if_due()
-            return
-        if opts.val_every <= 0 or not due:
-            return
-        p = self.validate(epoch)
-        self.events({"event": "val", "epoch": epoch, "val_psnr": p})
-        if p > st.best_psnr:
-            st.best_psnr, st.drops = p, 0
-            self._store_best(epoch)
-        elif opts.stop_on_decrease:
-            st.drops += 1
-            if st.drops >= opts.patience:
-                self._drop(p, epoch)
-        if not st.stop_reason:
-            self._save_if_due()
+        elif opts.val_every > 0 and due:
+            p = self.validate(epoch)
+            self.events({"event": "val", "epoch": epoch, "val_psnr": p})
+            if p > st.best_psnr:
+                st.best_psnr, st.drops = p, 0
+                self._take_best(epoch, copy=not last)
+            elif opts.stop_on_decrease:
+                st.drops += 1
+                if st.drops >= opts.patience:
+                    self._drop(p, epoch)
+            if not st.stop_reason and not last:
+                self._save_if_due()
+        if late and not st.stop_reason:
+            st.stop_reason = (f"time limit: stopped after epoch {epoch}, another would end "
+                              f"past it")
+
+    def out_of_time(self, epoch: int) -> bool:
+        """Whether epoch ``epoch`` (just run) must be the last one for ``stop_at``: another
+        epoch as long as the longest so far, plus this epoch's and that one's validation (the
+        last one's length), would end past it. False when ``epochs`` ends the loop anyway."""
+        if self.opts.stop_at is None or epoch >= self.opts.epochs:
+            return False
+        val_s = self.state.history[-1]["val_seconds"] if self.state.history else 0.0
+        return time.perf_counter() + self._epoch_s + 2.0 * val_s > self.opts.stop_at
 
     def _drop(self, p: float, epoch: int) -> None:
         """Epoch ``epoch``'s validation PSNR ``p`` (dB) is the ``patience``-th in a row below
@@ -459,6 +481,15 @@ class FineTuneLoop:
         self.best.store(self._best_source())
         self.values_are_best = True
         self.state.best_epoch = epoch
+
+    def _take_best(self, epoch: int, copy: bool) -> None:
+        """Epoch ``epoch``'s values are the best: kept as a copy, or (``copy`` False, after
+        the last epoch) only marked as the live values to return."""
+        if copy:
+            self._store_best(epoch)
+        else:
+            self.values_are_best = True
+            self.state.best_epoch = epoch
 
     def _save_if_due(self) -> None:
         """Write the checkpoint when ``checkpoint_every_s`` passed since the last one."""
