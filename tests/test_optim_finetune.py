@@ -445,3 +445,28 @@ def test_the_last_epoch_keeps_its_values_without_a_copy(scene, tmp_path, monkeyp
     res = finetune(cfg(scene, tmp_path / "a.npz", epochs=1, val_every=1, optimizer="adam",
                        lr=0.1, test_views=-1))
     assert res.best_epoch == 1 and len(stores) == 1           # the input tree's copy only
+
+
+def test_a_time_limit_cuts_a_later_epoch_short(scene, tmp_path, monkeypatch):
+    """From the second epoch on the loop stops at the step past which the last validation
+    would not fit (a clock that moves one second a step: 12 steps an epoch, 16 s)."""
+    import types
+
+    import plenoctree.optim._loop as loop
+    import plenoctree.optim.finetuning as ft
+
+    clock = types.SimpleNamespace(t=0.0)
+    fake = types.SimpleNamespace(perf_counter=lambda: clock.t, time=lambda: clock.t)
+    monkeypatch.setattr(loop, "time", fake)
+    monkeypatch.setattr(ft, "time", fake)
+    real = loop.FineTuneLoop.step
+
+    def step(self, tiles, epoch):
+        clock.t += 1.0
+        return real(self, tiles, epoch)
+
+    monkeypatch.setattr(loop.FineTuneLoop, "step", step)
+    res = finetune(cfg(scene, tmp_path / "a.npz", minutes=(16 + ft.SAVE_S) / 60, epochs=6,
+                       val_every=2, optimizer="adam", lr=0.1, test_views=-1))
+    assert res.epochs_run == 2 and res.stop_reason == "time limit: stopped within epoch 2"
+    assert res.steps == 16 and [h["epoch"] for h in res.history] == [0, 2]

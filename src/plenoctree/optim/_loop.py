@@ -133,10 +133,10 @@ class LoopOptions:
     terminal). ``read_every``: a device stepper's step figures (error, non-finite values) are
     read back every this many steps and at the end of an epoch (the divergence watch and the
     progress bar follow them; a step itself never waits for the device). ``stop_at`` (a
-    ``time.perf_counter()`` value; None: no time limit): the loop ends after the epoch past
-    which another one, as long as the longest so far, and two validations would end later
-    (:meth:`FineTuneLoop.out_of_time`); that epoch is validated as the last one. At least one
-    epoch runs.
+    ``time.perf_counter()`` value; None: no time limit): from the second epoch on, the epoch
+    ends at the step after which the last validation's length would pass it, and the loop
+    after it (:meth:`FineTuneLoop.out_of_time`); that epoch is validated as the last one. At
+    least one whole epoch runs.
     """
 
     epochs: int
@@ -223,6 +223,7 @@ class FineTuneLoop:
                      else None)
         self._t_mark = time.perf_counter()       # device steps: counted up to here
         self._epoch_s = 0.0                      # the longest epoch so far (seconds)
+        self._cut = False                        # an epoch was cut short by stop_at
 
     @property
     def finished(self) -> bool:
@@ -312,6 +313,9 @@ class FineTuneLoop:
         sse = 0.0
         self._t_mark = time.perf_counter()
         for b0 in range(0, self.n_tiles, self.tiles_per_batch):
+            if epoch > 1 and self._time_is_up():
+                self._cut = True            # the time limit: this epoch ends here
+                break
             sse += self.step(perm[b0:b0 + self.tiles_per_batch], epoch)
             if self._dev is not None and self._dev.full:
                 sse += self.read_figures(epoch)
@@ -420,17 +424,29 @@ class FineTuneLoop:
             if not st.stop_reason and not last:
                 self._save_if_due()
         if late and not st.stop_reason:
-            st.stop_reason = (f"time limit: stopped after epoch {epoch}, another would end "
-                              f"past it")
+            st.stop_reason = (f"time limit: stopped {'within' if self._cut else 'after'} "
+                              f"epoch {epoch}")
 
     def out_of_time(self, epoch: int) -> bool:
-        """Whether epoch ``epoch`` (just run) must be the last one for ``stop_at``: another
-        epoch as long as the longest so far, plus this epoch's and that one's validation (the
-        last one's length), would end past it. False when ``epochs`` ends the loop anyway."""
+        """Whether epoch ``epoch`` (just run) must be the last one for ``stop_at``: it was cut
+        short, or after this epoch's validation and the next one's there would be time for
+        less than a tenth of an epoch. False when ``epochs`` ends the loop anyway."""
+        if self._cut:
+            return True
         if self.opts.stop_at is None or epoch >= self.opts.epochs:
             return False
-        val_s = self.state.history[-1]["val_seconds"] if self.state.history else 0.0
-        return time.perf_counter() + self._epoch_s + 2.0 * val_s > self.opts.stop_at
+        return (time.perf_counter() + 2.0 * self._val_s() + 0.1 * self._epoch_s
+                > self.opts.stop_at)
+
+    def _time_is_up(self) -> bool:
+        """Whether the next step would leave too little of ``stop_at`` for the validation
+        that ends the loop (as long as the last one)."""
+        return (self.opts.stop_at is not None
+                and time.perf_counter() + self._val_s() > self.opts.stop_at)
+
+    def _val_s(self) -> float:
+        """Seconds of the last validation (0 without one)."""
+        return self.state.history[-1]["val_seconds"] if self.state.history else 0.0
 
     def _drop(self, p: float, epoch: int) -> None:
         """Epoch ``epoch``'s validation PSNR ``p`` (dB) is the ``patience``-th in a row below

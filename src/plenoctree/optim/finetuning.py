@@ -100,10 +100,9 @@ class FinetuneConfig:
                                       "default: the same number as lr (sgd: σ uses lr)")
     lr_decay: float = _f(1.0, "multiply the learning rate by this over the epochs (exponential "
                               "schedule; 1 = constant)")
-    minutes: float = _f(0.0, "time limit in minutes from the command's start (0 = none): stop "
-                             "after the epoch past which another one and its validation would "
-                             "end later, leaving time to save the tree (the test PSNR after it "
-                             "not counted; at least one epoch runs)")
+    minutes: float = _f(0.0, "time limit in minutes from the command's start (0 = none): the "
+                             "epochs stop in time for a last validation and saving the tree "
+                             "(the test PSNR after it not counted; at least one epoch runs)")
     backoffs: int = _f(3, "on a validation drop (see patience; or a divergence) restore the "
                           "best values and halve the learning rate, up to this many times, "
                           "before stopping")
@@ -460,8 +459,8 @@ def _test_views(cfg: FinetuneConfig) -> Any:
 
 
 #: Seconds kept from ``minutes`` for saving the tree after the loop: a fixed part and per GB
-#: of its values (lego's 1.5 GB refined tree: 2.4 s to save, 0.5 s for the rest).
-SAVE_S, SAVE_S_PER_GB = 2.0, 4.0
+#: of its values (lego's 1.5 GB refined tree: 2.6 s from the last validation to the end).
+SAVE_S, SAVE_S_PER_GB = 1.0, 2.0
 
 
 def _loop_options(cfg: FinetuneConfig, checkpoint: Path, t_start: float, nbytes: int) -> Any:
