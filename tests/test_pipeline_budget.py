@@ -11,8 +11,9 @@ import plenoctree.pipeline_budget as pb
 from plenoctree.datasets.procedural import write_procedural_dataset
 from plenoctree.errors import ConfigError
 from plenoctree.pipeline import layer_settings, run_pipeline
-from plenoctree.pipeline_budget import (Counts, chain_deadline, decided_train_minutes,
-                                        finetune_minutes, split_budget, tail_seconds)
+from plenoctree.pipeline_budget import (Counts, chain_deadline, command_start,
+                                        decided_train_minutes, finetune_minutes, split_budget,
+                                        tail_seconds)
 from test_pipeline import TINY_EXTRACT, TINY_TRAIN, _tiny_cfg
 
 
@@ -32,6 +33,11 @@ def test_the_deadline_counts_what_earlier_runs_into_out_finished(tmp_path):
     (stages / "broken.json").write_text("{")
     assert chain_deadline(tmp_path, 10, 1000.0) == pytest.approx(1000.0 + 600 - 42.5)
     assert chain_deadline(tmp_path / "new", 2, 5.0) == pytest.approx(125.0)
+    # the command's start: this process's when it began within the minute before the call,
+    # else the call's own time
+    now = time.time()
+    assert now - 60 <= command_start(now) <= now and command_start(now, within=1e9) < now
+    assert command_start(now + 3600) == now + 3600
 
 
 def test_the_nerf_sh_gets_what_the_other_stages_leave():

@@ -35,8 +35,8 @@ from .pipeline_config import (AUTO_MINUTES, AUTO_PASSES, PRESETS, STAGE_OPTIONS,
                               name_the_flags, nerf_run_dir, pipeline_preset,
                               scene_refine_passes, scene_train_minutes, train_preset, wired,
                               working_downscale)
-from .pipeline_budget import (Counts, budget_training, chain_deadline, finetune_minutes,
-                              run_counts)
+from .pipeline_budget import (Counts, budget_training, chain_deadline, command_start,
+                              finetune_minutes, run_counts)
 from .pipeline_summary import finetune_outcome, pipeline_summary, summary_markdown
 
 __all__ = ["PipelineConfig", "PipelineError", "Stage", "run_pipeline", "plan_stages",
@@ -273,7 +273,8 @@ def _run(cfg: PipelineConfig, out: Path) -> dict:
         raise ConfigError(f"{cfg.data}: dataset folder does not exist")
     lay = run_layout(out, cfg.nerf)
     _validate(cfg)
-    deadline = chain_deadline(out, cfg.minutes, start) if cfg.minutes > 0 else None
+    deadline = (chain_deadline(out, cfg.minutes, command_start(start)) if cfg.minutes > 0
+                else None)
     r = _Runner(out)
     logger.info(f"[run] watch it as it goes: plenoctree view {out}")
     if cfg.images:                # its dataset decides the working resolution

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,8 +26,9 @@ from typing import Any
 
 from ._util import atomic_save_json
 
-__all__ = ["RATES", "TRAIN_SHARE", "MIN_TRAIN_S", "Counts", "chain_deadline", "split_budget",
-           "tail_seconds", "finetune_minutes", "decided_train_minutes"]
+__all__ = ["RATES", "TRAIN_SHARE", "MIN_TRAIN_S", "Counts", "command_start", "chain_deadline",
+           "split_budget", "tail_seconds", "finetune_minutes", "decided_train_minutes",
+           "run_counts", "budget_training"]
 
 logger = logging.getLogger("plenoctree.pipeline")
 
@@ -42,7 +44,8 @@ RATES = {
     "compress_s_per_gb": 21.0,  # of the fine-tuned tree (lego 1.5 GB: 32 s, flower 0.65: 13 s)
     "score_s": 3.0,             # a tree's scoring: a fixed part, per GB of tree loaded and per
     "score_s_per_gb": 4.0,      # megapixel rendered (lego's compressed tree on its 200 views,
-    "score_s_per_mpx": 1.4,     # 32 Mpx: 46 s)
+    "score_s_per_mpx": 1.4,     # 32 Mpx: 46 s), and the first one's loading of the test
+    "score_first_s": 10.0,      # photos (flower's raw tree on 5 views: 17.6 s, the next 4.9)
     "web_s": 2.0,               # the web bundle (lego: 17.5 s, flower: 3.5)
     "web_s_per_gb": 10.0,
     "video_s_per_mpx": 2.0,     # the orbit video's frames, rendered and encoded
@@ -89,6 +92,22 @@ class Counts:
         return self.width * self.height / 1e6
 
 
+def command_start(now: float, within: float = 60.0) -> float:
+    """When the command began (a ``time.time()``): this process's start, read from Linux's
+    ``/proc``, when it lies less than ``within`` seconds before ``now`` (``plenoctree run``:
+    Python's start and the imports count); else, or where ``/proc`` is missing (a Python
+    session calling the pipeline), ``now``."""
+    try:
+        ticks = os.sysconf("SC_CLK_TCK")
+        fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
+        boot = next(float(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
+                    if line.startswith("btime "))
+        start = boot + float(fields[19]) / ticks
+    except (OSError, ValueError, IndexError, StopIteration):
+        return now
+    return start if now - within < start <= now else now
+
+
 def chain_deadline(out: Path, minutes: float, start: float) -> float:
     """The run's deadline (a ``time.time()``): ``start`` plus ``minutes``, less the seconds of
     the stages an earlier run into ``out`` finished (their ``.stages/*.json``)."""
@@ -106,7 +125,7 @@ def tail_seconds(c: Counts, tree_gb: float) -> float:
     GB: compression, the trees' scoring, the web bundle, the video."""
     r = RATES
     views = (c.trees - 1) * c.stage_views + c.result_views
-    score = c.trees * (r["score_s"] + r["score_s_per_gb"] * tree_gb) + \
+    score = r["score_first_s"] + c.trees * (r["score_s"] + r["score_s_per_gb"] * tree_gb) + \
         r["score_s_per_mpx"] * views * c.mpx
     web = (r["web_s"] + r["web_s_per_gb"] * tree_gb) if c.web else 0.0
     video = r["video_s_per_mpx"] * c.video_frames * c.video_px / 1e6
