@@ -45,8 +45,13 @@ def test_the_nerf_sh_gets_what_the_other_stages_leave():
     train, others = split_budget(c, 540.0)
     fixed = sum(v for k, v in others.items() if k != "fine-tuning (all epochs)")
     ft = others["fine-tuning (all epochs)"]
-    # flower's ten minutes less `process`: fine-tuning gets all its epochs, the NeRF-SH the rest
-    assert train == pytest.approx(540.0 - fixed - ft) and 240 < train < 360
+    # flower's ten minutes less `process`: the NeRF-SH gets its share, fine-tuning the rest
+    free = 540.0 - fixed
+    assert train == pytest.approx(pb.TRAIN_SHARE * free) and free - train < ft and 180 < train
+    # with more time, fine-tuning gets all its epochs and the NeRF-SH what they leave
+    train, others = split_budget(c, 900.0)
+    assert train == pytest.approx(900.0 - fixed - ft)
+    assert train > pb.TRAIN_SHARE * (900.0 - fixed)
     # lego 400² (100 views of 400², 100 val views, a refinement pass, 200 test views scored)
     lego = _counts(train_views=100, val_views=100, width=400, height=400, stage_views=5,
                    result_views=5, trees=4, refine_passes=1)

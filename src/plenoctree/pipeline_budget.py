@@ -36,10 +36,11 @@ RATES = {
     "train_overhead_s": 25.0,   # the train stage past its budget: loading, compiling, the last
                                 # validation (flower, a 270-s budget: 292 s)
     "nerf_s_per_mpx": 13.0,     # the NeRF-SH's test renders (flower's 5 views, 0.9 Mpx: 9 s)
-    "extract_s": 45.0,          # extraction at 256³ (lego 400²: 43 s, flower: 34 s)
+    "extract_s": 60.0,          # extraction at 256³ (lego 400²: 43–49 s, flower: 34–64 s)
     "refine_s": 60.0,           # one refinement pass (lego: 56 s, lounge: 33 s)
     "ft_start_s": 30.0,         # fine-tuning's loading and first validation (lego: 33 s)
-    "ft_rays_per_s": 700e3,     # its epochs (lego 850 k rays/s, flower 830 k, lounge 440 k)
+    "ft_rays_per_s": 500e3,     # its epochs (lego 800–850 k rays/s, flower 500–830 k, lounge
+                                # 440 k)
     "ft_val_rays_per_s": 1.9e6,  # its validations (lego's 100 val views, 16 M rays: 8.5 s)
     "compress_s_per_gb": 21.0,  # of the fine-tuned tree (lego 1.5 GB: 32 s, flower 0.65: 13 s)
     "score_s": 3.0,             # a tree's scoring: a fixed part, per GB of tree loaded and per
@@ -49,8 +50,8 @@ RATES = {
     "web_s": 2.0,               # the web bundle (lego: 17.5 s, flower: 3.5)
     "web_s_per_gb": 10.0,
     "video_s_per_mpx": 2.0,     # the orbit video's frames, rendered and encoded
-    "tree_gb": 0.7,             # a tree's bytes before it exists (flower 0.65 GB, lego 0.70
-                                # raw, 1.5 refined)
+    "tree_gb": 1.2,             # a tree's bytes before it exists (flower 0.65–1.26 GB, lego
+                                # 1.5 refined)
 }
 """Seconds of each stage on the project's 2-core machine, by what it renders and writes
 (docs/capture_records.md, "The whole run within --minutes")."""
@@ -144,7 +145,7 @@ def split_budget(c: Counts, seconds_left: float) -> tuple[float, dict]:
     """The NeRF-SH's budget (seconds) from the ``seconds_left`` before the deadline at the
     start of training, and the predicted seconds of the other stages (for the log)."""
     r = RATES
-    gb = r["tree_gb"] * (2 if c.refine_passes > 0 else 1)
+    gb = r["tree_gb"]
     fixed = {"training's overhead": r["train_overhead_s"],
              "NeRF-SH scoring": (r["nerf_s_per_mpx"] * c.nerf_views * c.mpx
                                  + (r["score_s"] if c.nerf_views else 0.0)),
@@ -211,7 +212,8 @@ def run_counts(cfg: Any) -> Counts:
     return Counts(
         train_views=n_train, val_views=n_val, width=w, height=h,
         nerf_views=0 if cfg.nerf or cfg.nerf_eval_views < 0 else views(cfg.nerf_eval_views),
-        stage_views=views(stage_views(cfg, "ft")), result_views=views(stage_views(cfg, "compressed")),
+        stage_views=views(stage_views(cfg, "ft")),
+        result_views=views(stage_views(cfg, "compressed")),
         trees=3 + (cfg.refine.passes > 0), refine_passes=max(cfg.refine.passes, 0),
         epochs=int(ft.epochs), val_every=int(ft.val_every), video_frames=cfg.video_frames,
         video_px=size * size if size else w * h, web=bool(cfg.web))
