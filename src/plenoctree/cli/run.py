@@ -82,8 +82,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "settings used are saved in OUT/config.json (reuse them with --config).")
     p.add_argument("--preset", dest="run_preset", choices=sorted(PRESETS), default=None,
                    help="settings to start from: cpu (default), paper (the paper's NeRF-SH "
-                        "and 512^3; for GPUs), gpu (fixed-shape steps) or quick (a 10-minute "
-                        "NeRF-SH, ~14 minutes end to end on 2 cores)")
+                        "and 512^3; for GPUs), gpu (fixed-shape steps) or quick (the whole "
+                        "run within 10 minutes: --minutes 10)")
     add_config_file(p)
     p.add_argument("--print-config", action="store_true",
                    help="print the resolved configuration as JSON and exit")
