@@ -71,9 +71,11 @@ ALLOWED: dict[str, set[str]] = {
     "pipeline_config": _LEAF | {"_config", "compression", "convert", "nerf", "optim",
                                 "process"},
     "pipeline_summary": _LEAF | {"_config", "device"},
+    "pipeline_budget": _LEAF | {"_util", "datasets", "optim", "pipeline_config"},
     "pipeline": _LEAF | {"_config", "_util", "device", "plots", "datasets", "octree", "live",
                          "compression", "evaluation", "process", "nerf", "convert", "optim",
-                         "video", "viewer", "pipeline_config", "pipeline_summary"},
+                         "video", "viewer", "pipeline_config", "pipeline_summary",
+                         "pipeline_budget"},
     "demo": _LEAF | {"_util", "datasets", "optim", "convert", "pipeline", "pipeline_config",
              "nerf"},
     "cli": None,          # everything (filled in below)

@@ -33,8 +33,8 @@ from .nerf.config import TrainConfig
 from .pipeline_config import (AUTO_MINUTES, AUTO_PASSES, PRESETS, STAGE_OPTIONS,
                               PipelineConfig, RunLayout, artefact_layout, layer_settings,
                               name_the_flags, nerf_run_dir, pipeline_preset,
-                              scene_refine_passes, scene_train_minutes, train_preset, wired,
-                              working_downscale)
+                              scene_refine_passes, scene_train_minutes, stage_views,
+                              train_preset, wired, working_downscale)
 from .pipeline_budget import (Counts, budget_training, chain_deadline, command_start,
                               finetune_minutes, run_counts)
 from .pipeline_summary import finetune_outcome, pipeline_summary, summary_markdown
@@ -490,15 +490,6 @@ def _compress(lay: RunLayout, options: CompressOptions) -> None:
     from .octree import load_tree
 
     save_compressed(compress(load_tree(lay.ft), options), lay.compressed)
-
-
-def stage_views(cfg: PipelineConfig, key: str) -> int:
-    """Test views tree stage ``key`` is scored on (0 = all): ``eval_views`` for the result
-    (the compressed tree), ``stage_eval_views`` (at most as many) for the trees before it."""
-    final, inter = cfg.eval_views, cfg.stage_eval_views
-    if key == "compressed" or inter == 0:
-        return final
-    return inter if final == 0 else min(final, inter)
 
 
 def _eval_stages(cfg: PipelineConfig, lay: RunLayout, common: dict) -> list[Stage]:

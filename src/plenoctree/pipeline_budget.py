@@ -190,6 +190,7 @@ def run_counts(cfg: Any) -> Counts:
     from .datasets import load_cameras, load_dataset
     from .datasets.dataset import has_split
     from .optim.finetuning import TRAIN_VAL_VIEWS
+    from .pipeline_config import stage_views
 
     data, fmt = cfg.train.data, cfg.format
     probe = load_dataset(data, "train", format=fmt, limit=1, downscale=cfg.downscale)
@@ -206,8 +207,6 @@ def run_counts(cfg: Any) -> Counts:
 
     def views(n: int) -> int:
         return n_test if n == 0 else min(n, n_test)
-
-    from .pipeline import stage_views
 
     w, h = probe.cameras.width, probe.cameras.height
     size = cfg.video_size

@@ -27,7 +27,7 @@ __all__ = ["PipelineConfig", "StageOptions", "STAGE_OPTIONS", "PRESETS", "UNLIMI
            "pipeline_preset", "train_preset", "time_budget", "layer_settings", "wired",
            "stage_flags", "name_the_flags", "nerf_run_dir", "working_downscale",
            "WORKING_PIXELS", "RunLayout", "artefact_layout", "AUTO_PASSES",
-           "scene_refine_passes", "AUTO_MINUTES", "scene_train_minutes"]
+           "scene_refine_passes", "AUTO_MINUTES", "scene_train_minutes", "stage_views"]
 
 UNLIMITED_STEPS = 10**9
 """``train.max_steps`` when the time budget (``train.minutes``) decides."""
@@ -360,3 +360,12 @@ def name_the_flags(opt: StageOptions, message: str) -> str:
     dashed = {f"--{name.replace('_', '-')}": flag for name, flag in flags.items()}
     dashed.update({flag.replace(f"--{opt.name}.", "--"): flag for flag in flags.values()})
     return spell_flags(message, flags, dashed)
+
+
+def stage_views(cfg: PipelineConfig, key: str) -> int:
+    """Test views tree stage ``key`` is scored on (0 = all): ``eval_views`` for the result
+    (the compressed tree), ``stage_eval_views`` (at most as many) for the trees before it."""
+    final, inter = cfg.eval_views, cfg.stage_eval_views
+    if key == "compressed" or inter == 0:
+        return final
+    return inter if final == 0 else min(final, inter)
