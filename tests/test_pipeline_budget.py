@@ -11,10 +11,9 @@ import plenoctree.pipeline_budget as pb
 from plenoctree.datasets.procedural import write_procedural_dataset
 from plenoctree.errors import ConfigError
 from plenoctree.pipeline import layer_settings, run_pipeline
-from plenoctree.pipeline_budget import (Counts, chain_deadline, command_start,
-                                        decided_train_minutes, finetune_minutes, split_budget,
-                                        tail_seconds)
-from test_pipeline import TINY_EXTRACT, TINY_TRAIN, _tiny_cfg
+from plenoctree.pipeline_budget import (Counts, command_start, decided_train_minutes,
+                                        finetune_minutes, split_budget, tail_seconds)
+from test_pipeline import TINY_TRAIN, _tiny_cfg
 
 
 def _counts(**kw) -> Counts:
@@ -26,13 +25,16 @@ def _counts(**kw) -> Counts:
 
 
 def test_the_deadline_counts_what_earlier_runs_into_out_finished(tmp_path):
-    stages = tmp_path / ".stages"
-    stages.mkdir()
-    (stages / "process.json").write_text(json.dumps({"seconds": 30.0}))
-    (stages / "train.json").write_text(json.dumps({"seconds": 12.5, "stamp": {}}))
-    (stages / "broken.json").write_text("{")
-    assert chain_deadline(tmp_path, 10, 1000.0) == pytest.approx(1000.0 + 600 - 42.5)
-    assert chain_deadline(tmp_path / "new", 2, 5.0) == pytest.approx(125.0)
+    """The stages a run skips as up to date count with the seconds they took when they ran;
+    a given artefact (``--nerf``'s training) and stages that run again do not."""
+    from plenoctree.pipeline import _Runner
+
+    r = _Runner(tmp_path)
+    r.times.update({"process": 30.0, "train": 12.5, "extract": 40.0})
+    r.skipped += ["process", "train"]
+    assert r.earlier_seconds() == pytest.approx(42.5)
+    r.given_stages.append("train")
+    assert r.earlier_seconds() == pytest.approx(30.0)
     # the command's start: this process's when it began within the minute before the call,
     # else the call's own time
     now = time.time()
@@ -117,4 +119,3 @@ def test_a_run_within_minutes(scene, tmp_path, monkeypatch):
     assert {"train", "extract", "finetune", "compress"} <= set(again["skipped"])
     with pytest.raises(ConfigError, match="--minutes must be >= 0"):
         run_pipeline(_tiny_cfg(scene, tmp_path / "bad", minutes=-1.0))
-    assert TINY_EXTRACT                   # (the tiny chain's extraction, as test_pipeline's)

@@ -35,8 +35,8 @@ from .pipeline_config import (AUTO_MINUTES, AUTO_PASSES, PRESETS, STAGE_OPTIONS,
                               name_the_flags, nerf_run_dir, pipeline_preset,
                               scene_refine_passes, scene_train_minutes, stage_views,
                               train_preset, wired, working_downscale)
-from .pipeline_budget import (Counts, budget_training, chain_deadline, command_start,
-                              finetune_minutes, run_counts)
+from .pipeline_budget import (Budget, budget_training, command_start, finetune_minutes,
+                              run_counts)
 from .pipeline_summary import finetune_outcome, pipeline_summary, summary_markdown
 
 __all__ = ["PipelineConfig", "PipelineError", "Stage", "run_pipeline", "plan_stages",
@@ -228,6 +228,11 @@ class _Runner:
         write_live(self.out, stage=f"{name} done", **({"tree": trees[0].name} if trees else {}))
         return True
 
+    def earlier_seconds(self) -> float:
+        """Seconds the stages skipped as up to date took when an earlier run made them (given
+        artefacts, such as ``--nerf``'s training, not counted)."""
+        return sum(self.times.get(s, 0.0) for s in self.skipped if s not in self.given_stages)
+
     def given(self, name: str, seconds: float | None) -> None:
         """Record a stage not run here (its artefact was given); ``seconds`` as reported."""
         if seconds is not None:
@@ -273,19 +278,22 @@ def _run(cfg: PipelineConfig, out: Path) -> dict:
         raise ConfigError(f"{cfg.data}: dataset folder does not exist")
     lay = run_layout(out, cfg.nerf)
     _validate(cfg)
-    deadline = (chain_deadline(out, cfg.minutes, command_start(start)) if cfg.minutes > 0
-                else None)
     r = _Runner(out)
+    t0 = command_start(start)
+
+    def deadline() -> float:      # --minutes: the stages this run skips count as they took
+        return t0 + 60.0 * cfg.minutes - r.earlier_seconds()
+
     logger.info(f"[run] watch it as it goes: plenoctree view {out}")
     if cfg.images:                # its dataset decides the working resolution
         r.run(_process_stage(cfg))
-    budgeted = deadline is not None and cfg.train.minutes == AUTO_MINUTES and not cfg.nerf
+    budgeted = cfg.minutes > 0 and cfg.train.minutes == AUTO_MINUTES and not cfg.nerf
     cfg = _scene_settings(cfg)
     budget = None
-    if deadline is not None:      # --minutes: the NeRF-SH's budget, fine-tuning's time limit
-        budget = (deadline, run_counts(cfg))
+    if cfg.minutes > 0:           # --minutes: the NeRF-SH's budget, fine-tuning's time limit
+        budget = Budget(deadline, run_counts(cfg))
         if budgeted:
-            cfg = wired(budget_training(cfg, out, *budget))
+            cfg = wired(budget_training(cfg, out, deadline(), budget.counts))
     stages = plan_stages(cfg, lay, budget)[1 if cfg.images else 0:]
     atomic_save_json(out / "config.json", config_dict(cfg))   # `run --config` reads it back
     if cfg.nerf:          # a trained NeRF-SH: its training time is read from its summary
@@ -315,9 +323,9 @@ def _trees(cfg: PipelineConfig, lay: RunLayout) -> list[tuple[str, Path]]:
 
 
 def plan_stages(cfg: PipelineConfig, lay: RunLayout,
-                budget: tuple[float, Counts] | None = None) -> list[Stage]:
+                budget: Budget | None = None) -> list[Stage]:
     """The stages of the chain, in order, for a :func:`wired` and checked ``cfg``; ``budget``
-    (``run --minutes``: the deadline, a ``time.time()``, and the run's counts) sets
+    (``run --minutes``: its deadline and the run's counts) sets
     fine-tuning's time limit when it starts (:func:`_finetune`)."""
     from .nerf.checkpoint import CHECKPOINT_NAME
 
@@ -353,14 +361,14 @@ def plan_stages(cfg: PipelineConfig, lay: RunLayout,
     return stages
 
 
-def _finetune(cfg: PipelineConfig, budget: tuple[float, Counts] | None) -> Any:
+def _finetune(cfg: PipelineConfig, budget: Budget | None) -> Any:
     """Fine-tuning; under ``run --minutes`` with the time limit that leaves the stages after
     it their predicted time (:func:`~.pipeline_budget.finetune_minutes`). The limit is not part
     of the stage's stamp: a finished fine-tuning is not redone for it."""
     fcfg = cfg.finetune
     if budget is not None:
         gb = Path(fcfg.tree).stat().st_size / 1e9       # the fine-tuned tree's size (fp32)
-        minutes = finetune_minutes(budget[1], budget[0], gb, fcfg.minutes)
+        minutes = finetune_minutes(budget.counts, budget.deadline(), gb, fcfg.minutes)
         logger.info(f"[finetune] --minutes {cfg.minutes:g}: its epochs stop within "
                     f"{minutes:.1f} minutes")
         fcfg = dataclasses.replace(fcfg, minutes=minutes)

@@ -8,25 +8,26 @@ at least :data:`TRAIN_SHARE` of the time they leave (:func:`split_budget`); fine
 stops its epochs so that the stages after it still fit (:func:`finetune_minutes`: its
 ``minutes``, from the predicted tail, :func:`tail_seconds`).
 
-The deadline is the run's start plus ``N`` minutes, less the seconds that the stages an earlier
-run into the same folder finished took (:func:`chain_deadline`): a resumed run keeps the budget
-of the chain, not of the command. The NeRF-SH's budget, once decided, is kept in
+The deadline is the command's start plus ``N`` minutes, less the seconds that the stages this
+run skips as up to date took when an earlier run made them (:class:`Budget`, evaluated when a
+stage needs it): a resumed run keeps the budget of the chain, not of the command. The NeRF-SH's budget, once decided, is kept in
 ``OUT/budget.json`` so that a resumed run finds its training stage unchanged.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, NamedTuple
 
 from ._util import atomic_save_json
 
-__all__ = ["RATES", "TRAIN_SHARE", "MIN_TRAIN_S", "Counts", "command_start", "chain_deadline",
+__all__ = ["RATES", "TRAIN_SHARE", "MIN_TRAIN_S", "Counts", "Budget", "command_start",
            "split_budget", "tail_seconds", "finetune_minutes", "decided_train_minutes",
            "run_counts", "budget_training"]
 
@@ -111,16 +112,12 @@ def command_start(now: float, within: float = 60.0) -> float:
     return start if now - within < start <= now else now
 
 
-def chain_deadline(out: Path, minutes: float, start: float) -> float:
-    """The run's deadline (a ``time.time()``): ``start`` plus ``minutes``, less the seconds of
-    the stages an earlier run into ``out`` finished (their ``.stages/*.json``)."""
-    spent = 0.0
-    for p in sorted((Path(out) / ".stages").glob("*.json")):
-        try:
-            spent += float(json.loads(p.read_text()).get("seconds", 0.0))
-        except (OSError, ValueError, TypeError, AttributeError):
-            continue
-    return start + 60.0 * float(minutes) - spent
+class Budget(NamedTuple):
+    """A run's time budget: ``deadline()`` (a ``time.time()``, evaluated when a stage needs it)
+    and the run's :class:`Counts`."""
+
+    deadline: Callable[[], float]
+    counts: Counts
 
 
 def tail_seconds(c: Counts, tree_gb: float) -> float:
@@ -223,8 +220,6 @@ def run_counts(cfg: Any) -> Counts:
 def budget_training(cfg: Any, out: Path, deadline: float, counts: Counts) -> Any:
     """``cfg`` with the NeRF-SH's ``minutes`` decided by the run's ``deadline``
     (:func:`split_budget`, kept by :func:`decided_train_minutes`), said on the log."""
-    import dataclasses
-
     def decide() -> float:
         left = deadline - time.time()
         train_s, others = split_budget(counts, left)

@@ -176,8 +176,8 @@ class PipelineConfig:
     minutes: float = 0.0
     """wall-time budget of the whole run in minutes, from the command's start (0 = none):
     the NeRF-SH trains for what the other stages leave (--train.minutes decides instead when
-    given) and fine-tuning stops its epochs in time for the stages after it; stages that an
-    earlier run into OUT finished count with their time"""
+    given) and fine-tuning stops its epochs in time for the stages after it; stages an
+    earlier run into OUT finished, and this run skips, count with their time"""
     process: ProcessConfig = field(default_factory=lambda: ProcessConfig(overwrite=True))
     """camera poses of --images (`plenoctree process`)"""
     train: TrainConfig = field(default_factory=_run_train)
